@@ -1,0 +1,86 @@
+"""The ``hostlink`` console script: one sub-command per module in ``hostlink.commands``.
+
+Each command module defines ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``, and imports its
+heavy dependencies inside ``run`` so that ``hostlink --help`` stays fast. Every failure a user can cause is a
+:class:`hostlink.errors.UserError`, printed as one line with a non-zero exit code; anything else is reported as an
+internal error in one line too (``HOSTLINK_DEBUG=1`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from hostlink.errors import UserError
+
+#: Sub-commands in the order ``--help`` lists them (module ``hostlink.commands.<name>``).
+COMMANDS: tuple[str, ...] = (
+    "bench",
+    "simulate",
+    "calibrate",
+    "replay",
+    "attitude",
+    "emulate",
+    "stream",
+    "upload",
+    "params",
+    "monitor",
+    "accept",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, not usage + message
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="hostlink",
+        description="Star-sensor companion: simulate, calibrate, replay the onboard estimator, and talk to "
+        "sensors (real or emulated) over serial, CAN or Modbus.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"hostlink.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"hostlink.commands.{name}":
+                raise
+            continue
+        p = sub.add_parser(name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        code = args._run(args)
+    except UserError as exc:
+        print(f"hostlink {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"hostlink {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
+        if os.environ.get("HOSTLINK_DEBUG"):
+            raise
+        print(
+            f"hostlink {args.command}: internal error: {type(exc).__name__}: {exc} "
+            "(set HOSTLINK_DEBUG=1 for a traceback)",
+            file=sys.stderr,
+        )
+        return 1
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,204 @@
+"""Session files (INTERFACES.md): a CSV of star observations, one row per star, frames in time order.
+
+A :class:`Session` holds columns as numpy arrays (float64 on the host) plus the frame boundaries, so every consumer
+(calibration, replay, attitude, emulator replay, streaming) reads the file one way.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.timeutil import parse_iso_utc_many
+
+REQUIRED_COLUMNS = ("frame", "t_utc", "star_id", "x_px", "y_px")
+OPTIONAL_COLUMNS = ("mag", "ra_deg", "dec_deg")
+
+
+@dataclass
+class Session:
+    """Columns of a session file. ``ra_deg``/``dec_deg`` are None when the file has no reference directions;
+    ``extra`` keeps unknown columns (as strings) so a rewrite loses nothing."""
+
+    frame: np.ndarray  # int64
+    t_utc: np.ndarray  # str (object), ISO 8601 UTC as in the file
+    star_id: np.ndarray  # int64, 0 = not identified
+    x_px: np.ndarray
+    y_px: np.ndarray
+    mag: np.ndarray | None = None
+    ra_deg: np.ndarray | None = None
+    dec_deg: np.ndarray | None = None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.frame.shape[0])
+
+    @property
+    def frame_starts(self) -> np.ndarray:
+        """Row index where each frame starts, plus a final entry = number of rows."""
+        if len(self) == 0:
+            return np.zeros(1, dtype=np.int64)
+        change = np.flatnonzero(np.diff(self.frame) != 0) + 1
+        return np.concatenate([[0], change, [len(self)]]).astype(np.int64)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.frame_starts.shape[0] - 1)
+
+    def frame_slices(self) -> Iterator[slice]:
+        starts = self.frame_starts
+        for a, b in zip(starts[:-1], starts[1:], strict=True):
+            yield slice(int(a), int(b))
+
+    def frame_times_jd(self) -> tuple[np.ndarray, np.ndarray]:
+        """UTC two-part Julian dates (jd1, jd2) of each frame (from its first row)."""
+        first = self.frame_starts[:-1]
+        return parse_iso_utc_many(self.t_utc[first])
+
+    def select(self, rows: np.ndarray) -> Session:
+        """A new session with only the given rows (a boolean mask or index array)."""
+
+        def pick(a):
+            return None if a is None else a[rows]
+
+        return Session(
+            frame=self.frame[rows],
+            t_utc=self.t_utc[rows],
+            star_id=self.star_id[rows],
+            x_px=self.x_px[rows],
+            y_px=self.y_px[rows],
+            mag=pick(self.mag),
+            ra_deg=pick(self.ra_deg),
+            dec_deg=pick(self.dec_deg),
+            extra={k: v[rows] for k, v in self.extra.items()},
+        )
+
+
+def read_session(path: str | Path) -> Session:
+    """Read and check a session CSV. Any malformed content is a one-line :class:`UserError` with row and column."""
+    path = Path(path)
+    try:
+        handle = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    with handle:
+        reader = csv.reader(handle)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise UserError(f"{path}: empty file (expected a header row)") from None
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise UserError(f"{path}: not a CSV file ({exc})") from None
+        missing = [c for c in REQUIRED_COLUMNS if c not in header]
+        if missing:
+            raise UserError(f"{path}: missing required column(s) {', '.join(missing)}")
+        if ("ra_deg" in header) != ("dec_deg" in header):
+            raise UserError(f"{path}: ra_deg and dec_deg must both be present or both absent")
+        try:
+            rows = [r for r in reader if r]
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise UserError(f"{path}: unreadable CSV near line {reader.line_num} ({exc})") from None
+    ncol = len(header)
+    for k, row in enumerate(rows):
+        if len(row) != ncol:
+            raise UserError(f"{path}: line {k + 2}: expected {ncol} fields, found {len(row)}")
+    cols = list(zip(*rows, strict=True)) if rows else [()] * ncol
+    by_name = {name: cols[k] for k, name in enumerate(header)}
+
+    def numeric(name: str, kind: type) -> np.ndarray:
+        raw = by_name[name]
+        try:
+            arr = np.array(raw, dtype=np.float64) if raw else np.zeros(0)
+        except ValueError:
+            for k, s in enumerate(raw):
+                try:
+                    float(s)
+                except ValueError:
+                    raise UserError(f"{path}: line {k + 2}, column {name}: not a number: {s!r}") from None
+            raise
+        if kind is int:
+            bad = ~np.isfinite(arr) | (arr != np.round(arr))
+            if np.any(bad):
+                k = int(np.argmax(bad))
+                raise UserError(f"{path}: line {k + 2}, column {name}: not an integer: {raw[k]!r}")
+            return arr.astype(np.int64)
+        if name in ("x_px", "y_px", "ra_deg", "dec_deg") and not np.all(np.isfinite(arr)):
+            k = int(np.argmax(~np.isfinite(arr)))
+            raise UserError(f"{path}: line {k + 2}, column {name}: not finite: {raw[k]!r}")
+        return arr
+
+    frame = numeric("frame", int)
+    if frame.size and np.any(np.diff(frame) < 0):
+        k = int(np.argmax(np.diff(frame) < 0)) + 1
+        raise UserError(f"{path}: line {k + 2}: frames are not in time order (frame {frame[k]} after {frame[k - 1]})")
+    t_utc = np.array(by_name["t_utc"], dtype=object)
+    session = Session(
+        frame=frame,
+        t_utc=t_utc,
+        star_id=numeric("star_id", int),
+        x_px=numeric("x_px", float),
+        y_px=numeric("y_px", float),
+        mag=numeric("mag", float) if "mag" in by_name else None,
+        ra_deg=numeric("ra_deg", float) if "ra_deg" in by_name else None,
+        dec_deg=numeric("dec_deg", float) if "dec_deg" in by_name else None,
+        extra={
+            k: np.array(v, dtype=object)
+            for k, v in by_name.items()
+            if k not in REQUIRED_COLUMNS and k not in OPTIONAL_COLUMNS
+        },
+    )
+    if np.any(session.star_id < 0):
+        k = int(np.argmax(session.star_id < 0))
+        raise UserError(f"{path}: line {k + 2}, column star_id: negative Hipparcos number")
+    if len(session):
+        starts = session.frame_starts[:-1]
+        try:
+            session.frame_times_jd()
+        except ValueError as exc:
+            raise UserError(f"{path}: column t_utc: {exc}") from None
+        # every row of a frame must carry the frame's time
+        times = np.repeat(t_utc[starts], np.diff(session.frame_starts))
+        if np.any(times != t_utc):
+            k = int(np.argmax(times != t_utc))
+            raise UserError(f"{path}: line {k + 2}: t_utc differs from the rest of frame {frame[k]}")
+    return session
+
+
+def write_session(path: str | Path, session: Session, float_format: str = "%.6f") -> None:
+    """Write a session CSV (atomically). Angles are written with 10 decimals of a degree (3.6e-8 deg = 0.13 mas)."""
+    path = Path(path)
+    header = list(REQUIRED_COLUMNS)
+    cols: list[list[str]] = [
+        [str(int(v)) for v in session.frame],
+        [str(v) for v in session.t_utc],
+        [str(int(v)) for v in session.star_id],
+        [float_format % v for v in session.x_px],
+        [float_format % v for v in session.y_px],
+    ]
+    if session.mag is not None:
+        header.append("mag")
+        cols.append(["%.3f" % v for v in session.mag])
+    if session.ra_deg is not None and session.dec_deg is not None:
+        header += ["ra_deg", "dec_deg"]
+        cols.append(["%.10f" % v for v in session.ra_deg])
+        cols.append(["%.10f" % v for v in session.dec_deg])
+    for name, values in session.extra.items():
+        header.append(name)
+        cols.append([str(v) for v in values])
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tmp.open("w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle, lineterminator="\n")
+            writer.writerow(header)
+            writer.writerows(zip(*cols, strict=True))
+        tmp.replace(path)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write ({exc.strerror})") from None

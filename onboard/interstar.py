@@ -1,0 +1,88 @@
+"""Interstar-angle measurements, shared by the onboard recursive estimator and the host's batch methods.
+
+The invariance of interstar angles (seed 000 eq. 3, seed 004 eq. 1): for stars i, j of one frame,
+b_i . b_j = r_i . r_j whatever the attitude. Written in the difference form
+
+    m_ij = (|b_i - b_j|^2 - |r_i - r_j|^2) / 2      (= r_i . r_j - b_i . b_j)
+
+the measurement keeps float32's relative precision for small angles, where the plain cosine b_i . b_j ~ 1 loses it
+(the cosine of a 5 deg angle differs from 1 by 4e-3, so float32 keeps only ~1e-5 of the information).
+
+With n stars a frame carries only 2n - 3 independent angles (n directions on the sphere, less 3 for the rotation).
+:func:`independent_pairs` picks a fixed set of that size, and :func:`pair_covariance` gives their covariance from
+the centroid noise, so estimators whiten exactly those pairs instead of treating all n(n-1)/2 as independent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def independent_pairs(n_stars: int) -> tuple[np.ndarray, np.ndarray]:
+    """2n - 3 pairs that fix n points on the sphere up to a rotation: (0,1), then (0,k) and (1,k) for k >= 2.
+
+    Every star beyond the first two is tied by two angles to the base pair, so the set is independent and complete
+    for rigid-body geometry as long as stars 0 and 1 and star k are not collinear (callers order stars so that
+    the base pair is well separated: see :func:`order_for_pairs`). Returns int32 index arrays (i, j).
+    """
+    if n_stars < 2:
+        return np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32)
+    ks = np.arange(2, n_stars, dtype=np.int32)
+    i = np.concatenate([np.zeros(1, np.int32), np.zeros_like(ks), np.ones_like(ks)])
+    j = np.concatenate([np.ones(1, np.int32), ks, ks])
+    return i, j
+
+
+def order_for_pairs(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+    """Permutation putting a well-separated base pair first: the star farthest from the mean, then the star
+    farthest from that one. Bounded work O(n). Returns int32 indices."""
+    n = x_px.shape[0]
+    order = np.arange(n, dtype=np.int32)
+    if n < 3:
+        return order
+    d0 = (x_px - np.mean(x_px)) ** 2 + (y_px - np.mean(y_px)) ** 2
+    a = int(np.argmax(d0))
+    d1 = (x_px - x_px[a]) ** 2 + (y_px - y_px[a]) ** 2
+    b = int(np.argmax(d1))
+    rest = order[(order != a) & (order != b)]
+    return np.concatenate([np.array([a, b], dtype=np.int32), rest])
+
+
+def difference_residuals(b: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Interstar residuals e_ij = (|b_i - b_j|^2 - |r_i - r_j|^2) / 2 for the given pairs.
+
+    Read as observation minus prediction: the observation is z_ij = -|r_i - r_j|^2 / 2 (catalogue, exact) and the
+    model prediction is h_ij(theta) = -|b_i - b_j|^2 / 2, so e = z - h and a Gauss-Newton step solves
+    H dtheta = e with H from :func:`difference_jacobian`. Zero for the true camera without noise.
+    """
+    db = b[i] - b[j]
+    dr = r[i] - r[j]
+    return (np.sum(db * db, axis=1) - np.sum(dr * dr, axis=1)) / 2
+
+
+def difference_jacobian(b: np.ndarray, jb: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """dh/dtheta for the prediction h_ij = -|b_i - b_j|^2 / 2: -(b_i - b_j)^T (J_i - J_j), shape (P, K),
+    for jb = db/dtheta of shape (N, 3, K)."""
+    db = b[i] - b[j]
+    return -np.einsum("pc,pck->pk", db, jb[i] - jb[j])
+
+
+def pair_covariance(
+    b: np.ndarray, jb_centroid: np.ndarray, i: np.ndarray, j: np.ndarray, sigma_px: float
+) -> np.ndarray:
+    """Covariance (P, P) of the pair predictions h_ij = -|b_i - b_j|^2 / 2 from isotropic centroid noise sigma_px.
+
+    dh_ij/dc_i = -(b_i - b_j)^T Jc_i and dh_ij/dc_j = +(b_i - b_j)^T Jc_j (Jc = db/d(x, y)); pairs that share a
+    star are correlated, which is why only 2n - 3 independent pairs are used and whitened together.
+    """
+    n = b.shape[0]
+    p = i.shape[0]
+    db = b[i] - b[j]
+    g = np.zeros((p, n, 2), dtype=b.dtype)
+    gi = -np.einsum("pc,pck->pk", db, jb_centroid[i])
+    gj = np.einsum("pc,pck->pk", db, jb_centroid[j])
+    rows = np.arange(p)
+    g[rows, i, :] += gi
+    g[rows, j, :] += gj
+    g = g.reshape(p, 2 * n)
+    return (sigma_px * sigma_px) * (g @ g.T)
