@@ -114,6 +114,9 @@ def read_session(path: str | Path) -> Session:
 
     def numeric(name: str, kind: type) -> np.ndarray:
         raw = by_name[name]
+        if name in ("ra_deg", "dec_deg", "mag"):
+            # unidentified stars (star_id 0) and rows without a magnitude may leave these empty
+            raw = tuple("nan" if s.strip() == "" else s for s in raw)
         try:
             arr = np.array(raw, dtype=np.float64) if raw else np.zeros(0)
         except ValueError:
@@ -129,7 +132,7 @@ def read_session(path: str | Path) -> Session:
                 k = int(np.argmax(bad))
                 raise UserError(f"{path}: line {k + 2}, column {name}: not an integer: {raw[k]!r}")
             return arr.astype(np.int64)
-        if name in ("x_px", "y_px", "ra_deg", "dec_deg") and not np.all(np.isfinite(arr)):
+        if name in ("x_px", "y_px") and not np.all(np.isfinite(arr)):
             k = int(np.argmax(~np.isfinite(arr)))
             raise UserError(f"{path}: line {k + 2}, column {name}: not finite: {raw[k]!r}")
         return arr
@@ -154,6 +157,11 @@ def read_session(path: str | Path) -> Session:
             if k not in REQUIRED_COLUMNS and k not in OPTIONAL_COLUMNS
         },
     )
+    if session.ra_deg is not None:
+        bad = (session.star_id != 0) & ~(np.isfinite(session.ra_deg) & np.isfinite(session.dec_deg))
+        if np.any(bad):
+            k = int(np.argmax(bad))
+            raise UserError(f"{path}: line {k + 2}: identified star without a finite ra_deg/dec_deg")
     if np.any(session.star_id < 0):
         k = int(np.argmax(session.star_id < 0))
         raise UserError(f"{path}: line {k + 2}, column star_id: negative Hipparcos number")
@@ -187,8 +195,8 @@ def write_session(path: str | Path, session: Session, float_format: str = "%.6f"
         cols.append(["%.3f" % v for v in session.mag])
     if session.ra_deg is not None and session.dec_deg is not None:
         header += ["ra_deg", "dec_deg"]
-        cols.append(["%.10f" % v for v in session.ra_deg])
-        cols.append(["%.10f" % v for v in session.dec_deg])
+        cols.append(["%.10f" % v if np.isfinite(v) else "" for v in session.ra_deg])
+        cols.append(["%.10f" % v if np.isfinite(v) else "" for v in session.dec_deg])
     for name, values in session.extra.items():
         header.append(name)
         cols.append([str(v) for v in values])

@@ -1,0 +1,65 @@
+"""Command-line site, weather and dUT1 options (INTERFACES.md), shared by every command that takes them."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from hostlink.errors import UserError
+from onboard.site import Site, Weather
+
+
+def _numbers(text: str, option: str, counts: tuple[int, ...], example: str) -> list[float]:
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise UserError(f"{option} {text!r}: expected numbers separated by commas, e.g. {example}") from None
+    if len(values) not in counts or not all(math.isfinite(v) for v in values):
+        raise UserError(f"{option} {text!r}: expected {' or '.join(map(str, counts))} finite numbers, e.g. {example}")
+    return values
+
+
+def parse_site(text: str) -> Site:
+    """``LAT_DEG,LON_DEG,HEIGHT_M`` (east longitude positive)."""
+    lat, lon, h = _numbers(text, "--site", (3,), "39.9,116.4,50")
+    if not -90 <= lat <= 90:
+        raise UserError(f"--site: latitude {lat} is outside [-90, 90] deg")
+    if not -360 <= lon <= 360:
+        raise UserError(f"--site: longitude {lon} is outside [-360, 360] deg")
+    if not -500 <= h <= 10000:
+        raise UserError(f"--site: height {h} m is outside [-500, 10000] m")
+    return Site(lat, lon, h)
+
+
+def parse_weather(text: str) -> Weather:
+    """``TEMP_C,PRESSURE_HPA[,REL_HUMIDITY]`` (humidity as a fraction 0..1; a value > 1 is read as percent)."""
+    values = _numbers(text, "--weather", (2, 3), "15,1013.25,0.5")
+    temp, pressure = values[0], values[1]
+    rh = values[2] if len(values) == 3 else 0.0
+    if rh > 1.0:
+        rh = rh / 100.0
+    if not -80 <= temp <= 60:
+        raise UserError(f"--weather: temperature {temp} C is outside [-80, 60] C")
+    if not 0 <= pressure <= 1200:
+        raise UserError(f"--weather: pressure {pressure} hPa is outside [0, 1200] hPa")
+    if not 0 <= rh <= 1:
+        raise UserError(f"--weather: relative humidity {rh} is outside [0, 1]")
+    return Weather(temp, pressure, rh)
+
+
+def add_site_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--site", metavar="LAT_DEG,LON_DEG,HEIGHT_M", help="ground or ship site (east longitude +)")
+    parser.add_argument(
+        "--weather", metavar="TEMP_C,PRESSURE_HPA[,RH]", help="weather at the site, for refraction (RH 0..1)"
+    )
+    parser.add_argument("--dut1", type=float, default=0.0, metavar="SECONDS", help="UT1 - UTC (default 0)")
+
+
+def site_and_weather(args: argparse.Namespace) -> tuple[Site | None, Weather | None]:
+    """Parsed --site/--weather; --weather without --site is an error (refraction needs the site)."""
+    site = parse_site(args.site) if getattr(args, "site", None) else None
+    weather = parse_weather(args.weather) if getattr(args, "weather", None) else None
+    if weather is not None and site is None:
+        raise UserError("--weather needs --site (refraction depends on where the sensor is)")
+    return site, weather
