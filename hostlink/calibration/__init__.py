@@ -1,0 +1,14 @@
+"""Batch ground calibration (ARCHITECTURE.md ``hostlink/calibration``): host side, float64, on the one camera model.
+
+Modules:
+- ``data``: the observations a calibration works on (centroids, reference directions, frame boundaries).
+- ``references``: reference directions from a session (file ra/dec or Hipparcos apparent place, plus refraction).
+- ``frames``: per-frame helpers (SVD attitude fit, padding), vectorised over frames.
+- ``bundle``: the default method, a bundle adjustment over the camera and per-frame attitudes (Schur complement).
+- ``interstar_methods``: seed 000 cosine / sine interstar least squares and its improved two-step iteration.
+- ``seed004``: seed 004's three-step Levenberg-Marquardt.
+- ``robust``: screening of misidentified stars (interstar voting), Huber weights and gating.
+- ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
+- ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.
+- ``synthetic``: random star fields through a known camera, for tests and benchmarks (not the sky simulator).
+"""

@@ -1,0 +1,359 @@
+"""The default calibration: a bundle adjustment over the camera and the attitude of every frame.
+
+Measurement model, per identified star k of frame f (CAMERA_MODEL.md):
+
+    q(x_k, y_k; theta) = F (C_f r_k)_xy / (C_f r_k)_z
+
+with q the ideal offsets of the measured centroid (``onboard.camera.ideal_offset_jacobians``), F = theta[0] in
+pixels and C_f the attitude (b = C r). The residual is whitened into measured pixels,
+
+    e_k = Jc_k^-1 (q_k - p_k),     Jc = dq/d(x, y),
+
+so that isotropic centroid noise sigma gives e_k ~ N(0, sigma^2 I) to first order, and least squares is maximum
+likelihood. Unknowns: the selected camera parameters and a 3-parameter rotation increment per frame
+(C <- exp(-[dphi x]) C). Levenberg-Marquardt steps solve the normal equations
+
+    [ U    B ] [dtheta]     [g    ]
+    [ B^T  A ] [dphi  ] = - [g_phi]
+
+where A is block diagonal (one 3 x 3 block per frame). The attitude blocks are eliminated by the Schur complement
+S = U - sum_f B_f A_f^-1 B_f^T, accumulated over chunks of frames, so the memory of a pass does not grow with the
+number of frames and its time is linear in it (Triggs et al., "Bundle adjustment - a modern synthesis", 2000, sec. 6).
+
+Robustness: interstar voting before the fit, Huber weights during it, gating after it (``robust``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.frames import apply_attitude_increment, skew, wahba_svd
+from hostlink.calibration.robust import huber_cost, huber_weights, robust_sigma_2d, vote_consistent_stars
+from onboard.camera import ideal_offset_jacobians, pixels_to_unit
+from onboard.params import ESTIMATE_NAMES, CameraParams
+
+#: Most stars processed at once in a pass over the data: bounds the working arrays (~1 kB per star).
+DEFAULT_CHUNK_OBS = 50_000
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    estimate: tuple[str, ...] = ESTIMATE_NAMES
+    max_iter: int = 100
+    noise_px: float | None = None  # known centroid noise per axis; None: estimated from the residuals
+    huber_k: float = 3.0  # Huber threshold in robust sigmas (efficiency ~99.5 % for Gaussian noise)
+    gate: float = 5.0  # residuals beyond this many robust sigmas are dropped (2-D Gaussian: P = 3.7e-6)
+    max_gate_rounds: int = 5
+    screen: bool = True  # interstar voting before the fit
+    chunk_obs: int = DEFAULT_CHUNK_OBS
+    ftol: float = 1e-12  # stop when the relative cost decrease of an accepted step is below this, or
+    step_tol: float = 1e-4  # when a step moves the camera by less than this many standard deviations
+    progress: Callable[[dict], None] | None = None
+
+
+@dataclass
+class BundleResult:
+    theta: np.ndarray  # model vector (F in px), all 10 entries
+    attitudes: np.ndarray  # (M_fit, 3, 3) for the frames of ``data``
+    data: CalibrationData  # the rows and frames that were fitted (inliers)
+    rows_used: np.ndarray  # (N_input,) bool: input rows kept
+    n_rejected_voting: int
+    n_rejected_gating: int
+    n_frames_dropped: int
+    sigma_px: float  # centroid noise per axis used for the covariance
+    sigma_estimated_px: float  # from the final residuals
+    estimate: tuple[str, ...]
+    normal: np.ndarray  # (K, K) reduced normal matrix S / 1 (unit noise), model-vector units
+    normal_u_diag: np.ndarray  # (K,) diagonal of U before the attitudes are eliminated
+    covariance: np.ndarray  # (K, K) sigma^2 S^-1, model-vector units
+    history: list[dict] = field(default_factory=list)
+    converged: bool = False
+
+
+def parameter_columns(estimate: tuple[str, ...]) -> np.ndarray:
+    """Indices into the model vector of the estimated parameters (ESTIMATE_NAMES order)."""
+    unknown = [n for n in estimate if n not in ESTIMATE_NAMES]
+    if unknown:
+        raise ValueError(f"unknown parameter name(s) {', '.join(unknown)} (allowed: {','.join(ESTIMATE_NAMES)})")
+    return np.array([ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n in estimate], dtype=np.int64)
+
+
+def parameter_scales(params: CameraParams) -> np.ndarray:
+    """Characteristic size of a unit change of each model-vector entry: 1 px for F, x0, y0 and 1 px of distortion
+    at the detector half-diagonal R for the rest (k1 ~ R^-3, k2 ~ R^-5, k3 ~ R^-7, p and s ~ R^-2). Steps are
+    solved in these units so the normal matrix is well scaled."""
+    half_diag = 0.5 * float(np.hypot(*params.image_size_px))
+    return np.array([1.0, 1.0, 1.0, half_diag**-3, half_diag**-5, half_diag**-7] + [half_diag**-2] * 4)
+
+
+def observation_terms(
+    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray, cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened residuals and their Jacobians for a block of stars.
+
+    attitude_obs: (n, 3, 3) attitude of each star's frame. Returns e (n, 2) [measured px], J_theta (n, 2, K)
+    with respect to the model-vector entries ``cols``, J_phi (n, 2, 3) with respect to the frame's rotation
+    increment. The whitening Jc^-1 is held fixed in the derivative (Gauss-Newton on a weighted problem).
+    """
+    q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
+    s = np.einsum("nij,nj->ni", attitude_obs, r)
+    focal_px = theta[0]
+    inv_z = 1.0 / s[:, 2]
+    p = focal_px * s[:, :2] * inv_z[:, None]
+    n = x_px.shape[0]
+    dp_ds = np.zeros((n, 2, 3))
+    dp_ds[:, 0, 0] = focal_px * inv_z
+    dp_ds[:, 1, 1] = focal_px * inv_z
+    dp_ds[:, :, 2] = -p * inv_z[:, None]
+    det = jc[:, 0, 0] * jc[:, 1, 1] - jc[:, 0, 1] * jc[:, 1, 0]
+    jc_inv = np.empty_like(jc)
+    jc_inv[:, 0, 0] = jc[:, 1, 1] / det
+    jc_inv[:, 0, 1] = -jc[:, 0, 1] / det
+    jc_inv[:, 1, 0] = -jc[:, 1, 0] / det
+    jc_inv[:, 1, 1] = jc[:, 0, 0] / det
+    e = np.einsum("nij,nj->ni", jc_inv, q - p)
+    jt = jq_theta[:, :, cols]
+    f_col = np.flatnonzero(cols == 0)
+    if f_col.size:
+        jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
+    j_theta = jc_inv @ jt
+    j_phi = -(jc_inv @ (dp_ds @ skew(s)))
+    return e, j_theta, j_phi
+
+
+@dataclass
+class NormalBlocks:
+    u: np.ndarray  # (K, K)
+    g: np.ndarray  # (K,)
+    a: np.ndarray  # (M, 3, 3)
+    b: np.ndarray  # (M, K, 3)
+    g_phi: np.ndarray  # (M, 3)
+    e: np.ndarray  # (N, 2) residuals at the linearisation point
+
+
+def accumulate_normals(
+    data: CalibrationData,
+    theta: np.ndarray,
+    attitudes: np.ndarray,
+    cols: np.ndarray,
+    weights: np.ndarray,
+    col_scale: np.ndarray,
+    chunk_obs: int = DEFAULT_CHUNK_OBS,
+) -> NormalBlocks:
+    """Weighted normal-equation blocks, one chunk of frames at a time (memory bounded by ``chunk_obs``).
+
+    Camera columns are multiplied by ``col_scale`` (the step is solved in scaled units)."""
+    k = cols.shape[0]
+    m = data.n_frames
+    starts = data.frame_starts
+    counts = data.counts
+    blocks = NormalBlocks(np.zeros((k, k)), np.zeros(k), np.zeros((m, 3, 3)), np.zeros((m, k, 3)),
+                          np.zeros((m, 3)), np.zeros((data.n_obs, 2)))
+    for f0, f1 in frame_chunks(starts, chunk_obs):
+        a, b = int(starts[f0]), int(starts[f1])
+        att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
+        e, jt, jp = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, cols)
+        jt = jt * col_scale[None, None, :]
+        w = weights[a:b, None, None]
+        jt_w = jt * w
+        jp_w = jp * w
+        blocks.u += np.einsum("nck,ncl->kl", jt_w, jt)
+        blocks.g += np.einsum("nck,nc->k", jt_w, e)
+        local = starts[f0:f1] - a
+        blocks.a[f0:f1] = np.add.reduceat(np.einsum("nck,ncl->nkl", jp_w, jp), local, axis=0)
+        blocks.b[f0:f1] = np.add.reduceat(np.einsum("nck,ncl->nkl", jt_w, jp), local, axis=0)
+        blocks.g_phi[f0:f1] = np.add.reduceat(np.einsum("nck,nc->nk", jp_w, e), local, axis=0)
+        blocks.e[a:b] = e
+    return blocks
+
+
+def residuals(
+    data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray, chunk_obs: int = DEFAULT_CHUNK_OBS
+) -> np.ndarray:
+    """Whitened residuals e (N, 2) [measured px] of every star (see :func:`observation_terms`)."""
+    out = np.zeros((data.n_obs, 2))
+    starts, counts = data.frame_starts, data.counts
+    no_cols = np.zeros(0, dtype=np.int64)
+    for f0, f1 in frame_chunks(starts, chunk_obs):
+        a, b = int(starts[f0]), int(starts[f1])
+        att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
+        out[a:b] = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, no_cols)[0]
+    return out
+
+
+def reduced_normal(blocks: NormalBlocks, damping: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Schur complement over the attitude blocks, with Marquardt damping (diag scaled by 1 + damping).
+
+    Returns (S, rhs, W) with S dtheta = rhs and W = B A^-1 (M, K, 3) for the back substitution."""
+    a = blocks.a.copy()
+    idx = np.arange(3)
+    a[:, idx, idx] *= 1.0 + damping
+    u = blocks.u.copy()
+    kdx = np.arange(u.shape[0])
+    u[kdx, kdx] *= 1.0 + damping
+    a_inv = np.linalg.inv(a)
+    w = blocks.b @ a_inv
+    s = u - np.tensordot(w, blocks.b, axes=([0, 2], [0, 2]))
+    rhs = -blocks.g + np.einsum("mkj,mj->k", w, blocks.g_phi)
+    return s, rhs, a_inv
+
+
+def solve_scaled(s: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve S x = rhs after Jacobi equilibration; a (near-)singular S gets the minimum-norm solution."""
+    d = np.sqrt(np.maximum(np.diag(s), 1e-300))
+    ss = s / d[:, None] / d[None, :]
+    try:
+        x = np.linalg.solve(ss, rhs / d)
+        if not np.all(np.isfinite(x)):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(ss, rhs / d, rcond=1e-14)[0]
+    return x / d
+
+
+def initial_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
+    """Per-frame SVD attitude from the measured directions of the given camera (Markley's method)."""
+    return wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta), data.r, data.frame_starts)
+
+
+def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleOptions | None = None) -> BundleResult:
+    """Calibrate the camera and every frame's attitude by robust Levenberg-Marquardt (see module docstring).
+
+    ``nominal`` gives the starting values and the fixed values of parameters not in ``options.estimate``.
+    Raises ValueError if fewer than one frame with three consistent stars remains.
+    """
+    opt = options or BundleOptions()
+    cols = parameter_columns(opt.estimate)
+    if cols.size == 0:
+        raise ValueError("no parameter to estimate")
+    scale = parameter_scales(nominal)[cols]
+    theta = nominal.model_vector(np.float64)
+    n_input = data.n_obs
+    rows_used = np.ones(n_input, dtype=bool)
+    n_voted = 0
+    if opt.screen:
+        consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, theta))
+        n_voted = int(np.sum(~consistent))
+        fit, kept_rows, _ = data.select(consistent)
+        rows_used = kept_rows
+    else:
+        fit, kept_rows, _ = data.select(np.ones(n_input, dtype=bool))
+        rows_used = kept_rows
+    input_index = np.flatnonzero(rows_used)  # fit row -> input row
+    if fit.n_frames == 0:
+        raise ValueError("no frame with at least 3 consistent identified stars")
+    att = initial_attitudes(fit, theta)
+    history: list[dict] = []
+    n_gated = 0
+    damping = 1e-6
+    converged = False
+    iteration = 0
+    e = residuals(fit, theta, att, opt.chunk_obs)
+    for _round in range(opt.max_gate_rounds + 1):
+        converged = False
+        while iteration < opt.max_iter:
+            iteration += 1
+            norm = np.linalg.norm(e, axis=1)
+            sig = robust_sigma_2d(norm)
+            w = huber_weights(norm, sig, opt.huber_k)
+            cost = huber_cost(norm, sig, opt.huber_k)
+            blocks = accumulate_normals(fit, theta, att, cols, w, scale, opt.chunk_obs)
+            accepted = False
+            for _trial in range(12):
+                s, rhs, a_inv = reduced_normal(blocks, damping)
+                dx = solve_scaled(s, rhs)
+                dphi = np.einsum("mij,mj->mi", a_inv, -blocks.g_phi - np.einsum("mkj,k->mj", blocks.b, dx))
+                theta_new = theta.copy()
+                theta_new[cols] += dx * scale
+                att_new = apply_attitude_increment(att, dphi)
+                e_new = residuals(fit, theta_new, att_new, opt.chunk_obs)
+                cost_new = huber_cost(np.linalg.norm(e_new, axis=1), sig, opt.huber_k)
+                if np.isfinite(cost_new) and cost_new <= cost:
+                    accepted = True
+                    break
+                damping = max(10.0 * damping, 1e-6)
+            if not accepted:
+                converged = True  # no descent direction left at any damping: at the minimum to round-off
+                break
+            decrease = (cost - cost_new) / max(cost, 1e-300)
+            theta, att, e = theta_new, att_new, e_new
+            # the weakest directions (principal point against attitude) need damping far below 1e-6 of the
+            # diagonal to move at all: let it fall to zero (a plain Gauss-Newton step) once steps succeed
+            damping = damping / 10.0 if damping > 1e-12 else 0.0
+            step_sigmas = float(np.sqrt(max(dx @ rhs, 0.0))) / max(sig, 1e-300)
+            entry = {
+                "iteration": iteration,
+                "cost": cost_new,
+                "rms_px": float(np.sqrt(np.mean(np.sum(e * e, axis=1)))),
+                "robust_sigma_px": sig,
+                "damping": damping,
+                "step_sigmas": step_sigmas,
+                "n_obs": fit.n_obs,
+            }
+            history.append(entry)
+            if opt.progress:
+                opt.progress(entry)
+            if decrease < opt.ftol or step_sigmas < opt.step_tol:
+                converged = True
+                break
+        norm = np.linalg.norm(e, axis=1)
+        sig = robust_sigma_2d(norm)
+        bad = norm > opt.gate * sig
+        if not np.any(bad) or _round == opt.max_gate_rounds:
+            break
+        n_gated += int(bad.sum())
+        fit_new, kept, frame_kept = fit.select(~bad)
+        input_index = input_index[kept]
+        att = att[frame_kept]
+        fit = fit_new
+        if fit.n_frames == 0:
+            raise ValueError("every frame lost its stars to outlier gating")
+        e = residuals(fit, theta, att, opt.chunk_obs)
+        damping = 1e-6
+    rows_used = np.zeros(n_input, dtype=bool)
+    rows_used[input_index] = True
+    m_in = data.select(np.ones(n_input, dtype=bool))[0].n_frames
+    # final normal matrix at the solution, plain least squares (unit weights), model-vector units
+    ones = np.ones(fit.n_obs)
+    blocks = accumulate_normals(fit, theta, att, cols, ones, np.ones(cols.size), opt.chunk_obs)
+    s = reduced_normal(blocks, 0.0)[0]
+    dof = max(2 * fit.n_obs - cols.size - 3 * fit.n_frames, 1)
+    sigma_est = float(np.sqrt(np.sum(blocks.e * blocks.e) / dof))
+    sigma = float(opt.noise_px) if opt.noise_px else sigma_est
+    cov = covariance_from_normal(s, sigma)
+    return BundleResult(
+        theta=theta,
+        attitudes=att,
+        data=fit,
+        rows_used=rows_used,
+        n_rejected_voting=n_voted,
+        n_rejected_gating=n_gated,
+        n_frames_dropped=int(m_in - fit.n_frames),
+        sigma_px=sigma,
+        sigma_estimated_px=sigma_est,
+        estimate=tuple(ESTIMATE_NAMES[c] for c in cols),
+        normal=s,
+        normal_u_diag=np.diag(blocks.u).copy(),
+        covariance=cov,
+        history=history,
+        converged=converged,
+    )
+
+
+def covariance_from_normal(s: np.ndarray, sigma_px: float) -> np.ndarray:
+    """sigma^2 S^-1 via the Jacobi-equilibrated pseudo-inverse (a null direction gets infinite variance on the
+    diagonal of the parameters it involves, rather than a silent finite number)."""
+    d = np.sqrt(np.maximum(np.diag(s), 1e-300))
+    ss = s / d[:, None] / d[None, :]
+    vals, vecs = np.linalg.eigh(ss)
+    tiny = vals <= vals.max() * 1e-15
+    inv_vals = np.where(tiny, 0.0, 1.0 / np.where(tiny, 1.0, vals))
+    cov = (vecs * inv_vals) @ vecs.T
+    if np.any(tiny):
+        null = np.any(np.abs(vecs[:, tiny]) > 1e-3, axis=1)
+        cov[null, null] = np.inf
+    return sigma_px**2 * cov / d[:, None] / d[None, :]

@@ -1,0 +1,116 @@
+"""The Cramer-Rao bound of a calibration session, and the validation residual it bounds.
+
+Fisher information. Each identified star is a measured centroid c = (x, y) with isotropic Gaussian noise sigma
+per axis around c(theta, phi_f), the point where the true camera images the star (c solves
+q(c; theta) = F (C_f r)_xy / (C_f r)_z). By the implicit-function theorem dc = -Jc^-1 d(q - p), so the
+information of the whole session over (camera, every attitude) is J^T J / sigma^2 with J the Jacobian of the
+whitened residual of ``bundle.observation_terms`` evaluated at the truth and at the noise-free centroids. The
+attitudes are nuisance parameters: the camera's information is the Schur complement
+
+    I_theta = (U - sum_f B_f A_f^-1 B_f^T) / sigma^2,
+
+and any unbiased estimator has Cov(theta_hat) >= I_theta^-1. The test suite checks this information against finite
+differences of the forward simulator ``onboard.camera.unit_to_pixels``, an independent route.
+
+Validation residual (what "accuracy" means in the acceptance tests). Over a G x G grid of measured pixel positions
+spanning the detector, map each point to a direction with the estimated and with the true camera, rotate the
+estimated directions by the rotation that best aligns them (a common rotation is absorbed by the attitude and is
+not a calibration error), project both onto the true ideal image plane, P(b) = F_true (b_x / b_z, b_y / b_z), and
+take the RMS length of the difference [px]:
+
+    V(theta_hat) = sqrt( mean_g |P(R b_hat_g) - P(b_g)|^2 ),   R = argmin of the same sum.
+
+To first order V^2 = |G_perp (theta_hat - theta)|^2 / n_grid with G_perp the grid Jacobian with its three rotation
+directions projected out, so the bound on E[V^2] is trace(G_perp I_theta^-1 G_perp^T) / n_grid. The
+principal-point/attitude degeneracy does not inflate V: what the attitude absorbs is projected out of both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hostlink.calibration.bundle import accumulate_normals, reduced_normal
+from hostlink.calibration.data import CalibrationData
+from hostlink.calibration.frames import rotation_from_vector, skew, wahba_svd
+from onboard.camera import pixels_to_unit, unit_vector_jacobians
+from onboard.params import CameraParams
+
+#: Default validation grid: 21 x 21 points over the detector, corners included.
+GRID_SIDE = 21
+
+
+def fisher_information(
+    data_noise_free: CalibrationData, theta_true: np.ndarray, attitudes_true: np.ndarray, cols: np.ndarray,
+    sigma_px: float,
+) -> np.ndarray:
+    """Camera Fisher information (K, K) with the per-frame attitudes eliminated (Schur complement), in model-vector
+    units, for centroid noise ``sigma_px`` per axis. ``data_noise_free`` holds the true (noise-free) centroids."""
+    ones = np.ones(data_noise_free.n_obs)
+    blocks = accumulate_normals(data_noise_free, theta_true, attitudes_true, cols, ones, np.ones(cols.size))
+    return reduced_normal(blocks, 0.0)[0] / sigma_px**2
+
+
+def grid_points(params: CameraParams, side: int = GRID_SIDE) -> tuple[np.ndarray, np.ndarray]:
+    """side x side measured-pixel positions spanning the detector, corners included (CAMERA_MODEL.md extent)."""
+    w, h = params.image_size_px
+    gx, gy = np.meshgrid(np.linspace(-0.5, w - 0.5, side), np.linspace(-0.5, h - 0.5, side))
+    return gx.ravel(), gy.ravel()
+
+
+def _project(b: np.ndarray, focal_px: float) -> np.ndarray:
+    return focal_px * b[:, :2] / b[:, 2:3]
+
+
+def _project_jacobian(b: np.ndarray, focal_px: float) -> np.ndarray:
+    """dP/db (n, 2, 3) for P(b) = F (b_x / b_z, b_y / b_z)."""
+    n = b.shape[0]
+    j = np.zeros((n, 2, 3))
+    j[:, 0, 0] = focal_px / b[:, 2]
+    j[:, 1, 1] = focal_px / b[:, 2]
+    j[:, :, 2] = -focal_px * b[:, :2] / b[:, 2:3] ** 2
+    return j
+
+
+def validation_residual_px(
+    theta_est: np.ndarray, params_true: CameraParams, side: int = GRID_SIDE, return_field: bool = False
+):
+    """V(theta_hat) of the module docstring [px] (and, if asked, the (n_grid, 2) difference field).
+
+    The alignment starts from the SVD (Wahba) rotation and is refined by Gauss-Newton on the pixel metric, so it
+    minimises exactly the quantity reported."""
+    theta_true = params_true.model_vector(np.float64)
+    gx, gy = grid_points(params_true, side)
+    b_true = pixels_to_unit(gx, gy, theta_true)
+    b_est = pixels_to_unit(gx, gy, np.asarray(theta_est, dtype=np.float64))
+    rot = wahba_svd(b_true, b_est, np.array([0, gx.size]))[0]  # b_true ~ rot b_est
+    target = _project(b_true, theta_true[0])
+    for _ in range(5):
+        s = b_est @ rot.T
+        d = _project(s, theta_true[0]) - target
+        j = (_project_jacobian(s, theta_true[0]) @ skew(s)).reshape(-1, 3)
+        step = np.linalg.lstsq(j, -d.ravel(), rcond=None)[0]
+        rot = rotation_from_vector(-step) @ rot
+    diff = _project(b_est @ rot.T, theta_true[0]) - target
+    v = float(np.sqrt(np.mean(np.sum(diff * diff, axis=1))))
+    return (v, diff) if return_field else v
+
+
+def validation_jacobian(params_true: CameraParams, cols: np.ndarray, side: int = GRID_SIDE) -> np.ndarray:
+    """G_perp (2 n_grid, K): first-order change of the grid difference field per unit change of the model-vector
+    entries ``cols``, with the rotation directions projected out."""
+    theta = params_true.model_vector(np.float64)
+    gx, gy = grid_points(params_true, side)
+    b, jb_theta, _ = unit_vector_jacobians(gx, gy, theta)
+    jp = _project_jacobian(b, theta[0])
+    g_theta = (jp @ jb_theta[:, :, cols]).reshape(-1, cols.size)
+    g_rot = (jp @ skew(b)).reshape(-1, 3)
+    q, _ = np.linalg.qr(g_rot)
+    return g_theta - q @ (q.T @ g_theta)
+
+
+def crb_validation_px(information: np.ndarray, g_perp: np.ndarray) -> float:
+    """sqrt(trace(G_perp I^-1 G_perp^T) / n_grid): the Cramer-Rao bound on the RMS validation residual [px]."""
+    n_grid = g_perp.shape[0] // 2
+    d = np.sqrt(np.diag(information))
+    inv = np.linalg.pinv(information / d[:, None] / d[None, :], rcond=1e-15, hermitian=True) / d[:, None] / d[None, :]
+    return float(np.sqrt(np.trace(g_perp @ inv @ g_perp.T) / n_grid))

@@ -1,0 +1,112 @@
+"""The observations a batch calibration works on: measured centroids and their reference directions, by frame.
+
+Everything is float64 numpy columns, one row per identified star, rows grouped by frame. Frames are numbered
+0..M-1 internally; ``frame_number`` keeps the session's frame counter for reports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A frame needs at least this many stars to say anything about the camera beyond its attitude (3 attitude
+#: parameters take 2 stars; a third star is the first that constrains the camera and lets an outlier show).
+MIN_STARS_PER_FRAME = 3
+
+
+@dataclass(frozen=True)
+class CalibrationData:
+    """Observations grouped by frame.
+
+    x_px, y_px: measured centroids [px] (CAMERA_MODEL.md pixel convention), shape (N,).
+    r: reference unit vectors (N, 3) in the frame the attitude maps from (b = C r).
+    frame_starts: (M + 1,) row index where each frame starts, last entry N.
+    frame_number: (M,) session frame counter of each frame.
+    star_id: (N,) Hipparcos numbers (0 if unknown).
+    """
+
+    x_px: np.ndarray
+    y_px: np.ndarray
+    r: np.ndarray
+    frame_starts: np.ndarray
+    frame_number: np.ndarray
+    star_id: np.ndarray
+
+    @property
+    def n_obs(self) -> int:
+        return int(self.x_px.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.frame_starts.shape[0] - 1)
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.frame_starts)
+
+    def frame_index(self) -> np.ndarray:
+        """(N,) internal frame index of each row."""
+        return np.repeat(np.arange(self.n_frames, dtype=np.int64), self.counts)
+
+    def select(
+        self, keep: np.ndarray, min_stars: int = MIN_STARS_PER_FRAME
+    ) -> tuple[CalibrationData, np.ndarray, np.ndarray]:
+        """Rows where ``keep`` is true, dropping frames left with fewer than ``min_stars``.
+
+        Returns the new data, the (N,) mask of rows kept and the (M,) mask of frames kept from this one.
+        """
+        keep = np.asarray(keep, dtype=bool).copy()
+        fidx = self.frame_index()
+        per_frame = np.bincount(fidx, weights=keep, minlength=self.n_frames)
+        frame_kept = per_frame >= min_stars
+        keep &= frame_kept[fidx]
+        new = build_data(self.x_px[keep], self.y_px[keep], self.r[keep], fidx[keep], self.frame_number,
+                         self.star_id[keep])
+        return new, keep, frame_kept
+
+
+def build_data(
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    frame_key: np.ndarray,
+    frame_number: np.ndarray | None = None,
+    star_id: np.ndarray | None = None,
+) -> CalibrationData:
+    """Group rows (already in frame order) into frames by consecutive equal ``frame_key``.
+
+    ``frame_number`` (indexed by frame_key) gives the session frame counter; default the key itself.
+    """
+    frame_key = np.asarray(frame_key, dtype=np.int64)
+    n = frame_key.shape[0]
+    if n:
+        change = np.flatnonzero(np.diff(frame_key) != 0) + 1
+        starts = np.concatenate([[0], change, [n]]).astype(np.int64)
+        keys = frame_key[starts[:-1]]
+    else:
+        starts = np.zeros(1, dtype=np.int64)
+        keys = np.zeros(0, dtype=np.int64)
+    numbers = keys if frame_number is None else np.asarray(frame_number)[keys]
+    return CalibrationData(
+        x_px=np.asarray(x_px, dtype=np.float64),
+        y_px=np.asarray(y_px, dtype=np.float64),
+        r=np.asarray(r, dtype=np.float64).reshape(-1, 3),
+        frame_starts=starts,
+        frame_number=np.asarray(numbers, dtype=np.int64),
+        star_id=np.zeros(n, dtype=np.int64) if star_id is None else np.asarray(star_id, dtype=np.int64),
+    )
+
+
+def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]]:
+    """Split frames into consecutive chunks [f0, f1) of at most ``max_obs`` rows (a frame is never split; a single
+    frame larger than ``max_obs`` is a chunk of its own). Bounds the working memory of every pass over the data."""
+    m = frame_starts.shape[0] - 1
+    chunks = []
+    f0 = 0
+    while f0 < m:
+        f1 = int(np.searchsorted(frame_starts, frame_starts[f0] + max_obs, side="right")) - 1
+        f1 = min(max(f1, f0 + 1), m)
+        chunks.append((f0, f1))
+        f0 = f1
+    return chunks

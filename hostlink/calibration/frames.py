@@ -1,0 +1,75 @@
+"""Per-frame helpers, vectorised over frames: the SVD attitude fit and small-rotation updates.
+
+``onboard`` has no attitude module yet, so the batch calibration carries this small host-side SVD solution of
+Wahba's problem (Markley 1988): C = U diag(1, 1, det U det V) V^T for B = sum_k w_k b_k r_k^T = U S V^T maximises
+sum_k w_k b_k . C r_k, i.e. b = C r as in CAMERA_MODEL.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares attitude per frame, (M, 3, 3), with b_k ~ C r_k (Markley's SVD method).
+
+    b, r: (N, 3) unit vectors grouped by frame; weights (N,) >= 0 (default 1). A frame whose weighted stars do
+    not fix a rotation (fewer than two non-parallel) gets the best rotation the SVD offers (not unique).
+    """
+    outer = b[:, :, None] * r[:, None, :]
+    if weights is not None:
+        outer = outer * weights[:, None, None]
+    m = frame_starts.shape[0] - 1
+    big_b = np.zeros((m, 3, 3))
+    nonempty = np.diff(frame_starts) > 0
+    if np.any(nonempty):
+        big_b[nonempty] = np.add.reduceat(outer, frame_starts[:-1][nonempty], axis=0)
+    u, _, vt = np.linalg.svd(big_b)
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    u[:, :, 2] *= d[:, None]
+    return u @ vt
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v x], shape (..., 3, 3)."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], axis=-1),
+            np.stack([v[..., 2], z, -v[..., 0]], axis=-1),
+            np.stack([-v[..., 1], v[..., 0], z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def rotation_from_vector(a: np.ndarray) -> np.ndarray:
+    """exp([a x]) by Rodrigues' formula, for rotation vectors a (..., 3) [rad]; shape (..., 3, 3)."""
+    angle = np.sqrt(np.sum(a * a, axis=-1))
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    # series limits below 1e-8 rad, where sin(x)/x and (1 - cos x)/x^2 equal 1 and 1/2 to double precision
+    s = np.where(small, 1.0, np.sin(safe) / safe)
+    c = np.where(small, 0.5, (1.0 - np.cos(safe)) / (safe * safe))
+    k = skew(a)
+    return np.eye(3) + s[..., None, None] * k + c[..., None, None] * (k @ k)
+
+
+def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarray:
+    """C <- exp(-[dphi x]) C: the update whose first-order effect on s = C r is ds = [s x] dphi."""
+    return rotation_from_vector(-dphi) @ attitude
+
+
+def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Uniformly distributed rotation matrices (Shoemake's unit quaternions), shape (n, 3, 3)."""
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=-2,
+    )

@@ -1,0 +1,252 @@
+"""Seed 000's interstar-angle calibrations: cosine and sine least squares, and the improved two-step iteration.
+
+Observation equations (seed 000 eq. 3): for stars i, j of one frame,
+    cosine:  cos(theta_ij) = r_i . r_j = b_i . b_j                                   (eq. 3a)
+    sine:    sin(theta_ij) = |r_i x r_j| = |b_i x b_j|                               (eq. 3b, eq. 4-6)
+with b from the camera model (seed 000 eq. 2 and 7 are ``onboard.camera``). The cosine residual is evaluated in the
+difference form of ``onboard.interstar`` (r_i . r_j - b_i . b_j = (|b_i - b_j|^2 - |r_i - r_j|^2) / 2, the same
+number without the cancellation of 1 - cos).
+
+Weighting (issue 3): the paper stacks all n(n-1)/2 pairs of a frame as independent rows (eq. 8-12). Only 2n - 3
+of them are independent, and they are correlated through shared stars. Here each frame contributes the 2n - 3 pairs
+of ``onboard.interstar.independent_pairs`` whitened by their covariance from centroid noise
+(``onboard.interstar.pair_covariance``, for the sine form propagated by d sin = -cot(theta) d cos), which is the
+generalised least-squares form of eq. 13: dtheta = (A^T P^-1 A)^-1 A^T P^-1 R, iterated (Gauss-Newton).
+
+Methods:
+- ``cosine`` / ``sine``: the batch least squares of seed 000 Table 1 columns 1-2 (after Samaan et al. 2001 and the
+  paper's ref. 11): focal length and principal point only, distortion held at its nominal value.
+- ``improved-cosine`` / ``improved-sine`` (seed 000 sec. 2): (1) distortion 0, estimate (x0, y0, f) from stars
+  near the field centre (sec. 4.1: the first estimate uses the central field, where distortion is small);
+  (2) with (x0, y0, f) fixed, estimate the Weng distortion; (3) with the distortion fixed, re-estimate
+  (x0, y0, f); repeat (2)-(3) (6 rounds: the paper's estimates are stable after 6 iterations, Fig. 2-3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+from hostlink.calibration.bundle import parameter_columns, parameter_scales, solve_scaled
+from hostlink.calibration.data import CalibrationData, frame_chunks
+from onboard.camera import unit_vector_jacobians
+from onboard.interstar import (
+    difference_jacobian,
+    difference_residuals,
+    independent_pairs,
+    order_for_pairs,
+    pair_covariance,
+)
+from onboard.params import ESTIMATE_NAMES, CameraParams
+
+OPTICAL = ("f", "x0", "y0")
+DISTORTION = tuple(n for n in ESTIMATE_NAMES if n not in OPTICAL)
+#: Rounds of steps (2)-(3) of the improved method (seed 000 sec. 4.1: stable after 6 iterations).
+IMPROVED_ROUNDS = 6
+#: Stars used by the first step of the improved method: within this fraction of the half-diagonal from the centre.
+CENTRAL_FRACTION = 0.5
+
+
+@dataclass
+class InterstarFit:
+    theta: np.ndarray
+    estimate: tuple[str, ...]
+    normal: np.ndarray  # (K, K) whitened normal matrix for unit noise, model-vector units
+    sigma_estimated_px: float
+    history: list[dict] = field(default_factory=list)
+    stages: list[dict] = field(default_factory=list)  # per-step results (name, theta) for reports and tests
+
+
+def frame_pair_orders(data: CalibrationData) -> list[np.ndarray]:
+    """Per frame, the row order that puts a well-separated base pair first (``order_for_pairs``), as global rows."""
+    orders = []
+    for f in range(data.n_frames):
+        a, b = int(data.frame_starts[f]), int(data.frame_starts[f + 1])
+        orders.append(a + order_for_pairs(data.x_px[a:b], data.y_px[a:b]).astype(np.int64))
+    return orders
+
+
+def _sine_terms(b, r, jb, i, j):
+    """Sine-form residual z - h (seed 000 eq. 4) and dh/dtheta for h = |b_i x b_j|, plus the factor
+    d sin / d(cos - 1) = -cot(theta_ij) that carries the difference-form covariance over."""
+    c = np.cross(b[i], b[j])
+    h = np.linalg.norm(c, axis=1)
+    z = np.linalg.norm(np.cross(r[i], r[j]), axis=1)
+    u = c / h[:, None]
+    # d(b_i x b_j) = db_i x b_j + b_i x db_j, contracted with u: u . (db_i x b_j) = (b_j x u) . db_i
+    dh = np.einsum("pc,pck->pk", np.cross(b[j], u), jb[i]) + np.einsum("pc,pck->pk", np.cross(u, b[i]), jb[j])
+    cos = np.sum(b[i] * b[j], axis=1)
+    return z - h, dh, -cos / h
+
+
+def interstar_normals(
+    data: CalibrationData,
+    theta: np.ndarray,
+    cols: np.ndarray,
+    form: str,
+    orders: list[np.ndarray],
+    col_scale: np.ndarray,
+    frame_mask: np.ndarray | None = None,
+    chunk_obs: int = 50_000,
+) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Whitened normal equations of the interstar observation equations over every frame.
+
+    Returns (N, g, cost, n_pairs): N = sum H^T P^-1 H, g = sum H^T P^-1 e (columns scaled by ``col_scale``),
+    cost = sum e^T P^-1 e for unit centroid noise, with e = z - h (observed minus predicted) and H = dh/dtheta.
+    """
+    k = cols.size
+    normal = np.zeros((k, k))
+    grad = np.zeros(k)
+    cost = 0.0
+    n_pairs = 0
+    starts = data.frame_starts
+    for f0, f1 in frame_chunks(starts, chunk_obs):
+        a0, a1 = int(starts[f0]), int(starts[f1])
+        b_all, jb_all, jc_all = unit_vector_jacobians(data.x_px[a0:a1], data.y_px[a0:a1], theta)
+        jb_all = jb_all[:, :, cols] * col_scale[None, None, :]
+        for f in range(f0, f1):
+            if frame_mask is not None and not frame_mask[f]:
+                continue
+            rows = orders[f] - a0
+            if rows.size < 3:
+                continue
+            b, jb, jc, r = b_all[rows], jb_all[rows], jc_all[rows], data.r[orders[f]]
+            i, j = independent_pairs(rows.size)
+            cov = pair_covariance(b, jc, i, j, 1.0)
+            if form == "cos":
+                e = difference_residuals(b, r, i, j)
+                h_jac = difference_jacobian(b, jb, i, j)
+            else:
+                e, h_jac, factor = _sine_terms(b, r, jb, i, j)
+                cov = cov * factor[:, None] * factor[None, :]
+            try:
+                chol = np.linalg.cholesky(cov)
+            except np.linalg.LinAlgError:
+                continue  # a degenerate frame geometry (collinear stars) carries no usable pair set
+            ew = solve_triangular(chol, e, lower=True)
+            hw = solve_triangular(chol, h_jac, lower=True)
+            normal += hw.T @ hw
+            grad += hw.T @ ew
+            cost += float(ew @ ew)
+            n_pairs += e.size
+    return normal, grad, cost, n_pairs
+
+
+def fit_interstar(
+    data: CalibrationData,
+    theta0: np.ndarray,
+    params: CameraParams,
+    estimate: tuple[str, ...],
+    form: str,
+    orders: list[np.ndarray],
+    levenberg_marquardt: bool = False,
+    max_iter: int = 30,
+    frame_mask: np.ndarray | None = None,
+    history: list[dict] | None = None,
+    label: str = "",
+    progress: Callable[[dict], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Minimise the whitened interstar cost over ``estimate`` from ``theta0``.
+
+    Gauss-Newton (seed 000 eq. 13, iterated) or, with ``levenberg_marquardt``, Marquardt-damped steps accepted only
+    when the cost decreases (seed 004 sec. 2.1 and 2.3, after More 1978). Returns (theta, N, cost, n_pairs) with N
+    the normal matrix at the solution in model-vector units.
+    """
+    cols = parameter_columns(estimate)
+    scale = parameter_scales(params)[cols]
+    theta = theta0.copy()
+    damping = 1e-3 if levenberg_marquardt else 0.0
+    normal, grad, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, scale, frame_mask)
+    for it in range(1, max_iter + 1):
+        accepted = False
+        for _trial in range(12 if levenberg_marquardt else 1):
+            damped = normal + damping * np.diag(np.diag(normal))
+            dx = solve_scaled(damped, grad)
+            trial = theta.copy()
+            trial[cols] += dx * scale
+            n_new, g_new, c_new, p_new = interstar_normals(data, trial, cols, form, orders, scale, frame_mask)
+            if not levenberg_marquardt or (np.isfinite(c_new) and c_new <= cost):
+                accepted = True
+                break
+            damping = max(10.0 * damping, 1e-6)
+        if not accepted:
+            break
+        step_sigmas = float(np.sqrt(max(dx @ grad, 0.0)))
+        decrease = (cost - c_new) / max(cost, 1e-300)
+        theta, normal, grad, cost, n_pairs = trial, n_new, g_new, c_new, p_new
+        if levenberg_marquardt:
+            damping = damping / 10.0 if damping > 1e-12 else 0.0
+        entry = {"iteration": len(history or []) + 1, "stage": label, "cost": cost, "step_sigmas": step_sigmas,
+                 "n_pairs": n_pairs}
+        if history is not None:
+            history.append(entry)
+        if progress:
+            progress(entry)
+        if step_sigmas < 1e-4 or abs(decrease) < 1e-12:
+            break
+    unscale = 1.0 / scale
+    return theta, normal * unscale[:, None] * unscale[None, :], cost, n_pairs
+
+
+def central_frame_subset(data: CalibrationData, params: CameraParams, fraction: float = CENTRAL_FRACTION):
+    """Stars within ``fraction`` of the half-diagonal from the detector centre, frames with >= 3 of them."""
+    w, h = params.image_size_px
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    radius = fraction * 0.5 * float(np.hypot(w, h))
+    central = np.hypot(data.x_px - cx, data.y_px - cy) <= radius
+    return data.select(central)[0]
+
+
+def calibrate_interstar(
+    data: CalibrationData,
+    nominal: CameraParams,
+    form: str,
+    improved: bool,
+    estimate: tuple[str, ...] = ESTIMATE_NAMES,
+    rounds: int = IMPROVED_ROUNDS,
+    progress: Callable[[dict], None] | None = None,
+) -> InterstarFit:
+    """Seed 000's methods: ``form`` 'cos' or 'sin'; ``improved`` selects the two-step iteration of sec. 2.
+
+    ``estimate`` restricts the parameters (the plain methods estimate only its optical part)."""
+    if form not in ("cos", "sin"):
+        raise ValueError(f"unknown interstar form {form!r}")
+    optical = tuple(n for n in OPTICAL if n in estimate)
+    distortion = tuple(n for n in DISTORTION if n in estimate)
+    orders = frame_pair_orders(data)
+    history: list[dict] = []
+    stages: list[dict] = []
+    theta = nominal.model_vector(np.float64)
+    if not improved:
+        if not optical:
+            raise ValueError("the plain interstar methods estimate f, x0, y0: none of them selected")
+        theta, normal, cost, n_pairs = fit_interstar(data, theta, nominal, optical, form, orders, history=history,
+                                                     label="optical", progress=progress)
+        stages.append({"name": "optical", "theta": theta.copy()})
+        final = optical
+    else:
+        theta[3:] = 0.0  # step 1: all distortion coefficients 0 (seed 000 sec. 2, step 1)
+        if optical:
+            central = central_frame_subset(data, nominal)
+            source, src_orders = (central, frame_pair_orders(central)) if central.n_frames else (data, orders)
+            theta = fit_interstar(source, theta, nominal, optical, form, src_orders, history=history,
+                                  label="optical (central field)", progress=progress)[0]
+            stages.append({"name": "optical (central field)", "theta": theta.copy()})
+        for k in range(rounds):
+            if distortion:
+                theta = fit_interstar(data, theta, nominal, distortion, form, orders, history=history,
+                                      label=f"distortion {k + 1}", progress=progress)[0]
+            if optical:
+                theta = fit_interstar(data, theta, nominal, optical, form, orders, history=history,
+                                      label=f"optical {k + 1}", progress=progress)[0]
+            stages.append({"name": f"round {k + 1}", "theta": theta.copy()})
+        final = optical + distortion
+        # the covariance of the alternation's fixed point is that of the joint problem: evaluate it there
+        cols = parameter_columns(final)
+        normal, _, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, np.ones(cols.size))
+    dof = max(n_pairs - len(final), 1)
+    return InterstarFit(theta=theta, estimate=tuple(n for n in ESTIMATE_NAMES if n in final), normal=normal,
+                        sigma_estimated_px=float(np.sqrt(cost / dof)), history=history, stages=stages)

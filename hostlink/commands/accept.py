@@ -1,0 +1,44 @@
+"""``hostlink accept``: commit the sensor's onboard estimate through the safe upload."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "commit the onboard estimate as the active parameter set (same safe path as upload)"
+DESCRIPTION = (
+    "Reads the active set and the onboard recursive estimate, forms the full parameter set (the active one with the "
+    "estimated parameters replaced), and commits it through the six-step safe upload (validate, stage, verify, read "
+    "back, commit to the inactive A/B bank, read back). Prints the committed set as a camera parameter file."
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--link", required=True, help="sensor link string")
+    parser.add_argument("--out", metavar="PARAMS.json", help="also write the committed set here")
+    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import sys
+
+    from hostlink.errors import UserError
+    from hostlink.links import open_link
+    from hostlink.sensor_client import accept_estimate, params_float32_dict
+
+    if args.timeout <= 0:
+        raise UserError("--timeout must be > 0")
+    with open_link(args.link, timeout_s=args.timeout) as link:
+        result, estimate = accept_estimate(link)
+    text = json.dumps(params_float32_dict(result.active), indent=2) + "\n"
+    sys.stdout.write(text)
+    if args.out:
+        from pathlib import Path
+
+        try:
+            Path(args.out).write_text(text, encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"{args.out}: cannot write ({exc.strerror})") from None
+    print(f"accepted the estimate after {estimate.n_updates} updates (frame {estimate.last_frame}): generation "
+          f"{result.generation}, CRC 0x{result.crc32:08x}", file=sys.stderr)
+    return 0

@@ -1,0 +1,228 @@
+"""``hostlink attitude``: the attitude of every frame of a session (INTERFACES.md), as the sensor computes it.
+
+For each frame: the measured centroids through the camera model (``onboard.camera.pixels_to_unit``), the reference
+directions (the session's ``ra_deg, dec_deg``: geocentric apparent place, true equator and equinox of date; or, when
+the file has none, the same computed from Hipparcos), and the attitude C with b = C r (``onboard.attitude``, SVD),
+after dropping stars whose residual exceeds ``--reject-arcsec`` (misidentifications).
+
+Refraction (ground and ship-borne sessions, needs --site and --weather; seed 001):
+- ``reference`` (default with --weather; what the sensor does): rotate the reference vectors into the local
+  north-up-east frame (``onboard.earth.local_frame_matrix``), lift each by the refraction at its true zenith
+  distance (``onboard.refraction.refract_toward_zenith``), solve the attitude there, rotate back: C = C_g R_ig.
+- ``observed`` (seed 001 sec. 3, host-side comparison): turn each measured vector away from the zenith by the
+  refraction at its apparent zenith distance (``hostlink.observed_correction``), then solve.
+- ``none``: no correction.
+``--precision float32`` runs every onboard step in float32, as the sensor does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from hostlink.errors import UserError
+from hostlink.siteopts import add_site_arguments, site_and_weather
+
+HELP = "attitude per frame (b = C r) from a session, with refraction correction for ground sessions"
+DESCRIPTION = (
+    "Compute the attitude C (b = C r, r the geocentric apparent place in the true equator and equinox of date) of "
+    "every frame of SESSION.csv through the camera PARAMS.json. With --site and --weather the stars' atmospheric "
+    "refraction is corrected: 'reference' lifts the reference directions toward the zenith (seed 001 sec. 4, the "
+    "sensor's method, default), 'observed' lowers the measured ones (seed 001 sec. 3), 'none' skips it. Writes "
+    "ATTITUDE.csv with frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status."
+)
+
+REFRACTION_MODES = ("reference", "observed", "none")
+#: Default residual above which a star is dropped as misidentified [arcsec]: far above noise (a few arcsec) and
+#: uncorrected differential refraction across a field (< 20" at 75 deg), far below a wrong identity (degrees).
+DEFAULT_REJECT_ARCSEC = 60.0
+OUTPUT_COLUMNS = ("frame", "t_utc", "n_stars", "n_used") + tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)) + (
+    "residual_rms_arcsec",
+    "status",
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument("--params", required=True, metavar="PARAMS.json", help="camera parameter file")
+    parser.add_argument("--out", required=True, metavar="ATTITUDE.csv", help="attitude file to write")
+    add_site_arguments(parser)
+    parser.add_argument(
+        "--refraction",
+        choices=REFRACTION_MODES,
+        help="refraction correction: reference (default with --weather), observed, or none (default without)",
+    )
+    parser.add_argument(
+        "--refraction-model",
+        choices=("atan", "seed001"),
+        default="atan",
+        help="atan: A tan z + B tan^3 z from T, P, RH, wavelength (default); seed001: 60.2\" tan z (1 + M + N)",
+    )
+    parser.add_argument("--reject-arcsec", type=float, default=DEFAULT_REJECT_ARCSEC, metavar="ARCSEC",
+                        help=f"drop stars with a larger residual (default {DEFAULT_REJECT_ARCSEC:g})")
+    parser.add_argument("--min-stars", type=int, default=2, metavar="K",
+                        help="fewest identified stars for an attitude (default 2)")
+    parser.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                        help="arithmetic of the onboard steps (float32: as the sensor)")
+
+
+def refraction_mode(requested: str | None, weather) -> str:
+    """The effective mode: reference by default with weather, none without; a correction without weather is an
+    error."""
+    mode = requested or ("reference" if weather is not None else "none")
+    if mode != "none" and weather is None:
+        raise UserError(f"--refraction {mode} needs --site and --weather (refraction depends on both)")
+    return mode
+
+
+def reference_vectors(session):
+    """(N, 3) float64 reference directions (TOD) and a mask of rows that have one (identified stars)."""
+    import numpy as np
+
+    from onboard.camera import radec_to_unit
+
+    identified = session.star_id != 0
+    if session.ra_deg is not None and session.dec_deg is not None:
+        ra, dec = session.ra_deg, session.dec_deg
+        usable = identified & np.isfinite(ra) & np.isfinite(dec)
+        r = radec_to_unit(np.radians(np.where(usable, ra, 0.0)), np.radians(np.where(usable, dec, 0.0)))
+        return r, usable
+    from hostlink.sky.apparent import apparent_directions, hip_lookup
+    from hostlink.sky.catalogue import load_catalogue
+    from hostlink.timeutil import parse_iso_utc_many
+
+    r = np.zeros((len(session), 3))
+    if np.any(identified):
+        cat = load_catalogue()
+        rows = hip_lookup(cat, session.star_id[identified])
+        jd1, jd2 = parse_iso_utc_many(session.t_utc[identified])
+        r[identified] = apparent_directions(cat, rows, jd1, jd2)
+    return r, identified
+
+
+def tai_minus_utc_s(jd1: float, jd2: float) -> int:
+    """Leap seconds at a UTC date (ERFA dat), the data a sensor is given with its time."""
+    import erfa
+
+    y, m, d, fd = erfa.jd2cal(jd1, jd2)
+    return int(round(float(erfa.dat(y, m, d, fd))))
+
+
+def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0, mode: str = "none",
+                  model: str = "atan", reject_arcsec: float = DEFAULT_REJECT_ARCSEC, min_stars: int = 2,
+                  dtype="float64"):
+    """Per-frame attitudes. Returns a dict of columns (numpy arrays, one entry per frame): frame, t_utc, n_stars,
+    n_used, C (F, 3, 3; NaN when unsolved), residual_rms_arcsec, status."""
+    import numpy as np
+
+    from hostlink.observed_correction import attitude_observed_correction
+    from onboard import attitude as att
+    from onboard.camera import pixels_to_unit
+    from onboard.earth import local_frame_matrix
+    from onboard.refraction import refract_toward_zenith
+    from onboard.timescale import from_julian_date
+
+    dt = np.dtype(dtype)
+    theta = params.model_vector(dt)
+    r_all, usable = reference_vectors(session)
+    jd1, jd2 = session.frame_times_jd()
+    lat_rad = math.radians(site.lat_deg) if site is not None else None
+    threshold = dt.type(math.radians(reject_arcsec / 3600.0))
+    n_frames = session.n_frames
+    out = {
+        "frame": np.zeros(n_frames, np.int64),
+        "t_utc": np.empty(n_frames, dtype=object),
+        "n_stars": np.zeros(n_frames, np.int64),
+        "n_used": np.zeros(n_frames, np.int64),
+        "C": np.full((n_frames, 3, 3), np.nan),
+        "residual_rms_arcsec": np.full(n_frames, np.nan),
+        "status": np.empty(n_frames, dtype=object),
+    }
+    leap = None
+    up = np.array([0.0, 1.0, 0.0], dtype=dt)
+    for k, sl in enumerate(session.frame_slices()):
+        out["frame"][k] = session.frame[sl.start]
+        out["t_utc"][k] = session.t_utc[sl.start]
+        rows = np.arange(sl.start, sl.stop)[usable[sl]]
+        out["n_stars"][k] = rows.size
+        if rows.size < max(min_stars, 2):
+            out["status"][k] = "too_few_stars"
+            continue
+        b = pixels_to_unit(session.x_px[rows].astype(dt), session.y_px[rows].astype(dt), theta)
+        r = r_all[rows].astype(dt)
+        try:
+            if mode == "none":
+                c, keep = att.attitude_with_rejection(b, r, threshold)
+                r_used, b_used = r, b
+            else:
+                if leap is None:
+                    leap = tai_minus_utc_s(jd1[k], jd2[k])
+                r_ig = local_frame_matrix(from_julian_date(jd1[k], jd2[k]), site, dut1_s, leap, dt)
+                if mode == "reference":
+                    r_app = refract_toward_zenith(r @ r_ig.T, up, weather, model, lat_rad)
+                    c_g, keep = att.attitude_with_rejection(b, r_app, threshold)
+                    c = c_g @ r_ig
+                    r_used, b_used = r_app @ r_ig, b
+                else:
+                    c0, keep = att.attitude_with_rejection(b, r, threshold)
+                    c, b_true = attitude_observed_correction(b[keep], r[keep], r_ig[1], weather, model, lat_rad)
+                    r_used, b_used = r[keep], b_true
+                    keep = np.ones(int(keep.sum()), dtype=bool)
+        except att.DegenerateGeometry:
+            out["status"][k] = "degenerate"
+            continue
+        res = att.residuals_rad(b_used[keep], r_used[keep], c).astype(np.float64)
+        out["C"][k] = c
+        out["n_used"][k] = int(keep.sum())
+        out["residual_rms_arcsec"][k] = math.degrees(float(np.sqrt(np.mean(res**2)))) * 3600.0
+        out["status"][k] = "ok"
+    return out
+
+
+def write_attitudes(path: str, cols: dict) -> None:
+    """ATTITUDE.csv (INTERFACES.md): frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status."""
+    import csv
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with tmp.open("w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(OUTPUT_COLUMNS)
+            for k in range(cols["frame"].shape[0]):
+                c = cols["C"][k].reshape(9)
+                w.writerow(
+                    [int(cols["frame"][k]), cols["t_utc"][k], int(cols["n_stars"][k]), int(cols["n_used"][k])]
+                    + ["" if not math.isfinite(v) else repr(float(v)) for v in c]
+                    + ["" if not math.isfinite(cols["residual_rms_arcsec"][k])
+                       else f"{cols['residual_rms_arcsec'][k]:.4f}", cols["status"][k]]
+                )
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from hostlink.params_io import load_params
+    from hostlink.session import read_session
+
+    site, weather = site_and_weather(args)
+    mode = refraction_mode(args.refraction, weather)
+    if not (args.reject_arcsec > 0 and math.isfinite(args.reject_arcsec)):
+        raise UserError(f"--reject-arcsec {args.reject_arcsec}: expected a positive number of arcseconds")
+    if args.min_stars < 2:
+        raise UserError(f"--min-stars {args.min_stars}: an attitude needs at least 2 stars")
+    if args.dut1 is not None and not (math.isfinite(args.dut1) and abs(args.dut1) < 1.0):
+        raise UserError(f"--dut1 {args.dut1}: UT1 - UTC is always within +-0.9 s")
+    session = read_session(args.session)
+    params = load_params(args.params)
+    if len(session) == 0:
+        raise UserError(f"{args.session}: no observations")
+    cols = solve_session(session, params, site, weather, args.dut1 or 0.0, mode, args.refraction_model,
+                         args.reject_arcsec, args.min_stars, args.precision)
+    write_attitudes(args.out, cols)
+    solved = int(sum(s == "ok" for s in cols["status"]))
+    print(f"hostlink attitude: {solved}/{len(cols['status'])} frames solved (refraction: {mode}) -> {args.out}")
+    return 0

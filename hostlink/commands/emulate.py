@@ -1,0 +1,98 @@
+"""``hostlink emulate``: run an emulated sensor (the real onboard firmware) behind a serial, CAN or Modbus endpoint."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "run an emulated sensor until stopped; the first stdout line is JSON with the link string"
+DESCRIPTION = (
+    "Runs the onboard firmware (parameter banks, state machine, recursive estimator) behind a real link endpoint: "
+    "a pty for serial (paced to --baud), python-can slcan on a TCP hub for CAN (paced to --bitrate), a Modbus "
+    "server on 127.0.0.1. Frames come from the sky simulator, or from --replay SESSION.csv (streamed once, in file "
+    "order). The first line on stdout is a JSON object whose key 'link' is what the other commands take as --link. "
+    "Stop with Ctrl-C or SIGTERM."
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--transport", required=True, choices=("serial", "can", "modbus"), help="link to emulate")
+    parser.add_argument("--replay", metavar="SESSION.csv", help="stream this session's frames (once) instead of the "
+                        "simulator")
+    parser.add_argument("--nominal", metavar="PARAMS.json", help="the factory parameter set in bank A, generation 1 "
+                        "(default: the seed-004 nominal camera shipped in hostlink/data)")
+    parser.add_argument("--camera", metavar="CAMERA.json", help="the simulator's true camera (default: seed 004's)")
+    parser.add_argument("--sim-frames", type=int, default=500, metavar="N",
+                        help="simulated frames, cycled forever (default 500)")
+    parser.add_argument("--noise-px", type=float, default=0.05,
+                        help="simulated centroid noise [px], also the estimator's noise model (default 0.05)")
+    parser.add_argument("--seed", type=int, default=0, help="simulator seed")
+    parser.add_argument("--baud", type=int, default=921_600, help="serial / Modbus RTU baud rate (default 921600)")
+    parser.add_argument("--bitrate", type=int, default=1_000_000, help="CAN bit rate (default 1000000)")
+    parser.add_argument("--port", type=int, default=0, help="TCP port for CAN hub / Modbus TCP (default: a free one)")
+    parser.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id (default 1)")
+    parser.add_argument("--estimate", metavar="NAMES", help="parameters the onboard estimator estimates "
+                        "(comma-separated, default all: f,x0,y0,k1,k2,k3,p1,p2,s1,s2)")
+    parser.add_argument("--no-estimator", action="store_true", help="run without the onboard recursive estimator")
+    parser.add_argument("--drop-every", type=int, default=0, metavar="K",
+                        help="testing: lose every Kth streamed message on the line (default 0 = never)")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="transport-specific setting (repeatable)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import importlib
+    import json
+    import signal
+    import sys
+    import threading
+
+    from hostlink.emulator import ENDPOINTS
+    from hostlink.emulator.sensor import EndpointOptions
+    from hostlink.emulator.setup import build_sensor
+    from hostlink.errors import UserError
+
+    extra = {}
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UserError(f"--option {item!r}: expected KEY=VALUE")
+        extra[key.strip()] = value.strip()
+    for name in ("baud", "bitrate", "sim_frames"):
+        if getattr(args, name) <= 0:
+            raise UserError(f"--{name.replace('_', '-')} must be > 0")
+    if not 0 <= args.port < 65536:
+        raise UserError("--port must be in 0..65535")
+    if args.drop_every < 0:
+        raise UserError("--drop-every must be >= 0")
+    sensor = build_sensor(
+        replay=args.replay,
+        nominal=args.nominal,
+        camera=args.camera,
+        sim_frames=args.sim_frames,
+        noise_px=args.noise_px,
+        seed=args.seed,
+        estimator=not args.no_estimator,
+        estimate_names=args.estimate,
+    )
+    options = EndpointOptions(baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit,
+                              drop_every=args.drop_every, extra=extra)
+    try:
+        endpoint = importlib.import_module(ENDPOINTS[args.transport])
+    except ModuleNotFoundError as exc:
+        if exc.name == ENDPOINTS[args.transport]:
+            raise UserError(f"the {args.transport} emulator is not available in this build") from None
+        raise
+    stop = threading.Event()
+
+    def on_signal(signum, frame):  # noqa: ARG001 - signal handler signature
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    def ready(info: dict) -> None:
+        sys.stdout.write(json.dumps(info) + "\n")
+        sys.stdout.flush()
+
+    endpoint.serve(sensor, options, ready, stop)
+    return 0

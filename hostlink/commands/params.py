@@ -1,0 +1,42 @@
+"""``hostlink params``: print a sensor's active parameters as a camera parameter file."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "print the sensor's active parameters as a camera parameter file"
+DESCRIPTION = (
+    "Reads the active parameter set (with its generation and CRC) and prints it as a camera parameter file (JSON) "
+    "on stdout, each value as the shortest decimal of the sensor's float32. The generation and CRC go to stderr."
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--link", required=True, help="sensor link string")
+    parser.add_argument("--out", metavar="PARAMS.json", help="also write the file here")
+    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import sys
+
+    from hostlink.errors import UserError
+    from hostlink.links import open_link
+    from hostlink.sensor_client import params_float32_dict, read_active_params
+
+    if args.timeout <= 0:
+        raise UserError("--timeout must be > 0")
+    with open_link(args.link, timeout_s=args.timeout) as link:
+        active = read_active_params(link)
+    text = json.dumps(params_float32_dict(active.params), indent=2) + "\n"
+    sys.stdout.write(text)
+    if args.out:
+        from pathlib import Path
+
+        try:
+            Path(args.out).write_text(text, encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"{args.out}: cannot write ({exc.strerror})") from None
+    print(f"generation {active.generation}, CRC 0x{active.crc32:08x}", file=sys.stderr)
+    return 0

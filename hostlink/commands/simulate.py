@@ -1,0 +1,160 @@
+"""``hostlink simulate``: simulated observations of the real sky through a given camera (INTERFACES.md).
+
+Writes SESSION.csv (with ra_deg, dec_deg: geocentric apparent place) and SESSION.truth.json beside it.
+The simulation itself is ``hostlink.sky.simulate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from hostlink.errors import UserError
+from hostlink.siteopts import add_site_arguments, site_and_weather
+
+HELP = "simulate a session of real-sky (Hipparcos) observations through a camera, with its truth"
+DESCRIPTION = (
+    "Simulate a session of star observations: Hipparcos stars at their geocentric apparent place at each frame's "
+    "time (pyerfa), random or scripted attitudes, the true camera with full Weng distortion and Gaussian centroid "
+    "noise. Writes SESSION.csv (with ra_deg,dec_deg) and SESSION.truth.json (camera, per-frame attitude C with "
+    "b = C r, per-frame focal length, misidentified and false rows). With --site/--weather the observed directions "
+    "are refracted by ERFA's model while ra_deg,dec_deg stay unrefracted. --preset seed004 reproduces seed 004's "
+    "simulation setup (its camera, Hp <= 6, >= 10 stars, 0.05 px, 1000 frames)."
+)
+
+PRESETS = ("seed004",)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", metavar="CAMERA.json", help="true camera parameter file (optional with --preset)")
+    parser.add_argument("--frames", type=int, metavar="N", help="number of frames (preset seed004: 1000)")
+    parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
+    parser.add_argument("--preset", choices=PRESETS, help="a published setup; explicit options override it")
+    parser.add_argument("--noise-px", type=float, metavar="S", help="centroid noise, 1-sigma per axis (default 0.05)")
+    parser.add_argument("--min-stars", type=int, metavar="K", help="fewest stars per frame (default 10)")
+    parser.add_argument("--max-stars", type=int, metavar="K", help="most stars per frame, brightest kept (default 30)")
+    parser.add_argument("--maglim", type=float, metavar="M", help="faintest Hipparcos magnitude Hp (default 6)")
+    parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
+    parser.add_argument("--t0", metavar="ISO", help="time of frame 0, UTC (default 2026-03-14T02:10:00.000Z)")
+    parser.add_argument("--interval", type=float, metavar="SECONDS", help="time between frames (default 1)")
+    parser.add_argument("--misid", type=float, metavar="FRACTION", help="fraction of stars given a wrong identity")
+    parser.add_argument(
+        "--false-stars", type=float, metavar="FRACTION", help="false (unidentified) stars per real star (Poisson)"
+    )
+    parser.add_argument("--focal-drift-um", type=float, metavar="A", help="thermal focal-length drift amplitude, um")
+    parser.add_argument("--focal-drift-period", type=float, metavar="FRAMES", help="drift period (default 3000)")
+    parser.add_argument(
+        "--zenith-range", metavar="MIN_DEG,MAX_DEG", help="boresight zenith distances for --site (default 0,75)"
+    )
+    parser.add_argument(
+        "--attitudes", metavar="ATTITUDE.csv", help="scripted attitudes: CSV with c11..c33 (b = C r), one row a frame"
+    )
+    add_site_arguments(parser)
+
+
+def _fraction_pair(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"--zenith-range {text!r}: expected MIN_DEG,MAX_DEG, e.g. 0,75") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise UserError(f"--zenith-range {text!r}: expected finite numbers")
+    return lo, hi
+
+
+def _read_attitudes(path: str):
+    import csv
+
+    import numpy as np
+
+    names = [f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            missing = [n for n in names if n not in (reader.fieldnames or [])]
+            if missing:
+                raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
+            rows = [[float(r[n]) for n in names] for r in reader]
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, csv.Error, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read attitudes ({exc})") from None
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: every c11..c33 value must be a number") from None
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3, 3)
+
+
+def _progress(total: int):
+    """A rich progress bar on stderr when it is a terminal, else nothing."""
+    if total < 2000 or not sys.stderr.isatty():
+        return None, None
+    from rich.console import Console
+    from rich.progress import Progress
+
+    bar = Progress(console=Console(stderr=True), transient=True)
+    task = bar.add_task("simulating", total=total)
+    bar.start()
+    return bar, (lambda done, _total: bar.update(task, completed=done))
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from hostlink.params_io import load_params
+    from hostlink.session import write_session
+    from hostlink.sky.simulate import SimConfig, seed004_config, simulate, truth_path_for, write_truth
+
+    site, weather = site_and_weather(args)
+    attitudes = _read_attitudes(args.attitudes) if args.attitudes else None
+    if attitudes is not None and args.frames is None:
+        args.frames = int(attitudes.shape[0])
+    if args.preset == "seed004":
+        cfg = seed004_config()
+    else:
+        if not args.camera:
+            raise UserError("--camera is required (or choose a --preset)")
+        if args.frames is None:
+            raise UserError("--frames is required (or choose a --preset)")
+        cfg = None
+    camera = load_params(args.camera) if args.camera else cfg.camera
+    if cfg is None:
+        cfg = SimConfig(camera=camera, frames=args.frames)
+    overrides = {
+        "camera": camera,
+        "frames": args.frames,
+        "noise_px": args.noise_px,
+        "min_stars": args.min_stars,
+        "max_stars": args.max_stars,
+        "maglim": args.maglim,
+        "seed": args.seed,
+        "t0_iso": args.t0,
+        "frame_interval_s": args.interval,
+        "misid_fraction": args.misid,
+        "false_star_fraction": args.false_stars,
+        "focal_drift_um": args.focal_drift_um,
+        "focal_drift_period_frames": args.focal_drift_period,
+        "site": site,
+        "weather": weather,
+        "dut1_s": args.dut1,
+        "zenith_range_deg": _fraction_pair(args.zenith_range) if args.zenith_range else None,
+        "attitudes": attitudes,
+    }
+    cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    if cfg.min_stars > cfg.max_stars and args.max_stars is None:
+        cfg = replace(cfg, max_stars=cfg.min_stars)
+    bar, callback = _progress(int(cfg.frames))
+    try:
+        result = simulate(cfg, progress=callback)
+    finally:
+        if bar is not None:
+            bar.stop()
+    truth_path = truth_path_for(args.out)
+    write_session(args.out, result.session)
+    write_truth(truth_path, result.truth)
+    session = result.session
+    print(
+        f"wrote {session.n_frames} frames, {len(session)} stars to {args.out} (truth: {truth_path})",
+        file=sys.stdout,
+    )
+    return 0

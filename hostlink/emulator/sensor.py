@@ -1,0 +1,202 @@
+"""The emulated sensor that every endpoint (serial, CAN, Modbus) hosts: firmware + frame source, thread-safe.
+
+Frame sources hold what a real sensor holds: the centroids it measures and, for each identified star, the reference
+direction its onboard catalogue gives (here from the session's ``ra_deg``/``dec_deg`` columns, simulated or replayed;
+stars without one are passed to the estimator as unidentified). The emulated camera takes an exposure only when
+the host drains one, i.e. while streaming, so ``--replay`` streams the file's rows from its first frame, exactly once,
+then reports :class:`~protocol.messages.EndOfStream`. The simulated source cycles through its frames forever,
+continuing the frame counter and the clock.
+
+:class:`Pacer` keeps an endpoint at its physical line rate (serial: 10 bits per byte at the baud rate; CAN: bits per
+frame at the bit rate).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hostlink.session import Session
+from hostlink.wiretime import iso_to_t_us
+from onboard.camera import radec_to_unit
+from onboard.firmware import Firmware
+from protocol.messages import MAX_STARS, CentroidFrame, EndOfStream, Message, StreamControl
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One exposure as the emulated sensor sees it: the frame and the catalogue's reference unit vectors (N, 3)
+    (NaN rows for unidentified stars; None when the source has no reference directions)."""
+
+    frame: CentroidFrame
+    r_ref: np.ndarray | None
+
+
+@dataclass
+class EndpointOptions:
+    """Settings an endpoint reads (``hostlink emulate`` options)."""
+
+    baud: int = 921_600
+    bitrate: int = 1_000_000
+    host: str = "127.0.0.1"
+    port: int = 0
+    unit: int = 1
+    #: Test hook: drop every Kth stream message after it was numbered (0 = never), so loss counting is testable.
+    drop_every: int = 0
+    extra: dict[str, str] = field(default_factory=dict)
+
+
+def session_frames(session: Session, cycle: bool = False) -> Iterator[SourceFrame]:
+    """Frames of a session in file order (``cycle``: forever, shifting the frame counter and the clock by the
+    session's span each pass). At most MAX_STARS stars per frame (a session with more is refused up front)."""
+    slices = list(session.frame_slices())
+    if not slices:
+        return
+    counts = [s.stop - s.start for s in slices]
+    if max(counts) > MAX_STARS:
+        raise ValueError(f"a frame has {max(counts)} stars; the sensor's frame buffer holds {MAX_STARS}")
+    t_us = np.array([iso_to_t_us(session.t_utc[s.start]) for s in slices], dtype=np.int64)
+    frames = np.array([int(session.frame[s.start]) for s in slices], dtype=np.int64)
+    have_ref = session.ra_deg is not None and session.dec_deg is not None
+    if have_ref:
+        r_all = radec_to_unit(np.radians(session.ra_deg), np.radians(session.dec_deg))
+    mag = session.mag if session.mag is not None else np.full(len(session), np.nan)
+    frame_step = int(frames[-1] - frames[0]) + 1
+    t_step = int(t_us[-1] - t_us[0]) + (int(t_us[1] - t_us[0]) if len(t_us) > 1 else 1_000_000)
+    n_pass = 0
+    while True:
+        for k, s in enumerate(slices):
+            yield SourceFrame(
+                frame=CentroidFrame(
+                    frame=int(frames[k] + n_pass * frame_step),
+                    t_us=int(t_us[k] + n_pass * t_step),
+                    star_id=session.star_id[s].astype(np.uint32),
+                    x_px=session.x_px[s],
+                    y_px=session.y_px[s],
+                    mag=mag[s],
+                ),
+                r_ref=r_all[s] if have_ref else None,
+            )
+        if not cycle:
+            return
+        n_pass += 1
+
+
+class EmulatedSensor:
+    """Firmware + frame source behind a lock: endpoints call :meth:`handle`, :meth:`next_stream_message` and
+    :meth:`background` from any thread.
+
+    Scheduling, as on a real sensor: taking and streaming exposures has priority; the recursive estimator is a
+    background task that :meth:`background` runs on the latest exposure when the endpoint has slack before its line
+    is free again (a frame it has no time for is skipped and counted in ``estimator_skipped``). Without a deadline
+    every frame is estimated (in-process links, tests). An endpoint opts in with ``sensor.deferred_estimation =
+    True``; otherwise :meth:`next_stream_message` estimates each exposure before returning it.
+    """
+
+    #: Assumed cost of one estimator update until one was measured [s].
+    INITIAL_ESTIMATOR_COST_S = 2e-3
+
+    def __init__(self, firmware: Firmware, source: Iterator[SourceFrame],
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.firmware = firmware
+        self._source = source
+        self._lock = threading.Lock()
+        self._clock = clock
+        self._ended = False
+        self._end_sent = False
+        self._pending: SourceFrame | None = None
+        self._cost_s = self.INITIAL_ESTIMATOR_COST_S
+        self.frames_sent = 0
+        self.estimator_skipped = 0
+        #: True: the endpoint calls :meth:`background`; False: every exposure is estimated inline.
+        self.deferred_estimation = False
+
+    @property
+    def streaming(self) -> bool:
+        return self.firmware.streaming
+
+    def handle(self, command: Message) -> Message:
+        """Decide one command (the firmware does) and return its reply."""
+        with self._lock:
+            reply = self.firmware.handle(command)
+            if isinstance(command, StreamControl) and command.enable:
+                self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
+            return reply
+
+    def next_stream_message(self) -> CentroidFrame | EndOfStream | None:
+        """While streaming: the next exposure, or EndOfStream once when the source is exhausted; None when not
+        streaming (or after the end was reported). The exposure is queued for :meth:`background`."""
+        with self._lock:
+            if not self.firmware.streaming:
+                return None
+            if self._ended:
+                if self._end_sent:
+                    return None
+                self._end_sent = True
+                return EndOfStream(frames_sent=self.frames_sent)
+            try:
+                item = next(self._source)
+            except StopIteration:
+                self._ended = True
+                self._end_sent = True
+                return EndOfStream(frames_sent=self.frames_sent)
+            self.firmware.count_frame(item.frame)
+            if self._pending is not None:
+                self.estimator_skipped += 1
+            self._pending = item
+            self.frames_sent += 1
+            if not self.deferred_estimation:
+                self._estimate_pending()
+            return item.frame
+
+    def background(self, deadline: float | None = None) -> bool:
+        """Run the estimator on the latest exposure if one is waiting and it fits before ``deadline`` (a
+        ``time.monotonic`` value; None = no limit). Returns whether it ran."""
+        with self._lock:
+            item = self._pending
+            if item is None:
+                return False
+            if deadline is not None and self._clock() + self._cost_s > deadline:
+                return False
+            self._estimate_pending()
+            return True
+
+    def _estimate_pending(self) -> None:
+        item, self._pending = self._pending, None
+        t0 = self._clock()
+        self.firmware.estimate_frame(item.frame, item.r_ref)
+        self._cost_s = 0.8 * self._cost_s + 0.2 * (self._clock() - t0)  # moving average of the cost
+
+
+class Pacer:
+    """Holds a sender to ``bits_per_s``: :meth:`wait` blocks until the line is free for the next ``n_bits``.
+
+    The schedule is cumulative (the line is busy until ``free_at``), so sleep jitter does not accumulate; a sender
+    that falls behind may catch up by at most ``credit_s`` (a UART FIFO's worth), never faster than the line on
+    average.
+    """
+
+    def __init__(self, bits_per_s: float, credit_s: float = 0.005,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+        if bits_per_s <= 0:
+            raise ValueError("line rate must be > 0")
+        self.bits_per_s = float(bits_per_s)
+        self.credit_s = float(credit_s)
+        self._clock, self._sleep = clock, sleep
+        self._free_at = clock()
+
+    @property
+    def free_at(self) -> float:
+        """Clock time at which the line finishes the last message handed to :meth:`wait`."""
+        return self._free_at
+
+    def wait(self, n_bits: int) -> None:
+        now = self._clock()
+        start = max(self._free_at, now - self.credit_s)
+        if start > now:
+            self._sleep(start - now)
+        self._free_at = start + n_bits / self.bits_per_s

@@ -1,0 +1,383 @@
+"""CAN link: any python-can interface; short commands and ACKs as single frames, the rest by ISO-TP (can-isotp),
+the centroid stream as one frame per star (``protocol.can_frames``).
+
+Link string: ``can:INTERFACE:CHANNEL[@BITRATE][,KEY=VALUE...]`` -- the python-can interface name, its channel, the
+CAN bit rate in bit/s (default 500000; passed to python-can as ``bitrate``) and optional keyword arguments of that
+interface (numbers are converted). Examples:
+
+* ``can:slcan:socket://127.0.0.1:PORT@500000`` -- what ``hostlink emulate --transport can`` prints (an SLCAN adapter
+  emulated over TCP by ``hostlink.links.slcan_hub``);
+* ``can:slcan:/dev/ttyACM0@500000,tty_baudrate=115200`` -- a real SLCAN (CANable, Lawicel) adapter;
+* ``can:socketcan:can0`` -- a Linux SocketCAN interface (the bit rate is set with ``ip link``, not here);
+* ``can:pcan:PCAN_USBBUS1@250000``, ``can:kvaser:0@500000``, ``can:virtual:test`` -- any other python-can interface.
+
+The host node uses identifiers 0x0A0 (COMMAND), 0x0A2 (STAGE_FLOAT) and 0x0C0 (ISO-TP to the sensor); the sensor
+0x0A1 (ACK), 0x0C1 (ISO-TP to the host) and 0x100-0x103 (stream). Loss is counted from gaps in the frame counter,
+from frames whose stars did not all arrive, and from stars whose frame parity does not match their header.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+from dataclasses import dataclass, field
+
+import can
+import isotp
+import numpy as np
+
+from hostlink.errors import LinkError, UserError
+from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
+from protocol import can_frames as cf
+from protocol.messages import CentroidFrame, DecodeError, EncodeError, EndOfStream, Message, decode, encode
+from protocol.param_table import TABLE_BYTES
+
+DEFAULT_BITRATE = 500_000
+#: ISO-TP settings on both nodes: no separation time and no block limit, so a long message streams back to back
+#: (the bus, not the protocol, sets the pace); 1 s timeouts for a missing flow control or consecutive frame.
+ISOTP_PARAMS: dict[str, object] = {
+    "stmin": 0,
+    "blocksize": 0,
+    "tx_data_length": 8,
+    "tx_padding": None,
+    "max_frame_size": 4095,
+    "rx_flowcontrol_timeout": 1000,
+    "rx_consecutive_frame_timeout": 1000,
+    "blocking_send": False,
+}
+#: Poll period of the reader thread while ISO-TP has work pending / while idle [s].
+_POLL_BUSY_S = 0.001
+_POLL_IDLE_S = 0.02
+
+
+@dataclass(frozen=True)
+class CanTarget:
+    interface: str
+    channel: str
+    bitrate: int | None
+    options: dict[str, object] = field(default_factory=dict)
+
+
+def _option_value(text: str) -> object:
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    return text
+
+
+def parse_target(target: str) -> CanTarget:
+    """``"slcan:socket://127.0.0.1:5000@500000,sleep_after_open=0"`` -> CanTarget. One-line UserError if malformed."""
+    usage = (f"--link can:{target}: expected can:INTERFACE:CHANNEL[@BITRATE][,KEY=VALUE...], "
+             "e.g. can:socketcan:can0 or can:slcan:socket://127.0.0.1:5000@500000")
+    main, *opts = str(target).split(",")
+    interface, sep, rest = main.partition(":")
+    if not sep or not interface or not rest:
+        raise UserError(usage)
+    channel, at, rate_text = rest.rpartition("@")
+    bitrate: int | None = DEFAULT_BITRATE
+    if not at or not rate_text.isdigit():
+        channel = rest
+    else:
+        bitrate = int(rate_text)
+        if bitrate <= 0:
+            raise UserError(usage)
+    options: dict[str, object] = {}
+    for opt in opts:
+        key, eq, value = opt.partition("=")
+        if not eq or not key.strip():
+            raise UserError(usage)
+        options[key.strip()] = _option_value(value.strip())
+    if interface == "socketcan" and not at:
+        bitrate = None  # SocketCAN's bit rate belongs to the kernel interface (ip link set canX type can bitrate N)
+    if not channel:
+        raise UserError(usage)
+    return CanTarget(interface.strip(), channel, bitrate, options)
+
+
+def open_bus(t: CanTarget) -> can.BusABC:
+    """Open the python-can bus named by a target; LinkError (one line) when it cannot be opened."""
+    kwargs = dict(t.options)
+    if t.bitrate is not None:
+        kwargs.setdefault("bitrate", t.bitrate)
+    if t.interface == "slcan" and "://" in t.channel:
+        kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
+    try:
+        return can.Bus(interface=t.interface, channel=t.channel, **kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+        raise LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {_one_line(exc)}") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:200]
+
+
+def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CanLink:
+    t = parse_target(target)
+    return CanLink(open_bus(t), f"{scheme}:{target}", timeout_s)
+
+
+# --------------------------------------------------------------------------------------------- ISO-TP
+class IsoTpChannel:
+    """One ISO-TP endpoint (can-isotp's TransportLayer without its threads), driven by the owner's reader thread:
+    :meth:`feed` gives it the received frames of its identifier, :meth:`poll` runs its state machines and returns the
+    complete messages. :meth:`send` may be called from any thread."""
+
+    def __init__(self, send_frame, txid: int, rxid: int) -> None:  # noqa: ANN001 - callable(can.Message)
+        self._send_frame = send_frame
+        self._rx: list[isotp.CanMessage] = []
+        self._lock = threading.RLock()
+        self.errors = 0
+        self._stack = isotp.TransportLayer(
+            rxfn=self._rxfn,
+            txfn=self._txfn,
+            address=isotp.Address(isotp.AddressingMode.Normal_11bits, txid=txid, rxid=rxid),
+            error_handler=self._on_error,
+            params=dict(ISOTP_PARAMS),
+        )
+
+    def _rxfn(self, timeout: float) -> isotp.CanMessage | None:  # noqa: ARG002 - never blocks
+        return self._rx.pop(0) if self._rx else None
+
+    def _txfn(self, msg: isotp.CanMessage) -> None:
+        self._send_frame(can.Message(arbitration_id=msg.arbitration_id, data=msg.data, is_extended_id=False))
+
+    def _on_error(self, error: Exception) -> None:
+        self.errors += 1
+
+    def feed(self, msg: can.Message) -> None:
+        with self._lock:
+            self._rx.append(isotp.CanMessage(arbitration_id=msg.arbitration_id, data=bytes(msg.data),
+                                             extended_id=False))
+
+    def send(self, payload: bytes) -> None:
+        with self._lock:
+            self._stack.send(bytes(payload))
+            self._stack.process(do_rx=False)
+
+    def poll(self) -> list[bytes]:
+        with self._lock:
+            self._stack.process()
+            out = []
+            while self._stack.available():
+                out.append(bytes(self._stack.recv()))
+            return out
+
+    @property
+    def busy(self) -> bool:
+        with self._lock:
+            return self._stack.transmitting() or bool(self._rx) or self._stack.rx_state != \
+                self._stack.RxState.IDLE
+
+
+# --------------------------------------------------------------------------------------- stream decoding
+class StreamAssembler:
+    """Host-side decoding of the CAN centroid stream: TIME_BASE, FRAME_HEADER and STAR frames -> CentroidFrame.
+
+    Counts ``lost`` frames (gaps in the frame counter, frames whose stars did not all arrive) and ``corrupt`` CAN
+    frames (a star without a header, a star of the wrong frame parity, a header before any time base).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        self.t_base_us: int | None = None
+        self._frame: tuple[int, int, int] | None = None  # frame, n_stars, t_us
+        self._words: list[int] = []
+        self._last_frame: int | None = None
+        self.lost = 0
+        self.corrupt = 0
+
+    def forget_sequence(self) -> None:
+        """Start loss counting afresh (a new stream), keeping the time base."""
+        with self._lock:
+            self._frame, self._words, self._last_frame = None, [], None
+            self.lost = self.corrupt = 0
+
+    def feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
+        """One received stream frame; the completed message, if this frame completed one."""
+        with self._lock:
+            return self._feed(frame_id, data)
+
+    def _feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
+        try:
+            if frame_id == cf.STAR.frame_id:
+                return self._star(data)
+            if frame_id == cf.FRAME_HEADER.frame_id:
+                return self._header(*cf.decode_header(data))
+            if frame_id == cf.TIME_BASE.frame_id:
+                self.t_base_us = cf.decode_time_base(data)
+                return None
+            if frame_id == cf.END_OF_STREAM.frame_id:
+                self._abandon()
+                return EndOfStream(frames_sent=cf.decode_end_of_stream(data))
+        except cf.CanDecodeError:
+            self.corrupt += 1
+        return None
+
+    def _abandon(self) -> None:
+        if self._frame is not None:
+            self.lost += 1  # its remaining stars never came
+            self._frame, self._words = None, []
+
+    def _header(self, frame: int, n_stars: int, t_offset_us: int) -> CentroidFrame | None:
+        self._abandon()
+        if self._last_frame is not None:
+            self.lost += (frame - self._last_frame - 1) % (1 << 32)
+        self._last_frame = frame
+        if self.t_base_us is None:
+            self.corrupt += 1  # joined mid-stream before a time base: the exposure time is unknown
+            return None
+        self._frame = (frame, n_stars, self.t_base_us + t_offset_us)
+        return self._complete() if n_stars == 0 else None
+
+    def _star(self, data: bytes) -> CentroidFrame | None:
+        if len(data) != cf.CAN_PAYLOAD_BYTES or self._frame is None:
+            self.corrupt += 1
+            return None
+        word = int.from_bytes(data, "little")
+        if (word >> 63) != (self._frame[0] & 1):  # frame_parity is the top bit (protocol.can_frames.STAR)
+            self.corrupt += 1
+            self._abandon()
+            return None
+        self._words.append(word)
+        return self._complete() if len(self._words) == self._frame[1] else None
+
+    def _complete(self) -> CentroidFrame:
+        frame, _, t_us = self._frame
+        star_id, x, y, _ = cf.decode_stars(np.array(self._words, dtype=np.uint64))
+        self._frame, self._words = None, []
+        return CentroidFrame(frame=frame, t_us=t_us, star_id=star_id, x_px=x, y_px=y,
+                             mag=np.full(star_id.shape[0], math.nan))
+
+
+_STREAM_IDS = frozenset(m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.TIME_BASE, cf.END_OF_STREAM))
+if cf.STAR.signal("frame_parity").start != 63:  # pragma: no cover - _star reads the parity as bit 63
+    raise ImportError("STAR.frame_parity moved; update StreamAssembler._star")
+
+
+# ---------------------------------------------------------------------------------------------- the link
+class CanLink(MessageLink):
+    """Host node on a CAN bus (any python-can bus)."""
+
+    #: A whole parameter table in one STAGE_CHUNK (one ISO-TP message of 59 bytes: 9 CAN frames).
+    max_chunk_bytes = TABLE_BYTES
+
+    def __init__(self, bus: can.BusABC, name: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+        super().__init__(timeout_s)
+        self.name = name
+        self._bus = bus
+        self._tx_lock = threading.Lock()
+        self._inbox: queue.SimpleQueue[Message] = queue.SimpleQueue()
+        self._assembler = StreamAssembler()
+        self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_HOST_TO_SENSOR_ID, cf.ISOTP_SENSOR_TO_HOST_ID)
+        self._failure: str | None = None
+        self._closing = threading.Event()
+        self._reader = threading.Thread(target=self._read_loop, name="can-link-reader", daemon=True)
+        self._reader.start()
+
+    # --------------------------------------------------------------------------------- bus side (thread)
+    def _send_frame(self, msg: can.Message) -> None:
+        with self._tx_lock:
+            self._bus.send(msg, timeout=self.timeout_s)
+        self.stats.tx_bytes += len(msg.data)
+
+    def _read_loop(self) -> None:
+        try:
+            while not self._closing.is_set():
+                msg = self._bus.recv(_POLL_BUSY_S if self._isotp.busy else _POLL_IDLE_S)
+                if msg is not None:
+                    self._dispatch(msg)
+                for payload in self._isotp.poll():
+                    self._deliver_payload(payload)
+        except Exception as exc:  # noqa: BLE001 - any bus failure ends the link with one line
+            if not self._closing.is_set():
+                self._failure = _one_line(exc)
+                self._inbox.put(None)  # wake a waiting _receive
+
+    def _dispatch(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        fid = msg.arbitration_id
+        data = bytes(msg.data)
+        self.stats.rx_bytes += len(data)
+        if fid in _STREAM_IDS:
+            out = self._assembler.feed(fid, data)
+            self.stats.lost_messages = self._assembler.lost
+            self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors
+            if out is not None:
+                self.stats.rx_messages += 1
+                self._inbox.put(out)
+        elif fid == cf.ISOTP_SENSOR_TO_HOST_ID:
+            self._isotp.feed(msg)
+        elif fid == cf.ACK.frame_id:
+            try:
+                self._inbox.put(cf.decode_single(fid, data))
+                self.stats.rx_messages += 1
+            except (cf.CanDecodeError, DecodeError):
+                self.stats.corrupt_frames += 1
+
+    def _deliver_payload(self, payload: bytes) -> None:
+        try:
+            self._inbox.put(decode(payload))
+            self.stats.rx_messages += 1
+        except DecodeError:
+            self.stats.corrupt_frames += 1
+
+    # ---------------------------------------------------------------------------------- transport hooks
+    def _check_alive(self) -> None:
+        if self._failure is not None:
+            raise LinkError(f"{self.name}: CAN link lost ({self._failure})")
+        if self._closing.is_set():
+            raise LinkError(f"{self.name}: link is closed")
+
+    def _send(self, msg: Message) -> None:
+        self._check_alive()
+        try:
+            if cf.is_single_frame(msg):
+                fid, data = cf.encode_single(msg)
+                self._send_frame(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+            else:
+                self._isotp.send(encode(msg))
+        except EncodeError as exc:
+            raise LinkError(f"{self.name}: cannot encode {type(msg).__name__}: {exc}") from None
+        except (can.CanError, OSError) as exc:
+            raise LinkError(f"{self.name}: CAN send failed ({_one_line(exc)})") from None
+
+    def _receive(self, timeout_s: float) -> Message | None:
+        self._check_alive()
+        try:
+            msg = self._inbox.get(timeout=max(0.0, timeout_s))
+        except queue.Empty:
+            return None
+        if msg is None:
+            self._check_alive()
+        return msg
+
+    def _discard_input(self) -> None:
+        while True:
+            try:
+                self._inbox.get_nowait()
+            except queue.Empty:
+                return
+
+    def _reset_loss_counting(self) -> None:
+        self._assembler.forget_sequence()
+
+    def close(self) -> None:
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        self._reader.join(1.0)
+        try:
+            self._bus.shutdown()
+        except (can.CanError, OSError):
+            pass
+

@@ -1,0 +1,171 @@
+"""Host driver of the onboard recursive calibration (ARCHITECTURE.md: hostlink runs ``onboard`` logic unchanged).
+
+:func:`replay_session` feeds a session, frame by frame, to :mod:`onboard.recursive` exactly as the sensor would
+(identified stars only, the sensor's float32 or the host's float64 reference) and collects a per-frame trace. It is
+shared by ``hostlink replay`` and the emulator.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.session import Session
+from onboard import recursive
+from onboard.camera import radec_to_unit
+from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams
+
+PRECISIONS = ("float32", "float64", "fixed")
+
+#: Trace columns (INTERFACES.md requires frame, focal_length_mm, x0_px, y0_px).
+TRACE_COLUMNS = (
+    "frame",
+    "t_utc",
+    "focal_length_mm",
+    "x0_px",
+    "y0_px",
+    *DISTORTION_KEYS,
+    "sigma_f_mm",
+    "sigma_x0_px",
+    "sigma_y0_px",
+    "n_stars",
+    "n_used",
+    "n_rejected_stars",
+    "n_pairs",
+    "iterations",
+    "nis",
+    "drift_on",
+    "skipped",
+)
+
+
+@dataclass
+class ReplayResult:
+    params: CameraParams
+    state: recursive.RecursiveState
+    trace: dict[str, list]  # column name -> one value per frame (TRACE_COLUMNS)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.trace["frame"])
+
+
+def precision_dtype(precision: str) -> np.dtype:
+    """'float32' / 'float64' -> dtype; 'fixed' is refused with a one-line UserError (not implemented yet)."""
+    if precision == "fixed":
+        raise UserError("--precision fixed: fixed-point replay is not supported yet (use float32 or float64)")
+    if precision not in ("float32", "float64"):
+        raise UserError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+    return np.dtype(precision)
+
+
+def reference_vectors(session: Session) -> np.ndarray:
+    """Reference unit vectors (rows, 3) from the session's ra_deg/dec_deg (NaN rows for unidentified stars)."""
+    if session.ra_deg is None or session.dec_deg is None:
+        raise UserError(
+            "the session has no ra_deg/dec_deg columns; replay needs the reference direction of each identified "
+            "star (simulate or record sessions with them)"
+        )
+    return radec_to_unit(np.radians(session.ra_deg), np.radians(session.dec_deg))
+
+
+def replay_session(
+    session: Session,
+    nominal: CameraParams,
+    estimate: tuple[str, ...] = ESTIMATE_NAMES,
+    config: recursive.RecursiveConfig | None = None,
+    precision: str = "float32",
+    on_frame: Callable[[int, recursive.FrameResult], None] | None = None,
+) -> ReplayResult:
+    """Run the onboard estimator over every frame of ``session`` and return the final estimate and the trace."""
+    dtype = precision_dtype(precision)
+    try:
+        state = recursive.create(nominal, estimate, config, dtype)
+    except ValueError as exc:
+        raise UserError(f"estimator configuration: {exc}") from None
+    r_all = reference_vectors(session)
+    identified_all = (session.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
+    trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
+    for k, rows in enumerate(session.frame_slices()):
+        res = recursive.update(
+            state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows]
+        )
+        _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
+        if on_frame is not None:
+            on_frame(k, res)
+    return ReplayResult(params=recursive.current_params(state), state=state, trace=trace)
+
+
+def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, frame: int, t_utc: str) -> None:
+    theta = recursive.state_vector(state)
+    sd = np.sqrt(np.diag(recursive.covariance(state)))
+    sig = dict.fromkeys(ESTIMATE_NAMES, float("nan"))
+    for name, v in zip(state.names, sd, strict=True):
+        sig[name] = float(v)
+    pitch = state.nominal.pixel_pitch_um
+    trace["frame"].append(frame)
+    trace["t_utc"].append(t_utc)
+    trace["focal_length_mm"].append(theta[0] * pitch / 1000.0)
+    trace["x0_px"].append(theta[1])
+    trace["y0_px"].append(theta[2])
+    for k, name in enumerate(DISTORTION_KEYS):
+        trace[name].append(theta[3 + k])
+    trace["sigma_f_mm"].append(sig["f"] * pitch / 1000.0)
+    trace["sigma_x0_px"].append(sig["x0"])
+    trace["sigma_y0_px"].append(sig["y0"])
+    trace["n_stars"].append(res.n_stars)
+    trace["n_used"].append(res.n_used)
+    trace["n_rejected_stars"].append(len(res.rejected_stars))
+    trace["n_pairs"].append(res.n_pairs)
+    trace["iterations"].append(res.iterations)
+    trace["nis"].append(res.nis)
+    trace["drift_on"].append(int(state.drift_on))
+    trace["skipped"].append(res.skipped)
+
+
+def estimate_extras(result: ReplayResult, precision: str) -> dict:
+    """Extra keys of ESTIMATE.json: sigma of each estimated parameter, method, precision and frame statistics."""
+    state = result.state
+    used = sum(1 for s in result.trace["skipped"] if not s)
+    return {
+        "sigma": recursive.sigma(state),
+        "method": "onboard-recursive-ud",
+        "precision": precision,
+        "estimated": list(state.names),
+        "frames": result.n_frames,
+        "frames_used": used,
+        "rejected_stars": int(sum(result.trace["n_rejected_stars"])),
+        "focal_drift_detected_frame": state.drift_frame if state.drift_on else None,
+    }
+
+
+def write_trace(path: str | Path, trace: dict[str, list]) -> None:
+    """Write the per-frame trace CSV (atomically)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    n = len(trace["frame"])
+
+    def fmt(name: str, v) -> str:
+        if name in ("frame", "n_stars", "n_used", "n_rejected_stars", "n_pairs", "iterations", "drift_on"):
+            return str(int(v))
+        if name in ("t_utc", "skipped"):
+            return str(v)
+        if name == "focal_length_mm" or name == "sigma_f_mm":
+            return "%.9f" % v
+        return "%.9g" % v
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tmp.open("w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle, lineterminator="\n")
+            writer.writerow(TRACE_COLUMNS)
+            for k in range(n):
+                writer.writerow([fmt(c, trace[c][k]) for c in TRACE_COLUMNS])
+        tmp.replace(path)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write ({exc.strerror})") from None

@@ -1,0 +1,209 @@
+"""The host's operations on a sensor, written once over the :class:`~hostlink.links.base.Link` interface, so they
+are the same on serial, CAN and Modbus, and against real or emulated sensors.
+
+* :func:`stream_frames`: record N centroid frames, counting lost messages from sequence numbers;
+* :func:`safe_upload`: the six-step safe upload (issue 6):
+  1. the host validates the set (``onboard.params.validate_params``, the sensor's own check);
+  2. the host stages its 52-byte float32 table on the sensor in chunks;
+  3. the sensor verifies the staged bytes against the CRC-32 and their ranges (NAK with a reason otherwise);
+  4. the host reads the staged set back and compares it byte for byte;
+  5. the sensor commits it to its inactive A/B bank with the next generation and CRC, and switches atomically;
+  6. the host reads the active set back: success only if it equals the uploaded table (float32, bit for bit) under
+     the new generation.
+  Until step 5 nothing on the sensor but its RAM staging area changes, so an interrupted upload leaves the old set
+  active; the firmware (``onboard.firmware``) enforces that order whatever the host does.
+* :func:`read_active_params`, :func:`read_estimate`, :func:`accept_estimate` (the onboard estimate committed through
+  the same safe upload).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hostlink.errors import LinkError, UserError
+from hostlink.links.base import Link
+from hostlink.session import Session
+from hostlink.wiretime import t_us_to_iso
+from onboard.banks import params_to_table, table_to_params
+from onboard.firmware import estimate_to_params
+from onboard.params import CameraParams, ParameterError, validate_params
+from protocol.crc import crc32
+from protocol.messages import CentroidFrame, Estimate
+from protocol.param_table import TABLE_BYTES, decode_table
+
+
+class UploadMismatch(UserError):
+    """A read-back (staged or active) differs from what was uploaded: the upload is not confirmed."""
+
+    exit_code = 5
+
+
+# ---------------------------------------------------------------------------------------------------- streaming
+@dataclass
+class StreamResult:
+    frames: list[CentroidFrame] = field(default_factory=list)
+    lost_messages: int = 0
+    corrupt_frames: int = 0
+    #: True when the sensor reported the end of its source before N frames arrived.
+    ended: bool = False
+
+    @property
+    def n_stars(self) -> int:
+        return sum(f.n_stars for f in self.frames)
+
+
+def stream_frames(link: Link, n_frames: int, progress: Callable[[int], None] | None = None,
+                  frame_timeout_s: float | None = None) -> StreamResult:
+    """Start the stream, receive ``n_frames`` frames (fewer if the sensor's source ends), stop the stream."""
+    result = StreamResult()
+    link.set_streaming(True)
+    try:
+        while len(result.frames) < n_frames:
+            frame = link.recv_frame(frame_timeout_s)
+            if frame is None:
+                result.ended = True
+                break
+            result.frames.append(frame)
+            if progress is not None:
+                progress(len(result.frames))
+    finally:
+        result.lost_messages = link.stats.lost_messages
+        result.corrupt_frames = link.stats.corrupt_frames
+        try:
+            link.set_streaming(False)
+        except (LinkError, UserError):
+            pass  # best effort: the frames are in hand; a dropped link was already reported by recv_frame
+    return result
+
+
+def frames_to_session(frames: list[CentroidFrame]) -> Session:
+    """Received frames -> a session (columns frame, t_utc, star_id, x_px, y_px, mag; no reference directions)."""
+    counts = [f.n_stars for f in frames]
+
+    def cat(values: list[np.ndarray], dtype) -> np.ndarray:
+        return np.concatenate(values).astype(dtype) if values else np.zeros(0, dtype)
+
+    return Session(
+        frame=np.repeat(np.array([f.frame for f in frames], dtype=np.int64), counts),
+        t_utc=np.repeat(np.array([t_us_to_iso(f.t_us) for f in frames], dtype=object), counts),
+        star_id=cat([f.star_id for f in frames], np.int64),
+        x_px=cat([f.x_px for f in frames], np.float64),
+        y_px=cat([f.y_px for f in frames], np.float64),
+        mag=cat([f.mag for f in frames], np.float64),
+    )
+
+
+# ------------------------------------------------------------------------------------------------------- upload
+@dataclass(frozen=True)
+class UploadResult:
+    generation: int
+    crc32: int
+    active: CameraParams
+
+
+def chunks(table: bytes, size: int) -> list[tuple[int, bytes]]:
+    """(offset, bytes) pieces of at most ``size`` bytes covering ``table``."""
+    if size < 1:
+        raise ValueError("chunk size must be >= 1")
+    return [(off, table[off : off + size]) for off in range(0, len(table), size)]
+
+
+def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
+                step: Callable[[int, str], None] | None = None) -> UploadResult:
+    """The six-step safe upload (module docstring). Raises UserError (host refused), CommandRefused (sensor refused,
+    with its reason), UploadMismatch (a read-back differs) or LinkError. ``step(k, text)`` reports progress."""
+
+    def report(k: int, text: str) -> None:
+        if step is not None:
+            step(k, text)
+
+    if host_check:
+        try:
+            validate_params(params)
+        except ParameterError as exc:
+            raise UserError(f"parameter set refused by the host check: {exc}") from None
+    report(1, "validated on the host")
+    table = params_to_table(params)
+    crc = crc32(table)
+    link.stage_begin(len(table))
+    for offset, piece in chunks(table, link.max_chunk_bytes):
+        link.stage_chunk(offset, piece)
+    report(2, f"staged {len(table)} bytes in {-(-len(table) // link.max_chunk_bytes)} chunks")
+    link.stage_verify(crc)
+    report(3, f"sensor verified CRC 0x{crc:08x} and ranges")
+    staged = link.read_staged()
+    if bytes(staged.table) != table or staged.crc32 != crc:
+        raise UploadMismatch(f"staged set read back differs from the upload (CRC 0x{staged.crc32:08x}, expected "
+                             f"0x{crc:08x}); nothing was committed")
+    report(4, "staged set read back equal")
+    generation = link.commit(crc)
+    report(5, f"committed as generation {generation}")
+    active = link.read_active()
+    if bytes(active.table) != table or active.crc32 != crc or active.generation != generation:
+        raise UploadMismatch(f"active set read back (generation {active.generation}, CRC 0x{active.crc32:08x}) is "
+                             f"not the upload (generation {generation}, CRC 0x{crc:08x})")
+    report(6, "active set read back equal")
+    return UploadResult(generation=generation, crc32=crc, active=table_to_params(bytes(active.table)))
+
+
+def float32_equal(a: CameraParams, b: CameraParams) -> bool:
+    """Every parameter of ``a`` and ``b`` equal after rounding to float32 (INTERFACES.md, ``hostlink upload``)."""
+    return params_to_table(a) == params_to_table(b)
+
+
+# --------------------------------------------------------------------------------------------- params / estimate
+@dataclass(frozen=True)
+class ActiveParams:
+    params: CameraParams
+    generation: int
+    crc32: int
+
+
+def read_active_params(link: Link) -> ActiveParams:
+    """The sensor's active set, its generation and CRC (the CRC is checked against the table received)."""
+    active = link.read_active()
+    table = bytes(active.table)
+    if len(table) != TABLE_BYTES or crc32(table) != active.crc32:
+        raise LinkError(f"{link.name}: active set arrived with a CRC that does not match its bytes")
+    try:
+        params = table_to_params(table)
+    except ParameterError as exc:
+        raise LinkError(f"{link.name}: active set is not a parameter set ({exc})") from None
+    return ActiveParams(params=params, generation=active.generation, crc32=active.crc32)
+
+
+def read_estimate(link: Link) -> Estimate:
+    return link.read_estimate()
+
+
+def accept_estimate(link: Link, step: Callable[[int, str], None] | None = None) -> tuple[UploadResult, Estimate]:
+    """Commit the sensor's current onboard estimate through the safe upload. Refused (UserError) if the estimate
+    started from another set than the active one (it was read across a commit) or fails validation."""
+    active = read_active_params(link)
+    estimate = link.read_estimate()
+    if estimate.base_generation != active.generation:
+        raise UserError(f"the onboard estimate started from generation {estimate.base_generation} but generation "
+                        f"{active.generation} is active; read it again")
+    params = estimate_to_params(active.params, estimate)
+    return safe_upload(link, params, step=step), estimate
+
+
+def shortest_float32(value: float) -> float:
+    """The shortest decimal that reads back as the same float32 (what ``hostlink params`` prints)."""
+    return float(str(np.float32(value)))
+
+
+def params_float32_dict(params: CameraParams) -> dict:
+    """A camera parameter file object with every value written as its shortest float32 decimal."""
+    v = decode_table(params_to_table(params))
+    s = [shortest_float32(x) for x in v]
+    return {
+        "focal_length_mm": s[0],
+        "pixel_pitch_um": s[1],
+        "principal_point_px": [s[2], s[3]],
+        "image_size_px": [int(v[4]), int(v[5])],
+        "distortion": dict(zip(("k1", "k2", "k3", "p1", "p2", "s1", "s2"), s[6:13], strict=True)),
+    }

@@ -1,0 +1,119 @@
+"""Geocentric apparent place of Hipparcos stars, true equator and equinox of date (INTERFACES.md, seed 000 sec. 3).
+
+The chain, all in pyerfa (IAU 2006/2000A):
+
+1. ``erfa.pmsafe``: space motion from the catalogue epoch J1991.25 to J2000.0 (TT), because ``atci13``/``atciq``
+   take J2000 star data (ERFA atci13 note 1). Hipparcos' mu_alpha* is divided by cos(dec) (atci13 note 2).
+2. ``erfa.apci13`` once per frame time, then ``erfa.atciq`` per star: proper motion to the date, parallax, light
+   deflection by the Sun, annual aberration, and frame bias-precession-nutation to CIRS (seed 000 eq. 15-18 carry
+   the same physics in the classical form).
+3. Equinox-based right ascension ``ra = ri - eo``, with ``eo = ERA - GST`` the equation of the origins returned by
+   ``apci13`` (ERFA atci13 note 5): this moves CIRS onto the true equator and equinox of date.
+
+Times: the frame's UTC is converted to TT (``hostlink.timeutil.utc_to_tt``) and used where ERFA asks for TDB; TDB - TT
+is below 2 ms, whose effect on aberration is below 1e-9 arcsec. UT1 does not enter a geocentric apparent place.
+Every frame gets its own ``apci13`` call (about 40 us each), so no interpolation of aberration or nutation is needed.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import erfa
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.sky.catalogue import HIPPARCOS_EPOCH_JD_TT, Catalogue
+from hostlink.timeutil import utc_to_tt
+from onboard.camera import radec_to_unit, unit_to_radec
+
+_MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
+_J2000_JD_TT = 2451545.0
+
+
+@dataclass(frozen=True)
+class StarsJ2000:
+    """Star data at epoch J2000.0 in the form ERFA's atciq takes: ICRS ra/dec [rad], dRA/dt and dDec/dt [rad/yr]
+    (dRA/dt is NOT multiplied by cos dec), parallax [arcsec], radial velocity [km/s] (0: Hipparcos has none)."""
+
+    ra_rad: np.ndarray
+    dec_rad: np.ndarray
+    pmra_radyr: np.ndarray
+    pmdec_radyr: np.ndarray
+    plx_arcsec: np.ndarray
+    rv_kms: np.ndarray
+
+    def take(self, rows: np.ndarray) -> StarsJ2000:
+        return StarsJ2000(*(getattr(self, k)[rows] for k in self.__dataclass_fields__))
+
+
+def stars_at_j2000(cat: Catalogue, rows: np.ndarray | None = None) -> StarsJ2000:
+    """Propagate catalogue rows (all when None) from J1991.25 to J2000.0 with ``erfa.pmsafe``.
+
+    Non-positive parallaxes are overridden by pmsafe with a safe small value (its note 6; the effect on direction is
+    below 1e-9 arcsec); that status warning is silenced here on purpose.
+    """
+    sel = slice(None) if rows is None else np.asarray(rows)
+    dec = cat.dec_rad[sel]
+    pmr = cat.pmra_masyr[sel] * _MAS_TO_RAD / np.cos(dec)
+    pmd = cat.pmdec_masyr[sel] * _MAS_TO_RAD
+    px = np.maximum(cat.plx_mas[sel], 0.0) / 1000.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", erfa.ErfaWarning)
+        ra2, dec2, pmr2, pmd2, px2, rv2 = erfa.pmsafe(
+            cat.ra_rad[sel], dec, pmr, pmd, px, 0.0, HIPPARCOS_EPOCH_JD_TT, 0.0, _J2000_JD_TT, 0.0
+        )
+    return StarsJ2000(*(np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (ra2, dec2, pmr2, pmd2, px2, rv2)))
+
+
+def frame_astrometry(jd_utc1: np.ndarray, jd_utc2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ERFA star-independent astrometry parameters (``apci13``) and equation of the origins [rad] per UTC time."""
+    tt1, tt2 = utc_to_tt(np.atleast_1d(jd_utc1), np.atleast_1d(jd_utc2))
+    astrom, eo = erfa.apci13(tt1, tt2)
+    return np.atleast_1d(astrom), np.atleast_1d(eo)
+
+
+def apparent_from_astrometry(stars: StarsJ2000, astrom: np.ndarray, eo_rad: np.ndarray) -> np.ndarray:
+    """Apparent directions (N, 3), true equator and equinox of date, of ``stars`` (N entries) with per-star
+    ``astrom``/``eo_rad`` (N entries, or one for all): ``atciq`` then ra = ri - eo."""
+    ri, di = erfa.atciq(stars.ra_rad, stars.dec_rad, stars.pmra_radyr, stars.pmdec_radyr, stars.plx_arcsec,
+                        stars.rv_kms, astrom)
+    return radec_to_unit(np.asarray(ri) - eo_rad, np.asarray(di))
+
+
+def apparent_directions(
+    cat: Catalogue, rows: np.ndarray, jd_utc1: float | np.ndarray, jd_utc2: float | np.ndarray, dut1_s: float = 0.0
+) -> np.ndarray:
+    """Geocentric apparent unit vectors (N, 3), true equator and equinox of date, of catalogue ``rows`` at UTC
+    (jd_utc1 + jd_utc2), a scalar or one time per row. ``dut1_s`` is accepted for symmetry with the site functions
+    and not used: a geocentric apparent place does not depend on UT1."""
+    del dut1_s
+    rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
+    jd1, jd2 = np.broadcast_arrays(np.atleast_1d(np.asarray(jd_utc1, dtype=np.float64)),
+                                   np.atleast_1d(np.asarray(jd_utc2, dtype=np.float64)))
+    if jd1.size not in (1, rows.size):
+        raise ValueError(f"expected one time or one per row ({rows.size}), got {jd1.size}")
+    stars = stars_at_j2000(cat, rows)
+    astrom, eo = frame_astrometry(jd1, jd2)
+    return apparent_from_astrometry(stars, astrom, eo)
+
+
+def apparent_radec_deg(
+    cat: Catalogue, rows: np.ndarray, jd_utc1: float | np.ndarray, jd_utc2: float | np.ndarray, dut1_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`apparent_directions`, as (ra in [0, 360), dec) [deg]: the session file's ra_deg/dec_deg."""
+    ra, dec = unit_to_radec(apparent_directions(cat, rows, jd_utc1, jd_utc2, dut1_s))
+    return np.degrees(ra), np.degrees(dec)
+
+
+def hip_lookup(cat: Catalogue, hip_ids: np.ndarray) -> np.ndarray:
+    """Catalogue row of each Hipparcos number (int64 array). Raises :class:`UserError` naming the first unknown."""
+    hip_ids = np.atleast_1d(np.asarray(hip_ids, dtype=np.int64))
+    pos = np.searchsorted(cat.hip, hip_ids)
+    pos_c = np.minimum(pos, max(len(cat) - 1, 0))
+    found = (pos < len(cat)) & (cat.hip[pos_c] == hip_ids) if len(cat) else np.zeros(hip_ids.shape, dtype=bool)
+    if not np.all(found):
+        bad = int(hip_ids[np.argmax(~found)])
+        raise UserError(f"star_id {bad}: not in the Hipparcos catalogue (within its magnitude limit)")
+    return pos_c.astype(np.int64)

@@ -1,0 +1,614 @@
+"""The real-sky sensor simulator behind ``hostlink simulate`` (INTERFACES.md): Hipparcos stars at their geocentric
+apparent place at each frame's time, seen through the true camera, as a session plus its truth.
+
+Per frame k (time t_k = t0 + k * interval, on the session file's 1 ms grid):
+
+1. attitude C_k (b = C r): scripted, or drawn uniformly over SO(3) (space), or for a ground site with the boresight
+   uniform in solid angle between the zenith distances ``zenith_range_deg`` and uniform azimuth and roll;
+2. reference directions r: ``hostlink.sky.apparent`` (pyerfa apci13/atciq, ra = ri - eo) exactly at t_k; for a ground
+   site with weather the observed direction is r lifted toward the zenith by ERFA's refraction
+   (``hostlink.sky.site.refract_directions_truth``); diurnal aberration is NOT applied (see that module);
+3. the true camera: F_k = 1000 f_k / p with f_k = f + A sin(2 pi k / P) (thermal drift, A in micrometres), the
+   measured centroid is the exact inverse of the Weng model (``onboard.camera.unit_to_pixels``) plus independent
+   Gaussian noise of ``noise_px`` per axis;
+4. only stars whose measured centroid lies on the detector ([-0.5, w-0.5] x [-0.5, h-0.5]) are kept, the brightest
+   ``max_stars``; a random-attitude frame with fewer than ``min_stars`` is redrawn (a scripted one is kept as is);
+5. options: a fraction of the real stars get a wrong identity (another Hipparcos star among the 12 nearest the true
+   one, not otherwise in the frame, with that star's reference direction), false stars (star_id 0, no ra/dec) are
+   added at uniform random pixels, Poisson with mean ``false_star_fraction`` x the frame's real stars.
+
+The CSV's ra_deg/dec_deg are always the geocentric apparent place (never refracted), as INTERFACES.md defines them.
+The truth (camera, noise, per-frame C and f, misidentified and false rows, site, weather) is a compact JSON beside
+the session (``SESSION.truth.json``), with per-frame quantities stored as arrays.
+
+Star lookup: the catalogue's apparent directions are evaluated once per half-day bucket of frame times; a frame's
+candidates are the stars within the detector's half-diagonal field plus a margin (``_LOOKUP_MARGIN_RAD``, covering
+the drift of aberration, precession-nutation and proper motion over half a day, < 1", and the refraction lift).
+The candidates' exact directions then come from ERFA at each frame's own time: nothing is interpolated.
+
+Camera files: ``hostlink/data/seed004_camera.json`` is seed 004's simulated camera (f 70.2262 mm, 12 um, 1024 x 1024,
+principal point (500, 530), seed k1 2e-10, k2 -3.5e-15 converted by ``onboard.params.distortion_from_seed004``);
+``hostlink/data/seed004_nominal.json`` is what its user knows before calibrating: the 70 mm design focal length, the
+detector's pitch and size, the principal point at the image centre (511.5, 511.5) and no distortion.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.session import Session
+from hostlink.sky.apparent import StarsJ2000, apparent_from_astrometry, frame_astrometry, stars_at_j2000
+from hostlink.sky.catalogue import load_catalogue
+from hostlink.sky.site import (
+    MAX_ZENITH_DISTANCE_DEG,
+    local_north_east,
+    refract_directions_truth,
+    refraction_observed_rad,
+    zenith_distance_rad,
+    zenith_true_of_date,
+)
+from hostlink.timeutil import parse_iso_utc, parse_iso_utc_many
+from onboard.camera import pixels_to_unit, unit_to_pixels, unit_to_radec
+from onboard.params import CameraParams, distortion_from_seed004, params_from_dict, params_to_dict
+from onboard.site import Site, Weather
+
+TRUTH_FORMAT = "startracker-companion simulation truth"
+TRUTH_VERSION = 1
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+
+#: Lookup margin [rad] beyond the field radius: 60" covers the half-day drift of the lookup directions (< 1").
+_LOOKUP_MARGIN_RAD = math.radians(60.0 / 3600.0)
+#: Lookup directions are recomputed for every bucket of this many days of frame times.
+_LOOKUP_BUCKET_DAYS = 0.5
+#: Number of nearest catalogue neighbours among which a misidentified star's wrong identity is drawn.
+_MISID_NEIGHBOURS = 12
+#: Frames per processing chunk (bounds memory and sets the progress granularity).
+_CHUNK_FRAMES = 2000
+#: Random-attitude redraw rounds before giving up on ``min_stars``.
+_MAX_ROUNDS = 200
+#: Elements per block of the (frames x stars) lookup dot products (bounds memory to ~32 MB).
+_LOOKUP_BLOCK = 4_000_000
+#: False stars get a magnitude uniform in [maglim - this, maglim].
+_FALSE_STAR_MAG_SPAN = 3.0
+
+
+@dataclass
+class SimConfig:
+    """What to simulate. Units: noise [px per axis], focal drift amplitude [um of focal length] with a period in
+    frames, zenith range [deg], frame interval [s]. ``attitudes``: scripted (frames, 3, 3) matrices C with b = C r
+    (C maps the observed direction for a ground site with weather, the apparent direction otherwise)."""
+
+    camera: CameraParams
+    frames: int
+    noise_px: float = 0.05
+    min_stars: int = 10
+    max_stars: int = 30
+    maglim: float = 6.0
+    seed: int = 0
+    t0_iso: str = "2026-03-14T02:10:00.000Z"
+    frame_interval_s: float = 1.0
+    misid_fraction: float = 0.0
+    false_star_fraction: float = 0.0
+    focal_drift_um: float = 0.0
+    focal_drift_period_frames: float = 3000.0
+    site: Site | None = None
+    weather: Weather | None = None
+    zenith_range_deg: tuple[float, float] = (0.0, 75.0)
+    attitudes: np.ndarray | None = None
+    dut1_s: float = 0.0
+
+
+@dataclass
+class SimResult:
+    session: Session
+    truth: dict = field(default_factory=dict)
+
+
+def seed004_camera() -> CameraParams:
+    """Seed 004's simulated camera (sec. 4): f 70.2262 mm, 12 um, 1024 x 1024, (x0, y0) = (500, 530),
+    k1 = 2e-10, k2 = -3.5e-15 in the seed's convention."""
+    return CameraParams(
+        focal_length_mm=70.2262,
+        pixel_pitch_um=12.0,
+        principal_point_px=(500.0, 530.0),
+        image_size_px=(1024, 1024),
+        distortion=distortion_from_seed004(2e-10, -3.5e-15),
+    )
+
+
+def seed004_config(frames: int = 1000, seed: int = 0) -> SimConfig:
+    """Seed 004's simulation setup: its camera, Hp <= 6, >= 10 stars per frame, 0.05 px noise, 1000 frames."""
+    return SimConfig(camera=seed004_camera(), frames=frames, noise_px=0.05, min_stars=10, maglim=6.0, seed=seed)
+
+
+def data_file(name: str) -> Path:
+    """Path of a camera file shipped in ``hostlink/data``."""
+    return DATA_DIR / name
+
+
+def truth_path_for(session_path: str | Path) -> Path:
+    """``SESSION.csv`` -> ``SESSION.truth.json`` (beside it)."""
+    p = Path(session_path)
+    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
+    return p.with_name(stem + ".truth.json")
+
+
+def write_truth(path: str | Path, truth: dict) -> None:
+    """Write the truth JSON atomically (floats at full precision)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(truth, separators=(",", ":"), allow_nan=False) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+
+
+def read_truth(path: str | Path) -> dict:
+    """Read a truth JSON; per-frame arrays become numpy arrays: ``attitude`` (F, 3, 3), ``focal_length_mm`` (F,),
+    row lists as int64; ``camera`` becomes ``camera_params`` (a validated CameraParams) as well."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not a readable truth file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != TRUTH_FORMAT:
+        raise UserError(f"{path}: not a simulation truth file")
+    data["attitude"] = np.asarray(data["attitude"], dtype=np.float64).reshape(-1, 3, 3)
+    data["focal_length_mm"] = np.asarray(data["focal_length_mm"], dtype=np.float64)
+    for key in ("misidentified_rows", "misidentified_true_star_id", "false_rows"):
+        data[key] = np.asarray(data[key], dtype=np.int64)
+    data["camera_params"] = params_from_dict(data["camera"])
+    return data
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# configuration checks
+
+
+def _check_config(cfg: SimConfig) -> None:
+    def bad(msg: str) -> UserError:
+        return UserError(msg)
+
+    if not isinstance(cfg.frames, (int, np.integer)) or cfg.frames < 1:
+        raise bad(f"frames must be a whole number >= 1, got {cfg.frames!r}")
+    if not (math.isfinite(cfg.noise_px) and cfg.noise_px >= 0):
+        raise bad(f"noise must be a finite number >= 0 px, got {cfg.noise_px!r}")
+    if not (1 <= cfg.min_stars <= cfg.max_stars):
+        raise bad(f"need 1 <= min-stars <= max-stars, got {cfg.min_stars} and {cfg.max_stars}")
+    if not math.isfinite(cfg.maglim):
+        raise bad(f"magnitude limit must be finite, got {cfg.maglim!r}")
+    if not (math.isfinite(cfg.frame_interval_s) and cfg.frame_interval_s > 0):
+        raise bad(f"frame interval must be > 0 s, got {cfg.frame_interval_s!r}")
+    for name, value in (("misid", cfg.misid_fraction), ("false-stars", cfg.false_star_fraction)):
+        if not (math.isfinite(value) and 0 <= value < 1):
+            raise bad(f"--{name} must be a fraction in [0, 1), got {value!r}")
+    if not math.isfinite(cfg.focal_drift_um):
+        raise bad(f"focal drift amplitude must be finite, got {cfg.focal_drift_um!r}")
+    if not (math.isfinite(cfg.focal_drift_period_frames) and cfg.focal_drift_period_frames > 0):
+        raise bad(f"focal drift period must be > 0 frames, got {cfg.focal_drift_period_frames!r}")
+    if abs(cfg.focal_drift_um) / 1000.0 >= 0.5 * cfg.camera.focal_length_mm:
+        raise bad(f"focal drift amplitude {cfg.focal_drift_um} um is not small against f")
+    if cfg.weather is not None and cfg.site is None:
+        raise bad("weather needs a site (refraction depends on where the sensor is)")
+    zmin, zmax = (float(v) for v in cfg.zenith_range_deg)
+    if not (0 <= zmin <= zmax <= 80):
+        raise bad(f"zenith range must satisfy 0 <= min <= max <= 80 deg, got {zmin}, {zmax}")
+    try:
+        parse_iso_utc(cfg.t0_iso)
+        parse_iso_utc_many([cfg.t0_iso])
+    except ValueError as exc:
+        raise bad(f"start time: {exc}") from None
+    if cfg.attitudes is not None:
+        att = np.asarray(cfg.attitudes, dtype=np.float64)
+        if att.shape != (cfg.frames, 3, 3):
+            raise bad(f"scripted attitudes must have shape ({cfg.frames}, 3, 3), got {att.shape}")
+        err = np.abs(att @ np.swapaxes(att, 1, 2) - np.eye(3)).max(initial=0.0)
+        if not (err < 1e-9 and np.all(np.linalg.det(att) > 0)):
+            raise bad(f"scripted attitudes must be proper rotations (orthonormality error {err:.2g})")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# times and attitudes
+
+
+def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame time strings (object array, ISO 8601 with ms and Z) and their UTC two-part Julian dates.
+
+    t_k = t0 + round(k * interval in ms) (civil arithmetic as ``hostlink.timeutil.iso_plus_seconds``)."""
+    y, mo, d, h, mi, s = parse_iso_utc(t0_iso)
+    base = np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}", "us") + np.timedelta64(round(s * 1e6), "us")
+    offsets_ms = np.round(np.arange(frames, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)
+    stamps = base.astype("datetime64[ms]") + offsets_ms.astype("timedelta64[ms]")
+    text = np.char.add(np.datetime_as_string(stamps, unit="ms"), "Z").astype(object)
+    jd1, jd2 = parse_iso_utc_many(text)
+    return text, jd1, jd2
+
+
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n rotation matrices uniform over SO(3) (normalised Gaussian quaternions, Shoemake 1992)."""
+    q = rng.standard_normal((n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
+
+
+def _ground_rotations(
+    rng: np.random.Generator, zenith: np.ndarray, zenith_range_deg: tuple[float, float]
+) -> np.ndarray:
+    """Attitudes whose boresight (row 3 of C) has zenith distance uniform in solid angle within the range, uniform
+    azimuth, and uniform roll about the boresight; ``zenith`` (n, 3) true of date."""
+    n = zenith.shape[0]
+    north, east = local_north_east(zenith)
+    cos_lo, cos_hi = np.cos(np.radians(zenith_range_deg[1])), np.cos(np.radians(zenith_range_deg[0]))
+    cz = rng.uniform(cos_lo, cos_hi, n)
+    sz = np.sqrt(np.maximum(0.0, 1 - cz * cz))
+    az = rng.uniform(0.0, 2 * np.pi, n)
+    roll = rng.uniform(0.0, 2 * np.pi, n)
+    horiz = np.cos(az)[:, None] * north + np.sin(az)[:, None] * east
+    bore = cz[:, None] * zenith + sz[:, None] * horiz
+    t1 = -sz[:, None] * zenith + cz[:, None] * horiz  # perpendicular to the boresight, in its vertical plane
+    t2 = np.cross(bore, t1)
+    x_s = np.cos(roll)[:, None] * t1 + np.sin(roll)[:, None] * t2
+    y_s = np.cross(bore, x_s)
+    return np.stack([x_s, y_s, bore], axis=1)
+
+
+def focal_lengths_mm(cfg: SimConfig) -> np.ndarray:
+    """Per-frame true focal length f_k = f + A sin(2 pi k / P) [mm] (A in um)."""
+    k = np.arange(cfg.frames, dtype=np.float64)
+    return cfg.camera.focal_length_mm + cfg.focal_drift_um / 1000.0 * np.sin(
+        2 * np.pi * k / cfg.focal_drift_period_frames
+    )
+
+
+def field_radius_rad(camera: CameraParams) -> float:
+    """Largest angle from the boresight of any detector point (corners and edge midpoints), through the camera."""
+    w, h = camera.image_size_px
+    xs = np.array([-0.5, w - 0.5, -0.5, w - 0.5, w / 2 - 0.5, w / 2 - 0.5, -0.5, w - 0.5])
+    ys = np.array([-0.5, -0.5, h - 0.5, h - 0.5, -0.5, h - 0.5, h / 2 - 0.5, h / 2 - 0.5])
+    b = pixels_to_unit(xs, ys, camera.model_vector())
+    return float(np.arccos(np.clip(b[:, 2].min(), -1.0, 1.0)))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the simulation proper
+
+
+@dataclass
+class _SkyContext:
+    """Everything fixed for a session: catalogue, its J2000 data, per-frame ERFA astrometry and zenith."""
+
+    cfg: SimConfig
+    hip: np.ndarray
+    mag: np.ndarray
+    stars: StarsJ2000
+    astrom: np.ndarray  # (F,) ERFA astrom structs
+    eo: np.ndarray  # (F,)
+    zenith: np.ndarray | None  # (F, 3)
+    bucket: np.ndarray  # (F,) lookup bucket index
+    lookup: list[np.ndarray]  # per bucket (N, 3) approximate apparent directions
+    cos_lookup: float
+    theta: np.ndarray  # model vector of the nominal (undrifted) camera
+    focal_scale: np.ndarray  # (F,) F_k / F
+
+
+def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyContext:
+    cat = load_catalogue(cfg.maglim)
+    if len(cat) < cfg.min_stars:
+        raise UserError(f"only {len(cat)} Hipparcos stars have Hp <= {cfg.maglim}: fewer than --min-stars")
+    stars = stars_at_j2000(cat)
+    astrom, eo = frame_astrometry(jd1, jd2)
+    zenith = zenith_true_of_date(jd1, jd2, cfg.site, cfg.dut1_s) if cfg.site is not None else None
+    days = (jd1 - jd1[0]) + (jd2 - jd2[0])
+    bucket = np.floor(days / _LOOKUP_BUCKET_DAYS).astype(np.int64)
+    lookup = []
+    for b in range(int(bucket.max()) + 1):
+        members = np.flatnonzero(bucket == b)
+        if members.size == 0:
+            lookup.append(np.zeros((0, 3)))
+            continue
+        mid = members[members.size // 2]
+        lookup.append(apparent_from_astrometry(stars, astrom[mid], eo[mid]))
+    radius = field_radius_rad(cfg.camera) + _LOOKUP_MARGIN_RAD
+    if cfg.weather is not None:
+        # refraction lifts a star by at most its value at the lowest pointing plus the field radius
+        z_edge = min(math.radians(cfg.zenith_range_deg[1]) + radius, math.radians(MAX_ZENITH_DISTANCE_DEG))
+        radius += float(refraction_observed_rad(np.array([z_edge]), cfg.weather)[0]) * 1.1
+    if radius >= math.pi / 2:
+        raise UserError("the camera's field of view is too wide for this simulator (>= 180 deg)")
+    return _SkyContext(
+        cfg=cfg,
+        hip=cat.hip,
+        mag=cat.mag,
+        stars=stars,
+        astrom=astrom,
+        eo=eo,
+        zenith=zenith,
+        bucket=bucket,
+        lookup=lookup,
+        cos_lookup=math.cos(radius),
+        theta=cfg.camera.model_vector(np.float64),
+        focal_scale=focal_lengths_mm(cfg) / cfg.camera.focal_length_mm,
+    )
+
+
+def _candidates(ctx: _SkyContext, frames: np.ndarray, boresight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position in ``frames``, catalogue row) of every star within the lookup radius of each boresight."""
+    out_f, out_s = [], []
+    for b in np.unique(ctx.bucket[frames]):
+        sel = np.flatnonzero(ctx.bucket[frames] == b)
+        ref = ctx.lookup[b]
+        block = max(1, _LOOKUP_BLOCK // max(1, ref.shape[0]))
+        for a in range(0, sel.size, block):
+            part = sel[a : a + block]
+            fi, si = np.nonzero(boresight[part] @ ref.T > ctx.cos_lookup)
+            out_f.append(part[fi])
+            out_s.append(si)
+    if not out_f:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_f).astype(np.int64), np.concatenate(out_s).astype(np.int64)
+
+
+def _rank_within_groups(group: np.ndarray) -> np.ndarray:
+    """Position of each element within its run of equal ``group`` values (``group`` sorted)."""
+    n = group.size
+    if n == 0:
+        return np.zeros(0, np.int64)
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    run_start = np.repeat(starts, np.diff(np.r_[starts, n]))
+    return np.arange(n) - run_start
+
+
+def _observe(
+    ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, att: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Observe the sky in ``frames`` (global indices) with attitudes ``att`` (n, 3, 3): the kept rows, sorted by
+    (frame, magnitude), at most max_stars per frame. Returns global frame, catalogue row, x, y, apparent r."""
+    cfg = ctx.cfg
+    pos, star = _candidates(ctx, frames, att[:, 2, :])
+    frame = frames[pos]
+    r_app = apparent_from_astrometry(ctx.stars.take(star), ctx.astrom[frame], ctx.eo[frame])
+    if cfg.weather is not None:
+        zd = zenith_distance_rad(r_app, ctx.zenith[frame])
+        above = zd <= math.radians(MAX_ZENITH_DISTANCE_DEG)  # lower stars are beyond the refraction model
+        pos, star, frame, r_app = pos[above], star[above], frame[above], r_app[above]
+        r_obs = refract_directions_truth(r_app, ctx.zenith[frame], cfg.weather)
+    else:
+        r_obs = r_app
+    b = np.einsum("nij,nj->ni", att[pos], r_obs)
+    # thermal drift: F_k b_x / b_z = F (s_k b_x) / b_z, so scaling b_x, b_y by s_k = F_k / F uses the nominal theta
+    scale = ctx.focal_scale[frame]
+    b_scaled = np.stack([b[:, 0] * scale, b[:, 1] * scale, b[:, 2]], axis=-1)
+    w, h = cfg.camera.image_size_px
+    pad = 0.05 * max(w, h) + 10.0  # ideal points this far off the detector cannot land on it after distortion
+    front = b_scaled[:, 2] > 0
+    qu = np.where(front, ctx.theta[0] * b_scaled[:, 0] / np.where(front, b_scaled[:, 2], 1.0), np.inf)
+    qv = np.where(front, ctx.theta[0] * b_scaled[:, 1] / np.where(front, b_scaled[:, 2], 1.0), np.inf)
+    near = (
+        front
+        & (qu + ctx.theta[1] > -0.5 - pad)
+        & (qu + ctx.theta[1] < w - 0.5 + pad)
+        & (qv + ctx.theta[2] > -0.5 - pad)
+        & (qv + ctx.theta[2] < h - 0.5 + pad)
+    )
+    pos, star, frame, r_app, b_scaled = pos[near], star[near], frame[near], r_app[near], b_scaled[near]
+    try:
+        x, y = unit_to_pixels(b_scaled, ctx.theta)
+    except ValueError as exc:
+        raise UserError(f"camera distortion cannot be inverted near the detector edge ({exc})") from None
+    if cfg.noise_px > 0:
+        x = x + rng.normal(0.0, cfg.noise_px, x.size)
+        y = y + rng.normal(0.0, cfg.noise_px, y.size)
+    on = (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    frame, star, x, y, r_app = frame[on], star[on], x[on], y[on], r_app[on]
+    order = np.lexsort((ctx.mag[star], frame))
+    frame, star, x, y, r_app = frame[order], star[order], x[order], y[order], r_app[order]
+    keep = _rank_within_groups(frame) < cfg.max_stars
+    return {"frame": frame[keep], "star": star[keep], "x": x[keep], "y": y[keep], "r": r_app[keep]}
+
+
+def _simulate_chunk(
+    ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, attitude_out: np.ndarray
+) -> dict[str, np.ndarray]:
+    """All frames of one chunk, redrawing random-attitude frames with too few stars."""
+    cfg = ctx.cfg
+    pending = frames
+    parts: list[dict[str, np.ndarray]] = []
+    for _ in range(_MAX_ROUNDS):
+        if cfg.attitudes is not None:
+            att = np.asarray(cfg.attitudes, dtype=np.float64)[pending]
+        elif ctx.zenith is not None:
+            att = _ground_rotations(rng, ctx.zenith[pending], cfg.zenith_range_deg)
+        else:
+            att = _random_rotations(rng, pending.size)
+        attitude_out[pending] = att
+        rows = _observe(ctx, rng, pending, att)
+        counts = np.bincount(np.searchsorted(pending, rows["frame"]), minlength=pending.size)
+        ok = np.ones(pending.size, bool) if cfg.attitudes is not None else counts >= cfg.min_stars
+        accept = ok[np.searchsorted(pending, rows["frame"])]
+        parts.append({k: v[accept] for k, v in rows.items()})
+        pending = pending[~ok]
+        if pending.size == 0:
+            break
+    else:
+        raise UserError(
+            f"{pending.size} frame(s) found fewer than {cfg.min_stars} stars of Hp <= {cfg.maglim} in "
+            f"{_MAX_ROUNDS} random pointings: lower --min-stars or raise --maglim"
+        )
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _misidentify(
+    ctx: _SkyContext, rng: np.random.Generator, frame: np.ndarray, star: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows to misidentify and their wrong catalogue rows: each is one of the ``_MISID_NEIGHBOURS`` nearest catalogue
+    stars to the true one, neither the true star nor any star of that frame; a second pick of the same wrong star in
+    a frame is dropped (that row stays correctly identified)."""
+    from scipy.spatial import cKDTree
+
+    chosen = np.flatnonzero(rng.random(star.size) < ctx.cfg.misid_fraction)
+    if chosen.size == 0:
+        return chosen, chosen
+    ref = ctx.lookup[0]
+    k = min(_MISID_NEIGHBOURS + 1, ref.shape[0])
+    _, neigh = cKDTree(ref).query(ref[star[chosen]], k=k)
+    neigh = np.atleast_2d(neigh)
+    n_cat = np.int64(ref.shape[0])
+    in_frame = np.isin(frame[chosen, None] * n_cat + neigh, frame * n_cat + star)
+    valid = ~in_frame & (neigh != star[chosen, None])
+    pick_key = np.where(valid, rng.random(neigh.shape), np.inf)
+    col = np.argmin(pick_key, axis=1)
+    has = np.isfinite(pick_key[np.arange(chosen.size), col])
+    chosen, wrong = chosen[has], neigh[has, col[has]]
+    _, first = np.unique(frame[chosen] * n_cat + wrong, return_index=True)
+    first = np.sort(first)
+    return chosen[first], wrong[first]
+
+
+def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Simulate a session and its truth (see the module docstring). ``progress(done_frames, total)`` is called
+    after each chunk of frames."""
+    cfg = config
+    _check_config(cfg)
+    rng = np.random.default_rng(cfg.seed)
+    n_frames = int(cfg.frames)
+    t_text, jd1, jd2 = frame_times(cfg.t0_iso, cfg.frame_interval_s, n_frames)
+    ctx = _build_context(cfg, jd1, jd2)
+    attitude = np.zeros((n_frames, 3, 3))
+    chunks = []
+    for a in range(0, n_frames, _CHUNK_FRAMES):
+        chunks.append(_simulate_chunk(ctx, rng, np.arange(a, min(n_frames, a + _CHUNK_FRAMES)), attitude))
+        if progress is not None:
+            progress(min(n_frames, a + _CHUNK_FRAMES), n_frames)
+    rows = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    order = np.lexsort((ctx.mag[rows["star"]], rows["frame"]))
+    frame, star, x, y, r_ref = (rows[k][order] for k in ("frame", "star", "x", "y", "r"))
+    mag = ctx.mag[star]
+    star_id = ctx.hip[star]
+    real_per_frame = np.bincount(frame, minlength=n_frames)
+
+    # misidentified: wrong Hipparcos number and the wrong star's reference direction, true centroid and magnitude
+    mis_rows = np.zeros(0, np.int64)
+    mis_true = np.zeros(0, np.int64)
+    if cfg.misid_fraction > 0:
+        mis_rows, wrong = _misidentify(ctx, rng, frame, star)
+        mis_true = star_id[mis_rows].copy()
+        star_id[mis_rows] = ctx.hip[wrong]
+        r_ref[mis_rows] = apparent_from_astrometry(
+            ctx.stars.take(wrong), ctx.astrom[frame[mis_rows]], ctx.eo[frame[mis_rows]]
+        )
+    is_mis = np.zeros(frame.size, bool)
+    is_mis[mis_rows] = True
+
+    # false stars: Poisson per frame, uniform on the detector, no identity and no reference direction
+    is_false = np.zeros(frame.size, bool)
+    if cfg.false_star_fraction > 0:
+        n_false = rng.poisson(cfg.false_star_fraction * real_per_frame)
+        f_frame = np.repeat(np.arange(n_frames), n_false)
+        w, h = cfg.camera.image_size_px
+        m = f_frame.size
+        frame = np.concatenate([frame, f_frame])
+        star_id = np.concatenate([star_id, np.zeros(m, np.int64)])
+        x = np.concatenate([x, rng.uniform(-0.5, w - 0.5, m)])
+        y = np.concatenate([y, rng.uniform(-0.5, h - 0.5, m)])
+        mag = np.concatenate([mag, rng.uniform(cfg.maglim - _FALSE_STAR_MAG_SPAN, cfg.maglim, m)])
+        r_ref = np.concatenate([r_ref, np.full((m, 3), np.nan)])
+        is_mis = np.concatenate([is_mis, np.zeros(m, bool)])
+        is_false = np.concatenate([is_false, np.ones(m, bool)])
+        order = np.lexsort((mag, frame))
+        frame, star_id, x, y, mag, r_ref, is_mis, is_false = (
+            a[order] for a in (frame, star_id, x, y, mag, r_ref, is_mis, is_false)
+        )
+        # keep the true identities aligned with the reordered misidentified rows
+        mis_true = _realign(order, mis_rows, mis_true)
+        mis_rows = np.flatnonzero(is_mis)
+
+    ra_deg = np.full(frame.size, np.nan)
+    dec_deg = np.full(frame.size, np.nan)
+    known = ~is_false
+    if np.any(known):
+        ra, dec = unit_to_radec(r_ref[known])
+        ra_deg[known], dec_deg[known] = np.degrees(ra), np.degrees(dec)
+    session = Session(
+        frame=frame.astype(np.int64),
+        t_utc=t_text[frame],
+        star_id=star_id.astype(np.int64),
+        x_px=x,
+        y_px=y,
+        mag=mag,
+        ra_deg=ra_deg,
+        dec_deg=dec_deg,
+    )
+    truth = _truth(cfg, attitude, mis_rows, mis_true, np.flatnonzero(is_false), real_per_frame)
+    return SimResult(session=session, truth=truth)
+
+
+def _realign(order: np.ndarray, old_rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` attached to rows ``old_rows`` (before the permutation ``order``), listed in new row order."""
+    if old_rows.size == 0:
+        return values
+    new_pos = np.empty_like(order)
+    new_pos[order] = np.arange(order.size)
+    return values[np.argsort(new_pos[old_rows], kind="stable")]
+
+
+def _truth(
+    cfg: SimConfig,
+    attitude: np.ndarray,
+    mis_rows: np.ndarray,
+    mis_true: np.ndarray,
+    false_rows: np.ndarray,
+    real_per_frame: np.ndarray,
+) -> dict:
+    refracted = cfg.weather is not None
+    return {
+        "format": TRUTH_FORMAT,
+        "version": TRUTH_VERSION,
+        "camera": params_to_dict(cfg.camera),
+        "noise_px": float(cfg.noise_px),
+        "seed": int(cfg.seed),
+        "frames": int(cfg.frames),
+        "t0_utc": cfg.t0_iso,
+        "frame_interval_s": float(cfg.frame_interval_s),
+        "maglim": float(cfg.maglim),
+        "min_stars": int(cfg.min_stars),
+        "max_stars": int(cfg.max_stars),
+        "misid_fraction": float(cfg.misid_fraction),
+        "false_star_fraction": float(cfg.false_star_fraction),
+        "focal_drift_um": float(cfg.focal_drift_um),
+        "focal_drift_period_frames": float(cfg.focal_drift_period_frames),
+        "site": asdict(cfg.site) if cfg.site is not None else None,
+        "weather": asdict(cfg.weather) if cfg.weather is not None else None,
+        "dut1_s": float(cfg.dut1_s),
+        "zenith_range_deg": [float(v) for v in cfg.zenith_range_deg] if cfg.site is not None else None,
+        "attitude_source": "scripted" if cfg.attitudes is not None else "random",
+        "reference": "geocentric apparent place, true equator and equinox of date (ERFA apci13/atciq, ra = ri - eo)",
+        "attitude_maps": "observed direction (apparent + ERFA refraction)" if refracted else "apparent direction",
+        "refraction": refracted,
+        "diurnal_aberration": False,
+        "attitude": attitude.reshape(-1, 9).tolist(),
+        "focal_length_mm": focal_lengths_mm(cfg).tolist(),
+        "real_stars_per_frame": real_per_frame.astype(int).tolist(),
+        "misidentified_rows": [int(v) for v in mis_rows],
+        "misidentified_true_star_id": [int(v) for v in mis_true],
+        "false_rows": [int(v) for v in false_rows],
+    }

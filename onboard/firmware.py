@@ -1,0 +1,268 @@
+"""The sensor's command and frame state machine: the single authority for what a sensor accepts, on every link.
+
+A :class:`Firmware` takes decoded protocol commands (``handle``) and exposures (``process_frame``) and returns
+protocol replies. It owns the parameter banks (``onboard.banks``: staging, verify, A/B commit) and the onboard
+recursive estimator, which it restarts from the active set after every commit. Transports (serial, CAN, Modbus,
+real or emulated) only carry commands and replies; no rule lives in them.
+
+Commands and what they require (NAK code when refused):
+
+=================  ======================================================================================
+STREAM_CONTROL     always accepted
+STAGE_BEGIN        length == 52 (BAD_LENGTH)
+STAGE_CHUNK        an upload in progress (NOT_STAGED); chunk inside the table (BAD_LENGTH); un-verifies
+STAGE_VERIFY       staged set complete (NOT_STAGED), CRC matches (BAD_CRC), validate_params (INVALID_PARAMS)
+READ_STAGED        staged set complete (NOT_STAGED)
+COMMIT             verified, CRC equal to the verified one (NOT_VERIFIED); slot read-back (BANK_WRITE_FAILED)
+READ_ACTIVE        a committed set exists (NOT_STAGED)
+READ_ESTIMATE      an estimator with at least one update (NO_ESTIMATE)
+=================  ======================================================================================
+
+Pure: no I/O, no clock, no threads (time comes in with each frame). The estimator is plugged in through a small
+seam (:class:`EstimatorSeam`); :class:`RecursiveEstimator` adapts ``onboard.recursive`` to it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from onboard import banks, recursive
+from onboard.params import ESTIMATE_NAMES, CameraParams
+from protocol.messages import (
+    Ack,
+    CentroidFrame,
+    Commit,
+    Estimate,
+    EstimateStatus,
+    GetStatus,
+    Message,
+    Nak,
+    NakCode,
+    ParamTable,
+    ReadActive,
+    ReadEstimate,
+    ReadStaged,
+    StageBegin,
+    StageChunk,
+    StageVerify,
+    StreamControl,
+    TableBank,
+    Telemetry,
+)
+
+
+class EstimatorSeam(Protocol):
+    """What the firmware needs from the onboard recursive estimator (``onboard.recursive``)."""
+
+    def start(self, nominal: CameraParams) -> Any:
+        """A fresh estimator state starting from the active set ``nominal``."""
+
+    def update(self, state: Any, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
+               identified: np.ndarray) -> None:
+        """One frame: centroids [px] (float32), reference unit vectors (N, 3) (float32), identified mask."""
+
+    def estimate(self, state: Any) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """(values, sigma, estimated_mask, n_updates): values and 1-sigma in ESTIMATE_NAMES order, f in mm
+        (float32, sigma NaN where unknown), bit i of the mask = ESTIMATE_NAMES[i] is estimated."""
+
+
+@dataclass
+class Counters:
+    frames_processed: int = 0
+    last_frame: int = 0
+    estimator_faults: int = 0
+
+
+class Firmware:
+    """One sensor's state: banks, stream flag, estimator state, counters."""
+
+    def __init__(self, store: banks.BankStore, estimator: EstimatorSeam | None = None) -> None:
+        self.store = store
+        self.streaming = False
+        self.counters = Counters()
+        self._estimator = estimator
+        self._est_state: Any = None
+        self._est_generation = 0
+        self._est_last_frame = 0
+        self._restart_estimator()
+        self._handlers: dict[type, Callable[[Any], Message]] = {
+            GetStatus: self._status,
+            StreamControl: self._stream_control,
+            StageBegin: self._stage_begin,
+            StageChunk: self._stage_chunk,
+            StageVerify: self._stage_verify,
+            ReadStaged: self._read_staged,
+            Commit: self._commit,
+            ReadActive: self._read_active,
+            ReadEstimate: self._read_estimate,
+        }
+
+    # ------------------------------------------------------------------------------------------- commands
+    def handle(self, command: Message) -> Message:
+        """One command -> its reply (Ack, Nak, Telemetry, ParamTable or Estimate). Never raises for bad input."""
+        handler = self._handlers.get(type(command))
+        if handler is None:
+            return Nak(tag=getattr(command, "tag", 0), command=int(getattr(command, "TYPE", 0)),
+                       code=NakCode.UNKNOWN_COMMAND, text=f"{type(command).__name__} is not a command")
+        return handler(command)
+
+    def _ack(self, cmd: Message, value: int = 0) -> Ack:
+        return Ack(tag=cmd.tag, command=int(cmd.TYPE), value=value)
+
+    def _nak(self, cmd: Message, refusal: banks.Refusal) -> Nak:
+        return Nak(tag=cmd.tag, command=int(cmd.TYPE), code=int(refusal.code), text=refusal.text)
+
+    def _ack_or_nak(self, cmd: Message, refusal: banks.Refusal | None) -> Message:
+        return self._ack(cmd) if refusal is None else self._nak(cmd, refusal)
+
+    def _status(self, cmd: GetStatus) -> Telemetry:
+        active = banks.active_set(self.store)
+        return Telemetry(
+            tag=cmd.tag,
+            streaming=self.streaming,
+            stage_state=int(self.store.stage_state),
+            active_generation=0 if active is None else active[0],
+            active_crc32=0 if active is None else active[2],
+            frames_processed=self.counters.frames_processed,
+            last_frame=self.counters.last_frame,
+            estimator_updates=self._estimate_tuple()[3] if self._est_state is not None else 0,
+        )
+
+    def _stream_control(self, cmd: StreamControl) -> Ack:
+        self.streaming = bool(cmd.enable)
+        return self._ack(cmd)
+
+    def _stage_begin(self, cmd: StageBegin) -> Message:
+        return self._ack_or_nak(cmd, banks.stage_begin(self.store, cmd.length))
+
+    def _stage_chunk(self, cmd: StageChunk) -> Message:
+        return self._ack_or_nak(cmd, banks.stage_chunk(self.store, cmd.offset, cmd.data))
+
+    def _stage_verify(self, cmd: StageVerify) -> Message:
+        return self._ack_or_nak(cmd, banks.stage_verify(self.store, cmd.crc32))
+
+    def _read_staged(self, cmd: ReadStaged) -> Message:
+        staged = banks.staged_set(self.store)
+        if staged is None:
+            return self._nak(cmd, banks.Refusal(NakCode.NOT_STAGED, "no complete staged set"))
+        table, crc = staged
+        return ParamTable(tag=cmd.tag, bank=TableBank.STAGED, generation=0, crc32=crc, table=table)
+
+    def _commit(self, cmd: Commit) -> Message:
+        result = banks.commit(self.store, cmd.crc32)
+        if isinstance(result, banks.Refusal):
+            return self._nak(cmd, result)
+        self._restart_estimator()
+        return self._ack(cmd, value=result)
+
+    def _read_active(self, cmd: ReadActive) -> Message:
+        active = banks.active_set(self.store)
+        if active is None:
+            return self._nak(cmd, banks.Refusal(NakCode.NOT_STAGED, "no parameter set has been committed"))
+        generation, table, crc = active
+        return ParamTable(tag=cmd.tag, bank=TableBank.ACTIVE, generation=generation, crc32=crc, table=table)
+
+    def _read_estimate(self, cmd: ReadEstimate) -> Message:
+        if self._estimator is None:
+            return self._nak(cmd, banks.Refusal(NakCode.NO_ESTIMATE, "this sensor has no onboard estimator"))
+        if self._est_state is None:
+            return self._nak(cmd, banks.Refusal(NakCode.NO_ESTIMATE, "no active parameter set to start from"))
+        values, sigma, mask, n_updates = self._estimate_tuple()
+        if n_updates == 0:
+            return self._nak(cmd, banks.Refusal(NakCode.NO_ESTIMATE, "the estimator has not processed a frame yet"))
+        return Estimate(
+            tag=cmd.tag,
+            status=EstimateStatus.RUNNING,
+            estimated_mask=mask,
+            base_generation=self._est_generation,
+            n_updates=n_updates,
+            last_frame=self._est_last_frame,
+            values=tuple(float(v) for v in np.asarray(values, dtype=np.float32)),
+            sigma=tuple(float(v) for v in np.asarray(sigma, dtype=np.float32)),
+        )
+
+    # --------------------------------------------------------------------------------------------- frames
+    def process_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> None:
+        """One exposure: :meth:`count_frame`, then :meth:`estimate_frame`."""
+        self.count_frame(frame)
+        self.estimate_frame(frame, r_ref)
+
+    def count_frame(self, frame: CentroidFrame) -> None:
+        """The exposure was taken (and is streamed): frame counters only, constant work."""
+        self.counters.frames_processed += 1
+        self.counters.last_frame = int(frame.frame)
+
+    def estimate_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> None:
+        """Run the estimator on an exposure's identified stars (``r_ref``: reference unit vectors (N, 3) from the
+        catalogue, NaN rows for stars without one; None = no catalogue for this frame). The estimator is the
+        sensor's background task: a scheduler may skip frames when the link keeps the processor busy."""
+        if self._estimator is None or self._est_state is None or r_ref is None or frame.n_stars == 0:
+            return
+        r = np.asarray(r_ref, dtype=np.float32).reshape(-1, 3)
+        identified = (np.asarray(frame.star_id) != 0) & np.all(np.isfinite(r), axis=1)
+        try:
+            with np.errstate(all="ignore"):
+                self._estimator.update(
+                    self._est_state,
+                    np.asarray(frame.x_px, dtype=np.float32),
+                    np.asarray(frame.y_px, dtype=np.float32),
+                    np.where(identified[:, None], r, np.float32(0.0)),
+                    identified,
+                )
+            self._est_last_frame = int(frame.frame)
+        except (ArithmeticError, ValueError, np.linalg.LinAlgError):
+            # a numerically failed update must not stop the sensor: count it and restart from the active set
+            self.counters.estimator_faults += 1
+            self._restart_estimator()
+
+    # ----------------------------------------------------------------------------------------- estimator
+    def _restart_estimator(self) -> None:
+        active = banks.active_set(self.store)
+        if self._estimator is None or active is None:
+            self._est_state = None
+            return
+        self._est_generation = active[0]
+        self._est_state = self._estimator.start(banks.table_to_params(active[1]))
+
+    def _estimate_tuple(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        return self._estimator.estimate(self._est_state)
+
+
+def estimate_to_params(active: CameraParams, estimate: Estimate) -> CameraParams:
+    """The full parameter set an estimate stands for: the active set with the estimated values replaced."""
+    values = np.asarray(estimate.values, dtype=np.float64)
+    theta = active.vector(np.float64)
+    mask = np.array([(estimate.estimated_mask >> i) & 1 for i in range(len(ESTIMATE_NAMES))], dtype=bool)
+    theta[mask] = values[mask]
+    return active.with_vector(theta)
+
+
+
+@dataclass
+class RecursiveEstimator:
+    """``onboard.recursive`` behind the firmware's seam, in the sensor's precision (float32 by default)."""
+
+    estimate_names: tuple[str, ...] = ESTIMATE_NAMES
+    config: recursive.RecursiveConfig | None = None
+    dtype: type = np.float32
+
+    def start(self, nominal: CameraParams) -> recursive.RecursiveState:
+        return recursive.create(nominal, self.estimate_names, self.config, self.dtype)
+
+    def update(self, state: recursive.RecursiveState, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
+               identified: np.ndarray) -> None:
+        recursive.update(state, x_px, y_px, r_ref, identified)
+
+    def estimate(self, state: recursive.RecursiveState) -> tuple[np.ndarray, np.ndarray, int, int]:
+        values = recursive.current_params(state).vector(np.float32)
+        sigma = np.full(len(ESTIMATE_NAMES), np.nan, dtype=np.float32)
+        for name, value in recursive.sigma(state).items():
+            sigma[ESTIMATE_NAMES.index(name)] = value
+        mask = 0
+        for k in state.idx:
+            mask |= 1 << int(k)
+        return values, sigma, mask, int(state.updates)

@@ -1,0 +1,48 @@
+"""The serial link's receive path (pyserial loop:// port, no sensor): losses are counted from sequence gaps,
+corrupt frames are counted and skipped, and late replies never answer a newer command."""
+
+import numpy as np
+import pytest
+
+from hostlink.errors import LinkError
+from hostlink.links import open_link, split_link_string
+from hostlink.links.serial_link import parse_target
+from protocol import messages as m
+from protocol.framing import encode_frame
+
+
+def frame(k):
+    return m.CentroidFrame(frame=k, t_us=1_000_000 * k, star_id=np.array([k + 1], np.uint32),
+                           x_px=np.array([k + 0.5]), y_px=np.array([2.25]), mag=np.array([3.0]))
+
+
+def test_link_strings_are_parsed_once():
+    assert split_link_string("serial:/dev/ttyUSB0@115200") == ("serial", "/dev/ttyUSB0@115200")
+    assert parse_target("/dev/ttyUSB0@115200") == ("/dev/ttyUSB0", 115200)
+    assert parse_target("rfc2217://host:4000") == ("rfc2217://host:4000", 921600)
+
+
+def test_gaps_and_corruption_are_counted_and_frames_still_arrive():
+    link = open_link("serial:loop://", timeout_s=0.5)
+    port = link._port  # loop:// reads back what is written: play the sensor's side
+    wire = [encode_frame(seq, m.encode(frame(seq))) for seq in range(10)]
+    corrupt = bytearray(wire[4])
+    k = next(i for i in range(6, len(corrupt)) if corrupt[i] not in (0x00, 0x01))  # flip a bit, make no zero
+    corrupt[k] ^= 0x01
+    port.write(b"".join([wire[0], wire[1], wire[3], bytes(corrupt), wire[5], wire[9]]))
+    got = [link.recv_frame().frame for _ in range(4)]
+    assert got == [0, 1, 3, 5]
+    assert link.recv_frame().frame == 9
+    assert link.stats.corrupt_frames == 1
+    assert link.stats.lost_messages == 1 + 1 + 3  # seq 2, seq 4 (corrupt), seq 6..8
+    with pytest.raises(LinkError, match="no centroid frame within 0.1 s"):
+        link.recv_frame(0.1)
+    link.close()
+
+
+def test_end_of_stream_ends_recv_frame():
+    link = open_link("serial:loop://", timeout_s=0.5)
+    link._port.write(encode_frame(0, m.encode(frame(0))) + encode_frame(1, m.encode(m.EndOfStream(frames_sent=1))))
+    assert link.recv_frame().frame == 0
+    assert link.recv_frame() is None and link.recv_frame() is None
+    link.close()
