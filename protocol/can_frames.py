@@ -196,8 +196,8 @@ STAR = CanMessageDef(
 )
 END_OF_STREAM = CanMessageDef(
     "END_OF_STREAM", 0x103, 8, SENSOR, (HOST,),
-    (_u("frames_sent", 0, 32),),
-    "The sensor's frame source is exhausted.",
+    (_u("frames_sent", 0, 32), _u("last_frame", 32, 32, comment="frame counter of the last frame produced")),
+    "The sensor's frame source is exhausted; a receiver counts the frames lost after its last one from last_frame.",
 )
 
 #: Every single-frame message, in identifier order (the DBC lists them so).
@@ -300,12 +300,14 @@ def decode_time_base(data: bytes | bytearray) -> int:
     return int.from_bytes(bytes(data), "little", signed=True)
 
 
-def encode_end_of_stream(frames_sent: int) -> bytes:
-    return word_bytes(pack(END_OF_STREAM, {"frames_sent": frames_sent}))
+def encode_end_of_stream(frames_sent: int, last_frame: int) -> bytes:
+    return word_bytes(pack(END_OF_STREAM, {"frames_sent": frames_sent, "last_frame": last_frame}))
 
 
-def decode_end_of_stream(data: bytes | bytearray) -> int:
-    return int(unpack(END_OF_STREAM, np.uint64(_one_word(data, END_OF_STREAM)))["frames_sent"])
+def decode_end_of_stream(data: bytes | bytearray) -> tuple[int, int]:
+    """END_OF_STREAM payload -> (frames_sent, last_frame)."""
+    raw = unpack(END_OF_STREAM, np.uint64(_one_word(data, END_OF_STREAM)))
+    return int(raw["frames_sent"]), int(raw["last_frame"])
 
 
 def needs_time_base(t_us: int, t_base_us: int | None) -> bool:

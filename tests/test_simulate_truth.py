@@ -247,3 +247,19 @@ def test_bad_configuration_is_a_one_line_user_error(change, message):
     with pytest.raises(UserError, match=message) as info:
         simulate(cfg)
     assert "\n" not in str(info.value)
+
+
+def test_truth_names_the_true_star_of_each_misidentified_row_among_false_stars():
+    cfg = replace(seed004_config(frames=150, seed=12), misid_fraction=0.1, false_star_fraction=0.3, noise_px=0.0)
+    result = simulate(cfg)
+    s, truth = result.session, result.truth
+    mis = np.asarray(truth["misidentified_rows"])
+    assert mis.size > 50
+    cat = load_catalogue(6.0)
+    jd1, jd2 = s.frame_times_jd()
+    k = np.searchsorted(np.unique(s.frame), s.frame[mis])
+    r_true = apparent_directions(cat, hip_lookup(cat, truth["misidentified_true_star_id"]), jd1[k], jd2[k])
+    att = np.asarray(truth["attitude"]).reshape(-1, 3, 3)
+    b = pixels_to_unit(s.x_px[mis], s.y_px[mis], cfg.camera.model_vector())
+    # the centroid of each misidentified row is exactly its true star's image
+    assert _angles(b, np.einsum("nij,nj->ni", att[s.frame[mis]], r_true)).max() < EXACT_RAD

@@ -98,3 +98,17 @@ def test_apparent_place_differs_from_catalogue_by_precession_since_1991():
     # precession of the equator over 34.9 yr: 50.3"/yr x 34.9 yr = 0.49 deg along the ecliptic; with aberration
     # (<= 20.5") and proper motion every star moves between ~0.2 and ~0.5 deg
     assert 0.15 < np.median(sep_deg) < 0.55
+
+
+def test_session_without_radec_gets_the_same_reference_directions_as_the_simulator_wrote():
+    from dataclasses import replace
+
+    from hostlink.sky.apparent import session_reference_directions
+    from hostlink.sky.simulate import seed004_config, simulate
+
+    s = simulate(replace(seed004_config(frames=5, seed=1), false_star_fraction=0.2)).session
+    with_radec = session_reference_directions(s)
+    without = session_reference_directions(replace(s, ra_deg=None, dec_deg=None))
+    ident = s.star_id != 0
+    assert np.all(np.isnan(without[~ident])) and np.all(np.isnan(with_radec[~ident]))
+    assert angle_rad(with_radec[ident], without[ident]).max() < 1e-12  # same ERFA route, float64 rounding

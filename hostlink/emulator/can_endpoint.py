@@ -53,6 +53,7 @@ class SensorNode:
         self.drop_every = int(drop_every)
         self.stream_count = 0
         self.t_base_us: int | None = None
+        self.last_frame = 0  # frame counter of the last frame produced (sent or dropped)
         self.undecodable = 0
         self._order = threading.Lock()  # a command + its reply vs. one stream message
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_SENSOR_TO_HOST_ID, cf.ISOTP_HOST_TO_SENSOR_ID)
@@ -120,6 +121,8 @@ class SensorNode:
                 msg = self.sensor.next_stream_message()
                 if msg is not None:
                     self.stream_count += 1
+                    if isinstance(msg, CentroidFrame):
+                        self.last_frame = msg.frame
                     if self.drop_every and self.stream_count % self.drop_every == 0:
                         continue  # test hook: this message is lost on the bus
                     try:
@@ -133,7 +136,7 @@ class SensorNode:
 
     def _send_stream_message(self, msg: CentroidFrame | EndOfStream) -> None:
         if isinstance(msg, EndOfStream):
-            self._send_data(cf.END_OF_STREAM.frame_id, cf.encode_end_of_stream(msg.frames_sent))
+            self._send_data(cf.END_OF_STREAM.frame_id, cf.encode_end_of_stream(msg.frames_sent, self.last_frame))
             return
         stars = cf.word_bytes(cf.encode_stars(msg))  # raises EncodeError before anything is sent
         if cf.needs_time_base(msg.t_us, self.t_base_us):

@@ -217,7 +217,11 @@ class StreamAssembler:
                 return None
             if frame_id == cf.END_OF_STREAM.frame_id:
                 self._abandon()
-                return EndOfStream(frames_sent=cf.decode_end_of_stream(data))
+                frames_sent, last_frame = cf.decode_end_of_stream(data)
+                if frames_sent and self._last_frame is not None:
+                    self.lost += (last_frame - self._last_frame) % (1 << 32)  # frames lost after the last received
+                    self._last_frame = last_frame
+                return EndOfStream(frames_sent=frames_sent)
         except cf.CanDecodeError:
             self.corrupt += 1
         return None

@@ -49,7 +49,7 @@ class LoopbackLink(MessageLink):
             msg = self.sensor.next_stream_message()
             if msg is not None:
                 self._inbox.append(encode(msg))
-        
+
         if not self._inbox:
             return None
         data = self._inbox.popleft()

@@ -56,7 +56,7 @@ from hostlink.sky.site import (
     zenith_true_of_date,
 )
 from hostlink.timeutil import parse_iso_utc, parse_iso_utc_many
-from onboard.camera import pixels_to_unit, unit_to_pixels, unit_to_radec
+from onboard.camera import distortion_px, pixels_to_unit, unit_to_pixels, unit_to_radec
 from onboard.params import CameraParams, distortion_from_seed004, params_from_dict, params_to_dict
 from onboard.site import Site, Weather
 
@@ -178,9 +178,7 @@ def read_truth(path: str | Path) -> dict:
 
 
 def _check_config(cfg: SimConfig) -> None:
-    def bad(msg: str) -> UserError:
-        return UserError(msg)
-
+    bad = UserError
     if not isinstance(cfg.frames, (int, np.integer)) or cfg.frames < 1:
         raise bad(f"frames must be a whole number >= 1, got {cfg.frames!r}")
     if not (math.isfinite(cfg.noise_px) and cfg.noise_px >= 0):
@@ -289,6 +287,17 @@ def field_radius_rad(camera: CameraParams) -> float:
     return float(np.arccos(np.clip(b[:, 2].min(), -1.0, 1.0)))
 
 
+def distortion_pad_px(camera: CameraParams) -> float:
+    """How far [px] outside the detector an ideal point may lie and still be measured on it: the measured point is
+    the ideal one plus the distortion (dx, dy) there, so 1.5 x the largest |(dx, dy)| on a 33 x 33 grid over the
+    detector (the factor covers the grid spacing), plus 10 px."""
+    w, h = camera.image_size_px
+    gx, gy = np.meshgrid(np.linspace(-0.5, w - 0.5, 33), np.linspace(-0.5, h - 0.5, 33))
+    theta = camera.model_vector()
+    dx, dy = distortion_px(gx.ravel() - theta[1], gy.ravel() - theta[2], theta)
+    return 1.5 * float(np.max(np.hypot(dx, dy))) + 10.0
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # the simulation proper
 
@@ -309,6 +318,7 @@ class _SkyContext:
     cos_lookup: float
     theta: np.ndarray  # model vector of the nominal (undrifted) camera
     focal_scale: np.ndarray  # (F,) F_k / F
+    pad_px: float  # ideal points farther than this off the detector cannot be measured on it
 
 
 def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyContext:
@@ -328,7 +338,8 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
             continue
         mid = members[members.size // 2]
         lookup.append(apparent_from_astrometry(stars, astrom[mid], eo[mid]))
-    radius = field_radius_rad(cfg.camera) + _LOOKUP_MARGIN_RAD
+    focal_mm = focal_lengths_mm(cfg)
+    radius = field_radius_rad(cfg.camera.with_focal_length_mm(float(focal_mm.min()))) + _LOOKUP_MARGIN_RAD
     if cfg.weather is not None:
         # refraction lifts a star by at most its value at the lowest pointing plus the field radius
         z_edge = min(math.radians(cfg.zenith_range_deg[1]) + radius, math.radians(MAX_ZENITH_DISTANCE_DEG))
@@ -347,7 +358,8 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
         lookup=lookup,
         cos_lookup=math.cos(radius),
         theta=cfg.camera.model_vector(np.float64),
-        focal_scale=focal_lengths_mm(cfg) / cfg.camera.focal_length_mm,
+        focal_scale=focal_mm / cfg.camera.focal_length_mm,
+        pad_px=distortion_pad_px(cfg.camera),
     )
 
 
@@ -399,7 +411,7 @@ def _observe(
     scale = ctx.focal_scale[frame]
     b_scaled = np.stack([b[:, 0] * scale, b[:, 1] * scale, b[:, 2]], axis=-1)
     w, h = cfg.camera.image_size_px
-    pad = 0.05 * max(w, h) + 10.0  # ideal points this far off the detector cannot land on it after distortion
+    pad = ctx.pad_px
     front = b_scaled[:, 2] > 0
     qu = np.where(front, ctx.theta[0] * b_scaled[:, 0] / np.where(front, b_scaled[:, 2], 1.0), np.inf)
     qv = np.where(front, ctx.theta[0] * b_scaled[:, 1] / np.where(front, b_scaled[:, 2], 1.0), np.inf)

@@ -1,0 +1,130 @@
+"""The whole cycle on Modbus (TCP, and RTU framing over TCP) against the emulator process: stream with loss counting,
+safe upload read back equal to float32, a refused set with its reason, link strings, and a dropped link as one
+line."""
+
+import signal
+
+import numpy as np
+import pytest
+from emulator_fixtures import hostlink, running_emulator
+
+from hostlink.errors import LinkError, UserError
+from hostlink.links import open_link
+from hostlink.links.base import CommandRefused
+from hostlink.links.modbus_link import parse_target
+from hostlink.params_io import save_params
+from hostlink.sensor_client import float32_equal, read_active_params
+from hostlink.session import read_session, write_session
+from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
+from onboard.banks import params_to_table
+from protocol.crc import crc32
+from protocol.messages import CENTROID_LSB_PX, MAG_LSB, NakCode
+
+LINKS = ["link", "link_rtu"]
+
+
+@pytest.fixture(scope="module")
+def replay_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("replay") / "session.csv"
+    sim = simulate(SimConfig(camera=seed004_camera(), frames=50, noise_px=0.01, seed=11, false_star_fraction=0.1))
+    write_session(path, sim.session)
+    return path
+
+
+@pytest.fixture(scope="module")
+def modbus_sensor():
+    with running_emulator("modbus", "--sim-frames", "40") as info:
+        yield info
+
+
+@pytest.mark.parametrize("which", LINKS)
+def test_replay_streams_exactly_the_rows_of_the_file_over_modbus(replay_file, tmp_path, which):
+    source = read_session(replay_file)
+    with running_emulator("modbus", "--replay", str(replay_file)) as info:
+        out = tmp_path / "out.csv"
+        run = hostlink("stream", "--link", info[which], "--frames", "1000", "--out", str(out))
+        assert run.returncode == 0, run.stderr
+        assert "stream ended after 50 frames" in run.stderr and "lost 0" in run.stderr
+        got = read_session(out)
+    assert len(got) == len(source)
+    assert np.array_equal(got.frame, source.frame) and np.array_equal(got.star_id, source.star_id)
+    assert list(got.t_utc) == list(source.t_utc)
+    assert np.max(np.abs(got.x_px - source.x_px)) <= CENTROID_LSB_PX / 2  # rounding to the 2^-10 px grid
+    assert np.max(np.abs(got.y_px - source.y_px)) <= CENTROID_LSB_PX / 2
+    assert np.allclose(got.mag, source.mag, atol=MAG_LSB / 2, rtol=0, equal_nan=True)  # millimag steps
+
+
+def test_messages_lost_are_counted_from_the_window_sequence(replay_file, tmp_path):
+    with running_emulator("modbus", "--replay", str(replay_file), "--drop-every", "10") as info:
+        run = hostlink("stream", "--link", info["link"], "--frames", "1000", "--out", str(tmp_path / "o.csv"))
+    assert run.returncode == 0, run.stderr
+    assert "45 frames" in run.stderr and "lost 5 message(s)" in run.stderr
+
+
+@pytest.mark.parametrize("which", LINKS)
+def test_upload_reads_back_equal_to_float32(modbus_sensor, tmp_path, which):
+    camera = seed004_camera()
+    path = tmp_path / "camera.json"
+    save_params(path, camera)
+    run = hostlink("upload", str(path), "--link", modbus_sensor[which])
+    assert run.returncode == 0, run.stderr
+    with open_link(modbus_sensor[which]) as link:
+        active = read_active_params(link)
+        staged = link.read_staged()
+    assert float32_equal(active.params, camera) and active.crc32 == crc32(params_to_table(camera))
+    assert bytes(staged.table) == params_to_table(camera)
+
+
+def test_unaligned_chunks_are_merged_in_the_staging_mailbox(modbus_sensor):
+    table = params_to_table(seed004_camera())
+    with open_link(modbus_sensor["link"]) as link:
+        link.stage_begin(len(table))
+        for offset in range(0, len(table), 7):  # 7-byte pieces split float32 values
+            link.stage_chunk(offset, table[offset:offset + 7])
+        link.stage_verify(crc32(table))
+        assert bytes(link.read_staged().table) == table
+
+
+@pytest.mark.parametrize("which", LINKS)
+def test_a_bad_set_is_refused_by_the_sensor_with_its_reason(modbus_sensor, which):
+    table = bytearray(params_to_table(seed004_camera()))
+    table[8:12] = np.float32(1e6).tobytes()  # principal_point_x_px far off the detector
+    with open_link(modbus_sensor[which]) as link:
+        before = link.read_active()
+        link.stage_begin(len(table))
+        link.stage_chunk(0, bytes(table))
+        with pytest.raises(CommandRefused) as refused:
+            link.stage_verify(crc32(bytes(table)))
+        with pytest.raises(CommandRefused) as not_verified:
+            link.commit(crc32(bytes(table)))
+        after = link.read_active()
+    assert refused.value.code == NakCode.INVALID_PARAMS and "principal_point_px[0]" in refused.value.text
+    assert not_verified.value.code == NakCode.NOT_VERIFIED
+    assert (after.generation, after.crc32, after.table) == (before.generation, before.crc32, before.table)
+
+
+def test_modbus_link_strings():
+    assert parse_target("modbus-tcp", "127.0.0.1:5020") == {"unit": 1, "host": "127.0.0.1", "port": 5020,
+                                                           "framing": "tcp"}
+    assert parse_target("modbus-rtu", "tcp://10.0.0.5:4001,unit=7")["framing"] == "rtu"
+    assert parse_target("modbus-rtu", "/dev/ttyUSB0@9600,parity=N") == {"unit": 1, "parity": "N",
+                                                                        "serial_port": "/dev/ttyUSB0", "baud": 9600,
+                                                                        "framing": "rtu"}
+    for scheme, bad in (("modbus-tcp", "127.0.0.1"), ("modbus-tcp", "h:99999"), ("modbus-tcp", "h:502,unit=300"),
+                        ("modbus-tcp", "h:502,parity=E")):
+        with pytest.raises(UserError):
+            parse_target(scheme, bad)
+
+
+def test_a_dropped_modbus_link_is_a_one_line_error():
+    with running_emulator("modbus", "--sim-frames", "20") as info:
+        link = open_link(info["link"])
+        link.status()
+        info["process"].send_signal(signal.SIGKILL)
+        info["process"].wait(10)
+        with pytest.raises(LinkError) as lost:
+            link.status()
+        link.close()
+    assert len(str(lost.value).splitlines()) == 1
+    run = hostlink("stream", "--link", info["link"], "--frames", "5", "--out", "/dev/null")
+    assert run.returncode == 3 and len(run.stderr.strip().splitlines()) == 1, run.stderr
