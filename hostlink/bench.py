@@ -203,17 +203,31 @@ def estimate_rows(estimates) -> dict[str, np.ndarray]:
     }
 
 
-def attitude_errors_arcsec(data, theta: np.ndarray, truth_c: np.ndarray, frame_index: np.ndarray):
-    """Per-frame attitude from the camera ``theta`` (SVD over the frame's stars) against the simulator's truth:
-    boresight (sensor +z) pointing error and rotation about the boresight, both in arcsec."""
+def attitude_error_vectors_arcsec(data, theta: np.ndarray, truth_c: np.ndarray, frame_index: np.ndarray) -> np.ndarray:
+    """Per-frame attitude from the camera ``theta`` (SVD over the frame's stars) against the simulator's truth, as
+    the small rotation vector phi [arcsec] of the error rotation C_est C_true^T = I - [phi x] in the sensor frame:
+    phi_x, phi_y tilt the boresight, phi_z is the roll about it."""
     from hostlink.calibration.report import fitted_attitudes
 
     est = fitted_attitudes(data, theta)
-    true = truth_c[frame_index]
-    d = np.einsum("fij,fkj->fik", est, true)  # C_est C_true^T: the error rotation in the sensor frame
-    boresight = np.arctan2(np.hypot(d[:, 0, 2], d[:, 1, 2]), d[:, 2, 2]) * ARCSEC_PER_RAD
-    roll = np.arctan2(d[:, 0, 1] - d[:, 1, 0], d[:, 0, 0] + d[:, 1, 1]) * ARCSEC_PER_RAD
-    return boresight, roll
+    d = np.einsum("fij,fkj->fik", est, truth_c[frame_index])
+    phi = 0.5 * np.stack([d[:, 1, 2] - d[:, 2, 1], d[:, 2, 0] - d[:, 0, 2], d[:, 0, 1] - d[:, 1, 0]], axis=1)
+    return phi * ARCSEC_PER_RAD
+
+
+def attitude_error_summary(phi_arcsec: np.ndarray) -> dict:
+    """Boresight (tilt) and roll errors: RMS in all, the constant part (a principal-point or focal error acts as a
+    fixed misalignment, which a ground alignment absorbs), and the frame-to-frame scatter around it."""
+    bias = np.mean(phi_arcsec, axis=0)
+    scatter = phi_arcsec - bias
+    return {
+        "boresight_rms": rms(np.hypot(phi_arcsec[:, 0], phi_arcsec[:, 1])),
+        "roll_rms": rms(phi_arcsec[:, 2]),
+        "boresight_bias": float(np.hypot(bias[0], bias[1])),
+        "roll_bias": float(bias[2]),
+        "boresight_scatter_rms": rms(np.hypot(scatter[:, 0], scatter[:, 1])),
+        "roll_scatter_rms": rms(scatter[:, 2]),
+    }
 
 
 def rms(a: np.ndarray) -> float:
@@ -321,7 +335,7 @@ def truth_focal_mm(sim) -> np.ndarray:
 
 
 def truth_attitudes(sim) -> np.ndarray:
-    return np.asarray(sim.truth["attitude_c"], dtype=np.float64).reshape(-1, 3, 3)
+    return np.asarray(sim.truth["attitude"], dtype=np.float64).reshape(-1, 3, 3)
 
 
 def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active, uploaded, lost_total,
@@ -330,10 +344,12 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
 
     # attitude against truth, for the frames the calibration used
     first_frame = int(cal_sim.session.frame[0])
-    frame_index = data.frame_ids - first_frame
+    frame_index = data.frame_number - first_frame
     truth_c = truth_attitudes(cal_sim)
-    bore_before, roll_before = attitude_errors_arcsec(data, nominal.model_vector(), truth_c, frame_index)
-    bore_after, roll_after = attitude_errors_arcsec(data, outcome.params.model_vector(), truth_c, frame_index)
+    att_before = attitude_error_summary(attitude_error_vectors_arcsec(data, nominal.model_vector(), truth_c,
+                                                                      frame_index))
+    att_after = attitude_error_summary(attitude_error_vectors_arcsec(data, outcome.params.model_vector(), truth_c,
+                                                                     frame_index))
 
     # focal tracking in the drift phase
     est = estimate_rows(drift_estimates)
@@ -358,10 +374,7 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
         "noise_floor_rms_px": floor_px,
         "interstar_rms_rad": {"before": outcome.interstar_before_rad, "after": outcome.interstar_after_rad},
         "rejected": outcome.rejected,
-        "attitude_error_arcsec": {
-            "boresight_rms_before": rms(bore_before), "boresight_rms_after": rms(bore_after),
-            "roll_rms_before": rms(roll_before), "roll_rms_after": rms(roll_after),
-        },
+        "attitude_error_arcsec": {"before": att_before, "after": att_after},
         "parameters": {
             "true": {"focal_length_mm": truth.focal_length_mm, "principal_point_px": list(truth.principal_point_px)},
             "nominal": {"focal_length_mm": nominal.focal_length_mm,
@@ -475,22 +488,28 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
 def summary_table(summary: dict) -> list[tuple[str, str, str]]:
     """(quantity, before, after) rows for the terminal."""
     b, a = summary["residual_before"], summary["residual_after"]
-    att = summary["attitude_error_arcsec"]
+    att_b, att_a = summary["attitude_error_arcsec"]["before"], summary["attitude_error_arcsec"]["after"]
     p = summary["parameters"]
+    sig = p["sigma"]
     track = summary["drift_tracking"]
+    pp_nominal = [p["nominal"]["principal_point_px"][i] - p["true"]["principal_point_px"][i] for i in range(2)]
     return [
-        ("residual RMS [px]", f"{b['rms_px']:.4f}", f"{a['rms_px']:.4f} (noise floor {summary['noise_floor_rms_px']:.4f})"),
-        ("residual max [px]", f"{b['max_px']:.3f}", f"{a['max_px']:.3f}"),
-        ("residual RMS [arcsec]", f"{b['rms_arcsec']:.3f}", f"{a['rms_arcsec']:.3f}"),
-        ("boresight error RMS [arcsec]", f"{att['boresight_rms_before']:.2f}", f"{att['boresight_rms_after']:.3f}"),
-        ("roll error RMS [arcsec]", f"{att['roll_rms_before']:.2f}", f"{att['roll_rms_after']:.3f}"),
-        ("focal length error [um]",
+        ("residual RMS (px)", f"{b['rms_px']:.4f}",
+         f"{a['rms_px']:.4f} (noise floor {summary['noise_floor_rms_px']:.4f})"),
+        ("residual max (px)", f"{b['max_px']:.3f}", f"{a['max_px']:.3f}"),
+        ("residual RMS (arcsec)", f"{b['rms_arcsec']:.3f}", f"{a['rms_arcsec']:.3f}"),
+        ("attitude scatter, boresight / roll (arcsec RMS)",
+         f"{att_b['boresight_scatter_rms']:.2f} / {att_b['roll_scatter_rms']:.2f}",
+         f"{att_a['boresight_scatter_rms']:.3f} / {att_a['roll_scatter_rms']:.3f}"),
+        ("attitude bias, boresight / roll (arcsec)",
+         f"{att_b['boresight_bias']:.1f} / {att_b['roll_bias']:.1f}",
+         f"{att_a['boresight_bias']:.1f} / {att_a['roll_bias']:.1f} (= principal point error x 1/F)"),
+        ("focal length error (um)",
          f"{(p['nominal']['focal_length_mm'] - p['true']['focal_length_mm']) * 1000:.1f}",
-         f"{p['error_focal_um']:.2f} (1-sigma {p['sigma'].get('focal_length_mm', float('nan')) * 1000:.2f})"),
-        ("principal point error [px]",
-         "{:.2f}, {:.2f}".format(*(p["nominal"]["principal_point_px"][i] - p["true"]["principal_point_px"][i]
-                                   for i in range(2))),
-         "{:.3f}, {:.3f}".format(*p["error_principal_point_px"])),
-        ("drift tracking RMS [um]", f"{track['focal_true_rms_deviation_um']:.2f} (drift itself)",
+         f"{p['error_focal_um']:.2f} (1-sigma {sig['focal_length_mm'] * 1000:.2f})"),
+        ("principal point error (px)", "{:.2f}, {:.2f}".format(*pp_nominal),
+         "{:.2f}, {:.2f} (1-sigma {:.2f}, {:.2f})".format(*p["error_principal_point_px"],
+                                                          *sig["principal_point_px"])),
+        ("focal drift tracking (um RMS)", f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
          f"{track['focal_error_rms_um_converged']:.2f} once converged"),
     ]

@@ -30,7 +30,6 @@ class BiermanWork:
     alpha: np.ndarray
     alpha_prev: np.ndarray
     cols: np.ndarray  # (K, K)
-    gain: np.ndarray
 
 
 def bierman_work(n_states: int, dtype: np.dtype) -> BiermanWork:
@@ -39,9 +38,8 @@ def bierman_work(n_states: int, dtype: np.dtype) -> BiermanWork:
         f=np.zeros(k, dtype),
         v=np.zeros(k, dtype),
         alpha=np.zeros(k, dtype),
-        alpha_prev=np.zeros(k, dtype),
+        alpha_prev=np.ones(k, dtype),
         cols=np.zeros((k, k), dtype),
-        gain=np.zeros(k, dtype),
     )
 
 
@@ -51,26 +49,25 @@ def bierman_update(u: np.ndarray, d: np.ndarray, xi: np.ndarray, h: np.ndarray, 
     Returns ``(innovation, innovation_variance)`` = (y - h . xi, h P h + 1) as evaluated before the update
     (Bierman 1977 eq. V.3.x, the "U-D measurement update" algorithm). Work: about 6 K^2 flops.
     """
-    np.matmul(h, u, out=w.f)  # f = U^T h
-    np.multiply(d, w.f, out=w.v)  # v = D f
-    np.multiply(w.f, w.v, out=w.alpha)
-    np.cumsum(w.alpha, out=w.alpha)
-    w.alpha += 1  # alpha_j = 1 + sum_{k<=j} f_k v_k  (R = 1 after whitening)
-    w.alpha_prev[0] = 1
-    w.alpha_prev[1:] = w.alpha[:-1]
-    s = w.alpha[-1]
+    f, v, alpha, ap, cols = w.f, w.v, w.alpha, w.alpha_prev, w.cols
+    np.matmul(h, u, out=f)  # f = U^T h
+    np.multiply(d, f, out=v)  # v = D f
+    np.multiply(f, v, out=alpha)
+    np.add.accumulate(alpha, out=alpha)
+    alpha += 1  # alpha_j = 1 + sum_{k<=j} f_k v_k  (R = 1 after whitening)
+    ap[1:] = alpha[:-1]  # alpha_{j-1}; ap[0] = 1 is set once by bierman_work
+    s = alpha[-1]
     innovation = y - np.dot(h, xi)
     # d_j' = d_j alpha_{j-1} / alpha_j
-    d *= w.alpha_prev
-    d /= w.alpha
+    d *= ap
+    d /= alpha
     # b_j = sum_{k<=j} v_k U_k (old columns); U_j' = U_j + lambda_j b_{j-1}, lambda_j = -f_j / alpha_{j-1}
-    np.multiply(u, w.v, out=w.cols)
-    np.cumsum(w.cols, axis=1, out=w.cols)
-    np.divide(w.cols[:, -1], s, out=w.gain)
-    np.divide(w.f, w.alpha_prev, out=w.f)  # f now holds -lambda
-    w.cols[:, :-1] *= w.f[1:]
-    u[:, 1:] -= w.cols[:, :-1]
-    xi += w.gain * innovation
+    np.multiply(u, v, out=cols)
+    np.add.accumulate(cols, axis=1, out=cols)
+    xi += cols[:, -1] * (innovation / s)  # gain = b_K / alpha_K
+    f /= ap  # f now holds -lambda
+    cols[:, :-1] *= f[1:]
+    u[:, 1:] -= cols[:, :-1]
     return innovation, s
 
 

@@ -427,3 +427,7 @@ def dbc_text() -> str:
             if sig.is_float:
                 lines.append(f"SIG_VALTYPE_ {msg.frame_id} {sig.name} : 1;")
     return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":  # pragma: no cover - regenerates protocol/startracker.dbc
+    print(dbc_text(), end="")

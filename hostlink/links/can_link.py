@@ -385,3 +385,27 @@ class CanLink(MessageLink):
         except (can.CanError, OSError):
             pass
 
+
+
+def can_frames_for(frames: list[CentroidFrame]) -> int:
+    """CAN frames the sensor puts on the bus for these centroid frames: one FRAME_HEADER per frame, one STAR per
+    star, and a TIME_BASE wherever the sensor needs one (the first frame, and when an offset would not fit)."""
+    t_base: int | None = None
+    n = 0
+    for f in frames:
+        if cf.needs_time_base(f.t_us, t_base):
+            t_base = f.t_us
+            n += 1
+        n += 1 + f.n_stars
+    return n
+
+
+def physical_limit_stars_per_s(frames: list[CentroidFrame], info: dict) -> float:
+    """Most stars per second a CAN bus at ``info["bitrate"]`` carries for these frames: every frame is a worst-case
+    8-byte standard frame of 135 bits (``slcan_hub.frame_bits_worst_case``), so stars/s = bitrate / 135 / (CAN
+    frames per star). Benchmark hook of benchmarks/bench_links.py (hostlink/links/INTERFACE.md)."""
+    from hostlink.links.slcan_hub import frame_bits_worst_case
+
+    stars = sum(f.n_stars for f in frames)
+    bits = frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False)
+    return float(info["bitrate"]) / bits * stars / can_frames_for(frames)

@@ -108,8 +108,20 @@ class SimConfig:
 
 @dataclass
 class SimResult:
+    """The simulated session and its truth (the JSON object written beside it)."""
+
     session: Session
     truth: dict = field(default_factory=dict)
+
+    @property
+    def attitude(self) -> np.ndarray:
+        """Per-frame true attitude C (frames, 3, 3), b = C r."""
+        return np.asarray(self.truth["attitude"], dtype=np.float64).reshape(-1, 3, 3)
+
+    @property
+    def focal_length_mm(self) -> np.ndarray:
+        """Per-frame true focal length [mm]."""
+        return np.asarray(self.truth["focal_length_mm"], dtype=np.float64)
 
 
 def seed004_camera() -> CameraParams:
@@ -617,6 +629,7 @@ def _truth(
         "attitude_maps": "observed direction (apparent + ERFA refraction)" if refracted else "apparent direction",
         "refraction": refracted,
         "diurnal_aberration": False,
+        "attitude_layout": "per frame c11 c12 c13 c21 c22 c23 c31 c32 c33 (row-major), b = C r",
         "attitude": attitude.reshape(-1, 9).tolist(),
         "focal_length_mm": focal_lengths_mm(cfg).tolist(),
         "real_stars_per_frame": real_per_frame.astype(int).tolist(),

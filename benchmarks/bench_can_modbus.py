@@ -1,0 +1,165 @@
+"""CAN and Modbus link benchmarks (run on demand, not by pytest), measured side by side in one run:
+
+    .venv/bin/python benchmarks/bench_can_modbus.py [--frames 1500] [--bitrates 500000,1000000] [--out bench.json]
+
+* CAN stream: ``hostlink emulate --transport can --bitrate B`` as a separate process, the host reading through
+  python-can's ``slcan`` interface (``open_link`` exactly as ``hostlink stream``), timed from the first frame to the
+  last. Limit = bitrate / 135 bits per worst-case frame / CAN frames per star (``can_link.physical_limit_stars_per_s``,
+  headers and time bases included). Target: >= 0.90 of the limit.
+* Host decoding: the recorded frames as the CAN frames the sensor sends (time base, header, stars), decoded by the
+  host's ``StreamAssembler``; stars/s over the fastest line's stars/s (CAN at 1 Mbit/s). Target: >= 10x. The same
+  ratio is printed for python-can's SLCAN ASCII parsing of those frames (the adapter driver, not our protocol).
+* Modbus TCP and RTU-over-TCP stream: stars/s and register transactions/s (loopback has no line rate to compare with).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+import can  # noqa: E402
+from emulator_fixtures import running_emulator  # noqa: E402
+
+from hostlink.links import open_link  # noqa: E402
+from hostlink.links.can_link import StreamAssembler, can_frames_for, physical_limit_stars_per_s  # noqa: E402
+from hostlink.links.slcan_hub import HubFrame, format_slcan_frame  # noqa: E402
+from protocol import can_frames as cf  # noqa: E402
+
+FASTEST_CAN_BITRATE = 1_000_000
+
+
+def stream(link_string: str, n_frames: int) -> tuple[list, float, int]:
+    with open_link(link_string, timeout_s=5.0) as link:
+        link.set_streaming(True)
+        frames = [link.recv_frame(5.0)]
+        start = time.perf_counter()
+        while len(frames) <= n_frames:
+            frame = link.recv_frame(5.0)
+            if frame is None:
+                break
+            frames.append(frame)
+        elapsed = time.perf_counter() - start
+        link.set_streaming(False)
+        return frames[1:], elapsed, link.stats.lost_messages
+
+
+def can_wire(frames) -> list[tuple[int, bytes]]:
+    """(identifier, payload) of every CAN frame the sensor sends for ``frames`` (as hostlink.emulator.can_endpoint)."""
+    out, t_base = [], None
+    for f in frames:
+        if cf.needs_time_base(f.t_us, t_base):
+            t_base = f.t_us
+            out.append((cf.TIME_BASE.frame_id, cf.encode_time_base(t_base)))
+        out.append((cf.FRAME_HEADER.frame_id, cf.encode_header(f.frame, f.n_stars, f.t_us - t_base)))
+        stars = cf.word_bytes(cf.encode_stars(f))
+        out += [(cf.STAR.frame_id, stars[k:k + 8]) for k in range(0, len(stars), 8)]
+    return out
+
+
+def best_of(repeat: int, fn) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def host_decode_stars_per_s(frames, repeat: int = 5) -> float:
+    wire = can_wire(frames)
+    stars = sum(f.n_stars for f in frames)
+
+    def run() -> None:
+        asm = StreamAssembler()
+        n = 0
+        for fid, data in wire:
+            out = asm.feed(fid, data)
+            if out is not None:
+                n += out.n_stars
+        assert n == stars and asm.lost == 0
+
+    return stars / best_of(repeat, run)
+
+
+def slcan_parse_stars_per_s(frames) -> float:
+    """python-can's slcan reader on the same frames as SLCAN text, pre-buffered in a local socket."""
+    wire = b"".join(format_slcan_frame(HubFrame(fid, False, False, 8, data)) for fid, data in can_wire(frames))
+    stars = sum(f.n_stars for f in frames)
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        conn.recv(64)
+        conn.sendall(wire)
+        time.sleep(2)
+        conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    bus = can.Bus(interface="slcan", channel=f"socket://127.0.0.1:{server.getsockname()[1]}", sleep_after_open=0)
+    n_can = can_frames_for(frames)
+    t0 = time.perf_counter()
+    got = 0
+    while got < n_can and bus.recv(1.0) is not None:
+        got += 1
+    elapsed = time.perf_counter() - t0
+    bus.shutdown()
+    server.close()
+    return stars / elapsed
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=1500)
+    parser.add_argument("--bitrates", default="500000,1000000")
+    parser.add_argument("--modbus-frames", type=int, default=500)
+    parser.add_argument("--out")
+    args = parser.parse_args(argv)
+    results: dict = {"can": [], "modbus": []}
+    sample = None
+    for bitrate in [int(b) for b in args.bitrates.split(",") if b]:
+        with running_emulator("can", "--bitrate", str(bitrate)) as info:
+            frames, elapsed, lost = stream(info["link"], args.frames)
+        stars = sum(f.n_stars for f in frames)
+        limit = physical_limit_stars_per_s(frames, info)
+        results["can"].append({"bitrate": bitrate, "frames": len(frames), "stars": stars, "seconds": elapsed,
+                               "stars_per_s": stars / elapsed, "limit_stars_per_s": limit,
+                               "fraction_of_limit": stars / elapsed / limit, "lost": lost})
+        sample = sample or frames
+    for key in ("link", "link_rtu"):
+        with running_emulator("modbus") as info:
+            frames, elapsed, lost = stream(info[key], args.modbus_frames)
+            stars = sum(f.n_stars for f in frames)
+            results["modbus"].append({"link": key, "frames": len(frames), "stars": stars, "seconds": elapsed,
+                                      "stars_per_s": stars / elapsed, "frames_per_s": len(frames) / elapsed,
+                                      "lost": lost})
+            sample = sample or frames
+    fastest = physical_limit_stars_per_s(sample, {"bitrate": FASTEST_CAN_BITRATE})
+    decode = host_decode_stars_per_s(sample)
+    slcan = slcan_parse_stars_per_s(sample)
+    results["host_decode"] = {"stars_per_s": decode, "fastest_line_stars_per_s": fastest,
+                              "ratio": decode / fastest, "slcan_parse_stars_per_s": slcan,
+                              "slcan_ratio": slcan / fastest}
+    print(f"{'CAN bit rate':>12s} {'stars/s':>9s} {'limit':>9s} {'fraction':>9s} {'lost':>5s}")
+    for r in results["can"]:
+        print(f"{r['bitrate']:12d} {r['stars_per_s']:9.0f} {r['limit_stars_per_s']:9.0f} "
+              f"{r['fraction_of_limit']:9.3f} {r['lost']:5d}")
+    for r in results["modbus"]:
+        print(f"modbus {r['link']:8s}: {r['stars_per_s']:.0f} stars/s, {r['frames_per_s']:.0f} frames/s "
+              f"(>= 2 register transactions each), lost {r['lost']}")
+    print(f"host CAN stream decoding: {decode:.0f} stars/s = {decode / fastest:.1f} x the fastest line "
+          f"(CAN @ 1 Mbit/s: {fastest:.0f} stars/s); python-can SLCAN text parsing: {slcan:.0f} stars/s "
+          f"= {slcan / fastest:.2f} x")
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
