@@ -430,29 +430,27 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
     f_true = np.concatenate([truth_focal_mm(cal_sim), truth_focal_mm(drift_sim)])
     frames_true = np.arange(f_true.size) + int(cal_sim.session.frame[0])
 
-    # estimator convergence: f, x0, y0 against truth through both phases
+    # estimator convergence: |estimate - truth| of f, x0, y0 against the estimator's own 1-sigma, both phases
     fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
     truth = cfg.camera
-    for ax, key, sig, true_val, unit, scale in (
-        (axes[0], "f_mm", "sigma_f_mm", None, "um", 1000.0),
-        (axes[1], "x0_px", "sigma_x0_px", truth.principal_point_px[0], "px", 1.0),
-        (axes[2], "y0_px", "sigma_y0_px", truth.principal_point_px[1], "px", 1.0),
+    for ax, key, sig, true_val, label_unit, scale in (
+        (axes[0], "f_mm", "sigma_f_mm", None, "|f error| [um]", 1000.0),
+        (axes[1], "x0_px", "sigma_x0_px", truth.principal_point_px[0], "|x0 error| [px]", 1.0),
+        (axes[2], "y0_px", "sigma_y0_px", truth.principal_point_px[1], "|y0 error| [px]", 1.0),
     ):
         for rows, colour, label in ((cal, "tab:orange", "cold start from nominal"),
-                                    (drift, "tab:blue", "after upload")):
+                                    (drift, "tab:blue", "restarted from the uploaded set")):
             if rows["frame"].size == 0:
                 continue
-            ref = (np.interp(rows["frame"], frames_true, f_true) if key == "f_mm" else true_val)
-            err = (rows[key] - ref) * scale
-            band = rows[sig] * scale
-            ax.plot(rows["frame"], err, color=colour, label=label)
-            ax.fill_between(rows["frame"], -band, band, color=colour, alpha=0.15)
-        ax.axhline(0.0, color="k", lw=0.8)
+            ref = np.interp(rows["frame"], frames_true, f_true) if key == "f_mm" else true_val
+            ax.semilogy(rows["frame"], np.abs(rows[key] - ref) * scale, color=colour, label=f"|error|, {label}")
+            ax.semilogy(rows["frame"], rows[sig] * scale, color=colour, ls=":", label=f"1-sigma, {label}")
         ax.axvline(cfg.cal_frames, color="grey", ls="--", lw=0.8)
-        ax.set_ylabel(f"{key.split('_')[0]} error [{unit}]")
-        ax.set_yscale("symlog", linthresh=1.0 if unit == "um" else 0.05)
-    axes[0].set_title("Onboard recursive estimate minus truth (shaded: its 1-sigma); dashed line: upload")
-    axes[0].legend(loc="upper right", fontsize=8)
+        ax.set_ylabel(label_unit)
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].set_title("Onboard recursive estimator: error against truth and its own 1-sigma (dashed: upload)",
+                      fontsize=10)
+    axes[0].legend(loc="upper right", fontsize=7)
     axes[-1].set_xlabel("frame")
     fig.tight_layout()
     path = out / "estimator-convergence.png"

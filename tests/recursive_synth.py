@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.camera import pixels_to_unit, unit_to_pixels
+from onboard.camera import pixels_to_unit
 from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
 from onboard.params import CameraParams, Distortion
 

@@ -3,10 +3,10 @@ bound, float32 against float64, misidentification gating, focal drift tracking, 
 
 import numpy as np
 import pytest
+from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, crb_information, make_frames
 
 from onboard import recursive as rc
 from onboard.params import ESTIMATE_NAMES
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, crb_information, make_frames
 
 NOISE_PX = 0.05
 

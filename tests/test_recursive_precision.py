@@ -9,10 +9,10 @@ adds 8 % to the noise variance and at 0.5 deg 32 %, while the difference form co
 """
 
 import numpy as np
+from recursive_synth import SEED004_TRUE
 
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
 from onboard.interstar import difference_residuals, pair_covariance
-from recursive_synth import SEED004_TRUE
 
 NOISE_PX = 0.05
 

@@ -28,7 +28,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
 from hostlink.calibration.bundle import parameter_columns, parameter_scales, solve_scaled
 from hostlink.calibration.data import CalibrationData, frame_chunks
@@ -107,6 +106,7 @@ def interstar_normals(
         a0, a1 = int(starts[f0]), int(starts[f1])
         b_all, jb_all, jc_all = unit_vector_jacobians(data.x_px[a0:a1], data.y_px[a0:a1], theta)
         jb_all = jb_all[:, :, cols] * col_scale[None, None, :]
+        by_size: dict[int, list] = {}
         for f in range(f0, f1):
             if frame_mask is not None and not frame_mask[f]:
                 continue
@@ -122,17 +122,31 @@ def interstar_normals(
             else:
                 e, h_jac, factor = _sine_terms(b, r, jb, i, j)
                 cov = cov * factor[:, None] * factor[None, :]
+            by_size.setdefault(e.size, []).append((cov, h_jac, e))
+        # generalised least squares per frame, batched over frames with the same number of pairs:
+        # X = P^-1 [H e], then H^T P^-1 H, H^T P^-1 e and e^T P^-1 e
+        for items in by_size.values():
+            cov = np.stack([it[0] for it in items])
+            h_jac = np.stack([it[1] for it in items])
+            e = np.stack([it[2] for it in items])
+            rhs = np.concatenate([h_jac, e[:, :, None]], axis=2)
             try:
-                chol = np.linalg.cholesky(cov)
+                x = np.linalg.solve(cov, rhs)
             except np.linalg.LinAlgError:
-                continue  # a degenerate frame geometry (collinear stars) carries no usable pair set
-            ew = solve_triangular(chol, e, lower=True)
-            hw = solve_triangular(chol, h_jac, lower=True)
-            normal += hw.T @ hw
-            grad += hw.T @ ew
-            cost += float(ew @ ew)
+                x = np.stack([_solve_or_zero(c, r) for c, r in zip(cov, rhs, strict=True)])
+            normal += np.einsum("mpk,mpl->kl", h_jac, x[:, :, :k])
+            grad += np.einsum("mpk,mp->k", h_jac, x[:, :, k])
+            cost += float(np.einsum("mp,mp->", e, x[:, :, k]))
             n_pairs += e.size
     return normal, grad, cost, n_pairs
+
+
+def _solve_or_zero(cov: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """P^-1 rhs for one frame, or zero (no information) for a singular frame geometry (collinear stars)."""
+    try:
+        return np.linalg.solve(cov, rhs)
+    except np.linalg.LinAlgError:
+        return np.zeros_like(rhs)
 
 
 def fit_interstar(

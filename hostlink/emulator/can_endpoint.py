@@ -41,6 +41,9 @@ from protocol.messages import (
 #: Longest the sensor waits for bus time for one frame before it gives up on the stream [s].
 _SEND_TIMEOUT_S = 2.0
 _IDLE_WAIT_S = 0.02
+#: The sensor's software transmit ring [CAN frames]: the stream keeps the bus busy while the firmware computes the
+#: next exposure (256 frames = 69 ms of bus time at 500 kbit/s; 2 KiB of RAM).
+SENSOR_TX_RING_FRAMES = 256
 
 
 class SensorNode:
@@ -158,7 +161,7 @@ def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dic
           stop: threading.Event) -> None:
     bitrate = check_bitrate(options.bitrate)
     hub = SlcanHub(bitrate, host=options.host, port=options.port).start()
-    bus: HubBus = hub.attach("sensor")
+    bus: HubBus = hub.attach("sensor", tx_queue_frames=SENSOR_TX_RING_FRAMES)
     node = SensorNode(sensor, bus, stop, options.drop_every).start()
     try:
         ready({"link": f"can:slcan:{hub.url}@{bitrate}", "transport": "can", "bitrate": bitrate,

@@ -130,8 +130,9 @@ def _arbitration_key(frame: HubFrame) -> tuple[int, int, int, int]:
 class _Node:
     """One attachment to the bus (TCP SLCAN client or in-process python-can bus)."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, tx_queue_frames: int) -> None:
         self.name = name
+        self.tx_queue_frames = tx_queue_frames
         self.is_open = False
         self.listen_only = False
         self.bitrate_ok = True
@@ -143,8 +144,8 @@ class _Node:
 
 
 class _TcpNode(_Node):
-    def __init__(self, sock: socket.socket, name: str) -> None:
-        super().__init__(name)
+    def __init__(self, sock: socket.socket, name: str, tx_queue_frames: int) -> None:
+        super().__init__(name, tx_queue_frames)
         self.sock = sock
         self.inbuf = bytearray()
         self.outbuf = bytearray()
@@ -159,8 +160,8 @@ class _TcpNode(_Node):
 
 
 class _LocalNode(_Node):
-    def __init__(self, name: str) -> None:
-        super().__init__(name)
+    def __init__(self, name: str, tx_queue_frames: int) -> None:
+        super().__init__(name, tx_queue_frames)
         self.is_open = True
         self.rx: collections.deque[tuple[float, HubFrame]] = collections.deque()
         self.rx_ready = threading.Condition()
@@ -244,9 +245,10 @@ class SlcanHub:
                 with node.rx_ready:
                     node.rx_ready.notify_all()
 
-    def attach(self, name: str = "local") -> HubBus:
-        """A python-can bus for an in-process node (the emulated sensor)."""
-        node = _LocalNode(name)
+    def attach(self, name: str = "local", tx_queue_frames: int | None = None) -> HubBus:
+        """A python-can bus for an in-process node (the emulated sensor); ``tx_queue_frames`` overrides the hub's
+        transmit queue depth for this node (a firmware's software TX ring in front of its mailboxes)."""
+        node = _LocalNode(name, int(tx_queue_frames or self.tx_queue_frames))
         with self._lock:
             self._nodes.append(node)
         return HubBus(self, node)
@@ -256,7 +258,7 @@ class SlcanHub:
         """Queue a frame for transmission; blocks while the node's queue is full. False on timeout or stop."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._tx_space:
-            while len(node.tx) >= self.tx_queue_frames and not self._stop.is_set():
+            while len(node.tx) >= node.tx_queue_frames and not self._stop.is_set():
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return False
@@ -353,7 +355,7 @@ class SlcanHub:
             return
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        node = _TcpNode(sock, f"{peer[0]}:{peer[1]}")
+        node = _TcpNode(sock, f"{peer[0]}:{peer[1]}", self.tx_queue_frames)
         with self._lock:
             self._nodes.append(node)
         self._sel.register(sock, selectors.EVENT_READ, node)
@@ -400,7 +402,7 @@ class SlcanHub:
             del node.inbuf[: cut + 1]
             replies += self._command(node, line)
             with self._lock:
-                full = len(node.tx) >= self.tx_queue_frames
+                full = len(node.tx) >= node.tx_queue_frames
             if full:  # a controller with full mailboxes: stop taking commands until the bus drains
                 node.reading = False
                 break
