@@ -104,12 +104,25 @@ def open_bus(t: CanTarget) -> can.BusABC:
     kwargs = dict(t.options)
     if t.bitrate is not None:
         kwargs.setdefault("bitrate", t.bitrate)
-    if t.interface == "slcan" and "://" in t.channel:
+    channel = t.channel
+    if t.interface == "slcan" and "://" in channel:
         kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
+        if channel.lower().startswith("socket://"):
+            channel = _buffered_socket_url(channel)
     try:
-        return can.Bus(interface=t.interface, channel=t.channel, **kwargs)
+        return can.Bus(interface=t.interface, channel=channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
         raise LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {_one_line(exc)}") from None
+
+
+def _buffered_socket_url(url: str) -> str:
+    """``socket://H:P`` -> ``bufsocket://H:P``: the same socket through ``hostlink.links.urlhandler``'s buffered
+    handler, so python-can's byte-at-a-time SLCAN reader keeps up with a 1 Mbit/s bus."""
+    import serial
+
+    if "hostlink.links.urlhandler" not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append("hostlink.links.urlhandler")
+    return "bufsocket://" + url.split("://", 1)[1]
 
 
 def _one_line(exc: BaseException) -> str:
