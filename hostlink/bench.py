@@ -168,7 +168,7 @@ class Emulator:
 def poll_stream(link, n_frames: int, poll_every: int, progress: Callable[[int], None]):
     """Stream ``n_frames`` frames, reading the onboard estimate every ``poll_every`` frames.
 
-    Returns (frames, estimates) where estimates are (frame counter, Estimate) pairs."""
+    Returns (frames, estimates) where estimates are (frame counter of the estimate's last update, Estimate)."""
     frames, estimates = [], []
     link.set_streaming(True)
     try:
@@ -179,7 +179,10 @@ def poll_stream(link, n_frames: int, poll_every: int, progress: Callable[[int], 
             frames.append(frame)
             progress(len(frames))
             if len(frames) % poll_every == 0:
-                estimates.append((frame.frame, link.read_estimate()))
+                est = link.read_estimate()
+                # key each estimate by the last frame the sensor's estimator processed (it can run ahead of what
+                # the host has received while frames wait in the line's buffers)
+                estimates.append((int(est.last_frame), est))
     finally:
         try:
             link.set_streaming(False)

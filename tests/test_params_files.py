@@ -126,8 +126,6 @@ def test_cli_reports_bad_parameter_file_in_one_line_with_nonzero_exit(tmp_path):
          str(tmp_path / "o.json")],
         capture_output=True, text=True,
     )
-    if "invalid choice" in out.stderr:
-        pytest.skip("replay command not present yet")
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "focal_length_mm" in lines[0] and "Traceback" not in out.stderr

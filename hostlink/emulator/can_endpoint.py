@@ -41,6 +41,8 @@ from protocol.messages import (
 #: Longest the sensor waits for bus time for one frame before it gives up on the stream [s].
 _SEND_TIMEOUT_S = 2.0
 _IDLE_WAIT_S = 0.02
+#: how long the stream loop steps aside while a command waits for the lock [s]
+_COMMAND_YIELD_S = 0.0005
 #: The sensor's software transmit ring [CAN frames]: the stream keeps the bus busy while the firmware computes the
 #: next exposure (256 frames = 69 ms of bus time at 500 kbit/s; 2 KiB of RAM).
 SENSOR_TX_RING_FRAMES = 256
@@ -59,6 +61,7 @@ class SensorNode:
         self.last_frame = 0  # frame counter of the last frame produced (sent or dropped)
         self.undecodable = 0
         self._order = threading.Lock()  # a command + its reply vs. one stream message
+        self._command_waiting = threading.Event()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_SENSOR_TO_HOST_ID, cf.ISOTP_HOST_TO_SENSOR_ID)
         self._threads = [threading.Thread(target=self._command_loop, name="can-sensor-commands", daemon=True),
                          threading.Thread(target=self._stream_loop, name="can-sensor-stream", daemon=True)]
@@ -101,6 +104,15 @@ class SensorNode:
                     self.undecodable += 1
 
     def _answer(self, cmd: Message) -> None:
+        # Tell the stream loop a command is waiting: a thread that releases and re-takes a lock at once can starve
+        # the other (Python locks are not fair), which held a StreamControl(stop) back for hundreds of frames.
+        self._command_waiting.set()
+        try:
+            self._answer_locked(cmd)
+        finally:
+            self._command_waiting.clear()
+
+    def _answer_locked(self, cmd: Message) -> None:
         with self._order:
             if is_command(cmd):
                 reply = self.sensor.handle(cmd)
@@ -120,6 +132,9 @@ class SensorNode:
     # ------------------------------------------------------------------------------------------ stream
     def _stream_loop(self) -> None:
         while not self.stop.is_set():
+            if self._command_waiting.is_set():
+                self.stop.wait(_COMMAND_YIELD_S)  # commands first: at most one frame of delay for a command
+                continue
             with self._order:
                 msg = self.sensor.next_stream_message()
                 if msg is not None:
