@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     import math
     from pathlib import Path
 
-    from hostlink.bench import BenchConfig, run_bench, summary_table
+    from hostlink.bench import BenchConfig, run_bench
     from hostlink.errors import UserError
     from hostlink.params_io import load_params
     from hostlink.siteopts import site_and_weather
