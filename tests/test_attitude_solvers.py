@@ -209,6 +209,10 @@ def test_attitude_command_writes_one_row_per_frame(ground_sessions, tmp_path):
         (["--site", "39.9,116.4,50", "--refraction", "observed"], "needs --site and --weather"),
         (["--min-stars", "1"], "at least 2 stars"),
         (["--dut1", "3"], "UT1 - UTC"),
+        (["--mounting", "91.5,180.2,39.5"], "--mounting needs --site"),
+        (["--site", "39.9,116.4,50", "--mounting", "91.5,180.2"], "expected 3 finite angles"),
+        (["--site", "39.9,116.4,50", "--mounting", "yaw,pitch,roll"], "expected 3 finite angles"),
+        (["--site", "39.9,116.4,50", "--mounting", "91.5,nan,39.5"], "expected 3 finite angles"),
     ],
 )
 def test_attitude_command_rejects_bad_options_in_one_line(ground_sessions, tmp_path, capsys, extra, message):
@@ -228,3 +232,45 @@ def test_attitude_command_reports_a_missing_session_in_one_line(tmp_path, capsys
     code = main(["attitude", str(tmp_path / "nope.csv"), "--params", str(params_path), "--out", str(tmp_path / "a")])
     err = capsys.readouterr().err
     assert code != 0 and "no such file" in err and len(err.strip().splitlines()) == 1
+
+
+def test_attitude_command_ship_columns_follow_the_erfa_local_frame(ground_sessions, tmp_path):
+    from hostlink.sky.site import local_north_east, zenith_true_of_date
+
+    cam, sims = ground_sessions
+    session = sims[0.05].session
+    session_path, params_path = tmp_path / "s.csv", tmp_path / "p.json"
+    write_session(session_path, session)
+    save_params(params_path, cam, {})
+    base = ["attitude", str(session_path), "--params", str(params_path), "--site", "39.9,116.4,50"]
+    assert main(base + ["--out", str(tmp_path / "plain.csv")]) == 0
+    # mounting (0, 0, -90): R_bs = R1(-90 deg), sensor x = bow, sensor y = -starboard, boresight z = mast
+    assert main(base + ["--out", str(tmp_path / "ship.csv"), "--mounting", "0,0,-90"]) == 0
+    with (tmp_path / "plain.csv").open() as fh:
+        assert "ship_yaw_deg" not in next(csv.reader(fh))  # no mounting, no ship attitude
+    with (tmp_path / "ship.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    c = np.array([[float(row[f"c{i}{j}"]) for i in (1, 2, 3) for j in (1, 2, 3)] for row in rows]).reshape(-1, 3, 3)
+    yaw, pitch, roll = np.radians([[float(row[k]) for row in rows]
+                                   for k in ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")])
+    # the same quantities from ERFA's zenith (gst06a) and the definitions of seed 001's angles: the bow (sensor x,
+    # C's row 0 in TOD) has elevation = pitch and azimuth = yaw; the mast (boresight) has up-components
+    # cos(roll) cos(pitch), and the sensor's y = -starboard sin(roll) cos(pitch)
+    jd1, jd2 = session.frame_times_jd()
+    zen = zenith_true_of_date(jd1, jd2, SITE)
+    north, east = local_north_east(zen)
+    bow, y_s, mast = c[:, 0], c[:, 1], c[:, 2]
+
+    def dot(u, v):
+        return np.sum(u * v, axis=1)
+
+    want_pitch = np.arcsin(dot(bow, zen))
+    want_yaw = np.arctan2(dot(bow, east), dot(bow, north))
+    want_roll = np.arctan2(dot(y_s, zen), dot(mast, zen))
+    # onboard Earth orientation vs ERFA's (truncated nutation, 0.014" at most; measured 0.004"): 0.05"
+    tol = 0.05 * ARCSEC
+    assert np.abs(pitch - want_pitch).max() < tol
+    # yaw and roll weighted by cos(pitch): the angles themselves are singular at pitch +-90 deg
+    assert np.abs(np.cos(want_pitch) * (np.mod(yaw - want_yaw + np.pi, 2 * np.pi) - np.pi)).max() < tol
+    assert np.abs(np.cos(want_pitch) * (roll - want_roll)).max() < tol
+    assert np.all((yaw >= 0) & (yaw < 2 * np.pi))

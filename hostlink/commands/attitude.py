@@ -13,6 +13,11 @@ Refraction (ground and ship-borne sessions, needs --site and --weather; seed 001
   refraction at its apparent zenith distance (``hostlink.observed_correction``), then solve.
 - ``none``: no correction.
 ``--precision float32`` runs every onboard step in float32, as the sensor does.
+
+Ship attitude (seed 001 sec. 3.1, eq. 5-6, 21; needs --site and --mounting): with the sensor's installation angles
+(Table 5: yaw, pitch, roll of the sensor in the ship's body frame x bow, y mast, z starboard) as the mounting matrix
+R_bs = R1(roll) R3(pitch) R2(-yaw) (``onboard.attitude.euler_matrix``), the sensor attitude in the local frame
+R_gs = C R_ig^T gives the ship's R_gb = R_bs^T R_gs and its yaw, pitch, roll (``onboard.attitude.ship_attitude``).
 """
 
 from __future__ import annotations
@@ -29,7 +34,11 @@ DESCRIPTION = (
     "every frame of SESSION.csv through the camera PARAMS.json. With --site and --weather the stars' atmospheric "
     "refraction is corrected: 'reference' lifts the reference directions toward the zenith (seed 001 sec. 4, the "
     "sensor's method, default), 'observed' lowers the measured ones (seed 001 sec. 3), 'none' skips it. Writes "
-    "ATTITUDE.csv with frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status."
+    "ATTITUDE.csv with frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status; with --site and --mounting "
+    "also ship_yaw_deg,ship_pitch_deg,ship_roll_deg: the ship's attitude in the local north-up-east frame (seed 001: "
+    "yaw from north toward east in [0, 360), pitch bow up in [-90, 90], roll starboard down in (-180, 180], the "
+    "frame rotation "
+    "R1(roll) R3(pitch) R2(-yaw) from north-up-east to bow-mast-starboard), empty for an unsolved frame."
 )
 
 REFRACTION_MODES = ("reference", "observed", "none")
@@ -40,6 +49,7 @@ OUTPUT_COLUMNS = ("frame", "t_utc", "n_stars", "n_used") + tuple(f"c{i}{j}" for 
     "residual_rms_arcsec",
     "status",
 )
+SHIP_COLUMNS = ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,6 +74,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fewest identified stars for an attitude (default 2)")
     parser.add_argument("--precision", choices=("float64", "float32"), default="float64",
                         help="arithmetic of the onboard steps (float32: as the sensor)")
+    parser.add_argument(
+        "--mounting",
+        metavar="YAW_DEG,PITCH_DEG,ROLL_DEG",
+        help="the sensor's installation angles in the ship's body frame (x bow, y mast, z starboard; seed 001 "
+        "Table 5, frame rotation R1(roll) R3(pitch) R2(-yaw)); with --site, adds the columns ship_yaw_deg, "
+        "ship_pitch_deg, ship_roll_deg (ship attitude in the local north-up-east frame, yaw from north toward "
+        "east)",
+    )
+
+
+def parse_mounting(text: str) -> tuple[float, float, float]:
+    """``YAW_DEG,PITCH_DEG,ROLL_DEG`` -> (yaw, pitch, roll) [rad]; any finite angles (Table 5 has a pitch of 180.2)."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise UserError(f"--mounting {text!r}: expected 3 finite angles in degrees, e.g. 91.5,180.2,39.5")
+    return tuple(math.radians(v) for v in values)
 
 
 def refraction_mode(requested: str | None, weather) -> str:
@@ -110,9 +140,10 @@ def tai_minus_utc_s(jd1: float, jd2: float) -> int:
 
 def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0, mode: str = "none",
                   model: str = "atan", reject_arcsec: float = DEFAULT_REJECT_ARCSEC, min_stars: int = 2,
-                  dtype="float64"):
+                  dtype="float64", mounting_rad: tuple[float, float, float] | None = None):
     """Per-frame attitudes. Returns a dict of columns (numpy arrays, one entry per frame): frame, t_utc, n_stars,
-    n_used, C (F, 3, 3; NaN when unsolved), residual_rms_arcsec, status."""
+    n_used, C (F, 3, 3; NaN when unsolved), residual_rms_arcsec, status; with a site and ``mounting_rad`` (the
+    sensor's (yaw, pitch, roll) in the ship's body frame [rad]) also ship_ypr_deg (F, 3; NaN when unsolved)."""
     import numpy as np
 
     from hostlink.observed_correction import attitude_observed_correction
@@ -138,6 +169,10 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
         "residual_rms_arcsec": np.full(n_frames, np.nan),
         "status": np.empty(n_frames, dtype=object),
     }
+    ship = site is not None and mounting_rad is not None
+    if ship:
+        r_bs = att.euler_matrix(*mounting_rad, dtype=dt)
+        out["ship_ypr_deg"] = np.full((n_frames, 3), np.nan)
     leap = None
     up = np.array([0.0, 1.0, 0.0], dtype=dt)
     for k, sl in enumerate(session.frame_slices()):
@@ -150,14 +185,15 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
             continue
         b = pixels_to_unit(session.x_px[rows].astype(dt), session.y_px[rows].astype(dt), theta)
         r = r_all[rows].astype(dt)
+        if mode != "none" or ship:
+            if leap is None:
+                leap = tai_minus_utc_s(jd1[k], jd2[k])
+            r_ig = local_frame_matrix(from_julian_date(jd1[k], jd2[k]), site, dut1_s, leap, dt)
         try:
             if mode == "none":
                 c, keep = att.attitude_with_rejection(b, r, threshold)
                 r_used, b_used = r, b
             else:
-                if leap is None:
-                    leap = tai_minus_utc_s(jd1[k], jd2[k])
-                r_ig = local_frame_matrix(from_julian_date(jd1[k], jd2[k]), site, dut1_s, leap, dt)
                 if mode == "reference":
                     r_app = refract_toward_zenith(r @ r_ig.T, up, weather, model, lat_rad)
                     c_g, keep = att.attitude_with_rejection(b, r_app, threshold)
@@ -176,11 +212,14 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
         out["n_used"][k] = int(keep.sum())
         out["residual_rms_arcsec"][k] = math.degrees(float(np.sqrt(np.mean(res**2)))) * 3600.0
         out["status"][k] = "ok"
+        if ship:  # R_gs = C R_ig^T (b = R_gs r_local), R_gb = R_bs^T R_gs (seed 001 eq. 5-6, 21)
+            out["ship_ypr_deg"][k] = np.degrees(np.array(att.ship_attitude(c @ r_ig.T, r_bs), dtype=np.float64))
     return out
 
 
 def write_attitudes(path: str, cols: dict) -> None:
-    """ATTITUDE.csv (INTERFACES.md): frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status."""
+    """ATTITUDE.csv (INTERFACES.md): frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status, then
+    ship_yaw_deg,ship_pitch_deg,ship_roll_deg when ``cols`` has ship_ypr_deg."""
     import csv
     import os
     from pathlib import Path
@@ -190,14 +229,17 @@ def write_attitudes(path: str, cols: dict) -> None:
     try:
         with tmp.open("w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
-            w.writerow(OUTPUT_COLUMNS)
+            ship = cols.get("ship_ypr_deg")
+            w.writerow(OUTPUT_COLUMNS + (SHIP_COLUMNS if ship is not None else ()))
             for k in range(cols["frame"].shape[0]):
                 c = cols["C"][k].reshape(9)
+                ship_cells = [] if ship is None else ["" if not math.isfinite(v) else repr(float(v)) for v in ship[k]]
                 w.writerow(
                     [int(cols["frame"][k]), cols["t_utc"][k], int(cols["n_stars"][k]), int(cols["n_used"][k])]
                     + ["" if not math.isfinite(v) else repr(float(v)) for v in c]
                     + ["" if not math.isfinite(cols["residual_rms_arcsec"][k])
                        else f"{cols['residual_rms_arcsec'][k]:.4f}", cols["status"][k]]
+                    + ship_cells
                 )
         os.replace(tmp, path)
     except OSError as exc:
@@ -210,6 +252,9 @@ def run(args: argparse.Namespace) -> int:
 
     site, weather = site_and_weather(args)
     mode = refraction_mode(args.refraction, weather)
+    mounting = parse_mounting(args.mounting) if args.mounting is not None else None
+    if mounting is not None and site is None:
+        raise UserError("--mounting needs --site (the ship attitude is given in the site's north-up-east frame)")
     if not (args.reject_arcsec > 0 and math.isfinite(args.reject_arcsec)):
         raise UserError(f"--reject-arcsec {args.reject_arcsec}: expected a positive number of arcseconds")
     if args.min_stars < 2:
@@ -221,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
     if len(session) == 0:
         raise UserError(f"{args.session}: no observations")
     cols = solve_session(session, params, site, weather, args.dut1 or 0.0, mode, args.refraction_model,
-                         args.reject_arcsec, args.min_stars, args.precision)
+                         args.reject_arcsec, args.min_stars, args.precision, mounting)
     write_attitudes(args.out, cols)
     solved = int(sum(s == "ok" for s in cols["status"]))
     print(f"hostlink attitude: {solved}/{len(cols['status'])} frames solved (refraction: {mode}) -> {args.out}")
