@@ -29,49 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, crb_information, make_frames  # noqa: E402
+from recursive_synth import SEED004_NOMINAL, batch_ml, sky_frames, synth_frames  # noqa: E402
 
 from onboard import recursive  # noqa: E402
-from onboard.camera import unit_vector_jacobians  # noqa: E402
-from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance  # noqa: E402
-from onboard.params import ESTIMATE_NAMES, params_from_dict  # noqa: E402
-
-NOISE_PX = 0.05
-
-
-def sky_frames(seed: int, n_frames: int):
-    """(true camera, frames as (x, y, r, identified), information (10, 10) at the truth) of a simulated session."""
-    from hostlink.replay import reference_vectors
-    from hostlink.sky.simulate import seed004_config, simulate
-
-    result = simulate(seed004_config(n_frames, seed=seed))
-    camera = params_from_dict(result.truth["camera"])
-    s = result.session
-    r_all = reference_vectors(s)
-    ident = (s.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
-    bad = ~ident
-    bad[np.array(result.truth["misidentified_rows"], dtype=int)] = True
-    theta = camera.model_vector()
-    frames = []
-    info = np.zeros((10, 10))
-    for rows in s.frame_slices():
-        frames.append((s.x_px[rows], s.y_px[rows], r_all[rows], ident[rows]))
-        keep = ~bad[rows]
-        x, y = s.x_px[rows][keep], s.y_px[rows][keep]
-        if x.size < 3:
-            continue
-        o = order_for_pairs(x, y)
-        b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
-        i, j = independent_pairs(o.size)
-        h = difference_jacobian(b, jt, i, j)
-        info += h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, NOISE_PX), h)
-    return camera, frames, info
-
-
-def synth_frames(seed: int, n_frames: int):
-    frames = make_frames(SEED004_TRUE, n_frames, NOISE_PX, seed=seed)
-    info = crb_information(SEED004_TRUE, frames, NOISE_PX, np.arange(10))
-    return SEED004_TRUE, [(f.x_px, f.y_px, f.r, f.identified) for f in frames], info
+from onboard.params import ESTIMATE_NAMES  # noqa: E402
 
 
 def run_estimator(frames, config, dtype, nominal=SEED004_NOMINAL):
@@ -81,10 +42,11 @@ def run_estimator(frames, config, dtype, nominal=SEED004_NOMINAL):
     return st
 
 
-def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED004_NOMINAL):
-    """Per-seed normalised errors (S, 10), sigma ratios (S, 10), f32-f64 differences (S, 10), Mahalanobis (S,)."""
+def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED004_NOMINAL, batch=False):
+    """Per-seed normalised errors (S, 10), sigma ratios (S, 10), f32-f64 differences (S, 10), Mahalanobis (S,),
+    and (with ``batch``) the batch ML's normalised errors (S, 10)."""
     get = sky_frames if source == "sky" else synth_frames
-    errs, sigs, diffs, maha = [], [], [], []
+    errs, sigs, diffs, maha, ml = [], [], [], [], []
     for seed in seeds:
         t0 = time.perf_counter()
         camera, frames, info = get(seed, n_frames)
@@ -97,13 +59,15 @@ def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED
         if compare64:
             st64 = run_estimator(frames, config, np.float64, nominal)
             diffs.append((recursive.state_vector(st) - recursive.state_vector(st64)) / crb)
+        if batch:
+            ml.append((batch_ml(camera, frames) - camera.model_vector()) / crb)
         if verbose:
             print(
                 f"  seed {seed:3d}: " + " ".join(f"{v:+5.2f}" for v in errs[-1])
                 + f"  | maha {np.sqrt(maha[-1]):.2f}  ({time.perf_counter() - t0:.1f} s)",
                 flush=True,
             )
-    return np.array(errs), np.array(sigs), np.array(diffs), np.array(maha)
+    return np.array(errs), np.array(sigs), np.array(diffs), np.array(maha), np.array(ml)
 
 
 def parse_set(items):
@@ -123,7 +87,8 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--source", choices=("sky", "synth"), default="sky")
-    parser.add_argument("--compare64", action="store_true")
+    parser.add_argument("--compare64", action="store_true", help="also run float64 and report |f32 - f64| / CRB")
+    parser.add_argument("--batch", action="store_true", help="also compute the batch ML reference (slower)")
     parser.add_argument("--nominal-pp", metavar="X,Y", help="start from this principal point instead of (512, 512)")
     parser.add_argument("--nominal-f", type=float, help="start from this focal length [mm] instead of 72")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
@@ -137,13 +102,18 @@ def main() -> None:
         nominal = nominal.with_focal_length_mm(args.nominal_f)
     print(f"{args.source} sessions, {args.frames} frames, seeds {seeds[0]}..{seeds[-1]}, overrides {args.set or '-'}")
     print("           " + " ".join(f"{n:>5s}" for n in ESTIMATE_NAMES))
-    errs, sigs, diffs, maha = study(seeds, args.source, args.frames, config, args.compare64, nominal=nominal)
+    errs, sigs, diffs, maha, ml = study(
+        seeds, args.source, args.frames, config, args.compare64, nominal=nominal, batch=args.batch
+    )
     n = len(seeds)
-    print(f"RMS err/CRB    " + " ".join(f"{v:5.2f}" for v in np.sqrt(np.mean(errs**2, axis=0))))
-    print(f"mean err/CRB   " + " ".join(f"{v:+5.2f}" for v in np.mean(errs, axis=0)))
-    print(f"sigma/CRB      " + " ".join(f"{v:5.2f}" for v in np.mean(sigs, axis=0)))
+    print("RMS err/CRB    " + " ".join(f"{v:5.2f}" for v in np.sqrt(np.mean(errs**2, axis=0))))
+    print("mean err/CRB   " + " ".join(f"{v:+5.2f}" for v in np.mean(errs, axis=0)))
+    print("sigma/CRB      " + " ".join(f"{v:5.2f}" for v in np.mean(sigs, axis=0)))
+    if args.batch:
+        print("batch ML       " + " ".join(f"{v:5.2f}" for v in np.sqrt(np.mean(ml**2, axis=0))))
+        print("RMS (rec-ML)   " + " ".join(f"{v:5.2f}" for v in np.sqrt(np.mean((errs - ml) ** 2, axis=0))))
     if args.compare64:
-        print(f"max|f32-f64|   " + " ".join(f"{v:5.3f}" for v in np.max(np.abs(diffs), axis=0)))
+        print("max|f32-f64|   " + " ".join(f"{v:5.3f}" for v in np.max(np.abs(diffs), axis=0)))
     print(
         f"all ten: sqrt(mean e J e / 10) = {np.sqrt(np.mean(maha)):.3f}; "
         f"one-sigma spread of a per-parameter RMS over {n} seeds ~ {1 / np.sqrt(2 * n):.2f}"

@@ -11,9 +11,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.camera import pixels_to_unit
-from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
-from onboard.params import CameraParams, Distortion
+from onboard.camera import pixels_to_unit, unit_vector_jacobians
+from onboard.interstar import (
+    difference_jacobian,
+    difference_residuals,
+    independent_pairs,
+    order_for_pairs,
+    pair_covariance,
+)
+from onboard.params import CameraParams, Distortion, params_from_dict
 
 #: Seed 004 sec. 3, Table 1 (k signs converted to CAMERA_MODEL.md: k = -k_seed004).
 SEED004_TRUE = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), Distortion(k1=-2.0e-10, k2=3.5e-15))
@@ -85,8 +91,6 @@ def crb_information(camera: CameraParams, frames, noise_px: float, idx: np.ndarr
     """Fisher information (K, K), model units (F px), of the interstar difference measurements of ``frames`` at the
     true camera: sum over frames of H^T R^-1 H over the 2n - 3 independent pairs (correctly identified stars only).
     The interstar form eliminates the attitude exactly, so this is the Cramer-Rao bound of the measurement model."""
-    from onboard.camera import unit_vector_jacobians
-
     theta = camera.model_vector()
     info = np.zeros((idx.size, idx.size))
     for fr in frames:
@@ -100,3 +104,64 @@ def crb_information(camera: CameraParams, frames, noise_px: float, idx: np.ndarr
         r = pair_covariance(b, jc, i, j, noise_px)
         info += hh.T @ np.linalg.solve(r, hh)
     return info
+
+
+def sky_frames(seed: int, n_frames: int, noise_px: float = 0.05):
+    """(true camera, frames as (x, y, r, identified), information (10, 10) at the truth) of a simulated session."""
+    from hostlink.replay import reference_vectors  # the project's simulator, for the multi-seed acceptance
+    from hostlink.sky.simulate import seed004_config, simulate
+
+    result = simulate(seed004_config(n_frames, seed=seed))
+    camera = params_from_dict(result.truth["camera"])
+    s = result.session
+    r_all = reference_vectors(s)
+    ident = (s.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
+    bad = ~ident
+    bad[np.array(result.truth["misidentified_rows"], dtype=int)] = True
+    theta = camera.model_vector()
+    frames = []
+    info = np.zeros((10, 10))
+    for rows in s.frame_slices():
+        frames.append((s.x_px[rows], s.y_px[rows], r_all[rows], ident[rows]))
+        keep = ~bad[rows]
+        x, y = s.x_px[rows][keep], s.y_px[rows][keep]
+        if x.size < 3:
+            continue
+        o = order_for_pairs(x, y)
+        b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
+        i, j = independent_pairs(o.size)
+        h = difference_jacobian(b, jt, i, j)
+        info += h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), h)
+    return camera, frames, info
+
+
+def synth_frames(seed: int, n_frames: int, noise_px: float = 0.05):
+    """Like :func:`sky_frames` for :func:`make_frames` (10-30 stars uniformly on the detector)."""
+    frames = make_frames(SEED004_TRUE, n_frames, noise_px, seed=seed)
+    info = crb_information(SEED004_TRUE, frames, noise_px, np.arange(10))
+    return SEED004_TRUE, [(f.x_px, f.y_px, f.r, f.identified) for f in frames], info
+
+
+def batch_ml(camera, frames, iterations: int = 3, noise_px: float = 0.05) -> np.ndarray:
+    """Reference: the batch maximum-likelihood estimate of the same 2n-3 pair measurements (float64 Gauss-Newton over
+    all frames, relinearised at every iteration, started at the truth). Its error is what the data supports; the
+    recursive estimate minus this one, over the CRB, is the recursive filter's own excess (a paired comparison, far
+    less noisy than the errors themselves: for an estimator of variance (1 + eps) CRB^2, var(T - ML) = eps CRB^2)."""
+    theta = camera.model_vector().copy()
+    for _ in range(iterations):
+        info = np.zeros((10, 10))
+        grad = np.zeros(10)
+        for x, y, r, ok in frames:
+            x, y, r = x[ok], y[ok], r[ok]
+            if x.size < 3:
+                continue
+            o = order_for_pairs(x, y)
+            b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
+            i, j = independent_pairs(o.size)
+            h = difference_jacobian(b, jt, i, j)
+            e = difference_residuals(b, r[o], i, j)
+            w = np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), np.column_stack([h, e]))
+            info += h.T @ w[:, :10]
+            grad += h.T @ w[:, 10]
+        theta = theta + np.linalg.solve(info, grad)  # e = z - h(theta): H dtheta = e (onboard.interstar)
+    return theta

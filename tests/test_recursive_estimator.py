@@ -3,7 +3,7 @@ bound, float32 against float64, misidentification gating, focal drift tracking, 
 
 import numpy as np
 import pytest
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, crb_information, make_frames
+from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, batch_ml, crb_information, make_frames, sky_frames
 
 from onboard import recursive as rc
 from onboard.params import ESTIMATE_NAMES
@@ -37,9 +37,47 @@ def test_cold_start_from_a_nominal_without_distortion_reaches_the_cramer_rao_bou
     assert np.all(np.abs(err / crb) < 3.5), err / crb
     # Mahalanobis distance per parameter: chi2(10)/10 for an efficient estimator, < 1.3^2 * 2.3 at the 99.9 % point
     assert err @ info @ err / err.size < 1.3**2 * 2.3
-    # the filter's own sigma is the bound (within the burn-in's cost, measured 1.02-1.06) and never optimistic
+    # the filter's own sigma is the bound (within the burn-in's cost, measured 1.00-1.14) and never optimistic
     ratio = np.sqrt(np.diag(rc.covariance(st32))) / crb
     assert np.all((ratio > 0.9) & (ratio < 1.3)), ratio
+
+
+N_SEEDS = 6
+
+
+@pytest.fixture(scope="module")
+def seed004_sessions():
+    """N_SEEDS seed-004 sessions of the project's sky simulator (1000 frames, 10-30 stars, 0.05 px), each with the
+    recursive float32 estimate, the batch ML estimate of the same pairs, and the bound, all in units of the CRB."""
+    rec, ml, sig = [], [], []
+    for seed in range(N_SEEDS):
+        camera, frames, info = sky_frames(seed, 1000, NOISE_PX)
+        crb = np.sqrt(np.diag(np.linalg.inv(info)))
+        st = rc.create(SEED004_NOMINAL, ESTIMATE_NAMES, None, np.float32)
+        for x, y, r, ok in frames:
+            rc.update(st, x, y, r, ok)
+        rec.append((rc.state_vector(st) - camera.model_vector()) / crb)
+        ml.append((batch_ml(camera, frames, noise_px=NOISE_PX) - camera.model_vector()) / crb)
+        sig.append(np.sqrt(np.diag(rc.covariance(st))) / crb)
+    return np.array(rec), np.array(ml), np.array(sig)
+
+
+def test_every_parameter_is_within_1_3x_of_the_bound_over_several_sessions(seed004_sessions):
+    rec, ml, sig = seed004_sessions
+    # The batch ML of the same pairs attains the bound (validates the CRB used): the RMS of 6 standard normals is
+    # below sqrt(chi2_6(0.999) / 6) = 1.93 with probability 0.999 (measured 0.90-1.05 over 24 sessions).
+    assert np.all(np.sqrt(np.mean(ml**2, axis=0)) < 1.93), ml
+    # The filter's own excess, paired against the ML on the same data: var(rec) = var(ML) + var(rec - ML) for an
+    # asymptotically unbiased rec, so RMS(rec - ML) / CRB < sqrt(1.3^2 - 1) = 0.83 is the 1.3x acceptance per
+    # parameter. Measured 0.38-0.62 on these 6 sessions, 0.39-0.51 over 24 (burn-in 300 frames, power 2; 0.56-0.64 on
+    # x0/y0/p/s over 24 with the former 200-frame linear burn-in).
+    excess = np.sqrt(np.mean((rec - ml) ** 2, axis=0))
+    assert np.all(excess < 0.83), excess
+    # Direct: the RMS of 6 normalised errors of an estimator at 1.3x the bound is below 1.3 sqrt(chi2_6(0.999) / 6)
+    # = 2.5 with probability 0.999 (measured <= 0.94 here, <= 1.11 for every parameter over 24 sessions).
+    assert np.all(np.sqrt(np.mean(rec**2, axis=0)) < 2.5), rec
+    # the reported sigma: never optimistic by more than the 6-session spread allows, and within the burn-in's cost
+    assert np.all((sig.mean(axis=0) > 0.95) & (sig.mean(axis=0) < 1.2)), sig.mean(axis=0)  # measured 1.04-1.12
 
 
 def test_float32_estimate_differs_from_float64_by_under_5_percent_of_the_bound(cold_start_runs):

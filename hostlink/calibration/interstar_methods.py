@@ -174,7 +174,7 @@ def fit_interstar(
     theta = theta0.copy()
     damping = 1e-3 if levenberg_marquardt else 0.0
     normal, grad, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, scale, frame_mask)
-    for it in range(1, max_iter + 1):
+    for _it in range(max_iter):
         accepted = False
         for _trial in range(12 if levenberg_marquardt else 1):
             damped = normal + damping * np.diag(np.diag(normal))

@@ -98,8 +98,9 @@ def calibrate(
     theta0 = nominal.model_vector(np.float64)
     stages: list[dict] = []
     if method == "bundle":
-        res = bundle_adjust(data, nominal, BundleOptions(estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter,
-                                                         progress=progress))
+        options = BundleOptions(estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter,
+                                progress=progress)
+        res = bundle_adjust(data, nominal, options)
         theta, fit_data, att = res.theta, res.data, res.attitudes
         normal, est, sigma_est = res.normal, res.estimate, res.sigma_estimated_px
         u_diag = res.normal_u_diag

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         validate_params(outcome.params)
     except ParameterError as exc:
-        raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file and session")
+        raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
     extras = result_extras(outcome)
     extras["references"] = {"source": info.source, "refraction": info.refraction,
                             "unidentified_rows": info.n_unidentified}
