@@ -248,6 +248,7 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     from hostlink.sensor_client import frames_to_session, read_active_params, safe_upload
     from hostlink.session import write_session
     from hostlink.sky.simulate import data_file
+    from onboard.prior import sigma_from_dict
 
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -300,7 +301,9 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
             # 4. safe upload, verified by read-back
             t = time.perf_counter()
             steps: list[str] = []
-            uploaded = safe_upload(link, outcome.params, step=lambda k, text: steps.append(f"{k}. {text}"))
+            # the calibration's 1-sigma travels with the set: the onboard estimator restarts from it as its prior
+            uploaded = safe_upload(link, outcome.params, step=lambda k, text: steps.append(f"{k}. {text}"),
+                                   sigma=sigma_from_dict(outcome.sigma()))
             active = read_active_params(link)
             phases.append(Phase("upload", time.perf_counter() - t, f"generation {uploaded.generation}"))
             say(f"[4/6] uploaded and verified: generation {before_active.generation} -> {uploaded.generation}")
@@ -344,6 +347,7 @@ def truth_attitudes(sim) -> np.ndarray:
 def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active, uploaded, lost_total,
               cal_estimates, drift_estimates, n_drift_streamed, steps, phases) -> dict:
     from hostlink.sensor_client import float32_equal
+    from onboard.prior import sigma_from_dict
 
     # attitude against truth, for the frames the calibration used
     first_frame = int(cal_sim.session.frame[0])
@@ -392,7 +396,9 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
         "upload": {
             "generation": uploaded.generation,
             "crc32": f"0x{uploaded.crc32:08x}",
-            "read_back_equal_float32": bool(float32_equal(active.params, outcome.params)),
+            "read_back_equal_float32": bool(float32_equal(active.params, outcome.params, active.sigma,
+                                                          sigma_from_dict(outcome.sigma()))),
+            "sigma_prior_parameters": int(np.count_nonzero(np.isfinite(active.sigma) & (active.sigma > 0))),
             "steps": steps,
         },
         "link": {"lost_messages": int(lost_total)},
@@ -405,7 +411,32 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
             "focal_error_rms_um_all": rms(err_um),
             "focal_true_rms_deviation_um": rms((f_true - np.mean(f_true)) * 1000.0),
         },
+        "after_upload": after_upload_summary(cfg, drift_sim, drift_estimates),
         "phases": [asdict(p) for p in phases],
+    }
+
+
+def after_upload_summary(cfg, drift_sim, drift_estimates) -> dict:
+    """How the onboard estimator restarted from the uploaded set: error and 1-sigma of f [um], x0, y0 [px] at the
+    first estimate read after the upload, and the RMS error of x0, y0 (and the largest |error|) over the drift phase."""
+    est = estimate_rows(drift_estimates)
+    if est["frame"].size == 0:
+        return {}
+    f_true = truth_focal_mm(drift_sim)
+    drift_index = np.clip(est["frame"] - cfg.cal_frames - int(drift_sim.session.frame[0]), 0, f_true.size - 1)
+    err = {"f_um": (est["f_mm"] - f_true[drift_index]) * 1000.0,
+           "x0_px": est["x0_px"] - cfg.camera.principal_point_px[0],
+           "y0_px": est["y0_px"] - cfg.camera.principal_point_px[1]}
+    sig = {"f_um": est["sigma_f_mm"] * 1000.0, "x0_px": est["sigma_x0_px"], "y0_px": est["sigma_y0_px"]}
+    return {
+        "first_estimate": {"n_updates": int(est["n_updates"][0])}
+        | {f"error_{k}": float(v[0]) for k, v in err.items()} | {f"sigma_{k}": float(v[0]) for k, v in sig.items()},
+        "x0_error_rms_px": rms(err["x0_px"]),
+        "y0_error_rms_px": rms(err["y0_px"]),
+        "x0_error_max_px": float(np.max(np.abs(err["x0_px"]))),
+        "y0_error_max_px": float(np.max(np.abs(err["y0_px"]))),
+        "principal_point_normalised_error_rms": rms(np.concatenate([err["x0_px"] / sig["x0_px"],
+                                                                    err["y0_px"] / sig["y0_px"]])),
     }
 
 

@@ -19,6 +19,7 @@ from hostlink.session import Session
 from onboard import recursive
 from onboard.camera import radec_to_unit
 from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams
+from onboard.prior import prior_config, refined_mask
 
 PRECISIONS = ("float32", "float64", "fixed")
 
@@ -49,6 +50,8 @@ class ReplayResult:
     params: CameraParams
     state: recursive.RecursiveState
     trace: dict[str, list]  # column name -> one value per frame (TRACE_COLUMNS)
+    #: where the prior came from: "file" (the nominal's sigma for every estimated parameter), "file+cold" or "cold"
+    prior: str = "cold"
 
     @property
     def n_frames(self) -> int:
@@ -81,10 +84,14 @@ def replay_session(
     config: recursive.RecursiveConfig | None = None,
     precision: str = "float32",
     on_frame: Callable[[int, recursive.FrameResult], None] | None = None,
+    prior_sigma: np.ndarray | None = None,
 ) -> ReplayResult:
-    """Run the onboard estimator over every frame of ``session`` and return the final estimate and the trace."""
+    """Run the onboard estimator over every frame of ``session`` and return the final estimate and the trace.
+    ``prior_sigma`` (10 values, ESTIMATE_NAMES order, parameter units; NaN/0 = unknown) is the nominal's 1-sigma:
+    the estimator starts from it exactly as the sensor does after an upload (``onboard.prior.prior_config``)."""
     dtype = precision_dtype(precision)
     try:
+        config = prior_config(config, nominal, prior_sigma, estimate)
         state = recursive.create(nominal, estimate, config, dtype)
     except ValueError as exc:
         raise UserError(f"estimator configuration: {exc}") from None
@@ -98,7 +105,9 @@ def replay_session(
         _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
         if on_frame is not None:
             on_frame(k, res)
-    return ReplayResult(params=recursive.current_params(state), state=state, trace=trace)
+    refined = refined_mask(prior_sigma)[state.idx]
+    prior = "file" if np.all(refined) else ("file+cold" if np.any(refined) else "cold")
+    return ReplayResult(params=recursive.current_params(state), state=state, trace=trace, prior=prior)
 
 
 def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, frame: int, t_utc: str) -> None:
@@ -129,13 +138,17 @@ def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, fra
 
 
 def estimate_extras(result: ReplayResult, precision: str) -> dict:
-    """Extra keys of ESTIMATE.json: sigma of each estimated parameter, method, precision and frame statistics."""
+    """Extra keys of ESTIMATE.json: sigma of each estimated parameter, method, precision, the prior it started from
+    (``file``: the nominal's sigma for every estimated parameter; ``file+cold``: for some; ``cold``) and frame
+    statistics."""
     state = result.state
     used = sum(1 for s in result.trace["skipped"] if not s)
     return {
         "sigma": recursive.sigma(state),
         "method": "onboard-recursive-ud",
         "precision": precision,
+        "prior": result.prior,
+        "burn_in_frames": int(state.config.burn_in_frames),
         "estimated": list(state.names),
         "frames": result.n_frames,
         "frames_used": used,

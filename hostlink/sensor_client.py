@@ -3,8 +3,10 @@ are the same on serial, CAN and Modbus, and against real or emulated sensors.
 
 * :func:`stream_frames`: record N centroid frames, counting lost messages from sequence numbers;
 * :func:`safe_upload`: the six-step safe upload (issue 6):
-  1. the host validates the set (``onboard.params.validate_params``, the sensor's own check);
-  2. the host stages its 52-byte float32 table on the sensor in chunks;
+  1. the host validates the set (``onboard.params.validate_params`` and ``onboard.prior.validate_sigma``, the
+     sensor's own checks);
+  2. the host stages its float32 table (``protocol.param_table``: the camera parameters and their 1-sigma prior,
+     which the sensor's estimator restarts from) on the sensor in chunks;
   3. the sensor verifies the staged bytes against the CRC-32 and their ranges (NAK with a reason otherwise);
   4. the host reads the staged set back and compares it byte for byte;
   5. the sensor commits it to its inactive A/B bank with the next generation and CRC, and switches atomically;
@@ -27,9 +29,10 @@ from hostlink.errors import LinkError, UserError
 from hostlink.links.base import Link
 from hostlink.session import Session
 from hostlink.wiretime import t_us_to_iso
-from onboard.banks import params_to_table, table_to_params
-from onboard.firmware import estimate_to_params
+from onboard.banks import params_to_table, table_to_params, table_to_sigma
+from onboard.firmware import estimate_to_params, estimate_to_sigma
 from onboard.params import CameraParams, ParameterError, validate_params
+from onboard.prior import sigma_to_dict, validate_sigma
 from protocol.crc import crc32
 from protocol.messages import CentroidFrame, Estimate
 from protocol.param_table import TABLE_BYTES, decode_table
@@ -102,6 +105,8 @@ class UploadResult:
     generation: int
     crc32: int
     active: CameraParams
+    #: the active set's 1-sigma prior as read back (10 float32 values, ESTIMATE_NAMES order, NaN/0 = unknown)
+    sigma: np.ndarray = field(default_factory=lambda: np.full(10, np.nan, dtype=np.float32))
 
 
 def chunks(table: bytes, size: int) -> list[tuple[int, bytes]]:
@@ -112,9 +117,11 @@ def chunks(table: bytes, size: int) -> list[tuple[int, bytes]]:
 
 
 def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
-                step: Callable[[int, str], None] | None = None) -> UploadResult:
-    """The six-step safe upload (module docstring). Raises UserError (host refused), CommandRefused (sensor refused,
-    with its reason), UploadMismatch (a read-back differs) or LinkError. ``step(k, text)`` reports progress."""
+                step: Callable[[int, str], None] | None = None, sigma: np.ndarray | None = None) -> UploadResult:
+    """The six-step safe upload (module docstring) of ``params`` with its 1-sigma prior ``sigma`` (10 values,
+    ESTIMATE_NAMES order, parameter units; NaN or 0 = unknown; None = nothing known: the sensor's estimator restarts
+    cold). Raises UserError (host refused), CommandRefused (sensor refused, with its reason), UploadMismatch (a
+    read-back differs) or LinkError. ``step(k, text)`` reports progress."""
 
     def report(k: int, text: str) -> None:
         if step is not None:
@@ -123,10 +130,12 @@ def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
     if host_check:
         try:
             validate_params(params)
+            if sigma is not None:
+                validate_sigma(sigma)
         except ParameterError as exc:
             raise UserError(f"parameter set refused by the host check: {exc}") from None
     report(1, "validated on the host")
-    table = params_to_table(params)
+    table = params_to_table(params, sigma)
     crc = crc32(table)
     link.stage_begin(len(table))
     for offset, piece in chunks(table, link.max_chunk_bytes):
@@ -146,12 +155,15 @@ def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
         raise UploadMismatch(f"active set read back (generation {active.generation}, CRC 0x{active.crc32:08x}) is "
                              f"not the upload (generation {generation}, CRC 0x{crc:08x})")
     report(6, "active set read back equal")
-    return UploadResult(generation=generation, crc32=crc, active=table_to_params(bytes(active.table)))
+    return UploadResult(generation=generation, crc32=crc, active=table_to_params(bytes(active.table)),
+                        sigma=table_to_sigma(bytes(active.table)))
 
 
-def float32_equal(a: CameraParams, b: CameraParams) -> bool:
-    """Every parameter of ``a`` and ``b`` equal after rounding to float32 (INTERFACES.md, ``hostlink upload``)."""
-    return params_to_table(a) == params_to_table(b)
+def float32_equal(a: CameraParams, b: CameraParams, sigma_a: np.ndarray | None = None,
+                  sigma_b: np.ndarray | None = None) -> bool:
+    """Every parameter of ``a`` and ``b`` (and their sigmas, None = unknown) equal after rounding to float32, bit for
+    bit (INTERFACES.md, ``hostlink upload``)."""
+    return params_to_table(a, sigma_a) == params_to_table(b, sigma_b)
 
 
 # --------------------------------------------------------------------------------------------- params / estimate
@@ -160,6 +172,8 @@ class ActiveParams:
     params: CameraParams
     generation: int
     crc32: int
+    #: the set's 1-sigma prior (10 float32 values, ESTIMATE_NAMES order, NaN/0 = unknown)
+    sigma: np.ndarray = field(default_factory=lambda: np.full(10, np.nan, dtype=np.float32))
 
 
 def read_active_params(link: Link) -> ActiveParams:
@@ -172,7 +186,7 @@ def read_active_params(link: Link) -> ActiveParams:
         params = table_to_params(table)
     except ParameterError as exc:
         raise LinkError(f"{link.name}: active set is not a parameter set ({exc})") from None
-    return ActiveParams(params=params, generation=active.generation, crc32=active.crc32)
+    return ActiveParams(params=params, generation=active.generation, crc32=active.crc32, sigma=table_to_sigma(table))
 
 
 def read_estimate(link: Link) -> Estimate:
@@ -180,15 +194,17 @@ def read_estimate(link: Link) -> Estimate:
 
 
 def accept_estimate(link: Link, step: Callable[[int, str], None] | None = None) -> tuple[UploadResult, Estimate]:
-    """Commit the sensor's current onboard estimate through the safe upload. Refused (UserError) if the estimate
-    started from another set than the active one (it was read across a commit) or fails validation."""
+    """Commit the sensor's current onboard estimate, with its own 1-sigma as the new set's prior (the active set's
+    sigma for parameters it does not estimate), through the safe upload. Refused (UserError) if the estimate started
+    from another set than the active one (it was read across a commit) or fails validation."""
     active = read_active_params(link)
     estimate = link.read_estimate()
     if estimate.base_generation != active.generation:
         raise UserError(f"the onboard estimate started from generation {estimate.base_generation} but generation "
                         f"{active.generation} is active; read it again")
     params = estimate_to_params(active.params, estimate)
-    return safe_upload(link, params, step=step), estimate
+    sigma = estimate_to_sigma(active.sigma, estimate)
+    return safe_upload(link, params, step=step, sigma=sigma), estimate
 
 
 def shortest_float32(value: float) -> float:
@@ -196,14 +212,20 @@ def shortest_float32(value: float) -> float:
     return float(str(np.float32(value)))
 
 
-def params_float32_dict(params: CameraParams) -> dict:
-    """A camera parameter file object with every value written as its shortest float32 decimal."""
-    v = decode_table(params_to_table(params))
+def params_float32_dict(params: CameraParams, sigma: np.ndarray | None = None) -> dict:
+    """A camera parameter file object with every value written as its shortest float32 decimal, plus a ``sigma``
+    object (the set's 1-sigma prior, null = unknown) when any sigma is known."""
+    table = params_to_table(params, sigma)
+    v = decode_table(table)
     s = [shortest_float32(x) for x in v]
-    return {
+    out = {
         "focal_length_mm": s[0],
         "pixel_pitch_um": s[1],
         "principal_point_px": [s[2], s[3]],
         "image_size_px": [int(v[4]), int(v[5])],
         "distortion": dict(zip(("k1", "k2", "k3", "p1", "p2", "s1", "s2"), s[6:13], strict=True)),
     }
+    sig = sigma_to_dict(table_to_sigma(table), shortest_float32)
+    if sig is not None:
+        out["sigma"] = sig
+    return out

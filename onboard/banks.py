@@ -1,8 +1,8 @@
 """Parameter banks of the sensor: a staging area and two non-volatile slots (A/B), switched atomically.
 
-Each slot holds one record (``RECORD_BYTES`` = 60 bytes, little-endian)::
+Each slot holds one record (``RECORD_BYTES`` = 100 bytes, little-endian)::
 
-    generation:u32 | table: 52 bytes (protocol.param_table) | crc32:u32 over generation + table
+    generation:u32 | table: 92 bytes (protocol.param_table: camera fields + 1-sigma prior) | crc32:u32 over both
 
 A blank (erased) slot is all 0xFF and never has a valid CRC. At start-up :func:`boot` makes the valid slot with the
 highest generation active. A commit (safe upload step 5) programs the *inactive* slot with the next generation,
@@ -11,8 +11,9 @@ loss anywhere before the switch leaves the old slot active, since the half-writt
 power loss after it boots into the new slot, whose generation is higher. Staging lives in RAM and never touches
 the slots, so an interrupted upload (host killed, corrupt chunk, refused set) leaves the active set unchanged.
 
-The checks a staged set must pass (step 3) are exactly :func:`onboard.params.validate_params`, so host and sensor
-refuse a set for the same reason. Buffers are sized at start-up; every step does a bounded amount of work.
+The checks a staged set must pass (step 3) are exactly :func:`onboard.params.validate_params` and
+:func:`onboard.prior.validate_sigma`, so host and sensor refuse a set for the same reason. Buffers are sized at
+start-up; every step does a bounded amount of work.
 Generations are uint32; wrap-around (4e9 commits) is not handled.
 """
 
@@ -24,9 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.params import CameraParams, Distortion, ParameterError, validate_params
+from onboard.prior import unknown_sigma, validate_sigma
 from protocol.crc import crc32
 from protocol.messages import NakCode, StageState
-from protocol.param_table import PARAM_FIELDS, TABLE_BYTES, decode_table, encode_table
+from protocol.param_table import CAMERA_FIELDS, SIGMA_FIELDS, SIGMA_OFFSET, TABLE_BYTES, decode_table, encode_table
 
 _GEN = struct.Struct("<I")
 _CRC = struct.Struct("<I")
@@ -56,8 +58,9 @@ class BankStore:
 
 
 # ----------------------------------------------------------------------------------------------- table <-> params
-def params_to_table(params: CameraParams) -> bytes:
-    """Camera parameter set -> 52 table bytes (each value rounded to float32)."""
+def params_to_table(params: CameraParams, sigma: np.ndarray | None = None) -> bytes:
+    """Camera parameter set and its 1-sigma prior (10 values, ESTIMATE_NAMES order, parameter units; NaN or 0 =
+    unknown; None = nothing known) -> the table bytes (each value rounded to float32)."""
     values = {
         "focal_length_mm": params.focal_length_mm,
         "pixel_pitch_um": params.pixel_pitch_um,
@@ -67,11 +70,17 @@ def params_to_table(params: CameraParams) -> bytes:
         "image_height_px": params.image_size_px[1],
         **{k: getattr(params.distortion, k) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")},
     }
-    return encode_table([float(values[name]) for name in PARAM_FIELDS])
+    sig = unknown_sigma() if sigma is None else np.asarray(sigma, dtype=np.float64).reshape(len(SIGMA_FIELDS))
+    return encode_table([float(values[name]) for name in CAMERA_FIELDS] + [float(v) for v in sig])
+
+
+def table_to_sigma(table: bytes) -> np.ndarray:
+    """Table bytes -> the set's 1-sigma prior (10 float32 values, ESTIMATE_NAMES order, NaN/0 = unknown)."""
+    return decode_table(table)[SIGMA_OFFSET:]
 
 
 def table_to_params(table: bytes) -> CameraParams:
-    """52 table bytes -> camera parameter set (values are the exact float32 ones), NOT validated.
+    """Table bytes -> camera parameter set (values are the exact float32 ones), NOT validated.
     Raises ParameterError if the image size is not a whole number (it cannot be represented otherwise)."""
     v = [float(x) for x in decode_table(table)]
     for i, n in enumerate(v[4:6]):
@@ -91,6 +100,7 @@ def check_table(table: bytes) -> Refusal | None:
     try:
         with np.errstate(all="ignore"):  # an absurd value must produce a refusal, not a warning
             validate_params(table_to_params(table))
+            validate_sigma(table_to_sigma(table))
     except ParameterError as exc:
         return Refusal(NakCode.INVALID_PARAMS, str(exc))
     return None
@@ -98,7 +108,7 @@ def check_table(table: bytes) -> Refusal | None:
 
 # ---------------------------------------------------------------------------------------------------- records
 def make_record(generation: int, table: bytes) -> np.ndarray:
-    """The 60-byte slot record for ``table`` with ``generation`` (uint8 array)."""
+    """The slot record (RECORD_BYTES) for ``table`` with ``generation`` (uint8 array)."""
     body = _GEN.pack(generation) + bytes(table)
     return np.frombuffer(body + _CRC.pack(crc32(body)), dtype=np.uint8).copy()
 

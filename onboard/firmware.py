@@ -2,16 +2,19 @@
 
 A :class:`Firmware` takes decoded protocol commands (``handle``) and exposures (``process_frame``) and returns
 protocol replies. It owns the parameter banks (``onboard.banks``: staging, verify, A/B commit) and the onboard
-recursive estimator, which it restarts from the active set after every commit. Transports (serial, CAN, Modbus,
+recursive estimator, which it restarts from the active set after every commit, with that set's 1-sigma prior
+(``onboard.prior``: the sigma the set carries, the cold-start prior where it is unknown; no burn-in when every
+estimated parameter has a refined prior). Transports (serial, CAN, Modbus,
 real or emulated) only carry commands and replies; no rule lives in them.
 
 Commands and what they require (NAK code when refused):
 
 =================  ======================================================================================
 STREAM_CONTROL     always accepted
-STAGE_BEGIN        length == 52 (BAD_LENGTH)
+STAGE_BEGIN        length == TABLE_BYTES (92) (BAD_LENGTH)
 STAGE_CHUNK        an upload in progress (NOT_STAGED); chunk inside the table (BAD_LENGTH); un-verifies
-STAGE_VERIFY       staged set complete (NOT_STAGED), CRC matches (BAD_CRC), validate_params (INVALID_PARAMS)
+STAGE_VERIFY       staged set complete (NOT_STAGED), CRC matches (BAD_CRC), validate_params and validate_sigma
+                   (INVALID_PARAMS)
 READ_STAGED        staged set complete (NOT_STAGED)
 COMMIT             verified, CRC equal to the verified one (NOT_VERIFIED); slot read-back (BANK_WRITE_FAILED)
 READ_ACTIVE        a committed set exists (NOT_STAGED)
@@ -32,6 +35,7 @@ import numpy as np
 
 from onboard import banks, recursive
 from onboard.params import ESTIMATE_NAMES, CameraParams
+from onboard.prior import prior_config
 from protocol.messages import (
     Ack,
     CentroidFrame,
@@ -58,8 +62,9 @@ from protocol.messages import (
 class EstimatorSeam(Protocol):
     """What the firmware needs from the onboard recursive estimator (``onboard.recursive``)."""
 
-    def start(self, nominal: CameraParams) -> Any:
-        """A fresh estimator state starting from the active set ``nominal``."""
+    def start(self, nominal: CameraParams, sigma: np.ndarray | None = None) -> Any:
+        """A fresh estimator state starting from the active set ``nominal`` and its 1-sigma prior ``sigma`` (10 values,
+        ESTIMATE_NAMES order, parameter units; NaN or 0 = unknown: the cold-start prior)."""
 
     def update(self, state: Any, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
                identified: np.ndarray) -> None:
@@ -226,7 +231,7 @@ class Firmware:
             self._est_state = None
             return
         self._est_generation = active[0]
-        self._est_state = self._estimator.start(banks.table_to_params(active[1]))
+        self._est_state = self._estimator.start(banks.table_to_params(active[1]), banks.table_to_sigma(active[1]))
 
     def _estimate_tuple(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         return self._estimator.estimate(self._est_state)
@@ -241,6 +246,16 @@ def estimate_to_params(active: CameraParams, estimate: Estimate) -> CameraParams
     return active.with_vector(theta)
 
 
+def estimate_to_sigma(active_sigma: np.ndarray | None, estimate: Estimate) -> np.ndarray:
+    """The 1-sigma prior an accepted estimate carries: the estimator's own sigma of each estimated parameter, the
+    active set's (NaN = unknown when None) for the others, which the estimate left unchanged. ESTIMATE_NAMES order."""
+    out = np.full(len(ESTIMATE_NAMES), np.nan) if active_sigma is None else np.array(active_sigma, dtype=np.float64)
+    sigma = np.asarray(estimate.sigma, dtype=np.float64)
+    mask = np.array([(estimate.estimated_mask >> i) & 1 for i in range(len(ESTIMATE_NAMES))], dtype=bool)
+    out[mask] = sigma[mask]
+    return out
+
+
 
 @dataclass
 class RecursiveEstimator:
@@ -250,8 +265,9 @@ class RecursiveEstimator:
     config: recursive.RecursiveConfig | None = None
     dtype: type = np.float32
 
-    def start(self, nominal: CameraParams) -> recursive.RecursiveState:
-        return recursive.create(nominal, self.estimate_names, self.config, self.dtype)
+    def start(self, nominal: CameraParams, sigma: np.ndarray | None = None) -> recursive.RecursiveState:
+        config = prior_config(self.config, nominal, sigma, self.estimate_names)
+        return recursive.create(nominal, self.estimate_names, config, self.dtype)
 
     def update(self, state: recursive.RecursiveState, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
                identified: np.ndarray) -> None:

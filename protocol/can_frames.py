@@ -138,7 +138,7 @@ COMMAND = CanMessageDef(
            comment="protocol.messages.MsgType of the command"),
         _u("tag", 8, 16, comment="echoed by the reply"),
         _u("enable", 24, 8, mux=int(MsgType.STREAM_CONTROL), maximum=1.0, comment="1 = start the stream"),
-        _u("length", 24, 16, mux=int(MsgType.STAGE_BEGIN), unit="byte", comment="table length (52)"),
+        _u("length", 24, 16, mux=int(MsgType.STAGE_BEGIN), unit="byte", comment=f"table length ({TABLE_BYTES})"),
         _u("verify_crc32", 24, 32, mux=int(MsgType.STAGE_VERIFY), comment="CRC-32 of the staged table"),
         _u("commit_crc32", 24, 32, mux=int(MsgType.COMMIT), comment="CRC-32 of the verified staged table"),
     ),

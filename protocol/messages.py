@@ -230,7 +230,7 @@ class Telemetry:
 @dataclass(frozen=True)
 class ParamTable:
     """A parameter set held by the sensor: ``bank`` (:class:`TableBank`), its generation (0 for the staged set),
-    the CRC the sensor computed over ``table`` and the 52 table bytes (``protocol.param_table``)."""
+    the CRC the sensor computed over ``table`` and the TABLE_BYTES (92) table bytes (``protocol.param_table``)."""
 
     TYPE: ClassVar[MsgType] = MsgType.PARAM_TABLE
     tag: int = 0

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from protocol.param_table import N_FIELDS, PARAM_FIELDS, SIGMA_FIELDS, TABLE_BYTES
+
 MAP_FILE = "modbus_map.json"
 TABLES = ("holding", "input")
 #: Registers one type occupies.
@@ -310,12 +312,15 @@ def render_markdown(m: ModbusMap) -> str:
         "",
         "## Worked example: upload a parameter set with any Modbus client",
         "",
-        "1. Write the 13 values, as float32 (two registers each, high word first), to `stage_focal_length_mm` .. "
-        "`stage_s2`.",
-        "2. `command_arg` = 52, `command` = STAGE_BEGIN; then `command_arg` = 0, `command_length` = 52, "
-        "`command` = STAGE_CHUNK.",
-        "3. `command_crc32` = CRC-32 (zlib.crc32) of the 13 values packed as little-endian float32 "
-        "(`struct.pack('<13f', ...)`), `command` = STAGE_VERIFY; a refusal gives `result_status` 2 and the reason.",
+        f"1. Write the {N_FIELDS} values, as float32 (two registers each, high word first), to "
+        f"`stage_{PARAM_FIELDS[0]}` .. `stage_{PARAM_FIELDS[-1]}`: the camera parameters, then the 1-sigma prior of "
+        f"each estimable parameter (`stage_{SIGMA_FIELDS[0]}` ..; NaN or 0 where unknown: the sensor's estimator "
+        "then starts that parameter from its cold-start prior).",
+        f"2. `command_arg` = {TABLE_BYTES}, `command` = STAGE_BEGIN; then `command_arg` = 0, `command_length` = "
+        f"{TABLE_BYTES}, `command` = STAGE_CHUNK.",
+        f"3. `command_crc32` = CRC-32 (zlib.crc32) of the {N_FIELDS} values packed as little-endian float32 "
+        f"(`struct.pack('<{N_FIELDS}f', ...)`), `command` = STAGE_VERIFY; a refusal gives `result_status` 2 and the "
+        "reason.",
         "4. `command` = COMMIT (same `command_crc32`); `result_value` is the new generation.",
         "5. Read `active_generation`, `active_crc32` and `active_*` back.",
         "",

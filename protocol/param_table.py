@@ -1,8 +1,13 @@
 """The parameter table: how a camera parameter set travels (every transport) and is stored (sensor banks).
 
-A table is 13 IEEE-754 float32 values, little-endian, in :data:`PARAM_FIELDS` order (52 bytes). The fields are the
-keys of a camera parameter file (shared/spec/CAMERA_MODEL.md), flattened; ``image_size_px`` travels as float32 too
-(exact for any size below 2**24). The CRC of a set is :func:`protocol.crc.crc32` over those 52 bytes.
+A table is 23 IEEE-754 float32 values, little-endian, in :data:`PARAM_FIELDS` order (92 bytes): the 13 camera
+fields (:data:`CAMERA_FIELDS`), then the 1-sigma prior of each estimable parameter (:data:`SIGMA_FIELDS`, in
+``onboard.params.ESTIMATE_NAMES`` order, parameter units: f in mm). The camera fields are the keys of a camera
+parameter file (shared/spec/CAMERA_MODEL.md), flattened; ``image_size_px`` travels as float32 too (exact for any
+size below 2**24). A sigma is a finite value >= 0, or NaN: NaN or 0 means "unknown", and the sensor's estimator then
+starts that parameter from its cold-start prior (``onboard.prior``). The CRC of a set is :func:`protocol.crc.crc32`
+over the 92 table bytes. This module is the single definition of the layout: sizes, the CAN DBC field choices, the
+Modbus mailbox checks and the bank records all derive from it.
 
 "Equal to float32" (INTERFACES.md, ``hostlink upload``) means: every file value rounded to float32 (round to
 nearest even, as numpy does) equals the value the sensor reports, bit for bit.
@@ -13,14 +18,15 @@ imports nothing from onboard).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from protocol.crc import crc32
 
-#: Field order of the table. Names are those of the parameter file (``principal_point_px``/``image_size_px`` split).
-PARAM_FIELDS: tuple[str, ...] = (
+#: Camera fields of the table. Names are those of the parameter file (``principal_point_px``/``image_size_px`` split).
+CAMERA_FIELDS: tuple[str, ...] = (
     "focal_length_mm",
     "pixel_pitch_um",
     "principal_point_x_px",
@@ -35,7 +41,25 @@ PARAM_FIELDS: tuple[str, ...] = (
     "s1",
     "s2",
 )
+#: 1-sigma prior of each estimable parameter, in ``onboard.params.ESTIMATE_NAMES`` order (f, x0, y0, k1..s2),
+#: parameter units; NaN or 0 = unknown (cold-start prior).
+SIGMA_FIELDS: tuple[str, ...] = (
+    "sigma_focal_length_mm",
+    "sigma_principal_point_x_px",
+    "sigma_principal_point_y_px",
+    "sigma_k1",
+    "sigma_k2",
+    "sigma_k3",
+    "sigma_p1",
+    "sigma_p2",
+    "sigma_s1",
+    "sigma_s2",
+)
+#: Field order of the table.
+PARAM_FIELDS: tuple[str, ...] = CAMERA_FIELDS + SIGMA_FIELDS
 N_FIELDS = len(PARAM_FIELDS)
+#: Index of the first sigma field.
+SIGMA_OFFSET = len(CAMERA_FIELDS)
 #: Wire and storage dtype of one value.
 TABLE_DTYPE = np.dtype("<f4")
 TABLE_BYTES = N_FIELDS * TABLE_DTYPE.itemsize
@@ -46,7 +70,7 @@ class TableError(ValueError):
 
 
 def encode_table(values: Sequence[float] | np.ndarray) -> bytes:
-    """13 values in :data:`PARAM_FIELDS` order -> 52 bytes (each rounded to float32)."""
+    """N_FIELDS values in :data:`PARAM_FIELDS` order -> TABLE_BYTES bytes (each rounded to float32)."""
     arr = np.asarray(values, dtype=np.float64)
     if arr.shape != (N_FIELDS,):
         raise TableError(f"expected {N_FIELDS} values, got shape {arr.shape}")
@@ -55,22 +79,23 @@ def encode_table(values: Sequence[float] | np.ndarray) -> bytes:
 
 
 def decode_table(data: bytes | bytearray | memoryview) -> np.ndarray:
-    """52 bytes -> float32 array of the 13 values (a copy, native byte order)."""
+    """TABLE_BYTES bytes -> float32 array of the N_FIELDS values (a copy, native byte order)."""
     if len(data) != TABLE_BYTES:
         raise TableError(f"a parameter table is {TABLE_BYTES} bytes, got {len(data)}")
     return np.frombuffer(bytes(data), dtype=TABLE_DTYPE).astype(np.float32)
 
 
 def table_crc(data: bytes | bytearray | memoryview) -> int:
-    """CRC-32 of a parameter set (its 52 table bytes)."""
+    """CRC-32 of a parameter set (its TABLE_BYTES table bytes)."""
     if len(data) != TABLE_BYTES:
         raise TableError(f"a parameter table is {TABLE_BYTES} bytes, got {len(data)}")
     return crc32(data)
 
 
 def table_from_mapping(values: Mapping[str, float]) -> bytes:
-    """Table bytes from a mapping keyed by :data:`PARAM_FIELDS` (missing distortion keys are 0)."""
-    return encode_table([float(values.get(name, 0.0)) for name in PARAM_FIELDS])
+    """Table bytes from a mapping keyed by :data:`PARAM_FIELDS` (missing distortion keys are 0, missing sigmas NaN =
+    unknown)."""
+    return encode_table([float(values.get(name, math.nan if name in SIGMA_FIELDS else 0.0)) for name in PARAM_FIELDS])
 
 
 def table_to_mapping(data: bytes | bytearray | memoryview) -> dict[str, float]:

@@ -109,12 +109,12 @@ def test_a_corrupt_chunk_fails_the_crc_and_commits_nothing():
 def test_incomplete_and_out_of_bounds_staging_is_refused():
     store = banks.factory_store(NOMINAL)
     assert banks.stage_chunk(store, 0, b"x").code == NakCode.NOT_STAGED
-    assert banks.stage_begin(store, 51).code == NakCode.BAD_LENGTH
+    assert banks.stage_begin(store, TABLE_BYTES - 1).code == NakCode.BAD_LENGTH
     assert banks.stage_begin(store, TABLE_BYTES) is None
-    assert banks.stage_chunk(store, 50, b"abc").code == NakCode.BAD_LENGTH
+    assert banks.stage_chunk(store, TABLE_BYTES - 2, b"abc").code == NakCode.BAD_LENGTH
     assert banks.stage_chunk(store, 0, bytes(16)) is None
     refusal = banks.stage_verify(store, 0)
-    assert refusal.code == NakCode.NOT_STAGED and "36 of 52" in refusal.text
+    assert refusal.code == NakCode.NOT_STAGED and f"{TABLE_BYTES - 16} of {TABLE_BYTES}" in refusal.text
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,7 @@ def upload(fw, params, tag=1):
     table = banks.params_to_table(params)
     crc = crc32(table)
     replies = [fw.handle(m.StageBegin(tag=tag, length=len(table)))]
-    replies += [fw.handle(m.StageChunk(tag=tag, offset=o, data=table[o : o + 20])) for o in range(0, 52, 20)]
+    replies += [fw.handle(m.StageChunk(tag=tag, offset=o, data=table[o : o + 20])) for o in range(0, len(table), 20)]
     replies.append(fw.handle(m.StageVerify(tag=tag, crc32=crc)))
     staged = fw.handle(m.ReadStaged(tag=tag))
     commit = fw.handle(m.Commit(tag=tag, crc32=crc))

@@ -21,7 +21,11 @@ FIELDS = [r["name"][len("stage_"):] for r in sorted(MAP["registers"], key=lambda
 # a camera within the emulator's detector (its factory set is seed 004's 1024 x 1024 camera)
 CAMERA = {"focal_length_mm": 69.75, "pixel_pitch_um": 12.0, "principal_point_x_px": 512.3,
           "principal_point_y_px": 509.8, "image_width_px": 1024.0, "image_height_px": 1024.0,
-          "k1": -3.1e-9, "k2": 1.0e-16, "k3": 0.0, "p1": 2.0e-7, "p2": -1.0e-7, "s1": 0.0, "s2": 0.0}
+          "k1": -3.1e-9, "k2": 1.0e-16, "k3": 0.0, "p1": 2.0e-7, "p2": -1.0e-7, "s1": 0.0, "s2": 0.0,
+          # the 1-sigma prior the sensor's estimator restarts from (0 = unknown: cold-start prior)
+          "sigma_focal_length_mm": 7e-4, "sigma_principal_point_x_px": 1.3, "sigma_principal_point_y_px": 1.29,
+          "sigma_k1": 1.4e-10, "sigma_k2": 5.8e-16, "sigma_k3": 0.0, "sigma_p1": 2.2e-8, "sigma_p2": 2.1e-8,
+          "sigma_s1": 2.0e-8, "sigma_s2": 2.0e-8}
 
 
 def f32_words(value):

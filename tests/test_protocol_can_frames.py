@@ -149,7 +149,8 @@ def test_malformed_single_frames_are_refused():
     with pytest.raises(cf.CanDecodeError):
         cf.decode_single(cf.COMMAND.frame_id, bytes(5))
     with pytest.raises(cf.CanDecodeError):
-        cf.decode_single(cf.STAGE_FLOAT.frame_id, cf.word_bytes(cf.pack(cf.STAGE_FLOAT, {"field": 13})))
+        beyond = len(cf.PARAM_FIELDS)  # one past the last table field
+        cf.decode_single(cf.STAGE_FLOAT.frame_id, cf.word_bytes(cf.pack(cf.STAGE_FLOAT, {"field": beyond})))
     with pytest.raises(EncodeError):
         cf.encode_single(StageChunk())
 

@@ -154,10 +154,13 @@ def test_crc_check_values_match_the_published_catalogue():
     assert crc16_ccitt(b"123456789") == 0x29B1
 
 
-def test_parameter_table_is_thirteen_little_endian_float32():
-    values = [70.2262, 12.0, 500.0, 530.0, 1024, 1024, -2e-10, 3.5e-15, 1e-21, 1e-7, -1e-7, 2e-8, -2e-8]
+def test_parameter_table_is_camera_fields_then_sigmas_as_little_endian_float32():
+    values = [70.2262, 12.0, 500.0, 530.0, 1024, 1024, -2e-10, 3.5e-15, 1e-21, 1e-7, -1e-7, 2e-8, -2e-8,
+              7e-4, 1.3, 1.29, 1.4e-10, 5.8e-16, 7.4e-22, 2.2e-8, 2.1e-8, 2e-8, 2e-8]
     data = encode_table(values)
-    assert len(data) == TABLE_BYTES == 52 == 4 * len(PARAM_FIELDS)
+    # 13 camera fields then 10 sigmas (ESTIMATE_NAMES order)
+    assert len(data) == TABLE_BYTES == 92 == 4 * len(PARAM_FIELDS)
+    assert PARAM_FIELDS[13] == "sigma_focal_length_mm" and PARAM_FIELDS[-1] == "sigma_s2"
     assert data[:4] == np.float32(70.2262).tobytes() and np.dtype("<f4").byteorder in "<="
     assert np.array_equal(decode_table(data), np.array(values, dtype=np.float32))
     assert table_crc(data) == crc32(data)

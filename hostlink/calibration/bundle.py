@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.data import CalibrationData, frame_chunks, measured_directions
 from hostlink.calibration.frames import apply_attitude_increment, skew, wahba_svd
 from hostlink.calibration.robust import huber_cost, huber_weights, robust_sigma_2d, vote_consistent_stars
-from onboard.camera import ideal_offset_jacobians, pixels_to_unit
+from onboard.camera import ideal_offset_jacobians
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
 #: Most stars processed at once in a pass over the data: bounds the working arrays (~1 kB per star).
@@ -161,12 +161,14 @@ def accumulate_normals(
         w = weights[a:b, None, None]
         jt_w = jt * w
         jp_w = jp * w
-        blocks.u += np.einsum("nck,ncl->kl", jt_w, jt)
-        blocks.g += np.einsum("nck,nc->k", jt_w, e)
+        flat_w = jt_w.reshape(-1, k)
+        blocks.u += flat_w.T @ jt.reshape(-1, k)
+        blocks.g += flat_w.T @ e.ravel()
         local = starts[f0:f1] - a
-        blocks.a[f0:f1] = np.add.reduceat(np.einsum("nck,ncl->nkl", jp_w, jp), local, axis=0)
-        blocks.b[f0:f1] = np.add.reduceat(np.einsum("nck,ncl->nkl", jt_w, jp), local, axis=0)
-        blocks.g_phi[f0:f1] = np.add.reduceat(np.einsum("nck,nc->nk", jp_w, e), local, axis=0)
+        jp_w_t = jp_w.transpose(0, 2, 1)
+        blocks.a[f0:f1] = np.add.reduceat(jp_w_t @ jp, local, axis=0)
+        blocks.b[f0:f1] = np.add.reduceat(jt_w.transpose(0, 2, 1) @ jp, local, axis=0)
+        blocks.g_phi[f0:f1] = np.add.reduceat((jp_w_t @ e[:, :, None])[:, :, 0], local, axis=0)
         blocks.e[a:b] = e
     return blocks
 
@@ -217,7 +219,7 @@ def solve_scaled(s: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 def initial_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
     """Per-frame SVD attitude from the measured directions of the given camera (Markley's method)."""
-    return wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta), data.r, data.frame_starts)
+    return wahba_svd(measured_directions(data, theta), data.r, data.frame_starts)
 
 
 def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleOptions | None = None) -> BundleResult:
@@ -236,7 +238,7 @@ def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleO
     rows_used = np.ones(n_input, dtype=bool)
     n_voted = 0
     if opt.screen:
-        consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, theta))
+        consistent = vote_consistent_stars(data, measured_directions(data, theta))
         n_voted = int(np.sum(~consistent))
         fit, kept_rows, _ = data.select(consistent)
         rows_used = kept_rows

@@ -110,3 +110,15 @@ def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]
         chunks.append((f0, f1))
         f0 = f1
     return chunks
+
+
+def measured_directions(data: CalibrationData, theta: np.ndarray, max_obs: int = 50_000) -> np.ndarray:
+    """Sensor-frame unit vectors (N, 3) of every centroid through the camera ``theta`` (``onboard.camera``),
+    computed a chunk at a time so the temporaries stay bounded."""
+    from onboard.camera import pixels_to_unit
+
+    out = np.empty((data.n_obs, 3))
+    for a in range(0, data.n_obs, max_obs):
+        z = min(a + max_obs, data.n_obs)
+        out[a:z] = pixels_to_unit(data.x_px[a:z], data.y_px[a:z], theta)
+    return out

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hostlink.calibration.data import frame_chunks
+
 
 def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Least-squares attitude per frame, (M, 3, 3), with b_k ~ C r_k (Markley's SVD method).
@@ -16,14 +18,17 @@ def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: n
     b, r: (N, 3) unit vectors grouped by frame; weights (N,) >= 0 (default 1). A frame whose weighted stars do
     not fix a rotation (fewer than two non-parallel) gets the best rotation the SVD offers (not unique).
     """
-    outer = b[:, :, None] * r[:, None, :]
-    if weights is not None:
-        outer = outer * weights[:, None, None]
     m = frame_starts.shape[0] - 1
     big_b = np.zeros((m, 3, 3))
-    nonempty = np.diff(frame_starts) > 0
-    if np.any(nonempty):
-        big_b[nonempty] = np.add.reduceat(outer, frame_starts[:-1][nonempty], axis=0)
+    for f0, f1 in frame_chunks(frame_starts, 50_000):  # bounded working memory: (rows, 3, 3) per chunk
+        a, z = int(frame_starts[f0]), int(frame_starts[f1])
+        outer = b[a:z, :, None] * r[a:z, None, :]
+        if weights is not None:
+            outer = outer * weights[a:z, None, None]
+        local = frame_starts[f0:f1] - a
+        nonempty = np.diff(frame_starts[f0 : f1 + 1]) > 0
+        if np.any(nonempty):
+            big_b[f0:f1][nonempty] = np.add.reduceat(outer, local[nonempty], axis=0)
     u, _, vt = np.linalg.svd(big_b)
     d = np.linalg.det(u) * np.linalg.det(vt)
     u[:, :, 2] *= d[:, None]

@@ -25,7 +25,7 @@ def vote_consistent_stars(
     rel_tol: float = 0.03,
     abs_tol_rad: float = 1e-3,
     min_agreement: float = 0.5,
-    chunk_obs: int = 200_000,
+    chunk_obs: int = 20_000,
 ) -> np.ndarray:
     """(N,) bool: stars whose interstar angles agree with the catalogue for at least ``min_agreement`` of the other
     stars of their frame. ``b`` are measured directions from the nominal camera.
@@ -62,9 +62,11 @@ def vote_consistent_stars(
 
 
 def _pair_angles(v: np.ndarray) -> np.ndarray:
-    """Angles between all vectors of each padded frame (m, n, 3) -> (m, n, n) [rad], from the chord (accurate for
-    small angles, where arccos of the dot product is not)."""
-    chord = np.linalg.norm(v[:, :, None, :] - v[:, None, :, :], axis=-1)
+    """Angles between all vectors of each padded frame (m, n, 3) -> (m, n, n) [rad], from the chord
+    |a - b|^2 = 2 - 2 a.b. In float64 the angle's error is ~1e-16 / angle rad (1e-13 rad at 1 mrad), far below
+    the voting tolerance; a batched matrix product keeps it fast."""
+    gram = v @ v.transpose(0, 2, 1)
+    chord = np.sqrt(np.maximum(2.0 - 2.0 * gram, 0.0))
     return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
 
 

@@ -8,7 +8,9 @@ HELP = "commit the onboard estimate as the active parameter set (same safe path 
 DESCRIPTION = (
     "Reads the active set and the onboard recursive estimate, forms the full parameter set (the active one with the "
     "estimated parameters replaced), and commits it through the six-step safe upload (validate, stage, verify, read "
-    "back, commit to the inactive A/B bank, read back). Prints the committed set as a camera parameter file."
+    "back, commit to the inactive A/B bank, read back). The estimate's own 1-sigma travels with it as the new set's "
+    "prior, so the estimator restarts from what it had learnt. Prints the committed set as a camera parameter file "
+    "(with its 'sigma')."
 )
 
 
@@ -30,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--timeout must be > 0")
     with open_link(args.link, timeout_s=args.timeout) as link:
         result, estimate = accept_estimate(link)
-    text = json.dumps(params_float32_dict(result.active), indent=2) + "\n"
+    text = json.dumps(params_float32_dict(result.active, result.sigma), indent=2) + "\n"
     sys.stdout.write(text)
     if args.out:
         from pathlib import Path

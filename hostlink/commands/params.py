@@ -7,7 +7,8 @@ import argparse
 HELP = "print the sensor's active parameters as a camera parameter file"
 DESCRIPTION = (
     "Reads the active parameter set (with its generation and CRC) and prints it as a camera parameter file (JSON) "
-    "on stdout, each value as the shortest decimal of the sensor's float32. The generation and CRC go to stderr."
+    "on stdout, each value as the shortest decimal of the sensor's float32, with a 'sigma' object (the 1-sigma prior "
+    "the sensor's estimator starts from; null = unknown) when the set has one. The generation and CRC go to stderr."
 )
 
 
@@ -29,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--timeout must be > 0")
     with open_link(args.link, timeout_s=args.timeout) as link:
         active = read_active_params(link)
-    text = json.dumps(params_float32_dict(active.params), indent=2) + "\n"
+    text = json.dumps(params_float32_dict(active.params, active.sigma), indent=2) + "\n"
     sys.stdout.write(text)
     if args.out:
         from pathlib import Path

@@ -9,7 +9,10 @@ DESCRIPTION = (
     "Feeds every frame of SESSION.csv (identified stars with ra_deg/dec_deg) to the onboard recursive estimator "
     "(interstar difference measurements, whitened over 2n-3 pairs, Bierman U-D updates, misidentification gating, "
     "focal-drift tracking) starting from NOMINAL.json, and writes the final estimate as a camera parameter file "
-    "with a 'sigma' object. --precision float64 runs the same code as the host reference."
+    "with a 'sigma' object. --precision float64 runs the same code as the host reference. When NOMINAL.json has a "
+    "'sigma' object (a calibration result), the estimator starts from it as its prior, exactly as the sensor does "
+    "after an upload (parameters without a positive sigma start from the cold-start prior; no burn-in when every "
+    "estimated parameter has one); --prior cold ignores it."
 )
 
 
@@ -37,15 +40,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-drift-detect", action="store_true", help="never switch on the focal random walk by itself")
     p.add_argument("--max-stars", type=int, default=32, help="stars used per frame at most (default 32)")
+    p.add_argument(
+        "--prior",
+        choices=("file", "cold"),
+        help="estimator prior: 'file' = the nominal file's sigma (default when the file has one), 'cold' = the "
+        "cold-start prior (3%% of f, 5%% of the image side for the principal point, 5 px of distortion)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     import math
 
     from hostlink.errors import UserError
-    from hostlink.params_io import load_params, save_params
+    from hostlink.params_io import load_params_with_extras, save_params
     from hostlink.replay import estimate_extras, precision_dtype, replay_session, write_trace
     from hostlink.session import read_session
+    from onboard.params import ParameterError
+    from onboard.prior import refined_mask, sigma_from_dict
     from onboard.recursive import RecursiveConfig, parse_estimate_names
 
     precision_dtype(args.precision)  # refuse 'fixed' / unknown before reading files
@@ -59,7 +70,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--focal-walk-um: must be >= 0, got {args.focal_walk_um!r}")
     if args.max_stars < 3:
         raise UserError(f"--max-stars: must be >= 3, got {args.max_stars}")
-    nominal = load_params(args.nominal)
+    nominal, nominal_doc = load_params_with_extras(args.nominal)
+    try:
+        file_sigma = sigma_from_dict(nominal_doc.get("sigma"))
+    except ParameterError as exc:
+        raise UserError(f"{args.nominal}: {exc}") from None
+    if args.prior == "file" and not refined_mask(file_sigma).any():
+        raise UserError(f"--prior file: {args.nominal} has no 'sigma' object with a positive 1-sigma")
+    prior_sigma = None if args.prior == "cold" else file_sigma
     session = read_session(args.session)
     if session.n_frames == 0 or len(session) == 0:
         raise UserError(f"{args.session}: no frames")
@@ -71,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         process_noise=tuple(walk),
         drift_detect=not args.no_drift_detect,
     )
-    result = replay_session(session, nominal, names, config, args.precision)
+    result = replay_session(session, nominal, names, config, args.precision, prior_sigma=prior_sigma)
     if result.state.updates == 0:
         raise UserError(f"{args.session}: no frame had 3 or more identified, consistent stars; nothing estimated")
     save_params(args.out, result.params, estimate_extras(result, args.precision))
@@ -80,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
     p = result.params
     print(
         f"replayed {result.n_frames} frames ({result.state.updates} used): f = {p.focal_length_mm:.6f} mm, "
-        f"principal point ({p.principal_point_px[0]:.3f}, {p.principal_point_px[1]:.3f}) px -> {args.out}"
+        f"principal point ({p.principal_point_px[0]:.3f}, {p.principal_point_px[1]:.3f}) px, prior "
+        f"{result.prior} -> {args.out}"
     )
     return 0

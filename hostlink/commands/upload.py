@@ -10,7 +10,9 @@ DESCRIPTION = (
     "CRC and ranges; 4. read the staged set back; 5. the sensor commits it to its inactive A/B bank with a new "
     "generation and switches atomically; 6. read the active set back. Exit 0 only when the active parameters read "
     "back equal to the file (to float32). A refusal prints the sensor's reason on one line; an interrupted upload "
-    "leaves the old set active."
+    "leaves the old set active. The file's 'sigma' object (1-sigma of each estimated parameter, as written by "
+    "'hostlink calibrate' or 'hostlink replay') travels with the set: the sensor's onboard estimator restarts from "
+    "it as its prior, so a refinement keeps the calibration's accuracy (null, NaN or 0 = unknown: cold-start prior)."
 )
 
 
@@ -26,49 +28,72 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    import numpy as np
+
     from hostlink.errors import UserError
     from hostlink.links import open_link
-    from hostlink.params_io import load_params
     from hostlink.sensor_client import float32_equal, safe_upload
+    from onboard.prior import refined_mask
 
     if args.timeout <= 0:
         raise UserError("--timeout must be > 0")
-    params = load_unchecked(args.params) if args.no_host_check else load_params(args.params)
+    params, sigma = load_unchecked(args.params) if args.no_host_check else load_with_sigma(args.params)
 
     def step(k: int, text: str) -> None:
         if args.verbose:
             print(f"step {k}/6: {text}", file=sys.stderr)
 
     with open_link(args.link, timeout_s=args.timeout) as link:
-        result = safe_upload(link, params, host_check=not args.no_host_check, step=step)
-    if not float32_equal(result.active, params):  # safe_upload compared the bytes; this is the user's promise
+        result = safe_upload(link, params, host_check=not args.no_host_check, step=step, sigma=sigma)
+    # safe_upload compared the bytes; this is the user's promise
+    if not float32_equal(result.active, params, result.sigma, sigma):
         raise UserError("the sensor's active parameters differ from the file")
+    known = int(np.count_nonzero(refined_mask(sigma)))
     print(f"{args.params}: committed as generation {result.generation} (CRC 0x{result.crc32:08x}); active "
-          "parameters read back equal to the file (float32)", file=sys.stderr)
+          f"parameters read back equal to the file (float32); sigma prior for {known} of 10 parameters",
+          file=sys.stderr)
     return 0
 
 
+def load_with_sigma(path: str):
+    """A validated parameter file and its ``sigma`` (10 values, NaN = unknown), one-line UserError otherwise."""
+    from hostlink.errors import UserError
+    from hostlink.params_io import load_params_with_extras
+    from onboard.params import ParameterError
+    from onboard.prior import sigma_from_dict
+
+    params, data = load_params_with_extras(path)
+    try:
+        return params, sigma_from_dict(data.get("sigma"))
+    except ParameterError as exc:
+        raise UserError(f"{path}: {exc}") from None
+
+
 def load_unchecked(path: str):
-    """A parameter file read without validation (for --no-host-check): the sensor decides."""
+    """A parameter file and its sigma read without validation (for --no-host-check): the sensor decides."""
     import json
     import math
     from pathlib import Path
 
     from hostlink.errors import UserError
-    from onboard.params import CameraParams, Distortion
+    from onboard.params import CameraParams, Distortion, ParameterError
+    from onboard.prior import sigma_from_dict
 
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"),
                           parse_constant=lambda c: {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}[c])
         dist = data.get("distortion", {}) or {}
-        return CameraParams(
+        params = CameraParams(
             focal_length_mm=float(data["focal_length_mm"]),
             pixel_pitch_um=float(data["pixel_pitch_um"]),
             principal_point_px=(float(data["principal_point_px"][0]), float(data["principal_point_px"][1])),
             image_size_px=(int(data["image_size_px"][0]), int(data["image_size_px"][1])),
             distortion=Distortion(**{k: float(dist.get(k, 0.0)) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")}),
         )
+        return params, sigma_from_dict(data.get("sigma"), validate=False)
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    except ParameterError as exc:
+        raise UserError(f"{path}: {exc}") from None
     except (ValueError, KeyError, TypeError, IndexError) as exc:
         raise UserError(f"{path}: not a camera parameter file ({type(exc).__name__}: {exc})") from None

@@ -12,7 +12,7 @@ Contract of every operation (see hostlink/links/INTERFACE.md):
   sensor's :class:`~protocol.messages.NakCode` and one-line reason;
 * no answer within ``timeout_s``, a closed port, or an answer that makes no sense raises
   :class:`~hostlink.errors.LinkError` with a one-line message (the CLI prints it and exits non-zero);
-* values are the protocol's (``protocol.messages``): a parameter set is the 52-byte table of
+* values are the protocol's (``protocol.messages``): a parameter set is the 92-byte table of
   ``protocol.param_table``; frames are :class:`~protocol.messages.CentroidFrame`.
 """
 

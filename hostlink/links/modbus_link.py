@@ -88,7 +88,7 @@ def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) ->
 class ModbusLink(Link):
     """A sensor on Modbus (TCP, RTU over TCP, RTU serial)."""
 
-    #: A whole table per STAGE_CHUNK (the staging mailbox holds all 13 values).
+    #: A whole table per STAGE_CHUNK (the staging mailbox holds every table value).
     max_chunk_bytes = TABLE_BYTES
 
     def __init__(self, client: RegisterClient, name: str, timeout_s: float = DEFAULT_TIMEOUT_S,
