@@ -71,3 +71,20 @@ def test_missing_session_is_one_line_error(tmp_path, capsys):
     code = main(["calibrate", str(tmp_path / "none.csv"), "--nominal", NOMINAL, "--out", str(tmp_path / "r.json")])
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1 and "no such file" in err
+
+
+def test_reference_directions_come_from_hipparcos_when_the_file_has_none(session_path, tmp_path):
+    from hostlink.session import read_session
+
+    s = read_session(session_path)
+    s.ra_deg = None
+    s.dec_deg = None
+    bare = tmp_path / "bare.csv"
+    write_session(bare, s)
+    with_radec, without = tmp_path / "a.json", tmp_path / "b.json"
+    assert main(["calibrate", str(session_path), "--nominal", NOMINAL, "--out", str(with_radec), "--quiet"]) == 0
+    assert main(["calibrate", str(bare), "--nominal", NOMINAL, "--out", str(without), "--quiet"]) == 0
+    a, b = json.loads(with_radec.read_text()), json.loads(without.read_text())
+    assert b["references"]["source"] == "hipparcos"
+    # the file's ra/dec are written to 1e-10 deg (0.4 mas): the two calibrations agree far inside their sigma
+    assert abs(a["focal_length_mm"] - b["focal_length_mm"]) < 0.01 * a["sigma"]["focal_length_mm"]

@@ -36,8 +36,8 @@ from hostlink.calibration.robust import huber_cost, huber_weights, robust_sigma_
 from onboard.camera import ideal_offset_jacobians
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
-#: Most stars processed at once in a pass over the data: bounds the working arrays (~1 kB per star).
-DEFAULT_CHUNK_OBS = 50_000
+#: Most stars processed at once in a pass over the data: bounds the working arrays (~1.5 kB per star, ~30 MB per pass).
+DEFAULT_CHUNK_OBS = 20_000
 
 
 @dataclass(frozen=True)
