@@ -30,6 +30,16 @@ class DegenerateGeometry(ValueError):
     """Fewer than two non-parallel star directions: the attitude is not determined."""
 
 
+def rotation_from_profile(profile: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Markley's SVD solution of Wahba's problem from the attitude profile matrix B = sum w b r^T: the rotation
+    C = U diag(1, 1, det U det V) V^T maximising sum w b . C r, and the singular values of B. Works on one (3, 3)
+    matrix or a stack (..., 3, 3) (the host's batch calibration solves every frame at once), in the input dtype."""
+    u, s, vt = np.linalg.svd(profile)
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    u[..., :, 2] *= d[..., None]
+    return u @ vt, s
+
+
 def attitude_from_vectors(b: np.ndarray, r: np.ndarray, weights=None) -> np.ndarray:
     """Attitude C (3, 3) with b = C r from matched unit vectors b (N, 3, sensor) and r (N, 3, reference), N >= 2.
 
@@ -45,11 +55,9 @@ def attitude_from_vectors(b: np.ndarray, r: np.ndarray, weights=None) -> np.ndar
     if b.shape[0] < 2:
         raise DegenerateGeometry(f"{b.shape[0]} star(s): an attitude needs at least 2")
     profile = (b * w[:, None]).T @ r  # B = sum w b r^T
-    u, s, vt = np.linalg.svd(profile)
+    c, s = rotation_from_profile(profile)
     if not s[1] > s[0] * dtype.type(_COLLINEAR_RATIO):
         raise DegenerateGeometry("the star directions are (nearly) parallel: the attitude is not determined")
-    d = np.linalg.det(u) * np.linalg.det(vt)
-    c = (u * np.array([1, 1, d], dtype=dtype)) @ vt
     for _ in range(_REFINEMENT_STEPS):
         c = _refine(b, r, w, c)
     return c

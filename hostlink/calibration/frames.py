@@ -1,8 +1,8 @@
 """Per-frame helpers, vectorised over frames: the SVD attitude fit and small-rotation updates.
 
-``onboard`` has no attitude module yet, so the batch calibration carries this small host-side SVD solution of
-Wahba's problem (Markley 1988): C = U diag(1, 1, det U det V) V^T for B = sum_k w_k b_k r_k^T = U S V^T maximises
-sum_k w_k b_k . C r_k, i.e. b = C r as in CAMERA_MODEL.md.
+The attitude of every frame at once: the profile matrices B = sum_k w_k b_k r_k^T are accumulated per frame here and
+solved by ``onboard.attitude.rotation_from_profile`` (Markley 1988), the same formula the sensor uses, so b = C r
+as in CAMERA_MODEL.md.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from hostlink.calibration.data import frame_chunks
+from onboard.attitude import rotation_from_profile
 
 
 def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -29,10 +30,7 @@ def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: n
         nonempty = np.diff(frame_starts[f0 : f1 + 1]) > 0
         if np.any(nonempty):
             big_b[f0:f1][nonempty] = np.add.reduceat(outer, local[nonempty], axis=0)
-    u, _, vt = np.linalg.svd(big_b)
-    d = np.linalg.det(u) * np.linalg.det(vt)
-    u[:, :, 2] *= d[:, None]
-    return u @ vt
+    return rotation_from_profile(big_b)[0]
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -63,18 +61,3 @@ def rotation_from_vector(a: np.ndarray) -> np.ndarray:
 def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarray:
     """C <- exp(-[dphi x]) C: the update whose first-order effect on s = C r is ds = [s x] dphi."""
     return rotation_from_vector(-dphi) @ attitude
-
-
-def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
-    """Uniformly distributed rotation matrices (Shoemake's unit quaternions), shape (n, 3, 3)."""
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-        ],
-        axis=-2,
-    )

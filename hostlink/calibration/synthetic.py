@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData, build_data
-from hostlink.calibration.frames import random_rotations
+from hostlink.sky.simulate import random_rotations
 from onboard.camera import pixels_to_unit
 from onboard.params import CameraParams
 
@@ -49,7 +49,7 @@ def synthetic_session(
     y_true = rng.uniform(margin_px - 0.5, height - 0.5 - margin_px, n)
     theta = params.model_vector(np.float64)
     b = pixels_to_unit(x_true, y_true, theta)
-    att = random_rotations(n_frames, rng)
+    att = random_rotations(rng, n_frames)
     r = np.einsum("nji,nj->ni", att[frame_key], b)  # r = C^T b
     wrong = rng.random(n) < misidentified_fraction
     if np.any(wrong):

@@ -246,7 +246,7 @@ def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray
     return text, jd1, jd2
 
 
-def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     """n rotation matrices uniform over SO(3) (normalised Gaussian quaternions, Shoemake 1992)."""
     q = rng.standard_normal((n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -463,7 +463,7 @@ def _simulate_chunk(
         elif ctx.zenith is not None:
             att = _ground_rotations(rng, ctx.zenith[pending], cfg.zenith_range_deg)
         else:
-            att = _random_rotations(rng, pending.size)
+            att = random_rotations(rng, pending.size)
         attitude_out[pending] = att
         rows = _observe(ctx, rng, pending, att)
         counts = np.bincount(np.searchsorted(pending, rows["frame"]), minlength=pending.size)
