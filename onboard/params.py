@@ -85,6 +85,12 @@ class CameraParams:
             distortion=Distortion(*t[3:]),
         )
 
+    def with_model_vector(self, theta: np.ndarray) -> CameraParams:
+        """A copy with the parameters of a model vector (slot 0 = F in pixels, as :meth:`model_vector`)."""
+        vec = np.array(theta, dtype=np.float64)
+        vec[0] = vec[0] * self.pixel_pitch_um / 1000.0  # f = F p / 1000
+        return self.with_vector(vec)
+
     def with_focal_length_mm(self, focal_length_mm: float) -> CameraParams:
         return replace(self, focal_length_mm=float(focal_length_mm))
 

@@ -561,10 +561,7 @@ def state_vector(state: RecursiveState) -> np.ndarray:
 
 def current_params(state: RecursiveState) -> CameraParams:
     """The current estimate as a camera parameter set (f in mm)."""
-    theta = state_vector(state)
-    vec = theta.copy()
-    vec[0] = theta[0] * state.nominal.pixel_pitch_um / 1000.0
-    return state.nominal.with_vector(vec)
+    return state.nominal.with_model_vector(state_vector(state))
 
 
 def covariance(state: RecursiveState) -> np.ndarray:

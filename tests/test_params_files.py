@@ -129,3 +129,11 @@ def test_cli_reports_bad_parameter_file_in_one_line_with_nonzero_exit(tmp_path):
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "focal_length_mm" in lines[0] and "Traceback" not in out.stderr
+
+
+def test_model_vector_round_trip_converts_focal_length_between_px_and_mm():
+    params = CameraParams(50.0, 5.5, (1000.0, 990.0), (2048, 2048), Distortion(k1=1e-9, s2=-2e-8))
+    again = params.with_model_vector(params.model_vector())
+    # f -> F = 1000 f / p -> F p / 1000 rounds twice: a few float64 ulps
+    assert abs(again.focal_length_mm - params.focal_length_mm) < 1e-13 * params.focal_length_mm
+    assert again.with_focal_length_mm(params.focal_length_mm) == params

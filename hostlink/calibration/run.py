@@ -118,9 +118,7 @@ def calibrate(
     rejected["total_stars"] = int(data.n_obs - fit_data.n_obs)
     sigma = float(noise_px) if noise_px else sigma_est
     cov = covariance_from_normal(normal, sigma)
-    vec = theta.copy()
-    vec[0] = theta[0] * nominal.pixel_pitch_um / 1000.0
-    params = nominal.with_vector(vec)
+    params = nominal.with_model_vector(theta)
     att_before = fitted_attitudes(fit_data, theta0)
     return CalibrationOutcome(
         method=method,
