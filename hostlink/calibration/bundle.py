@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData, frame_chunks, measured_directions
-from hostlink.calibration.frames import apply_attitude_increment, skew, wahba_svd
+from hostlink.calibration.frames import apply_attitude_increment, wahba_svd
 from hostlink.calibration.robust import huber_cost, huber_weights, robust_sigma_2d, vote_consistent_stars
-from onboard.camera import ideal_offset_jacobians
+from onboard.camera import distortion_partials, ideal_offset_jacobians, ideal_offsets
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
 #: Most stars processed at once in a pass over the data: bounds the working arrays (~1.5 kB per star, ~30 MB per pass).
@@ -90,6 +90,20 @@ def parameter_scales(params: CameraParams) -> np.ndarray:
     return np.array([1.0, 1.0, 1.0, half_diag**-3, half_diag**-5, half_diag**-7] + [half_diag**-2] * 4)
 
 
+def _projection(r: np.ndarray, attitude_obs: np.ndarray, focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s = C r per star, its ideal-plane projection p = F s_xy / s_z [px], and 1 / s_z."""
+    s = np.einsum("nij,nj->ni", attitude_obs, r)
+    inv_z = 1.0 / s[:, 2]
+    return s, focal_px * s[:, :2] * inv_z[:, None], inv_z
+
+
+def _inverse_2x2(jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Entries (i00, i01, i10, i11) of Jc^-1 for a stack of 2 x 2 matrices, written out (numpy's batched
+    small-matrix routines cost more in call overhead than the arithmetic)."""
+    det = jc[:, 0, 0] * jc[:, 1, 1] - jc[:, 0, 1] * jc[:, 1, 0]
+    return jc[:, 1, 1] / det, -jc[:, 0, 1] / det, -jc[:, 1, 0] / det, jc[:, 0, 0] / det
+
+
 def observation_terms(
     x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray, cols: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -100,29 +114,38 @@ def observation_terms(
     increment. The whitening Jc^-1 is held fixed in the derivative (Gauss-Newton on a weighted problem).
     """
     q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
-    s = np.einsum("nij,nj->ni", attitude_obs, r)
     focal_px = theta[0]
-    inv_z = 1.0 / s[:, 2]
-    p = focal_px * s[:, :2] * inv_z[:, None]
-    n = x_px.shape[0]
-    dp_ds = np.zeros((n, 2, 3))
-    dp_ds[:, 0, 0] = focal_px * inv_z
-    dp_ds[:, 1, 1] = focal_px * inv_z
-    dp_ds[:, :, 2] = -p * inv_z[:, None]
-    det = jc[:, 0, 0] * jc[:, 1, 1] - jc[:, 0, 1] * jc[:, 1, 0]
-    jc_inv = np.empty_like(jc)
-    jc_inv[:, 0, 0] = jc[:, 1, 1] / det
-    jc_inv[:, 0, 1] = -jc[:, 0, 1] / det
-    jc_inv[:, 1, 0] = -jc[:, 1, 0] / det
-    jc_inv[:, 1, 1] = jc[:, 0, 0] / det
-    e = np.einsum("nij,nj->ni", jc_inv, q - p)
+    s, p, inv_z = _projection(r, attitude_obs, focal_px)
+    i00, i01, i10, i11 = _inverse_2x2(jc)
+    d = q - p
+    e = np.stack([i00 * d[:, 0] + i01 * d[:, 1], i10 * d[:, 0] + i11 * d[:, 1]], axis=1)
     jt = jq_theta[:, :, cols]
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
         jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
-    j_theta = jc_inv @ jt
-    j_phi = -(jc_inv @ (dp_ds @ skew(s)))
+    j_theta = np.stack([i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1],
+                        i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1)
+    # dp/dphi for s -> s + phi x s: row k of dp/ds times [s]x, i.e. (dp_k/ds) x s, with
+    # dp_0/ds = (F/z, 0, -p_0/z) and dp_1/ds = (0, F/z, -p_1/z)
+    fz = focal_px * inv_z
+    a0z, a1z = -p[:, 0] * inv_z, -p[:, 1] * inv_z
+    sx, sy, sz = s[:, 0], s[:, 1], s[:, 2]
+    c0 = np.stack([-a0z * sy, a0z * sx - fz * sz, fz * sy], axis=1)
+    c1 = np.stack([fz * sz - a1z * sy, a1z * sx, -fz * sx], axis=1)
+    j_phi = -np.stack([i00[:, None] * c0 + i01[:, None] * c1, i10[:, None] * c0 + i11[:, None] * c1], axis=1)
     return e, j_theta, j_phi
+
+
+def observation_residuals(
+    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray
+) -> np.ndarray:
+    """The residuals e of :func:`observation_terms` alone (no Jacobians): the cost of a trial step."""
+    q_u, q_v = ideal_offsets(x_px, y_px, theta)
+    dx_u, dx_v, dy_u, dy_v = distortion_partials(x_px - theta[1], y_px - theta[2], theta)
+    _, p, _ = _projection(r, attitude_obs, theta[0])
+    det = (1 - dx_u) * (1 - dy_v) - dx_v * dy_u
+    d0, d1 = q_u - p[:, 0], q_v - p[:, 1]
+    return np.stack([((1 - dy_v) * d0 + dx_v * d1) / det, (dy_u * d0 + (1 - dx_u) * d1) / det], axis=1)
 
 
 @dataclass
@@ -179,11 +202,10 @@ def residuals(
     """Whitened residuals e (N, 2) [measured px] of every star (see :func:`observation_terms`)."""
     out = np.zeros((data.n_obs, 2))
     starts, counts = data.frame_starts, data.counts
-    no_cols = np.zeros(0, dtype=np.int64)
     for f0, f1 in frame_chunks(starts, chunk_obs):
         a, b = int(starts[f0]), int(starts[f1])
         att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
-        out[a:b] = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, no_cols)[0]
+        out[a:b] = observation_residuals(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta)
     return out
 
 
