@@ -59,6 +59,9 @@ class BenchConfig:
     nominal: CameraParams | None = None  # default: hostlink/data/seed004_nominal.json
     site: Site | None = None
     weather: Weather | None = None
+    maglim: float = 6.0  # faintest Hipparcos magnitude simulated (SimConfig.maglim)
+    min_stars: int = 10  # fewest stars per frame (SimConfig.min_stars)
+    max_stars: int = 30  # most stars per frame, brightest kept (SimConfig.max_stars)
     poll_every_frames: int = 25
     emulator_args: tuple[str, ...] = ()
     t0_iso: str = "2026-03-14T02:10:00.000Z"
@@ -78,7 +81,8 @@ def simulate_phases(cfg: BenchConfig):
     from hostlink.timeutil import iso_plus_seconds
 
     common = dict(camera=cfg.camera, noise_px=cfg.noise_px, misid_fraction=cfg.misid_fraction, site=cfg.site,
-                  weather=cfg.weather, frame_interval_s=1.0)
+                  weather=cfg.weather, frame_interval_s=1.0, maglim=cfg.maglim, min_stars=cfg.min_stars,
+                  max_stars=cfg.max_stars)
     cal = simulate(SimConfig(frames=cfg.cal_frames, seed=cfg.seed, t0_iso=cfg.t0_iso, **common))
     drift = simulate(SimConfig(frames=cfg.drift_frames, seed=cfg.seed + 1000,
                                t0_iso=iso_plus_seconds(cfg.t0_iso, float(cfg.cal_frames)),
@@ -193,8 +197,9 @@ def poll_stream(link, n_frames: int, poll_every: int, progress: Callable[[int], 
 
 def estimate_rows(estimates) -> dict[str, np.ndarray]:
     """Polled estimates as columns (frame, f_mm, x0_px, y0_px and their 1-sigma, n_updates, base generation)."""
-    if not estimates:
-        return {k: np.zeros(0) for k in ("frame", "f_mm", "x0_px", "y0_px", "sigma_f_mm", "n_updates", "generation")}
+    if not estimates:  # same keys and dtypes as below (integer columns index arrays)
+        empty = {k: np.zeros(0) for k in ("f_mm", "x0_px", "y0_px", "sigma_f_mm", "sigma_x0_px", "sigma_y0_px")}
+        return empty | {k: np.zeros(0, dtype=np.int64) for k in ("frame", "n_updates", "generation")}
     vals = np.array([e.values for _, e in estimates], dtype=np.float64)
     sig = np.array([e.sigma for _, e in estimates], dtype=np.float64)
     return {
@@ -291,7 +296,10 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
             # 3. calibrate on the host
             t = time.perf_counter()
             data, ref_info = calibration_data_from_session(streamed, cfg.site, cfg.weather)
-            outcome = calibrate(data, nominal, "bundle", noise_px=None)
+            try:
+                outcome = calibrate(data, nominal, "bundle", noise_px=None)
+            except ValueError as exc:  # what the streamed data cannot support (e.g. a nominal far from the camera)
+                raise UserError(f"calibration failed: {exc}") from None
             from hostlink.calibration.run import result_extras
 
             save_params(out / "calibrated.json", outcome.params, result_extras(outcome))
@@ -322,8 +330,20 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
                         cal_estimates, drift_estimates, len(drift_frames), steps, phases)
     summary["elapsed_s"] = time.perf_counter() - t_start
     write_plots(out, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_estimates, drift_estimates, summary)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    (out / "summary.json").write_text(json.dumps(_nan_to_null(summary), indent=2, default=_json_default,
+                                                 allow_nan=False) + "\n")
     return summary
+
+
+def _nan_to_null(o):
+    """The summary with every non-finite float as None (JSON has no NaN: strict readers refuse it)."""
+    if isinstance(o, dict):
+        return {k: _nan_to_null(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_nan_to_null(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not np.isfinite(o):
+        return None
+    return o
 
 
 def _json_default(o):
@@ -543,5 +563,7 @@ def summary_table(summary: dict) -> list[tuple[str, str, str]]:
          "{:.2f}, {:.2f} (1-sigma {:.2f}, {:.2f})".format(*p["error_principal_point_px"],
                                                           *sig["principal_point_px"])),
         ("focal drift tracking (um RMS)", f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
-         f"{track['focal_error_rms_um_converged']:.2f} once converged"),
+         f"{track['focal_error_rms_um_converged']:.2f} once converged"
+         if np.isfinite(track["focal_error_rms_um_converged"])
+         else "n/a (no onboard estimate in the settled drift phase: more --drift-frames)"),
     ]

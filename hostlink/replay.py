@@ -1,8 +1,9 @@
 """Host driver of the onboard recursive calibration (ARCHITECTURE.md: hostlink runs ``onboard`` logic unchanged).
 
 :func:`replay_session` feeds a session, frame by frame, to :mod:`onboard.recursive` exactly as the sensor would
-(identified stars only, the sensor's float32 or the host's float64 reference) and collects a per-frame trace. It is
-shared by ``hostlink replay`` and the emulator.
+(identified stars only, the sensor's float32 or the host's float64 reference, or ``fixed``: the fixed-point front end
+of :mod:`onboard.fixedpoint` for a sensor without an FPU, with its float32 filter) and collects a per-frame trace. It
+is shared by ``hostlink replay`` and the emulator.
 """
 
 from __future__ import annotations
@@ -59,12 +60,37 @@ class ReplayResult:
 
 
 def precision_dtype(precision: str) -> np.dtype:
-    """'float32' / 'float64' -> dtype; 'fixed' is refused with a one-line UserError (not implemented yet)."""
-    if precision == "fixed":
-        raise UserError("--precision fixed: fixed-point replay is not supported yet (use float32 or float64)")
-    if precision not in ("float32", "float64"):
+    """'float32' / 'float64' -> dtype of the estimator; 'fixed' -> float32 (its filter runs in soft float32 behind
+    the integer front end). Anything else is a one-line UserError."""
+    if precision not in PRECISIONS:
         raise UserError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
-    return np.dtype(precision)
+    return np.dtype(np.float32) if precision == "fixed" else np.dtype(precision)
+
+
+@dataclass
+class _FixedInputs:
+    """The session as a fixed-point sensor receives it: centroids in the wire's 2^-10 px steps, catalogue unit
+    vectors in Q30, and the mask of stars the front end can take (identified and on the detector)."""
+
+    x_steps: np.ndarray
+    y_steps: np.ndarray
+    r_q30: np.ndarray
+    usable: np.ndarray
+
+
+def _fixed_inputs(session: Session, nominal: CameraParams, r_all: np.ndarray, identified: np.ndarray) -> _FixedInputs:
+    from onboard import fixedpoint
+    from protocol.messages import quantise_px
+
+    try:
+        fixedpoint.fixed_camera(nominal.model_vector(np.float32), nominal.image_size_px)
+    except fixedpoint.FixedRangeError as exc:
+        raise UserError(f"--precision fixed: the nominal parameters are outside the fixed-point range: {exc}") from None
+    x_steps = quantise_px(session.x_px)
+    y_steps = quantise_px(session.y_px)
+    r_q30 = fixedpoint.quantise_unit_q30(np.where(np.isfinite(r_all), r_all, 0.0))
+    usable = identified & fixedpoint.on_detector(x_steps, y_steps, nominal.image_size_px)
+    return _FixedInputs(x_steps, y_steps, r_q30, usable)
 
 
 def reference_vectors(session: Session) -> np.ndarray:
@@ -97,17 +123,36 @@ def replay_session(
         raise UserError(f"estimator configuration: {exc}") from None
     r_all = reference_vectors(session)
     identified_all = (session.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
+    fixed = _fixed_inputs(session, nominal, r_all, identified_all) if precision == "fixed" else None
     trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
     for k, rows in enumerate(session.frame_slices()):
-        res = recursive.update(
-            state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows]
-        )
+        if fixed is None:
+            res = recursive.update(
+                state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows]
+            )
+        else:
+            res = _update_fixed(state, fixed, rows, r_all, nominal, int(session.frame[rows.start]))
         _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
         if on_frame is not None:
             on_frame(k, res)
     refined = refined_mask(prior_sigma)[state.idx]
     prior = "file" if np.all(refined) else ("file+cold" if np.any(refined) else "cold")
     return ReplayResult(params=recursive.current_params(state), state=state, trace=trace, prior=prior)
+
+
+def _update_fixed(state, fixed: _FixedInputs, rows: slice, r_all, nominal: CameraParams, frame: int):
+    """One frame through the fixed-point front end; the float32 Jacobians see the same (wire-rounded) centroids."""
+    from onboard import fixedpoint
+    from protocol.messages import dequantise_px
+
+    front = fixedpoint.FixedFrame(fixed.x_steps[rows], fixed.y_steps[rows], fixed.r_q30[rows], nominal.image_size_px)
+    try:
+        return recursive.update(
+            state, dequantise_px(fixed.x_steps[rows]), dequantise_px(fixed.y_steps[rows]), r_all[rows],
+            fixed.usable[rows], front_end=front,
+        )
+    except fixedpoint.FixedRangeError as exc:
+        raise UserError(f"--precision fixed: frame {frame}: the estimate left the fixed-point range: {exc}") from None
 
 
 def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, frame: int, t_utc: str) -> None:

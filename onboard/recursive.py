@@ -31,6 +31,11 @@ measurement b_i . b_j = r_i . r_j (seed 004 eq. 1, seed 000 eq. 3), and makes it
   walk ``drift_focal_mm_per_frame`` is switched on, so thermal drift is tracked while a static camera keeps the
   full-memory (Cramer-Rao) estimate.
 
+* Fixed point: ``update(..., front_end=onboard.fixedpoint.FixedFrame(...))`` takes the residuals from the integer
+  front end (Q30 unit vectors, Q61 residuals; ``hostlink replay --precision fixed``) for a sensor without an FPU.
+  The filter (Jacobians, pair covariance, U-D updates) stays in float32, by a soft-float library on such a sensor:
+  its O(P K^2) work per frame is the same as here, while the front end holds the precision that matters.
+
 Work per frame is bounded (stars are capped at ``max_stars`` = N, pairs P = 2N - 3, states K <= 10):
 camera Jacobians O(30 N), pair covariance O(P N), Cholesky O(P^3 / 3), whitening O(P^2 (K + 1)),
 updates O(6 P K^2); at most ``max_iterations`` linearisations and 2 misidentification passes, i.e. at most
@@ -285,13 +290,21 @@ class _Linearised:
     pj: np.ndarray
 
 
-def _linearise(state: RecursiveState, xs, ys, rs, x_hi, x_lo) -> _Linearised:
-    """Residuals, Jacobian (state units) and pair covariance of the independent pairs of ordered stars."""
+def _linearise(state: RecursiveState, xs, ys, rs, x_hi, x_lo, front=None, order=None) -> _Linearised:
+    """Residuals, Jacobian (state units) and pair covariance of the independent pairs of ordered stars.
+
+    ``front`` (see :func:`update`'s ``front_end``) replaces the residuals by the fixed-point front end's, evaluated
+    at theta_r on its grids (theta_q): that rounding joins ``delta``; H and R stay those of this dtype."""
     delta = _linearisation_point(state, x_hi, x_lo)
     b, jb_theta, jb_centroid = unit_vector_jacobians(xs, ys, state.theta_r)
     jb = jb_theta[:, :, state.idx] * state.scale[state.idx]
     pi, pj = independent_pairs(xs.shape[0])
-    e = difference_residuals(b, rs, pi, pj)
+    if front is None:
+        e = difference_residuals(b, rs, pi, pj)
+    else:
+        e, theta_q = front(state.theta_r, order, pi, pj)
+        rounding = (state.theta_r.astype(np.float64) - theta_q)[state.idx] / state.scale[state.idx]
+        delta = delta + rounding.astype(state.dtype)
     h = difference_jacobian(b, jb, pi, pj)
     e = e - h @ delta
     r = pair_covariance(b, jb_centroid, pi, pj, state.config.centroid_noise_px)
@@ -351,9 +364,16 @@ def update(
     y_px: np.ndarray,
     r_ref: np.ndarray,
     identified: np.ndarray | None = None,
+    front_end=None,
 ) -> FrameResult:
     """Process one frame: centroids (x_px, y_px) [px], reference unit vectors r_ref (N, 3) of the identified stars
     (rows of unidentified stars are ignored: ``identified`` False or a non-finite r). Updates ``state`` in place.
+
+    ``front_end`` (optional, e.g. :class:`onboard.fixedpoint.FixedFrame` of the same frame's rows) computes the
+    interstar residuals instead of this dtype's camera model: ``front_end.residuals(theta, rows, pi, pj)`` returns
+    (e in theta's dtype, the float64 model vector it evaluated) for the input rows ``rows`` in pair order. The
+    Jacobians, the pair covariance and the U-D update stay in the state's dtype (float32 on a sensor without an FPU,
+    by a soft-float library: O(P K^2) per frame against the front end's per-star work). Without it nothing changes.
 
     Steps: time update; gate the independent pairs at the prior and remove misidentified stars (at most two
     passes); iterated U-D update; post-fit editing (a star whose pairs the updated state still cannot explain is
@@ -378,6 +398,12 @@ def update(
     ys_all = y_px[sel].astype(dt)
     rs_all = r_ref[sel].astype(dt)
     keep = np.ones(sel.size, dtype=bool)
+    front = None
+    if front_end is not None:
+
+        def front(theta, order, pi, pj):
+            return front_end.residuals(theta, sel[order], pi, pj)
+
     state.u0[:] = state.u
     state.d0[:] = state.d
     prior_hi = state.x_hi.copy()
@@ -387,7 +413,7 @@ def update(
         if attempt:
             state.u[:] = state.u0
             state.d[:] = state.d0
-        status, post_bad = _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, result)
+        status, post_bad = _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, result, front)
         if status or not np.any(post_bad):
             break
         keep[post_bad] = False
@@ -415,7 +441,7 @@ def update(
     return result
 
 
-def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray):
+def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray, front=None):
     """Gate at the prior, removing misidentified stars from ``keep`` (at most two passes). Returns
     (order, linearisation, failing pairs, status) with status "" when the frame can be used."""
     gate2 = state.config.pair_gate_sigma ** 2
@@ -425,7 +451,7 @@ def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray):
         if live.size < 3:
             return order, lin, fail, "fewer than 3 consistent stars"
         order = live[order_for_pairs(xs_all[live], ys_all[live])]
-        lin = _linearise(state, xs_all[order], ys_all[order], rs_all[order], state.x_hi, state.x_lo)
+        lin = _linearise(state, xs_all[order], ys_all[order], rs_all[order], state.x_hi, state.x_lo, front, order)
         fail = _pair_chi2(state, lin) > gate2
         bad = _misidentified(fail, order.size)
         if not np.any(bad) or pass_ == 2 or np.count_nonzero(bad) > order.size // 2:
@@ -436,7 +462,7 @@ def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray):
     return order, lin, fail, ""
 
 
-def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, result):
+def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, result, front=None):
     """One attempt at a frame from the prior (state.u0, state.d0, prior_hi + prior_lo). Returns (status, post_bad):
     post_bad flags (as a mask over the frame's selected stars) stars the post-fit residuals reject."""
     cfg = state.config
@@ -444,7 +470,7 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
     post_bad = np.zeros(keep.size, dtype=bool)
     state.x_hi[:] = prior_hi
     state.x_lo[:] = prior_lo
-    order, lin, fail, status = _gate(state, xs_all, ys_all, rs_all, keep)
+    order, lin, fail, status = _gate(state, xs_all, ys_all, rs_all, keep, front)
     if status:
         return status, post_bad
     used = ~fail
@@ -460,7 +486,7 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
         if it > 0:
             state.u[:] = state.u0
             state.d[:] = state.d0
-            lin = _linearise(state, xs, ys, rs, lin_hi, lin_lo)
+            lin = _linearise(state, xs, ys, rs, lin_hi, lin_lo, front, order)
         e = lin.e[used]
         h = lin.h[used]
         r = lin.r[np.ix_(used, used)]

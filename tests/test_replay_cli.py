@@ -119,7 +119,6 @@ def test_replay_estimates_only_the_named_parameters(tmp_path, seed004_session):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--precision", "fixed"], "not supported yet"),
         (["--precision", "float16"], "expected one of"),
         (["--estimate", "f,zz"], "unknown parameter"),
         (["--noise-px", "-1"], "positive"),

@@ -111,7 +111,10 @@ def observation_terms(
 
     attitude_obs: (n, 3, 3) attitude of each star's frame. Returns e (n, 2) [measured px], J_theta (n, 2, K)
     with respect to the model-vector entries ``cols``, J_phi (n, 2, 3) with respect to the frame's rotation
-    increment. The whitening Jc^-1 is held fixed in the derivative (Gauss-Newton on a weighted problem).
+    increment. J_theta is the exact derivative of e, including that of the whitening Jc^-1 (which depends on the
+    principal point and the distortion): with the whitening held fixed, the Gauss-Newton fixed point is not the
+    minimum of sum |e|^2 and, along the weak principal-point/decentering/attitude direction, lies many standard
+    deviations from it (:func:`whitening_jacobian`).
     """
     q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
     focal_px = theta[0]
@@ -125,6 +128,7 @@ def observation_terms(
         jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
     j_theta = np.stack([i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1],
                         i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1)
+    j_theta += whitening_jacobian(x_px - theta[1], y_px - theta[2], theta, cols, e, (i00, i01, i10, i11))
     # dp/dphi for s -> s + phi x s: row k of dp/ds times [s]x, i.e. (dp_k/ds) x s, with
     # dp_0/ds = (F/z, 0, -p_0/z) and dp_1/ds = (0, F/z, -p_1/z)
     fz = focal_px * inv_z
@@ -134,6 +138,36 @@ def observation_terms(
     c1 = np.stack([fz * sz - a1z * sy, a1z * sx, -fz * sx], axis=1)
     j_phi = -np.stack([i00[:, None] * c0 + i01[:, None] * c1, i10[:, None] * c0 + i11[:, None] * c1], axis=1)
     return e, j_theta, j_phi
+
+
+def whitening_jacobian(
+    u: np.ndarray, v: np.ndarray, theta: np.ndarray, cols: np.ndarray, e: np.ndarray, jc_inv: tuple
+) -> np.ndarray:
+    """d(Jc^-1) / d theta applied to d = Jc e: the part of de/dtheta that comes from the whitening (n, 2, K).
+
+    Jc = I - P with P the distortion partials (``onboard.camera.distortion_partials``), so
+    d(Jc^-1)/dtheta_k d = Jc^-1 (dP/dtheta_k) e. P is linear in the coefficients k1..s2, so dP/dtheta_k is P at
+    the unit coefficient vector; for the principal point, dP/dx0 = -dP/du and dP/dy0 = -dP/dv, taken by the
+    complex step (Squire and Trapp 1998: Im P(u + i h) / h, exact to round-off for this polynomial). F: zero.
+    """
+    i00, i01, i10, i11 = jc_inv
+    out = np.zeros((u.shape[0], 2, cols.size))
+    h = 1e-30
+    for c, k in enumerate(cols):
+        if k == 0:
+            continue
+        if k in (1, 2):
+            du, dv = (-1j * h, 0.0) if k == 1 else (0.0, -1j * h)
+            dp = [part.imag / h for part in distortion_partials(u + du, v + dv, theta)]
+        else:
+            unit = np.zeros(10)
+            unit[k] = 1.0
+            dp = distortion_partials(u, v, unit)
+        p_e0 = dp[0] * e[:, 0] + dp[1] * e[:, 1]  # (dP/dtheta_k) e
+        p_e1 = dp[2] * e[:, 0] + dp[3] * e[:, 1]
+        out[:, 0, c] = i00 * p_e0 + i01 * p_e1
+        out[:, 1, c] = i10 * p_e0 + i11 * p_e1
+    return out
 
 
 def observation_residuals(

@@ -48,6 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nominal", metavar="NOMINAL.json",
                         help="the sensor's factory parameters (default: hostlink/data/seed004_nominal.json)")
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
+    parser.add_argument("--maglim", type=float, default=6.0, metavar="M",
+                        help="faintest Hipparcos magnitude Hp simulated (default 6; raise it for a narrow field)")
+    parser.add_argument("--min-stars", type=_positive_int, default=10, metavar="K",
+                        help="fewest stars per frame (default 10)")
+    parser.add_argument("--max-stars", type=_positive_int, default=30, metavar="K",
+                        help="most stars per frame, brightest kept (default 30)")
     add_site_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -74,11 +80,14 @@ def run(args: argparse.Namespace) -> int:
         out_dir=Path(args.out), transport=args.transport, cal_frames=args.frames, drift_frames=args.drift_frames,
         noise_px=args.noise_px, misid_fraction=args.misid, drift_um=args.drift_um,
         drift_period_frames=float(args.drift_period or args.drift_frames), seed=args.seed, site=site, weather=weather,
+        maglim=args.maglim, min_stars=args.min_stars, max_stars=args.max_stars,
     )
     if args.camera:
         cfg.camera = load_params(args.camera)
     if args.nominal:
         cfg.nominal = load_params(args.nominal)
+    elif args.camera:
+        cfg.nominal = design_nominal(cfg.camera)
     if cfg.nominal is not None and (cfg.nominal.image_size_px != cfg.camera.image_size_px
                                     or cfg.nominal.pixel_pitch_um != cfg.camera.pixel_pitch_um):
         raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
@@ -86,6 +95,18 @@ def run(args: argparse.Namespace) -> int:
     _print_table(summary)
     print(f"report: {Path(args.out) / 'summary.json'} and PNG plots in {args.out}/ ({summary['elapsed_s']:.0f} s)")
     return 0
+
+
+def design_nominal(camera):
+    """What a user knows of a camera before calibrating it (INTERFACES.md, nominal file): its design focal length,
+    pitch and image size, the principal point at the image centre and no distortion. The bench's nominal when
+    --camera is given without --nominal (the built-in seed 004 nominal fits only the built-in camera)."""
+    from dataclasses import replace
+
+    from onboard.params import Distortion
+
+    width, height = camera.image_size_px
+    return replace(camera, principal_point_px=((width - 1) / 2.0, (height - 1) / 2.0), distortion=Distortion())
 
 
 def _print_table(summary: dict) -> None:

@@ -9,7 +9,10 @@ DESCRIPTION = (
     "Feeds every frame of SESSION.csv (identified stars with ra_deg/dec_deg) to the onboard recursive estimator "
     "(interstar difference measurements, whitened over 2n-3 pairs, Bierman U-D updates, misidentification gating, "
     "focal-drift tracking) starting from NOMINAL.json, and writes the final estimate as a camera parameter file "
-    "with a 'sigma' object. --precision float64 runs the same code as the host reference. When NOMINAL.json has a "
+    "with a 'sigma' object. --precision float64 runs the same code as the host reference; --precision fixed runs "
+    "the per-star front end (camera model, unit vectors, interstar residuals) in integer arithmetic as a sensor "
+    "without an FPU would (centroids in the wire's 2^-10 px, unit vectors in Q30, residuals in Q61; "
+    "onboard/fixedpoint.py), with the filter update in float32 (soft float on such a sensor). When NOMINAL.json has a "
     "'sigma' object (a calibration result), the estimator starts from it as its prior, exactly as the sensor does "
     "after an upload (parameters without a positive sigma start from the cold-start prior; no burn-in when every "
     "estimated parameter has one); --prior cold ignores it."
@@ -24,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--precision",
         default="float32",
-        help="float32 (the sensor, default), float64 (host reference) or fixed (not supported yet)",
+        help="float32 (the sensor, default), float64 (host reference) or fixed (integer front end for a sensor "
+        "without an FPU: Q30 unit vectors, Q61 residuals; float32 filter update)",
     )
     p.add_argument(
         "--estimate",
@@ -59,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from onboard.prior import refined_mask, sigma_from_dict
     from onboard.recursive import RecursiveConfig, parse_estimate_names
 
-    precision_dtype(args.precision)  # refuse 'fixed' / unknown before reading files
+    precision_dtype(args.precision)  # refuse an unknown precision before reading files
     try:
         names = parse_estimate_names(args.estimate)
     except ValueError as exc:

@@ -1,0 +1,332 @@
+"""Fixed-point front end of the onboard estimator, for a sensor without an FPU (ARCHITECTURE.md: onboard).
+
+What runs per star and per frame runs here in integers: the camera model of CAMERA_MODEL.md from a measured
+centroid to a sensor-frame unit vector, and the interstar difference residuals of :mod:`onboard.interstar`. It is
+the fixed-point twin of :func:`onboard.camera.pixels_to_unit` and :func:`onboard.interstar.difference_residuals`
+(the same Weng formula, seed 000 eq. 7, term by term; ``tests/test_fixedpoint_camera.py`` holds it against them in
+float64). The filter update (Bierman U-D, O(P K^2) per frame) stays in float32, which such a sensor runs with a
+soft-float library, and so do the Jacobians, which need only ~1e-4 relative accuracy: see
+:mod:`onboard.recursive` (``update(..., front_end=...)``). Each soft-float operation costs many integer
+instructions; the front end is where the precision matters (the residual is a small difference of numbers near 1)
+and where the per-star operations are, so it is the part written in integers.
+
+Rounding: every right shift rounds to nearest, ties toward +infinity (``(a + 2^(n-1)) >> n``, :func:`rshift_round`).
+Every operand stays below 2^34 and every product below 2^62.2, so int64 (< 2^63) never overflows (ranges proved
+in the comments below; tested at the extremes against the same code run on exact Python integers, where the largest
+product reached is 2^62: r^2 squared at the far corner of a detector with the principal point at a corner).
+
+Formats (``Qn`` = integer times 2^-n; S = 2^s px is the smallest power of two >= the longer detector side, and a
+*normalised* length is a length in px divided by S):
+
+==================  =============================================  ==================================================
+quantity            format                                         range
+==================  =============================================  ==================================================
+centroid x, y       Q10 px (the wire's steps, protocol.messages)   on the detector: [-2^9, 2^10 W - 2^9]
+x0, y0              Q(30 - s) px  (= Q30 normalised)                on the detector
+u, v                Q30 normalised (u / S)                         |U| <= 2^30 (|u| <= max(W, H) <= S)
+u^2, uv, v^2, r^2   Q30 normalised^2                               <= 2^30, 2^30, 2^30, 2^31
+r^4, r^6            Q30                                            <= 2^32, 2^33
+K1 = k1 S^2, K2 = k2 S^4, K3 = k3 S^6,                            block floating point: m 2^-e, 2^27 <= |m| <= 2^28
+P = p S, S' = s S   (normalised coefficients, one exponent each)  (a float32 coefficient is held exactly), e <= 62
+radial rho          Q30 (dimensionless)                            |rho| <= 2^30 (range condition below)
+u', v'              Q30 normalised                                 |U'| < 2.5 2^30
+w = (u', v', F)     Q(qw) normalised, qw = 30 - ceil(log2 max(F/S, 4))  |w_c| <= 2^30
+|w|^2               Q(2 qw)                                        < 3 2^60
+1 / sqrt(alpha)     Q30, alpha = |w|^2 scaled to [1/4, 1] (odd shift)  [2^30, 2^31]
+unit vector b       Q30                                            |B_c| <= 2^30 + 1
+catalogue r         Q30 (quantised once, at catalogue build)       |R_c| <= 2^30
+e_ij                Q61, exact from the Q30 vectors                |E| <= 2^62 + 2^34
+==================  =============================================  ==================================================
+
+Range condition (:func:`fixed_camera` refuses a set outside it with :class:`FixedRangeError`): the principal point
+on the detector, s <= 20, F >= S / 8 (a diagonal field up to ~160 deg), and at the farthest corner (normalised
+radius rho_max <= sqrt 2) ``|K1| rho_max^2 + |K2| rho_max^4 + |K3| rho_max^6 + rho_max max(3|P1| + |P2| + |S1|,
+3|P2| + |P1| + |S2|) <= 1``, i.e. the distortion correction never exceeds the radius. Real lenses are far inside
+(seed 004's corrects 0.12 % of the radius at its farthest corner); :func:`onboard.params.validate_params` bounds
+positive radial distortion by monotonicity (k1 r^2 < 1/3) but not negative, so this check is the fixed-point
+sensor's own.
+
+Error against the float64 model at the same parameters (derived from the formats; measured in
+``tests/test_fixedpoint_camera.py`` for the seed-004 camera, S = 1024 px, F = 5852 px): u', v' within 4 Q30 steps
+(S 2^-30 = 9.5e-7 px; measured 2.3 steps); each component of b within 2^-30 (4 + 8 S / F) = 5.4 steps of 2^-30
+(2.9e-5 px on the detector; measured 1.5 steps, 8e-6 px); e_ij within |b_i - b_j| 2 sqrt(3) of that, under
+2e-3 of the pair's noise at 0.05 px centroid noise (measured: 2.3e-4 at most, 6e-5 RMS; 1.6e-5 px at most).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.messages import CENTROID_STEPS_PER_PX
+
+#: Bits of the centroid's fractional part on the wire (2^-10 px = protocol.messages.CENTROID_LSB_PX).
+CENTROID_FRAC_BITS = 10
+assert 1 << CENTROID_FRAC_BITS == CENTROID_STEPS_PER_PX
+#: Fractional bits of normalised lengths, unit vectors and the radial factor.
+Q = 30
+#: Fractional bits of the interstar residual e_ij (exact from Q30 vectors: (2^-30)^2 / 2).
+E_FRAC_BITS = 2 * Q + 1
+#: Largest detector shift s (S = 2^s px): the Q10 centroid must fit the Q(30 - s) grid.
+MAX_DETECTOR_SHIFT = Q - CENTROID_FRAC_BITS
+#: Mantissa bits of a block-floating-point coefficient (float32's 24 bits fit exactly).
+COEF_BITS = 28
+#: Largest coefficient exponent (a right shift of an int64).
+COEF_MAX_EXP = 62
+#: Newton iterations of the reciprocal square root from the 25-entry table (relative error e -> 1.5 e^2:
+#: 3.1e-2 -> 1.4e-3 -> 3.1e-6 -> 1.5e-11, below Q30's 2^-30 = 9.3e-10 after three).
+RSQRT_ITERATIONS = 3
+#: Table of 1/sqrt(alpha) in Q30 at the centre of each bin of alpha = a 2^-31, bins a >> 26 = 8..32:
+#: isqrt(2^66 / (2 i + 1)) = 2^30 sqrt(32 / (i + 1/2)), in [2^30, 2^31) (built with integers only).
+_RSQRT_TABLE = np.array([math.isqrt((1 << 66) // (2 * i + 1)) for i in range(8, 33)], dtype=np.int64)
+_RSQRT_TABLE_FIRST = 8
+
+
+class FixedRangeError(ValueError):
+    """A parameter set, or a centroid, outside the ranges the fixed-point formats are proved for."""
+
+
+@dataclass(frozen=True)
+class FixedCamera:
+    """A camera model vector in the front end's formats (see the module docstring).
+
+    ``coef_m`` / ``coef_e`` are the normalised K1 K2 K3 P1 P2 S1 S2 as m 2^-e. ``theta_q`` is the model vector
+    (F in px, float64, exact) that these integers represent: what the front end evaluates."""
+
+    s: int  # detector shift, S = 2^s px
+    x0_q: int  # Q30 normalised
+    y0_q: int
+    coef_m: tuple[int, ...]
+    coef_e: tuple[int, ...]
+    qw: int  # fractional bits of w
+    f_w: int  # F in Q(qw) normalised
+    image_size_px: tuple[int, int]
+    theta_q: np.ndarray
+
+
+def rshift_round(a, n):
+    """a 2^-n rounded to the nearest integer, ties toward +infinity: (a + 2^(n-1)) >> n, for n >= 1 (scalar or
+    array). Works on int64 arrays and on object arrays of Python integers (the exact reference in the tests)."""
+    return (a + (1 << (n - 1))) >> n
+
+
+def _block_float(value: float) -> tuple[int, int]:
+    """value -> (m, e) with value ~= m 2^-e, 2^27 <= |m| <= 2^28 (round half even), e <= 62 (smaller values keep
+    e = 62 and a smaller m). Exact for a float32 (24-bit mantissa)."""
+    if value == 0.0:
+        return 0, COEF_MAX_EXP
+    frac, exp = math.frexp(value)  # value = frac 2^exp, 1/2 <= |frac| < 1
+    e = COEF_BITS - exp
+    if e > COEF_MAX_EXP:
+        e = COEF_MAX_EXP
+    return round(math.ldexp(value, e)), e
+
+
+def detector_shift(image_size_px: tuple[int, int]) -> int:
+    """s with S = 2^s the smallest power of two >= the longer detector side (s >= 1)."""
+    return max(1, (int(max(image_size_px)) - 1).bit_length())
+
+
+def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCamera:
+    """Model vector (F px, x0, y0, k1..s2; float32 or float64) -> the front end's formats.
+
+    Done once per linearisation (10 values: on a sensor, a few soft-float conversions), not per star. A float32
+    vector converts exactly (28-bit mantissas; F's grid is finer than its float32 ulp whenever F >= S/8) except a
+    principal point below 2^(s - 7) px, rounded to the Q(30 - s) px grid (by at most 2^(s - 31) px);
+    ``theta_q`` is the exact value used, so a caller can account for the rounding.
+    Raises :class:`FixedRangeError` outside the range condition of the module docstring."""
+    w, h = (int(image_size_px[0]), int(image_size_px[1]))
+    s = detector_shift((w, h))
+    if s > MAX_DETECTOR_SHIFT:
+        raise FixedRangeError(f"detector side {max(w, h)} px exceeds the fixed-point range (2^{MAX_DETECTOR_SHIFT})")
+    t = [float(v) for v in np.asarray(theta, dtype=np.float64)]
+    if not all(math.isfinite(v) for v in t):
+        raise FixedRangeError("parameters must be finite")
+    f_px, x0, y0 = t[0], t[1], t[2]
+    if not (-0.5 <= x0 <= w - 0.5 and -0.5 <= y0 <= h - 0.5):
+        raise FixedRangeError(f"principal point ({x0:.3f}, {y0:.3f}) px is off the detector")
+    scale_px = float(1 << s)
+    if not f_px >= scale_px / 8:
+        raise FixedRangeError(f"focal length {f_px:.1f} px is below S/8 = {scale_px / 8:.0f} px (field too wide)")
+    x0_q = round(math.ldexp(x0, Q - s))  # exact: ldexp scales by a power of two
+    y0_q = round(math.ldexp(y0, Q - s))
+    # normalised coefficients: k1 S^2, k2 S^4, k3 S^6, p S, s S (powers of two: exact)
+    powers = (2, 4, 6, 1, 1, 1, 1)
+    blocks = [_block_float(math.ldexp(t[3 + k], s * powers[k])) for k in range(7)]
+    coef = [math.ldexp(m, -e) for m, e in blocks]
+    # range condition at the farthest corner (float64 on 10 values; every bound below has a factor >= 1.6 to spare)
+    corners_x = (-0.5 - math.ldexp(x0_q, s - Q), w - 0.5 - math.ldexp(x0_q, s - Q))
+    corners_y = (-0.5 - math.ldexp(y0_q, s - Q), h - 0.5 - math.ldexp(y0_q, s - Q))
+    rho2 = max(cx * cx + cy * cy for cx in corners_x for cy in corners_y) / (scale_px * scale_px)
+    rho = math.sqrt(rho2)
+    k1, k2, k3, p1, p2, s1, s2 = coef
+    c_rad = abs(k1) * rho2 + abs(k2) * rho2**2 + abs(k3) * rho2**3
+    c_tan = rho * max(3 * abs(p1) + abs(p2) + abs(s1), 3 * abs(p2) + abs(p1) + abs(s2))
+    if not c_rad + c_tan <= 1.0:
+        raise FixedRangeError(
+            f"distortion correction up to {100 * (c_rad + c_tan):.0f} % of the radius exceeds the fixed-point "
+            "range (100 %)"
+        )
+    # w = (u', v', F) normalised: |u'| < 2.5 (below), so max(F/S, 4) 2^qw <= 2^30 bounds every component
+    cap = max(f_px / scale_px, 4.0)
+    frac, exp = math.frexp(cap)
+    qw = Q - (exp - 1 if frac == 0.5 else exp)  # 30 - ceil(log2 cap) <= 28
+    f_w = round(math.ldexp(f_px, qw - s))
+    theta_q = np.array(
+        [math.ldexp(f_w, s - qw), math.ldexp(x0_q, s - Q), math.ldexp(y0_q, s - Q)]
+        + [math.ldexp(c, -s * powers[k]) for k, c in enumerate(coef)],
+        dtype=np.float64,
+    )
+    return FixedCamera(
+        s=s,
+        x0_q=x0_q,
+        y0_q=y0_q,
+        coef_m=tuple(m for m, _ in blocks),
+        coef_e=tuple(e for _, e in blocks),
+        qw=qw,
+        f_w=f_w,
+        image_size_px=(w, h),
+        theta_q=theta_q,
+    )
+
+
+def on_detector(x_steps: np.ndarray, y_steps: np.ndarray, image_size_px: tuple[int, int]) -> np.ndarray:
+    """Mask of centroids (Q10 px) on the detector [-0.5, W - 0.5] x [-0.5, H - 0.5]: the only ones the front end
+    takes (a star cannot be imaged elsewhere; the formats' range proof assumes it)."""
+    half = 1 << (CENTROID_FRAC_BITS - 1)
+    w, h = (int(image_size_px[0]), int(image_size_px[1]))
+    return (
+        (x_steps >= -half)
+        & (x_steps <= (w << CENTROID_FRAC_BITS) - half)
+        & (y_steps >= -half)
+        & (y_steps <= (h << CENTROID_FRAC_BITS) - half)
+    )
+
+
+def _coef_term(power_q30, cam: FixedCamera, k: int):
+    """power (Q30, < 2^34) times coefficient k (m 2^-e, |m| <= 2^28) -> Q30: product < 2^62."""
+    return rshift_round(power_q30 * cam.coef_m[k], cam.coef_e[k])
+
+
+def ideal_offsets_q30(x_steps, y_steps, cam: FixedCamera):
+    """Measured centroids (Q10 px) -> ideal offsets (u', v') = (u - dx, v - dy), Q30 normalised (px / S).
+
+    The Weng correction at the measured point (CAMERA_MODEL.md, seed 000 eq. 7), grouped by coefficient as in
+    :func:`onboard.camera.ideal_offset_jacobians`: with g1 = s1 + p1, g2 = s2 + p2, g3 = 2 p1, g4 = 2 p2,
+    dx = p1 (3u^2 + v^2) + 2 p2 uv + s1 r^2 + u (k1 r^2 + k2 r^4 + k3 r^6) and
+    dy = p2 (u^2 + 3v^2) + 2 p1 uv + s2 r^2 + v (k1 r^2 + k2 r^4 + k3 r^6).
+    Raises :class:`FixedRangeError` when a centroid lies off the detector (|u| > S)."""
+    shift = MAX_DETECTOR_SHIFT - cam.s  # Q10 px -> Q(30 - s) px, s <= 20
+    u = (x_steps << shift) - cam.x0_q  # |u| <= max(W, H) <= S  ->  |U| <= 2^30
+    v = (y_steps << shift) - cam.y0_q
+    if np.any(np.abs(u) > (1 << Q)) or np.any(np.abs(v) > (1 << Q)):
+        raise FixedRangeError("centroid off the detector")
+    uu = rshift_round(u * u, Q)  # U^2 <= 2^60  ->  <= 2^30
+    vv = rshift_round(v * v, Q)
+    uv = rshift_round(u * v, Q)  # |uv| <= 2^30
+    r2 = uu + vv  # <= 2^31 (rho^2 <= 2)
+    r4 = rshift_round(r2 * r2, Q)  # r2^2 <= 2^62  ->  <= 2^32
+    r6 = rshift_round(rshift_round(r4, 1) * r2, Q - 1)  # r4 r2 could reach 2^63: halve r4 first, <= 2^62
+    radial = _coef_term(r2, cam, 0) + _coef_term(r4, cam, 1) + _coef_term(r6, cam, 2)  # |rho| <= 2^30
+    ru = rshift_round(u * radial, Q)  # |U rho| <= 2^60
+    rv = rshift_round(v * radial, Q)
+    uv2 = uv + uv  # 2uv, <= 2^31
+    dx = ru + _coef_term(3 * uu + vv, cam, 3) + _coef_term(uv2, cam, 4) + _coef_term(r2, cam, 5)
+    dy = rv + _coef_term(uu + 3 * vv, cam, 4) + _coef_term(uv2, cam, 3) + _coef_term(r2, cam, 6)
+    return u - dx, v - dy  # |dx| <= rho_max <= sqrt 2: |U'| < 2.5 2^30
+
+
+def rsqrt_q30(n2):
+    """1 / sqrt(n2) for integers 2^50 <= n2 < 2^62, as (Y, k): 1/sqrt(n2) = Y 2^-30 2^-k, Y in Q30 in [2^30, 2^31].
+
+    Normalise n2 = alpha 2^(31 + sh) with alpha = a 2^-31 in [1/4, 1] and 31 + sh even (a = n2 >> sh rounded, its
+    top 30-31 bits); then 1/sqrt(n2) = alpha^-1/2 2^-(31 + sh)/2, so k = (31 + sh) / 2. alpha^-1/2 starts from the
+    table at a >> 26 and takes :data:`RSQRT_ITERATIONS` Newton steps y <- y (3 - alpha y^2) / 2 in integers."""
+    length = _bit_length(n2)  # 51..62
+    sh = length - Q - 1  # a in [2^30, 2^31)
+    sh = sh + ((sh + 1) & 1)  # make sh odd (then a in [2^29, 2^30)): 31 + sh even
+    a = rshift_round(n2, sh)  # in [2^29, 2^31]
+    y = _RSQRT_TABLE[((a >> 26) - _RSQRT_TABLE_FIRST).astype(np.intp)].astype(a.dtype)  # Q30, rel. error <= 3.1 %
+    for _ in range(RSQRT_ITERATIONS):
+        t1 = rshift_round(a * y, Q + 1)  # a y <= 2^31 1.031 2^31 < 2^63; t1 = alpha y in Q30
+        t2 = rshift_round(t1 * y, Q)  # alpha y^2 ~ 1 in Q30; t1 y <= 2^31.1 2^31.1
+        y = rshift_round(y * (3 * (1 << Q) - t2), Q + 1)  # y (3 - alpha y^2) / 2; factors <= 2^31.1 each (3.1 % start)
+    return y, (Q + 1 + sh) >> 1
+
+
+def _bit_length(x):
+    """Bit length of positive integers < 2^63 (a CLZ instruction on a sensor): binary search with shifts."""
+    n = np.zeros_like(x)
+    y = x
+    for k in (32, 16, 8, 4, 2, 1):
+        big = (y >> k) > 0
+        n = n + np.where(big, k, 0)
+        y = np.where(big, y >> k, y)
+    return n + (y > 0)
+
+
+def offsets_to_unit_q30(u_ideal, v_ideal, cam: FixedCamera):
+    """Ideal offsets (Q30 normalised) -> sensor-frame unit vectors b = (u', v', F) / |.| in Q30, shape (N, 3)."""
+    down = Q - cam.qw  # >= 2
+    wu = rshift_round(u_ideal, down)  # |u'| < 2.5 <= 4: |wu| <= 2^30 (max(F/S, 4) 2^qw <= 2^30)
+    wv = rshift_round(v_ideal, down)
+    wf = cam.f_w  # F 2^qw / S in [2^(qw - 3), 2^30]
+    n2 = wu * wu + wv * wv + wf * wf  # < 3 2^60; >= wf^2 >= 2^50 (F >= S/8 and qw = 28 when F < 4S)
+    y, k = rsqrt_q30(n2)
+    b = np.empty((np.shape(wu)[0], 3), dtype=np.result_type(wu))
+    b[:, 0] = rshift_round(wu * y, k)  # |w_c| <= 2^30, y <= 2^31: product <= 2^61
+    b[:, 1] = rshift_round(wv * y, k)
+    b[:, 2] = rshift_round(wf * y, k)
+    return b
+
+
+def pixels_to_unit_q30(x_steps, y_steps, cam: FixedCamera):
+    """Measured centroids (Q10 px, int64) -> sensor-frame unit vectors (N, 3), Q30: the fixed-point twin of
+    :func:`onboard.camera.pixels_to_unit`."""
+    u_i, v_i = ideal_offsets_q30(x_steps, y_steps, cam)
+    return offsets_to_unit_q30(u_i, v_i, cam)
+
+
+def quantise_unit_q30(r: np.ndarray) -> np.ndarray:
+    """Catalogue unit vectors (float) -> Q30 int64 (round half even). Done once when the catalogue is built
+    (ground software), not per frame; the error, 2^-31 per component, is 1/64 of float32's 2^-25."""
+    return np.rint(np.ldexp(np.asarray(r, dtype=np.float64), Q)).astype(np.int64)
+
+
+def difference_residuals_q61(b_q30, r_q30, i, j):
+    """e_ij = (|b_i - b_j|^2 - |r_i - r_j|^2) / 2 in Q61, exact (the fixed-point twin of
+    :func:`onboard.interstar.difference_residuals`). Components of a difference of two Q30 unit vectors are at
+    most 2^31 + 2, so |d|^2 <= 4 2^60 (1 + 2^-28) and the difference of two such fits int64."""
+    db = b_q30[i] - b_q30[j]
+    dr = r_q30[i] - r_q30[j]
+    sb = db[:, 0] * db[:, 0] + db[:, 1] * db[:, 1] + db[:, 2] * db[:, 2]  # Q60, partial sums <= the total
+    sr = dr[:, 0] * dr[:, 0] + dr[:, 1] * dr[:, 1] + dr[:, 2] * dr[:, 2]
+    return sb - sr  # (sb - sr) 2^-60 / 2 = (sb - sr) 2^-61
+
+
+def residuals_to_float(e_q61: np.ndarray, dtype: type | np.dtype) -> np.ndarray:
+    """Q61 residuals -> the filter's float (one rounding: int64 -> float, then an exact power-of-two scaling)."""
+    dt = np.dtype(dtype)
+    return np.asarray(e_q61).astype(dt) * dt.type(2.0**-E_FRAC_BITS)
+
+
+@dataclass(frozen=True)
+class FixedFrame:
+    """One frame's integer inputs for the fixed-point front end: centroids in Q10 px (the wire's steps) and the
+    identified stars' catalogue unit vectors in Q30, one row per input star. Passed to
+    :func:`onboard.recursive.update` as ``front_end``."""
+
+    x_steps: np.ndarray  # (N,) int64
+    y_steps: np.ndarray  # (N,) int64
+    r_q30: np.ndarray  # (N, 3) int64
+    image_size_px: tuple[int, int]
+
+    def residuals(self, theta: np.ndarray, rows: np.ndarray, pi: np.ndarray, pj: np.ndarray):
+        """Residuals e (P,) of the pairs (pi, pj) of the stars ``rows`` at the model vector ``theta`` (converted to
+        the fixed formats), as ``theta``'s float dtype, and the float64 model vector actually evaluated."""
+        cam = fixed_camera(theta, self.image_size_px)
+        b = pixels_to_unit_q30(self.x_steps[rows], self.y_steps[rows], cam)
+        e = difference_residuals_q61(b, self.r_q30[rows], pi, pj)
+        return residuals_to_float(e, np.asarray(theta).dtype), cam.theta_q
