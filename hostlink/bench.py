@@ -339,7 +339,7 @@ def _nan_to_null(o):
     """The summary with every non-finite float as None (JSON has no NaN: strict readers refuse it)."""
     if isinstance(o, dict):
         return {k: _nan_to_null(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
+    if isinstance(o, (list, tuple, np.ndarray)):
         return [_nan_to_null(v) for v in o]
     if isinstance(o, (float, np.floating)) and not np.isfinite(o):
         return None

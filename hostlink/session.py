@@ -79,6 +79,28 @@ class Session:
         )
 
 
+#: How far a centroid may lie outside the detector extent before a session and a parameter file are declared not to
+#: belong together [px]: an edge star's centroid window can extrapolate a fraction of a pixel past the last pixel.
+DETECTOR_MARGIN_PX = 1.0
+
+
+def check_on_detector(session: Session, image_size_px: tuple[int, int], session_name: str, params_name: str) -> None:
+    """Refuse (one-line UserError) a session with a centroid off the detector of a parameter file
+    (``[-0.5, w - 0.5] x [-0.5, h - 0.5]``, CAMERA_MODEL.md, plus :data:`DETECTOR_MARGIN_PX`): the file then
+    describes another camera and every result would be silently wrong."""
+    width, height = image_size_px
+    m = DETECTOR_MARGIN_PX
+    off = (session.x_px < -0.5 - m) | (session.x_px > width - 0.5 + m)
+    off |= (session.y_px < -0.5 - m) | (session.y_px > height - 0.5 + m)
+    if np.any(off):
+        k = int(np.argmax(off))
+        raise UserError(
+            f"{session_name}: {int(off.sum())} centroid(s) off the {width} x {height} px detector of {params_name} "
+            f"(first: frame {int(session.frame[k])}, ({session.x_px[k]:.1f}, {session.y_px[k]:.1f}) px); "
+            "the parameter file does not describe this camera"
+        )
+
+
 def read_session(path: str | Path) -> Session:
     """Read and check a session CSV. Any malformed content is a one-line :class:`UserError` with row and column."""
     path = Path(path)

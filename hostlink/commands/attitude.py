@@ -248,7 +248,7 @@ def write_attitudes(path: str, cols: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hostlink.params_io import load_params
-    from hostlink.session import read_session
+    from hostlink.session import check_on_detector, read_session
 
     site, weather = site_and_weather(args)
     mode = refraction_mode(args.refraction, weather)
@@ -265,9 +265,15 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     if len(session) == 0:
         raise UserError(f"{args.session}: no observations")
+    check_on_detector(session, params.image_size_px, args.session, args.params)
+    if not (session.star_id != 0).any():
+        raise UserError(f"{args.session}: no identified star (every star_id is 0); an attitude needs identified stars")
     cols = solve_session(session, params, site, weather, args.dut1 or 0.0, mode, args.refraction_model,
                          args.reject_arcsec, args.min_stars, args.precision, mounting)
     write_attitudes(args.out, cols)
     solved = int(sum(s == "ok" for s in cols["status"]))
     print(f"hostlink attitude: {solved}/{len(cols['status'])} frames solved (refraction: {mode}) -> {args.out}")
+    if solved == 0:
+        raise UserError(f"no frame solved (each frame's reason is in the status column of {args.out}; "
+                        f"--min-stars {args.min_stars})")
     return 0

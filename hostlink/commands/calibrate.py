@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     from hostlink.calibration.references import calibration_data_from_session
     from hostlink.calibration.run import calibrate, result_extras
     from hostlink.params_io import load_params, save_params
-    from hostlink.session import read_session
+    from hostlink.session import check_on_detector, read_session
     from onboard.params import ParameterError, validate_params
 
     estimate = _parse_estimate(args.estimate)
@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     session = read_session(args.session)
     if len(session) == 0:
         raise UserError(f"{args.session}: no star rows")
+    check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
     data, info = calibration_data_from_session(session, site, weather, args.dut1)
     say = (lambda *a: None) if args.quiet else print
     say(f"calibrate: {data.n_obs} identified stars in {data.n_frames} frames ({info.n_unidentified} unidentified "

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from hostlink.errors import UserError
     from hostlink.params_io import load_params_with_extras, save_params
     from hostlink.replay import estimate_extras, precision_dtype, replay_session, write_trace
-    from hostlink.session import read_session
+    from hostlink.session import check_on_detector, read_session
     from onboard.params import ParameterError
     from onboard.prior import refined_mask, sigma_from_dict
     from onboard.recursive import RecursiveConfig, parse_estimate_names
@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--prior file: {args.nominal} has no 'sigma' object with a positive 1-sigma")
     prior_sigma = None if args.prior == "cold" else file_sigma
     session = read_session(args.session)
+    check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
     if session.n_frames == 0 or len(session) == 0:
         raise UserError(f"{args.session}: no frames")
     walk = [0.0] * 10
