@@ -18,8 +18,7 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.session import Session
 from onboard import recursive
-from onboard.camera import radec_to_unit
-from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams
+from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.prior import prior_config, refined_mask
 
 PRECISIONS = ("float32", "float64", "fixed")
@@ -94,13 +93,12 @@ def _fixed_inputs(session: Session, nominal: CameraParams, r_all: np.ndarray, id
 
 
 def reference_vectors(session: Session) -> np.ndarray:
-    """Reference unit vectors (rows, 3) from the session's ra_deg/dec_deg (NaN rows for unidentified stars)."""
-    if session.ra_deg is None or session.dec_deg is None:
-        raise UserError(
-            "the session has no ra_deg/dec_deg columns; replay needs the reference direction of each identified "
-            "star (simulate or record sessions with them)"
-        )
-    return radec_to_unit(np.radians(session.ra_deg), np.radians(session.dec_deg))
+    """Reference unit vectors (rows, 3), NaN for unidentified stars: the session's ra_deg/dec_deg, or when the file
+    has none, the apparent place of each star_id at its frame's time from Hipparcos (INTERFACES.md), as the sensor
+    itself computes it from its onboard catalogue."""
+    from hostlink.sky.apparent import session_reference_directions
+
+    return session_reference_directions(session)
 
 
 def replay_session(
@@ -137,7 +135,23 @@ def replay_session(
             on_frame(k, res)
     refined = refined_mask(prior_sigma)[state.idx]
     prior = "file" if np.all(refined) else ("file+cold" if np.any(refined) else "cold")
-    return ReplayResult(params=recursive.current_params(state), state=state, trace=trace, prior=prior)
+    params = recursive.current_params(state)
+    check_estimate(params, trace)
+    return ReplayResult(params=params, state=state, trace=trace, prior=prior)
+
+
+def check_estimate(params: CameraParams, trace: dict[str, list]) -> None:
+    """A diverged or unusable estimate is a one-line error naming the first bad frame, never a NaN file."""
+    focal = np.asarray(trace["focal_length_mm"], dtype=np.float64)
+    bad = ~np.isfinite(focal)
+    if np.any(bad):
+        frame = trace["frame"][int(np.argmax(bad))]
+        raise UserError(f"the onboard estimator diverged (non-finite estimate at frame {frame}); check the nominal "
+                        "parameters and --noise-px")
+    try:
+        validate_params(params)
+    except ParameterError as exc:
+        raise UserError(f"the final estimate is not a usable parameter set: {exc}") from None
 
 
 def _update_fixed(state, fixed: _FixedInputs, rows: slice, r_all, nominal: CameraParams, frame: int):

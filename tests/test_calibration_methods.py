@@ -69,3 +69,20 @@ def test_sine_jacobian_matches_central_differences():
         hm = -_sine_terms(unit_vector_jacobians(d.x_px, d.y_px, tm)[0], d.r, jb, i, j)[0]
         # central differences of sin(angle) ~ 0.1: truncation and round-off far below 1e-5 of the largest entry
         np.testing.assert_allclose(dh[:, k], (hp - hm) / (2 * step), atol=1e-5 * np.abs(dh[:, k]).max())
+
+
+def test_improved_alternation_that_is_still_moving_is_reported_as_not_converged():
+    """Seed 000's two-step alternation (6 rounds) crawls when the principal point and the decentering terms are
+    almost interchangeable (rho ~ 0.999): with every Weng term near 1 px at the corner it has not reached its fixed
+    point, and must say so instead of returning a result with bound-sized sigmas. On seed 004's mild radial camera
+    it converges."""
+    from onboard.params import CameraParams, Distortion
+
+    strong = CameraParams(70.2, 12.0, (520.0, 500.0), (1024, 1024),
+                          Distortion(k1=-1.5e-9, k2=2e-15, k3=-8e-21, p1=1e-6, p2=-8e-7, s1=6e-7, s2=-1e-6))
+    nominal = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
+    fit = calibrate_interstar(synthetic_session(strong, 150, seed=4).data, nominal, "cos", True)
+    assert not fit.converged and fit.last_round_step_sigmas > 0.1
+    mild = seed004_camera()
+    fit = calibrate_interstar(synthetic_session(mild, 150, seed=4).data, nominal, "cos", True)
+    assert fit.converged

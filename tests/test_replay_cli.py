@@ -133,11 +133,38 @@ def test_replay_refuses_bad_options_in_one_line(tmp_path, capsys, seed004_sessio
     assert code == 2 and message in err and err.count("\n") == 1
 
 
-def test_replay_refuses_a_session_without_reference_directions(tmp_path, capsys, seed004_session):
+def test_replay_refuses_a_star_id_unknown_to_hipparcos_when_the_file_has_no_reference_directions(
+    tmp_path, capsys, seed004_session
+):
     s = seed004_session.session.select(seed004_session.session.frame < 3)
     s.ra_deg = s.dec_deg = None
+    s.star_id[0] = 999_999  # Hipparcos numbers stop at 120404
     write_session(tmp_path / "s.csv", s)
     (tmp_path / "n.json").write_text(json.dumps(NOMINAL))
     code = main(["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out",
                  str(tmp_path / "e.json")])
-    assert code == 2 and "ra_deg/dec_deg" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 2 and "999999" in err and len(err.strip().splitlines()) == 1
+
+
+def test_replay_without_reference_columns_computes_them_from_hipparcos(tmp_path):
+    """INTERFACES.md: when ra_deg/dec_deg are absent, the reference directions come from the catalogue at t_utc.
+    The simulator wrote them through the same ERFA apparent place, rounded to 1e-10 deg (0.4 mas) in the file, so
+    the two replays must agree to far below the estimate's sigma."""
+    import csv
+
+    src = tmp_path / "s.csv"
+    assert main(["simulate", "--preset", "seed004", "--frames", "40", "--out", str(src)]) == 0
+    rows = list(csv.reader(src.open()))
+    keep = [i for i, name in enumerate(rows[0]) if name not in ("ra_deg", "dec_deg")]
+    stripped = tmp_path / "noref.csv"
+    with stripped.open("w", newline="") as handle:
+        csv.writer(handle).writerows([[r[i] for i in keep] for r in rows])
+    nominal = "hostlink/data/seed004_nominal.json"
+    for name, session in (("a", src), ("b", stripped)):
+        assert main(["replay", str(session), "--nominal", nominal, "--out", str(tmp_path / f"{name}.json")]) == 0
+    a = json.loads((tmp_path / "a.json").read_text())
+    b = json.loads((tmp_path / "b.json").read_text())
+    assert abs(a["focal_length_mm"] - b["focal_length_mm"]) < 1e-6  # mm; sigma after 40 frames is ~1e-3 mm
+    for k in range(2):
+        assert abs(a["principal_point_px"][k] - b["principal_point_px"][k]) < 1e-3  # px; sigma ~10 px

@@ -45,6 +45,9 @@ OPTICAL = ("f", "x0", "y0")
 DISTORTION = tuple(n for n in ESTIMATE_NAMES if n not in OPTICAL)
 #: Rounds of steps (2)-(3) of the improved method (seed 000 sec. 4.1: stable after 6 iterations).
 IMPROVED_ROUNDS = 6
+#: the alternation counts as converged when its last round moved the camera by less than this many joint sigmas
+#: (a move that small changes no reported digit of significance); otherwise the result says "not converged"
+ALTERNATION_CONVERGED_SIGMAS = 0.1
 #: Stars used by the first step of the improved method: within this fraction of the half-diagonal from the centre.
 CENTRAL_FRACTION = 0.5
 
@@ -57,6 +60,10 @@ class InterstarFit:
     sigma_estimated_px: float
     history: list[dict] = field(default_factory=list)
     stages: list[dict] = field(default_factory=list)  # per-step results (name, theta) for reports and tests
+    #: how far the last alternation round moved the camera, in standard deviations of the joint problem
+    #: (sqrt(d^T N d) / sigma); the improved methods have reached their fixed point only when this is small
+    last_round_step_sigmas: float = 0.0
+    converged: bool = True
 
 
 def frame_pair_orders(data: CalibrationData) -> list[np.ndarray]:
@@ -262,5 +269,13 @@ def calibrate_interstar(
         cols = parameter_columns(final)
         normal, _, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, np.ones(cols.size))
     dof = max(n_pairs - len(final), 1)
+    sigma_px = float(np.sqrt(cost / dof))
+    step_sigmas = 0.0
+    if improved and len(stages) >= 2:
+        cols = parameter_columns(final)
+        delta = (stages[-1]["theta"] - stages[-2]["theta"])[cols]
+        step_sigmas = float(np.sqrt(max(delta @ normal @ delta, 0.0))) / max(sigma_px, 1e-300)
     return InterstarFit(theta=theta, estimate=tuple(n for n in ESTIMATE_NAMES if n in final), normal=normal,
-                        sigma_estimated_px=float(np.sqrt(cost / dof)), history=history, stages=stages)
+                        sigma_estimated_px=sigma_px, history=history, stages=stages,
+                        last_round_step_sigmas=step_sigmas,
+                        converged=step_sigmas < ALTERNATION_CONVERGED_SIGMAS)

@@ -114,7 +114,7 @@ def calibrate(
         u_diag = None
         rejected = {"voting": n_voted, "gating": n_gated,
                     "frames_dropped": int(data.select(np.ones(data.n_obs, bool))[0].n_frames - fit_data.n_frames)}
-        history, converged, stages = fit.history, True, fit.stages
+        history, converged, stages = fit.history, fit.converged, fit.stages
     rejected["total_stars"] = int(data.n_obs - fit_data.n_obs)
     sigma = float(noise_px) if noise_px else sigma_est
     cov = covariance_from_normal(normal, sigma)
