@@ -19,7 +19,7 @@ from hostlink.errors import UserError
 from hostlink.session import Session
 from onboard import recursive
 from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
-from onboard.prior import prior_config, refined_mask
+from onboard.prior import prior_config, refined_mask, sigma_to_dict
 
 PRECISIONS = ("float32", "float64", "fixed")
 
@@ -203,7 +203,7 @@ def estimate_extras(result: ReplayResult, precision: str) -> dict:
     state = result.state
     used = sum(1 for s in result.trace["skipped"] if not s)
     return {
-        "sigma": recursive.sigma(state),
+        "sigma": estimate_sigma_json(state),
         "method": "onboard-recursive-ud",
         "precision": precision,
         "prior": result.prior,
@@ -214,6 +214,17 @@ def estimate_extras(result: ReplayResult, precision: str) -> dict:
         "rejected_stars": int(sum(result.trace["n_rejected_stars"])),
         "focal_drift_detected_frame": state.drift_frame if state.drift_on else None,
     }
+
+
+def estimate_sigma_json(state) -> dict:
+    """The estimate's 1-sigma in the parameter file's layout (as ``hostlink calibrate`` writes it, and as
+    ``hostlink upload`` sends it): estimated parameters get their sigma, the others are null and listed in ``fixed``."""
+    values = np.full(len(ESTIMATE_NAMES), np.nan)
+    for name, value in recursive.sigma(state).items():
+        values[ESTIMATE_NAMES.index(name)] = value
+    out = sigma_to_dict(values) or {}
+    out["fixed"] = [n for n in ESTIMATE_NAMES if n not in state.names]
+    return out
 
 
 def write_trace(path: str | Path, trace: dict[str, list]) -> None:

@@ -115,7 +115,7 @@ def sigma_from_dict(data: Mapping | None, validate: bool = True) -> np.ndarray:
         for k, key in enumerate(DISTORTION_KEYS):
             if key in dist:
                 out[3 + k] = number(SIGMA_FILE_FIELDS[3 + k], dist[key])
-    for k, name in enumerate(ESTIMATE_NAMES):  # the flat layout (onboard estimate files)
+    for k, name in enumerate(ESTIMATE_NAMES):  # the flat layout (keyed f, x0, ...), also accepted on input
         if name in data:
             out[k] = number(SIGMA_FILE_FIELDS[k], data[name])
     if validate:

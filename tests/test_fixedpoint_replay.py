@@ -17,7 +17,8 @@ from hostlink.sky.simulate import seed004_config, simulate
 from onboard import fixedpoint, recursive
 from onboard.camera import pixels_to_unit
 from onboard.interstar import difference_residuals
-from onboard.params import params_from_dict
+from onboard.params import ESTIMATE_NAMES, params_from_dict
+from onboard.prior import sigma_from_dict
 from protocol.messages import dequantise_px, quantise_px
 
 
@@ -47,7 +48,7 @@ def test_fixed_replay_matches_float64_within_5_percent_of_the_bound_and_stays_ne
     err = fixed - camera.model_vector()
     assert np.all(np.abs(err / crb) < 3.5), err / crb  # each parameter: a 1-in-2000 event for an efficient estimator
     assert err @ info @ err / 10 < 1.3**2 * 2.3  # chi2(10)/10 below its 99.9 % point at 1.3x the bound
-    sig = np.array([doc["sigma"][n] for n in doc["estimated"]])
+    sig = sigma_from_dict(doc["sigma"])[[ESTIMATE_NAMES.index(n) for n in doc["estimated"]]]
     sig[0] *= 1000.0 / camera.pixel_pitch_um
     assert np.all((sig / crb > 0.9) & (sig / crb < 1.3)), sig / crb  # the filter's own sigma, as for float32
 

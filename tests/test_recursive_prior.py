@@ -208,7 +208,7 @@ def test_replay_starts_from_the_file_sigma_by_default_and_from_cold_on_request(c
     truth = simulate(seed004_config(1, seed=4)).truth["camera"]["principal_point_px"]
     for doc in (file_doc, cold_doc):  # both converge near the truth (cold: from 1 px off with the wide prior)
         err = np.subtract(doc["principal_point_px"], truth)
-        sig = [doc["sigma"]["x0"], doc["sigma"]["y0"]]
+        sig = list(sigma_from_dict(doc["sigma"])[1:3])
         assert np.all(np.abs(err) < 4 * np.array(sig)), (doc["prior"], err, sig)  # 4 sigma: a 1-in-16000 event
     capsys.readouterr()
 

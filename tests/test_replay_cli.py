@@ -16,7 +16,8 @@ from hostlink.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
-from onboard.params import CameraParams, params_from_dict
+from onboard.params import ESTIMATE_NAMES, CameraParams, params_from_dict
+from onboard.prior import sigma_from_dict
 
 NOMINAL = {  # seed 004 sec. 3's starting point: f 72 mm, principal point (512, 512), no distortion
     "focal_length_mm": 72.0,
@@ -81,7 +82,7 @@ def test_replay_reaches_the_bound_and_float32_matches_float64(tmp_path, seed004_
     diff = (p32.model_vector() - p64.model_vector()) / crb
     assert np.all(np.abs(diff) < 0.05), diff  # float32 vs float64 under 5 % of the bound (measured < 1 %)
     # the reported sigma is the filter's and agrees with the bound (burn-in cost measured at 4-12 %)
-    sig = np.array([doc32["sigma"][n] for n in doc32["estimated"]])
+    sig = sigma_from_dict(doc32["sigma"])[[ESTIMATE_NAMES.index(n) for n in doc32["estimated"]]]
     sig[0] *= 1000.0 / camera.pixel_pitch_um
     assert np.all((sig / crb > 0.9) & (sig / crb < 1.3)), sig / crb
     # summary scalar: rotation-free RMS mapping error over the detector against its own bound
