@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.linkopts import add_link_arguments, open_link_from_args
+
 HELP = "commit the onboard estimate as the active parameter set (same safe path as upload)"
 DESCRIPTION = (
     "Reads the active set and the onboard recursive estimate, forms the full parameter set (the active one with the "
@@ -15,9 +17,8 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--link", required=True, help="sensor link string")
+    add_link_arguments(parser)
     parser.add_argument("--out", metavar="PARAMS.json", help="also write the committed set here")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,12 +26,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from hostlink.errors import UserError
-    from hostlink.links import open_link
     from hostlink.sensor_client import accept_estimate, params_float32_dict
 
-    if args.timeout <= 0:
-        raise UserError("--timeout must be > 0")
-    with open_link(args.link, timeout_s=args.timeout) as link:
+    with open_link_from_args(args) as link:
         result, estimate = accept_estimate(link)
     text = json.dumps(params_float32_dict(result.active, result.sigma), indent=2) + "\n"
     sys.stdout.write(text)

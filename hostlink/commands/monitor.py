@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.linkopts import add_link_arguments, open_link_from_args
+
 HELP = "watch the onboard estimate (values, 1-sigma, updates) while the sensor runs"
 DESCRIPTION = (
     "Polls the sensor's onboard recursive estimate every --interval seconds and prints one line per poll: frame, "
@@ -13,13 +15,12 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--link", required=True, help="sensor link string")
+    add_link_arguments(parser)
     parser.add_argument("--count", type=int, default=10, metavar="N", help="polls before exiting (default 10; 0 = "
                         "until interrupted)")
     parser.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between polls (default 1)")
     parser.add_argument("--no-stream", action="store_true", help="do not switch the centroid stream on")
     parser.add_argument("--json", action="store_true", help="one JSON object per line instead of text")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,13 +29,13 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from hostlink.errors import UserError
-    from hostlink.links import CommandRefused, open_link
+    from hostlink.links import CommandRefused
     from protocol.messages import ESTIMATE_FIELDS, NakCode
 
-    if args.count < 0 or args.interval <= 0 or args.timeout <= 0:
-        raise UserError("--count must be >= 0, --interval and --timeout > 0")
+    if args.count < 0 or args.interval <= 0:
+        raise UserError("--count must be >= 0 and --interval > 0")
     polls = 0
-    with open_link(args.link, timeout_s=args.timeout) as link:
+    with open_link_from_args(args) as link:
         if not args.no_stream:
             link.set_streaming(True)
         try:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.linkopts import add_link_arguments, open_link_from_args
+
 HELP = "print the sensor's active parameters as a camera parameter file"
 DESCRIPTION = (
     "Reads the active parameter set (with its generation and CRC) and prints it as a camera parameter file (JSON) "
@@ -13,9 +15,8 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--link", required=True, help="sensor link string")
+    add_link_arguments(parser)
     parser.add_argument("--out", metavar="PARAMS.json", help="also write the file here")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,12 +24,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from hostlink.errors import UserError
-    from hostlink.links import open_link
     from hostlink.sensor_client import params_float32_dict, read_active_params
 
-    if args.timeout <= 0:
-        raise UserError("--timeout must be > 0")
-    with open_link(args.link, timeout_s=args.timeout) as link:
+    with open_link_from_args(args) as link:
         active = read_active_params(link)
     text = json.dumps(params_float32_dict(active.params, active.sigma), indent=2) + "\n"
     sys.stdout.write(text)

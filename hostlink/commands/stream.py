@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.linkopts import add_link_arguments, open_link_from_args
+
 HELP = "record N centroid frames from a sensor into a session CSV"
 DESCRIPTION = (
     "Starts the sensor's centroid stream, records --frames frames with a progress bar, stops the stream and writes "
@@ -13,11 +15,9 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--link", required=True, help="sensor link string, e.g. serial:/dev/ttyUSB0@921600")
+    add_link_arguments(parser)
     parser.add_argument("--frames", type=int, required=True, metavar="N", help="frames to record")
     parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
-                        help="longest wait for a reply or a frame [s] (default 2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -25,16 +25,13 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from hostlink.errors import UserError
-    from hostlink.links import open_link
     from hostlink.progress import progress_bar
     from hostlink.sensor_client import frames_to_session, stream_frames
     from hostlink.session import write_session
 
     if args.frames < 1:
         raise UserError("--frames must be >= 1")
-    if args.timeout <= 0:
-        raise UserError("--timeout must be > 0")
-    with open_link(args.link, timeout_s=args.timeout) as link, \
+    with open_link_from_args(args) as link, \
             progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
         result = stream_frames(link, args.frames, progress=advance)
     write_session(args.out, frames_to_session(result.frames), float_format="%.10f")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.linkopts import add_link_arguments, open_link_from_args
+
 HELP = "validate, upload, verify and commit a parameter file on a sensor (A/B banks)"
 DESCRIPTION = (
     "Safe upload: 1. validate the set on the host; 2. stage it on the sensor in chunks; 3. the sensor checks its "
@@ -18,8 +20,7 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("params", metavar="PARAMS.json", help="camera parameter file")
-    parser.add_argument("--link", required=True, help="sensor link string")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout [s] (default 2)")
+    add_link_arguments(parser)
     parser.add_argument("--no-host-check", action="store_true",
                         help="skip step 1 (testing: let the sensor's own checks refuse a bad set)")
     parser.add_argument("--verbose", action="store_true", help="print each step")
@@ -31,19 +32,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from hostlink.errors import UserError
-    from hostlink.links import open_link
     from hostlink.sensor_client import float32_equal, safe_upload
     from onboard.prior import refined_mask
 
-    if args.timeout <= 0:
-        raise UserError("--timeout must be > 0")
     params, sigma = load_unchecked(args.params) if args.no_host_check else load_with_sigma(args.params)
 
     def step(k: int, text: str) -> None:
         if args.verbose:
             print(f"step {k}/6: {text}", file=sys.stderr)
 
-    with open_link(args.link, timeout_s=args.timeout) as link:
+    with open_link_from_args(args) as link:
         result = safe_upload(link, params, host_check=not args.no_host_check, step=step, sigma=sigma)
     # safe_upload compared the bytes; this is the user's promise
     if not float32_equal(result.active, params, result.sigma, sigma):
