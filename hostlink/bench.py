@@ -111,9 +111,10 @@ def concatenate_sessions(first, second, frame_offset: int):
 
 
 def sensor_reference_session(session, site: Site | None, weather: Weather | None):
-    """The replay file the emulated sensor holds: a ground sensor refracts its catalogue directions itself
-    (seed 001 sec. 4, ``onboard.refraction``), so its recursive estimator sees refraction-corrected references."""
-    if site is None or weather is None:
+    """The replay file the emulated sensor holds: a ground sensor turns its catalogue directions into observed ones
+    itself (diurnal aberration, then refraction: seed 001 sec. 4, ``onboard.refraction.topocentric_observed``), so
+    its recursive estimator sees corrected references."""
+    if site is None:
         return session
     from hostlink.calibration.references import refract_references
     from onboard.camera import radec_to_unit, unit_to_radec

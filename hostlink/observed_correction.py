@@ -7,6 +7,10 @@ apparent zenith distance z_a = angle(w, U) (eq. 12-13): a rotation about w x U b
 Here R(z_a) is the model's own argument, so no approximation is involved. The zenith in sensor axes needs an
 attitude: a first attitude from the uncorrected vectors (off by about R, a minute of arc) gives U_s to that accuracy,
 which moves R by R'(z) * 1' < 0.001"; one more pass removes even that.
+
+Diurnal aberration is not refraction: it belongs to the reference side in both methods. ``hostlink attitude``
+passes ``r`` already aberrated by the site velocity (``onboard.refraction.topocentric_observed`` without weather),
+so this module corrects the measured vectors for the atmosphere only.
 """
 
 from __future__ import annotations

@@ -126,3 +126,58 @@ def test_observed_correction_undoes_the_reference_lift(model):
     back = correct_observed(lifted, zenith, weather, model)
     gap = np.arctan2(np.linalg.norm(np.cross(back, r), axis=1), np.sum(back * r, axis=1))
     assert gap.max() < 1e-4 * ARCSEC  # the observed correction uses R(z_a) exactly: no approximation to undo
+
+
+# ------------------------------------------------------------------ apparent -> observed at a site (one function)
+
+def _local_directions(n: int, max_zd_deg: float, seed: int) -> np.ndarray:
+    """Random unit directions (n, 3) in the local north-up-east frame, zenith distance uniform up to max_zd_deg."""
+    rng = np.random.default_rng(seed)
+    z = np.radians(rng.uniform(0.0, max_zd_deg, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    return np.stack([np.sin(z) * np.cos(az), np.cos(z), np.sin(z) * np.sin(az)], axis=1)
+
+
+UP = np.array([0.0, 1.0, 0.0])
+#: The site velocity at the equator at sea level, eastward in the local north-up-east frame [m/s].
+EQUATOR_VELOCITY_LOCAL_M_S = np.array([0.0, 0.0, 465.10])
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
+
+
+@pytest.mark.parametrize("weather", [None, WEATHERS[0], WEATHERS[1]])
+def test_topocentric_observed_matches_erfa_aberration_then_erfa_refraction(weather):
+    from hostlink.sky.site import observed_directions_truth
+
+    r = _local_directions(500, 75.0, 3)
+    ours = rf.topocentric_observed(r, UP, EQUATOR_VELOCITY_LOCAL_M_S, weather)
+    truth = observed_directions_truth(r, UP, EQUATOR_VELOCITY_LOCAL_M_S, weather)
+    # no air: ERFA ab's own relativistic formula by the same velocity, float64 rounding only (1e-6 mas);
+    # air: ERFA's single Newton step of the refraction inverse against our exact one, 3 mas at 75 deg (module doc)
+    bound_mas = 1e-6 if weather is None else 3.5
+    assert _angles(ours, truth).max() < bound_mas * 1e-3 * ARCSEC
+    # and the diurnal term is there: 0.32" toward the east point, beta sin(angle to east)
+    beta_arcsec = 465.10 / 299792458.0 / ARCSEC
+    shift = _angles(rf.topocentric_observed(r, UP, EQUATOR_VELOCITY_LOCAL_M_S), r) / ARCSEC
+    np.testing.assert_allclose(shift, beta_arcsec * np.sqrt(1 - r[:, 2] ** 2), rtol=0, atol=1e-6)
+    assert 0.31 < shift.max() < beta_arcsec * (1 + 1e-9)  # 0.320": the 0.32" of diurnal aberration at the equator
+
+
+def test_topocentric_observed_with_no_velocity_is_the_refraction_lift_alone():
+    r = _local_directions(200, 80.0, 5)
+    np.testing.assert_array_equal(rf.topocentric_observed(r, UP, np.zeros(3)), r)
+    np.testing.assert_array_equal(rf.topocentric_observed(r, UP, np.zeros(3), WEATHERS[0]),
+                                  rf.refract_toward_zenith(r, UP, WEATHERS[0]))
+
+
+def test_topocentric_observed_in_float32_stays_within_float32_rounding_of_float64():
+    r = _local_directions(500, 80.0, 9)
+    v = np.array([0.0, 0.0, 357.3])
+    want = rf.topocentric_observed(r, UP, v, WEATHERS[0])
+    got = rf.topocentric_observed(r.astype(np.float32), UP.astype(np.float32), v.astype(np.float32), WEATHERS[0])
+    assert got.dtype == np.float32
+    # as the lift alone (test_lift_adds_the_refraction...): unit-vector rounding (0.01") and the zenith distance's
+    # rounding inside tan z; the 0.25" aberration change is computed on its own, so it adds no error of its size
+    assert _angles(got.astype(np.float64), want).max() < 0.03 * ARCSEC

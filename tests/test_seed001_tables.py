@@ -230,7 +230,9 @@ def test_table8_ship_attitude_from_the_attitude_command_with_the_table5_mounting
     ref = _arcsec_from_table2(_ship_from_cli(table_files, "reference"))
     obs = _arcsec_from_table2(_ship_from_cli(table_files, "observed"))
     # Table 2's ship attitude from Table 6's printed image points: the 0.015 px (0.45") Earth-orientation offset
-    # between ours and the paper's plus the printed decimals, as in test_table8_methods_agree_within_0p1_arcsec...
+    # between ours and the paper's plus the printed decimals, as in test_table8_methods_agree_within_0p1_arcsec...,
+    # plus the diurnal aberration the command applies with --site and the paper leaves out (0.27" at 32 deg; it
+    # moves the ship angles by 0.06-0.17": measured max 0.52" with it, 0.47" without)
     assert np.abs(ref).max() < 0.7
     assert np.abs(obs).max() < 0.7
     assert np.abs(ref - obs).max() < 0.1  # Table 8 / sec. 5: the two methods agree within 0.1"

@@ -20,7 +20,13 @@ from hostlink.sky.simulate import (
     truth_path_for,
     write_truth,
 )
-from hostlink.sky.site import refract_directions_truth, zenith_distance_rad, zenith_true_of_date
+from hostlink.sky.site import (
+    observed_directions_truth,
+    refract_directions_truth,
+    site_velocity_true_of_date,
+    zenith_distance_rad,
+    zenith_true_of_date,
+)
 from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
 from onboard.params import CameraParams, Distortion, params_from_dict
 from onboard.site import Site, Weather
@@ -43,9 +49,11 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
 
 
-def _measured_vs_truth(result, weather: Weather | None = None, site: Site | None = None) -> np.ndarray:
+def _measured_vs_truth(result, weather: Weather | None = None, site: Site | None = None,
+                       diurnal: bool = True) -> np.ndarray:
     """Angle between the camera's direction of each identified centroid (true camera, frame's focal length) and
-    C r, with r the session's reference direction (refracted by the truth's model at a ground site)."""
+    C r, with r the session's reference direction (at a ground site: aberrated by the site velocity, unless
+    ``diurnal`` is False, and refracted by the truth's model)."""
     s, truth = result.session, result.truth
     att = np.asarray(truth["attitude"]).reshape(-1, 3, 3)
     f_mm = np.asarray(truth["focal_length_mm"])
@@ -53,10 +61,13 @@ def _measured_vs_truth(result, weather: Weather | None = None, site: Site | None
     ident = s.star_id != 0
     r = radec_to_unit(np.radians(s.ra_deg[ident]), np.radians(s.dec_deg[ident]))
     frame = s.frame[ident]
-    if weather is not None:
+    if site is not None:
         jd1, jd2 = s.frame_times_jd()
         zen = zenith_true_of_date(jd1, jd2, site)[frame]
-        r = refract_directions_truth(r, zen, weather)
+        if diurnal:
+            r = observed_directions_truth(r, zen, site_velocity_true_of_date(jd1, jd2, site)[frame], weather)
+        elif weather is not None:
+            r = refract_directions_truth(r, zen, weather)
     out = np.empty(frame.size)
     for k in np.unique(frame):
         sel = frame == k
@@ -93,6 +104,20 @@ def test_noise_free_ground_session_obeys_refraction_truth_and_reports_unrefracte
     assert zd.min() >= 50.0 - 1e-9 and zd.max() <= 75.0 + 1e-9
     # without refraction the same centroids would be off by tens of arcseconds: the truth really is refracted
     assert np.median(_measured_vs_truth(result)) > 20 * np.pi / 648000
+    # and without diurnal aberration by 0.2-0.25" (465 m/s cos 39.9 deg / c = 0.25" at most): it is applied too
+    no_diurnal = _measured_vs_truth(result, weather, site, diurnal=False) / (np.pi / 648000)
+    assert 0.1 < np.median(no_diurnal) and no_diurnal.max() < 0.26
+
+
+def test_ground_session_without_weather_is_aberrated_by_the_site_velocity_only():
+    site = Site(-33.0, 20.0, 1500.0)
+    cfg = replace(seed004_config(frames=20, seed=3), noise_px=0.0, site=site, zenith_range_deg=(0.0, 60.0))
+    result = simulate(cfg)
+    assert result.truth["diurnal_aberration"] and not result.truth["refraction"]
+    assert _measured_vs_truth(result, None, site).max() < EXACT_RAD
+    # the geocentric apparent direction misses by the diurnal aberration (0.27" at most here)
+    plain = _measured_vs_truth(result) / (np.pi / 648000)
+    assert 0.05 < np.median(plain) and plain.max() < 0.28
 
 
 def test_reference_directions_are_the_apparent_place_of_the_star_at_the_frame_time():

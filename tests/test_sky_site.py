@@ -8,10 +8,12 @@ import pytest
 
 from hostlink.sky.site import (
     local_north_east,
+    observed_directions_truth,
     refract_directions_truth,
     refraction_constants,
     refraction_observed_rad,
     refraction_truth_rad,
+    site_velocity_true_of_date,
     zenith_distance_rad,
     zenith_true_of_date,
 )
@@ -146,3 +148,70 @@ def test_observed_form_is_erfa_refco_model_definition():
 def test_zenith_distances_beyond_the_model_are_refused():
     with pytest.raises(ValueError, match="zenith distance"):
         refraction_truth_rad(np.array([np.radians(89.0)]), WEATHER)
+
+
+# ------------------------------------------------------------------ the simulator's observed place against atco13
+
+#: 0.01" (the target for the simulator's truth): measured 0.8-2.2e-5" in vacuo (aberrating by the two velocities in
+#: turn instead of by their sum, 3e-5" at most, and the site's parallax) and 1.2-1.3e-4" with air up to 80 deg, where
+#: ERFA's small-angle application of the lift, cos(dz) ~ 1 - dz^2/2, contributes 0.12 mas (see the tests above).
+ATCO13_BOUND_RAD = 0.01 * ARCSEC
+
+
+def _hipparcos_above(jd1: float, jd2: float, site: Site, dut1: float, max_zd_deg: float, count: int):
+    """StarsJ2000 of the first ``count`` Hp <= 6 stars above ``max_zd_deg`` zenith distance, their geocentric
+    apparent directions (the simulator's route: apci13/atciq, ra = ri - eo) and the site's zenith of date."""
+    from hostlink.sky.apparent import apparent_from_astrometry, frame_astrometry, stars_at_j2000
+    from hostlink.sky.catalogue import load_catalogue
+
+    stars = stars_at_j2000(load_catalogue(6.0))
+    astrom, eo = frame_astrometry(np.array([jd1]), np.array([jd2]))
+    r_app = apparent_from_astrometry(stars, astrom[0], eo[0])
+    zen = zenith_true_of_date(jd1, jd2, site, dut1)
+    sel = np.flatnonzero(zenith_distance_rad(r_app, zen) < np.radians(max_zd_deg))[:count]
+    return stars.take(sel), r_app[sel], zen
+
+
+@pytest.mark.parametrize("site,dut1,iso", [
+    (BEIJING, 0.3, "2026-03-14T18:10:00.000Z"),
+    (Site(-24.6, -70.4, 2635.0), -0.2, "2027-11-02T03:00:00.000Z"),
+    (Site(0.5, 10.0, 0.0), 0.0, "2026-06-21T12:00:00.000Z"),
+])
+@pytest.mark.parametrize("weather", [None, WEATHER])
+def test_simulated_observed_directions_match_erfa_atco13_for_hipparcos_stars(site, dut1, iso, weather):
+    # The simulator's truth (geocentric apparent place, diurnal aberration by erfa.pvtob's site velocity, then
+    # ERFA's refraction) against ERFA's ICRS -> observed in one call (apco13 + atciq + atioq: the site velocity is
+    # added to the Earth's before aberrating, polar motion 0, the same dUT1 and weather), compared as observed
+    # azimuth and zenith distance in the local frame, for 300 stars up to 80 deg from the zenith.
+    jd1, jd2 = _times(iso)
+    stars, r_app, zen = _hipparcos_above(jd1, jd2, site, dut1, 80.0, 300)
+    assert stars.ra_rad.size == 300
+    obs = observed_directions_truth(r_app, zen, site_velocity_true_of_date(jd1, jd2, site, dut1), weather)
+    north, east = local_north_east(zen)
+    zd_ours, az_ours = zenith_distance_rad(obs, zen), np.arctan2(obs @ east, obs @ north)
+    air = (weather.pressure_hpa, weather.temp_c, weather.rel_humidity, weather.wavelength_um) if weather else (
+        0.0, 0.0, 0.0, 0.55)
+    aob, zob, *_ = erfa.atco13(stars.ra_rad, stars.dec_rad, stars.pmra_radyr, stars.pmdec_radyr, stars.plx_arcsec,
+                               stars.rv_kms, jd1, jd2, dut1, np.radians(site.lon_deg), np.radians(site.lat_deg),
+                               site.height_m, 0.0, 0.0, *air)
+    d_zd = zd_ours - zob
+    d_az = np.angle(np.exp(1j * (az_ours - aob))) * np.sin(zob)  # azimuth difference as an angle on the sky
+    assert np.abs(d_zd).max() < ATCO13_BOUND_RAD
+    assert np.abs(d_az).max() < ATCO13_BOUND_RAD
+    # control: the geocentric apparent place (refracted alike) misses ERFA by the diurnal aberration, 0.32" cos(lat)
+    # at most, which is 30x the bound at these latitudes
+    geo = r_app if weather is None else refract_directions_truth(r_app, zen, weather)
+    miss = np.hypot(zenith_distance_rad(geo, zen) - zob,
+                    np.angle(np.exp(1j * (np.arctan2(geo @ east, geo @ north) - aob))) * np.sin(zob))
+    assert 0.3 * np.cos(np.radians(site.lat_deg)) * ARCSEC < miss.max() < 0.33 * ARCSEC
+
+
+def test_site_velocity_is_eastward_at_the_rotation_speed():
+    # 2 pi (N + h) cos(lat) / sidereal day: 465.1 m/s at the equator at sea level; eastward (along local east)
+    jd1, jd2 = _times("2026-03-14T02:10:00.000Z")
+    for site, speed in ((Site(0.0, 0.0, 0.0), 465.10), (BEIJING, 357.3)):
+        v = site_velocity_true_of_date(jd1, jd2, site)
+        _, east = local_north_east(zenith_true_of_date(jd1, jd2, site))
+        assert np.linalg.norm(v) == pytest.approx(speed, abs=0.05)
+        assert np.linalg.norm(np.cross(v / np.linalg.norm(v), east)) < 1e-12
+        assert v @ east > 0

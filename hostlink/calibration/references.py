@@ -2,11 +2,12 @@
 
 - From the file's ``ra_deg, dec_deg`` (geocentric apparent place, true equator and equinox of date) when present;
   otherwise from Hipparcos as apparent place at each frame's ``t_utc`` (``hostlink.sky.apparent``, pyerfa).
-- Ground sessions (``--site`` and ``--weather``): the stars were seen through the atmosphere, lifted toward the
-  zenith. The reference directions are refracted the same way before the fit (seed 001 sec. 4, the
-  reference-quantity correction: rotate nothing but the catalogue vector's elevation), so a calibration made far
-  from the zenith is not biased. The formula lives in ``onboard.refraction`` (one formula, one place); the zenith
-  of date comes from ``hostlink.sky.site``.
+- Ground sessions (``--site``): the stars were seen from a rotating site (diurnal aberration, <= 0.32") and, with
+  ``--weather``, through the atmosphere, lifted toward the zenith. The reference directions are turned the same
+  way before the fit (seed 001 sec. 4, the reference-quantity correction, preceded by the site-velocity
+  aberration), so a calibration made far from the zenith is not biased. The formula lives in
+  ``onboard.refraction.topocentric_observed`` (one formula, one place); the zenith and the site velocity of date
+  come from ``hostlink.sky.site`` (ERFA).
 """
 
 from __future__ import annotations
@@ -47,27 +48,21 @@ def reference_directions(session: Session, rows: np.ndarray, dut1_s: float = 0.0
 
 
 def refract_references(
-    r: np.ndarray, frame_starts: np.ndarray, jd1: np.ndarray, jd2: np.ndarray, site: Site, weather: Weather,
+    r: np.ndarray, frame_starts: np.ndarray, jd1: np.ndarray, jd2: np.ndarray, site: Site, weather: Weather | None,
     dut1_s: float = 0.0,
 ) -> np.ndarray:
-    """Lift each frame's reference directions toward that frame's zenith by the refraction (seed 001 sec. 4).
+    """Each frame's geocentric apparent reference directions as observed from the site: aberrated by the site's
+    rotation velocity (diurnal aberration) and, with weather, lifted toward that frame's zenith by the refraction
+    (seed 001 sec. 4): ``onboard.refraction.topocentric_observed``, in float64, per frame."""
+    from hostlink.sky.site import site_velocity_true_of_date, zenith_true_of_date
+    from onboard.refraction import topocentric_observed
 
-    Uses ``onboard.refraction.refract_toward_zenith(r, zenith, weather)`` (imported here, at the point of use).
-    """
-    from hostlink.sky.site import zenith_true_of_date
-
-    try:
-        from onboard.refraction import refract_toward_zenith
-    except ImportError:
-        raise UserError(
-            "--site/--weather: the refraction correction (onboard.refraction.refract_toward_zenith) is not "
-            "available in this build"
-        ) from None
     zenith = zenith_true_of_date(jd1, jd2, site, dut1_s)
+    velocity = site_velocity_true_of_date(jd1, jd2, site, dut1_s)
     out = np.empty_like(r)
     for f in range(frame_starts.shape[0] - 1):
         a, b = int(frame_starts[f]), int(frame_starts[f + 1])
-        out[a:b] = refract_toward_zenith(r[a:b], zenith[f], weather)
+        out[a:b] = topocentric_observed(r[a:b], zenith[f], velocity[f], weather)
     return out
 
 
@@ -83,12 +78,16 @@ def calibration_data_from_session(
     sub = session.select(identified)
     data = build_data(sub.x_px, sub.y_px, r, sub.frame, None, sub.star_id)
     refraction = "none"
-    if site is not None and weather is not None:
+    if site is not None:
         jd1, jd2 = sub.frame_times_jd()
         r_obs = refract_references(data.r, data.frame_starts, jd1, jd2, site, weather, dut1_s)
         data = build_data(sub.x_px, sub.y_px, r_obs, sub.frame, None, sub.star_id)
-        refraction = (f"reference directions refracted (seed 001 sec. 4) for {weather.temp_c:g} C, "
-                      f"{weather.pressure_hpa:g} hPa at {site.lat_deg:g}, {site.lon_deg:g}, {site.height_m:g} m")
+        where = f"at {site.lat_deg:g}, {site.lon_deg:g}, {site.height_m:g} m"
+        if weather is None:
+            refraction = f"reference directions with diurnal aberration only (no weather: no refraction) {where}"
+        else:
+            refraction = (f"reference directions with diurnal aberration and refraction (seed 001 sec. 4) for "
+                          f"{weather.temp_c:g} C, {weather.pressure_hpa:g} hPa {where}")
     data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
     if data.n_frames == 0:
         raise UserError("no frame has at least 3 identified stars")

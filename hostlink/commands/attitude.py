@@ -5,13 +5,19 @@ directions (the session's ``ra_deg, dec_deg``: geocentric apparent place, true e
 the file has none, the same computed from Hipparcos), and the attitude C with b = C r (``onboard.attitude``, SVD),
 after dropping stars whose residual exceeds ``--reject-arcsec`` (misidentifications).
 
+Diurnal aberration (ground and ship-borne sessions: whenever --site is given, whatever --refraction says): the
+site's rotation velocity (``onboard.earth.site_velocity_tod_m_s``, 465 m/s cos(lat)) aberrates every star by up to
+0.32"; it is applied to the reference directions, never to the measured ones (it is not refraction), in every mode.
+
 Refraction (ground and ship-borne sessions, needs --site and --weather; seed 001):
 - ``reference`` (default with --weather; what the sensor does): rotate the reference vectors into the local
-  north-up-east frame (``onboard.earth.local_frame_matrix``), lift each by the refraction at its true zenith
-  distance (``onboard.refraction.refract_toward_zenith``), solve the attitude there, rotate back: C = C_g R_ig.
-- ``observed`` (seed 001 sec. 3, host-side comparison): turn each measured vector away from the zenith by the
-  refraction at its apparent zenith distance (``hostlink.observed_correction``), then solve.
-- ``none``: no correction.
+  north-up-east frame (``onboard.earth.local_frame_matrix``), aberrate them by the site velocity and lift each by
+  the refraction at its true zenith distance (``onboard.refraction.topocentric_observed``), solve the attitude
+  there, rotate back: C = C_g R_ig.
+- ``observed`` (seed 001 sec. 3, host-side comparison): the reference vectors aberrated by the site velocity (the
+  same function, without weather); each measured vector turned away from the zenith by the refraction at its
+  apparent zenith distance (``hostlink.observed_correction``), then solve.
+- ``none``: no refraction correction (diurnal aberration still applied with --site).
 ``--precision float32`` runs every onboard step in float32, as the sensor does.
 
 Ship attitude (seed 001 sec. 3.1, eq. 5-6, 21; needs --site and --mounting): with the sensor's installation angles
@@ -33,7 +39,9 @@ DESCRIPTION = (
     "Compute the attitude C (b = C r, r the geocentric apparent place in the true equator and equinox of date) of "
     "every frame of SESSION.csv through the camera PARAMS.json. With --site and --weather the stars' atmospheric "
     "refraction is corrected: 'reference' lifts the reference directions toward the zenith (seed 001 sec. 4, the "
-    "sensor's method, default), 'observed' lowers the measured ones (seed 001 sec. 3), 'none' skips it. Writes "
+    "sensor's method, default), 'observed' lowers the measured ones (seed 001 sec. 3), 'none' skips it. With "
+    "--site the reference directions always get the diurnal aberration of the site's rotation (up to 0.32\"), "
+    "whatever --refraction says: a ground sensor sees topocentric directions. Writes "
     "ATTITUDE.csv with frame,t_utc,n_stars,n_used,c11..c33,residual_rms_arcsec,status; with --site and --mounting "
     "also ship_yaw_deg,ship_pitch_deg,ship_roll_deg: the ship's attitude in the local north-up-east frame (seed 001: "
     "yaw from north toward east in [0, 360), pitch bow up in [-90, 90], roll starboard down in (-180, 180], the "
@@ -60,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--refraction",
         choices=REFRACTION_MODES,
-        help="refraction correction: reference (default with --weather), observed, or none (default without)",
+        help="refraction correction: reference (default with --weather), observed, or none (default without); "
+        "with --site, diurnal aberration is applied to the reference directions in every mode",
     )
     parser.add_argument(
         "--refraction-model",
@@ -140,17 +149,20 @@ def tai_minus_utc_s(jd1: float, jd2: float) -> int:
 
 def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0, mode: str = "none",
                   model: str = "atan", reject_arcsec: float = DEFAULT_REJECT_ARCSEC, min_stars: int = 2,
-                  dtype="float64", mounting_rad: tuple[float, float, float] | None = None):
+                  dtype="float64", mounting_rad: tuple[float, float, float] | None = None,
+                  diurnal_aberration: bool = True):
     """Per-frame attitudes. Returns a dict of columns (numpy arrays, one entry per frame): frame, t_utc, n_stars,
     n_used, C (F, 3, 3; NaN when unsolved), residual_rms_arcsec, status; with a site and ``mounting_rad`` (the
-    sensor's (yaw, pitch, roll) in the ship's body frame [rad]) also ship_ypr_deg (F, 3; NaN when unsolved)."""
+    sensor's (yaw, pitch, roll) in the ship's body frame [rad]) also ship_ypr_deg (F, 3; NaN when unsolved).
+    ``diurnal_aberration=False`` leaves the site velocity out (a zero velocity: for reproducing sources that ignore
+    it, such as seed 001, and for showing its size; the command always applies it with a site)."""
     import numpy as np
 
-    from hostlink.observed_correction import attitude_observed_correction
+    from hostlink.observed_correction import attitude_observed_correction, correct_observed
     from onboard import attitude as att
     from onboard.camera import pixels_to_unit
-    from onboard.earth import local_frame_matrix
-    from onboard.refraction import refract_toward_zenith
+    from onboard.earth import local_frame_matrix, site_velocity_tod_m_s
+    from onboard.refraction import topocentric_observed
     from onboard.timescale import from_julian_date
 
     dt = np.dtype(dtype)
@@ -185,22 +197,32 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
             continue
         b = pixels_to_unit(session.x_px[rows].astype(dt), session.y_px[rows].astype(dt), theta)
         r = r_all[rows].astype(dt)
-        if mode != "none" or ship:
+        if site is not None:
             if leap is None:
                 leap = tai_minus_utc_s(jd1[k], jd2[k])
-            r_ig = local_frame_matrix(from_julian_date(jd1[k], jd2[k]), site, dut1_s, leap, dt)
+            t_k = from_julian_date(jd1[k], jd2[k])
+            r_ig = local_frame_matrix(t_k, site, dut1_s, leap, dt)
+            v_tod = site_velocity_tod_m_s(t_k, site, dut1_s, leap, dt) if diurnal_aberration else np.zeros(3, dt)
         try:
             if mode == "none":
+                if site is not None:  # diurnal aberration only: the reference directions as seen from the site
+                    r = topocentric_observed(r, r_ig[1], v_tod)
                 c, keep = att.attitude_with_rejection(b, r, threshold)
                 r_used, b_used = r, b
             else:
                 if mode == "reference":
-                    r_app = refract_toward_zenith(r @ r_ig.T, up, weather, model, lat_rad)
+                    r_app = topocentric_observed(r @ r_ig.T, up, r_ig @ v_tod, weather, model, lat_rad)
                     c_g, keep = att.attitude_with_rejection(b, r_app, threshold)
                     c = c_g @ r_ig
                     r_used, b_used = r_app @ r_ig, b
                 else:
-                    c0, keep = att.attitude_with_rejection(b, r, threshold)
+                    r = topocentric_observed(r, r_ig[1], v_tod)  # diurnal aberration on the reference side
+                    c0, _ = att.attitude_with_rejection(b, r, threshold)
+                    # reject on corrected vectors: uncorrected differential refraction across a low field exceeds
+                    # the threshold and would drop good stars (c0, good to the refraction, a minute of arc, gives
+                    # the zenith in sensor axes to well within what the rejection needs)
+                    b_c0 = correct_observed(b, c0 @ r_ig[1], weather, model, lat_rad)
+                    _, keep = att.attitude_with_rejection(b_c0, r, threshold)
                     c, b_true = attitude_observed_correction(b[keep], r[keep], r_ig[1], weather, model, lat_rad)
                     r_used, b_used = r[keep], b_true
                     keep = np.ones(int(keep.sum()), dtype=bool)

@@ -13,8 +13,9 @@ DESCRIPTION = (
     "Estimate the camera parameters from a session of identified stars. Methods: bundle (default; camera plus "
     "per-frame attitude, maximum likelihood), cosine and sine (seed 000 interstar least squares, f and principal "
     "point), improved-cosine and improved-sine (seed 000 two-step iteration with Weng distortion), seed004 (seed 004 "
-    "three-step Levenberg-Marquardt). Misidentified stars are found and dropped. With --site and --weather the "
-    "reference directions are refracted before the fit. The result is a camera parameter file plus sigma, "
+    "three-step Levenberg-Marquardt). Misidentified stars are found and dropped. With --site the reference "
+    "directions get the diurnal aberration of the site's rotation (up to 0.32\"), and with --weather they are "
+    "also refracted, before the fit. The result is a camera parameter file plus sigma, "
     "residual statistics, degeneracies and rejected-star counts."
 )
 

@@ -18,9 +18,10 @@ DESCRIPTION = (
     "Simulate a session of star observations: Hipparcos stars at their geocentric apparent place at each frame's "
     "time (pyerfa), random or scripted attitudes, the true camera with full Weng distortion and Gaussian centroid "
     "noise. Writes SESSION.csv (with ra_deg,dec_deg) and SESSION.truth.json (camera, per-frame attitude C with "
-    "b = C r, per-frame focal length, misidentified and false rows). With --site/--weather the observed directions "
-    "are refracted by ERFA's model while ra_deg,dec_deg stay unrefracted. --preset seed004 reproduces seed 004's "
-    "simulation setup (its camera, Hp <= 6, >= 10 stars, 0.05 px, 1000 frames)."
+    "b = C r, per-frame focal length, misidentified and false rows). With --site the observed directions get the "
+    "diurnal aberration of the site's rotation (up to 0.32\"), and with --weather also ERFA's refraction (the "
+    "observed place of erfa.atco13), while ra_deg,dec_deg stay the geocentric apparent place. --preset seed004 "
+    "reproduces seed 004's simulation setup (its camera, Hp <= 6, >= 10 stars, 0.05 px, 1000 frames)."
 )
 
 PRESETS = ("seed004",)

@@ -6,8 +6,9 @@ Per frame k (time t_k = t0 + k * interval, on the session file's 1 ms grid):
 1. attitude C_k (b = C r): scripted, or drawn uniformly over SO(3) (space), or for a ground site with the boresight
    uniform in solid angle between the zenith distances ``zenith_range_deg`` and uniform azimuth and roll;
 2. reference directions r: ``hostlink.sky.apparent`` (pyerfa apci13/atciq, ra = ri - eo) exactly at t_k; for a ground
-   site with weather the observed direction is r lifted toward the zenith by ERFA's refraction
-   (``hostlink.sky.site.refract_directions_truth``); diurnal aberration is NOT applied (see that module);
+   site the observed direction is r aberrated by the site's rotation velocity (diurnal aberration, <= 0.32",
+   ``erfa.pvtob`` + ``erfa.ab``) and, with weather, then lifted toward the zenith by ERFA's refraction
+   (``hostlink.sky.site.observed_directions_truth``; checked against ``erfa.atco13`` to 1e-4");
 3. the true camera: F_k = 1000 f_k / p with f_k = f + A sin(2 pi k / P) (thermal drift, A in micrometres), the
    measured centroid is the exact inverse of the Weng model (``onboard.camera.unit_to_pixels``) plus independent
    Gaussian noise of ``noise_px`` per axis;
@@ -50,8 +51,9 @@ from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.site import (
     MAX_ZENITH_DISTANCE_DEG,
     local_north_east,
-    refract_directions_truth,
+    observed_directions_truth,
     refraction_observed_rad,
+    site_velocity_true_of_date,
     zenith_distance_rad,
     zenith_true_of_date,
 )
@@ -84,7 +86,8 @@ _FALSE_STAR_MAG_SPAN = 3.0
 class SimConfig:
     """What to simulate. Units: noise [px per axis], focal drift amplitude [um of focal length] with a period in
     frames, zenith range [deg], frame interval [s]. ``attitudes``: scripted (frames, 3, 3) matrices C with b = C r
-    (C maps the observed direction for a ground site with weather, the apparent direction otherwise)."""
+    (C maps the observed direction for a ground site: apparent + diurnal aberration [+ refraction with weather];
+    the apparent direction otherwise)."""
 
     camera: CameraParams
     frames: int
@@ -325,6 +328,7 @@ class _SkyContext:
     astrom: np.ndarray  # (F,) ERFA astrom structs
     eo: np.ndarray  # (F,)
     zenith: np.ndarray | None  # (F, 3)
+    site_velocity: np.ndarray | None  # (F, 3) [m/s], true of date
     bucket: np.ndarray  # (F,) lookup bucket index
     lookup: list[np.ndarray]  # per bucket (N, 3) approximate apparent directions
     cos_lookup: float
@@ -340,6 +344,7 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
     stars = stars_at_j2000(cat)
     astrom, eo = frame_astrometry(jd1, jd2)
     zenith = zenith_true_of_date(jd1, jd2, cfg.site, cfg.dut1_s) if cfg.site is not None else None
+    site_velocity = site_velocity_true_of_date(jd1, jd2, cfg.site, cfg.dut1_s) if cfg.site is not None else None
     days = (jd1 - jd1[0]) + (jd2 - jd2[0])
     bucket = np.floor(days / _LOOKUP_BUCKET_DAYS).astype(np.int64)
     lookup = []
@@ -366,6 +371,7 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
         astrom=astrom,
         eo=eo,
         zenith=zenith,
+        site_velocity=site_velocity,
         bucket=bucket,
         lookup=lookup,
         cos_lookup=math.cos(radius),
@@ -415,7 +421,8 @@ def _observe(
         zd = zenith_distance_rad(r_app, ctx.zenith[frame])
         above = zd <= math.radians(MAX_ZENITH_DISTANCE_DEG)  # lower stars are beyond the refraction model
         pos, star, frame, r_app = pos[above], star[above], frame[above], r_app[above]
-        r_obs = refract_directions_truth(r_app, ctx.zenith[frame], cfg.weather)
+    if cfg.site is not None:
+        r_obs = observed_directions_truth(r_app, ctx.zenith[frame], ctx.site_velocity[frame], cfg.weather)
     else:
         r_obs = r_app
     b = np.einsum("nij,nj->ni", att[pos], r_obs)
@@ -626,9 +633,11 @@ def _truth(
         "zenith_range_deg": [float(v) for v in cfg.zenith_range_deg] if cfg.site is not None else None,
         "attitude_source": "scripted" if cfg.attitudes is not None else "random",
         "reference": "geocentric apparent place, true equator and equinox of date (ERFA apci13/atciq, ra = ri - eo)",
-        "attitude_maps": "observed direction (apparent + ERFA refraction)" if refracted else "apparent direction",
+        "attitude_maps": ("apparent direction" if cfg.site is None else
+                          "observed direction (apparent + diurnal aberration + ERFA refraction)" if refracted else
+                          "topocentric direction (apparent + diurnal aberration)"),
         "refraction": refracted,
-        "diurnal_aberration": False,
+        "diurnal_aberration": cfg.site is not None,
         "attitude_layout": "per frame c11 c12 c13 c21 c22 c23 c31 c32 c33 (row-major), b = C r",
         "attitude": attitude.reshape(-1, 9).tolist(),
         "focal_length_mm": focal_lengths_mm(cfg).tolist(),

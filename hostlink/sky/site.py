@@ -10,8 +10,15 @@ truth here is what pyerfa's observed place (``atioq``/``atco13``) applies: one N
 ``z_top`` (:func:`refraction_truth_rad`), differing from the exact inverse by 3 mas at z = 75 deg and 20 mas at 80 deg,
 both far inside the model's own error there. The lift is applied as an exact rotation in the vertical plane (ERFA
 uses cos(dz) ~ 1 - dz^2/2, a difference below 0.05 mas at z = 80 deg).
-Diurnal aberration (<= 0.32") and geocentric-to-topocentric stellar parallax (< 1e-4") are NOT applied: the truth
-observed direction is the geocentric apparent direction lifted by refraction.
+Diurnal aberration (<= 0.32") IS applied (:func:`observed_directions_truth`), before refraction, as ERFA's observed
+place does (apco13 adds the site's velocity, from ``erfa.pvtob``, to the Earth's before aberrating; its atioq then
+skips its own diurnal step, ``diurab = 0``): here ERFA's ``ab`` aberrates the geocentric apparent direction by the
+site velocity alone (:func:`diurnal_aberration_truth`). Applying the two velocities one after the other instead of
+their sum differs by O(beta_earth beta_site) = 1e-4 x 1.6e-6 rad = 3e-5"; the first-order formula alone would have
+been good to beta_site^2 = 2.4e-12 rad (5e-7"). Geocentric-to-topocentric stellar parallax (< 1e-4", 6400 km at
+the nearest star's distance) is NOT applied. So the truth observed direction is the geocentric apparent direction,
+aberrated by the site's rotation velocity, then lifted by refraction; tests/test_sky_site.py checks it against
+``erfa.atco13`` (ICRS -> observed in one ERFA call) for Hipparcos stars.
 """
 
 from __future__ import annotations
@@ -27,6 +34,14 @@ from onboard.site import Site, Weather
 MAX_ZENITH_DISTANCE_DEG = 85.0
 
 
+def _gast_rad(jd_utc1, jd_utc2, dut1_s: float) -> np.ndarray:
+    """Greenwich apparent sidereal time [rad], (F,), from UTC (UT1 = UTC + dut1, TT from UTC; ``erfa.gst06a``)."""
+    j1, j2 = np.atleast_1d(np.asarray(jd_utc1, np.float64)), np.atleast_1d(np.asarray(jd_utc2, np.float64))
+    ut1 = utc_to_ut1(j1, j2, dut1_s)
+    tt = utc_to_tt(j1, j2)
+    return np.atleast_1d(np.asarray(erfa.gst06a(ut1[0], ut1[1], tt[0], tt[1])))
+
+
 def zenith_true_of_date(
     jd_utc1: float | np.ndarray, jd_utc2: float | np.ndarray, site: Site, dut1_s: float = 0.0
 ) -> np.ndarray:
@@ -36,14 +51,28 @@ def zenith_true_of_date(
     declination = geodetic latitude. Polar motion is ignored (INTERFACES.md).
     """
     scalar = np.ndim(jd_utc1) == 0 and np.ndim(jd_utc2) == 0
-    j1, j2 = np.atleast_1d(np.asarray(jd_utc1, np.float64)), np.atleast_1d(np.asarray(jd_utc2, np.float64))
-    ut1 = utc_to_ut1(j1, j2, dut1_s)
-    tt = utc_to_tt(j1, j2)
-    theta = np.asarray(erfa.gst06a(ut1[0], ut1[1], tt[0], tt[1])) + np.radians(site.lon_deg)
+    theta = _gast_rad(jd_utc1, jd_utc2, dut1_s) + np.radians(site.lon_deg)
     phi = np.radians(site.lat_deg)
     z = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.full_like(theta, np.sin(phi))],
                  axis=-1)
     return z[0] if scalar else z
+
+
+def site_velocity_true_of_date(
+    jd_utc1: float | np.ndarray, jd_utc2: float | np.ndarray, site: Site, dut1_s: float = 0.0
+) -> np.ndarray:
+    """The site's velocity from the Earth's rotation [m/s], true equator and equinox of date, (3,) or (F, 3).
+
+    ``erfa.pvtob`` (WGS84 site position, Earth rotation rate 1.00273781191135448 turns per UT1 day, polar motion
+    and TIO locator 0) with the Greenwich apparent sidereal time as its rotation angle: ERFA rotates the terrestrial
+    frame by that angle about the pole, which lands in the true-of-date frame as ``zenith_true_of_date`` does.
+    Eastward, 465 m/s cos(lat) at sea level.
+    """
+    scalar = np.ndim(jd_utc1) == 0 and np.ndim(jd_utc2) == 0
+    gast = _gast_rad(jd_utc1, jd_utc2, dut1_s)
+    pv = erfa.pvtob(np.radians(site.lon_deg), np.radians(site.lat_deg), float(site.height_m), 0.0, 0.0, 0.0, gast)
+    vel = np.asarray(np.atleast_1d(pv)["v"], dtype=np.float64).reshape(-1, 3)
+    return vel[0] if scalar else vel
 
 
 def local_north_east(zenith: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -116,3 +145,26 @@ def refract_directions_truth(r: np.ndarray, zenith: np.ndarray, weather: Weather
     norm = np.linalg.norm(up, axis=-1, keepdims=True)
     up = np.divide(up, norm, out=np.zeros_like(up), where=norm > 0)
     return np.cos(dz)[:, None] * r + np.sin(dz)[:, None] * up
+
+
+#: Distance to the Sun [AU] passed to ``erfa.ab`` to switch off its light-deflection potential term: that term is
+#: part of the geocentric apparent place already, the diurnal step adds only the site's velocity.
+_NO_POTENTIAL_AU = 1e100
+
+
+def diurnal_aberration_truth(r: np.ndarray, velocity_m_s: np.ndarray) -> np.ndarray:
+    """Geocentric apparent unit directions r (N, 3) -> topocentric (N, 3), aberrated by the site's velocity (3,) or
+    (N, 3) [m/s] in r's frame: ``erfa.ab`` (relativistic; the velocity alone, see the module docstring)."""
+    r = np.asarray(r, dtype=np.float64)
+    beta = np.broadcast_to(np.asarray(velocity_m_s, dtype=np.float64) / erfa.CMPS, r.shape)
+    bm1 = np.sqrt(1.0 - np.sum(beta * beta, axis=-1))
+    return np.asarray(erfa.ab(r, beta, _NO_POTENTIAL_AU, bm1))
+
+
+def observed_directions_truth(r: np.ndarray, zenith: np.ndarray, velocity_m_s: np.ndarray,
+                              weather: Weather | None) -> np.ndarray:
+    """What a ground sensor sees (N, 3): geocentric apparent directions r (N, 3) aberrated by the site velocity
+    ((3,) or (N, 3) [m/s], :func:`site_velocity_true_of_date`), then, with weather, refracted toward the zenith
+    ((3,) or (N, 3)) by :func:`refract_directions_truth`. Without weather (no atmosphere) only the aberration."""
+    topo = diurnal_aberration_truth(r, velocity_m_s)
+    return topo if weather is None else refract_directions_truth(topo, zenith, weather)
