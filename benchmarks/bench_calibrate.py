@@ -12,8 +12,13 @@
 2. Memory (``--memory-frames N``): peak traced memory (tracemalloc) of ``bundle_adjust`` on N frames, next to the
    size of its input arrays, and the same at N/10 frames: bounded working memory means the peak grows like the
    input (linear in frames) with no term in frames^2 (no dense Jacobian, no full normal matrix).
+3. Methods side by side (``--methods all`` or a comma list of ``hostlink.calibration.run.METHODS``): the full
+   ``run.calibrate`` of each method (voting, fit, gating, statistics) on the same sessions of 1000 and 10000
+   frames (``--method-frames``), with its time, time per 1000 frames, iterations and validation residual. Time
+   linear in frames shows as a constant time per 1000 frames.
 
 Usage: .venv/bin/python benchmarks/bench_calibrate.py [--frames 1000] [--memory-frames 100000]
+       .venv/bin/python benchmarks/bench_calibrate.py --methods all [--method-frames 1000,10000]
 """
 
 from __future__ import annotations
@@ -147,11 +152,67 @@ def memory(frames: int) -> None:
               f"{len(res.history)} iterations, validation residual {validation_residual_px(res.theta, TRUTH):.5f} px")
 
 
+def interstar_pass(data, form: str) -> tuple[float, int]:
+    """Time [s] and peak traced memory [bytes] of one pass of the seed methods' normal equations
+    (``interstar_methods.interstar_normals``) at the nominal camera; the pair orders are computed outside it."""
+    from hostlink.calibration.bundle import parameter_columns
+    from hostlink.calibration.interstar_methods import frame_pair_orders, interstar_normals
+    from onboard.params import ESTIMATE_NAMES
+
+    cols = parameter_columns(ESTIMATE_NAMES)
+    orders = frame_pair_orders(data)
+    args = (data, NOMINAL.model_vector(np.float64), cols, form, orders, parameter_scales(NOMINAL)[cols])
+    t0 = time.perf_counter()
+    interstar_normals(*args)
+    elapsed = time.perf_counter() - t0
+    tracemalloc.start()
+    interstar_normals(*args)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return elapsed, peak
+
+
+def methods_side_by_side(methods: list[str], frame_counts: list[int]) -> None:
+    """Every method's full calibration (``run.calibrate``) on the same sessions, timed one after the other."""
+    from hostlink.calibration.run import calibrate
+
+    for n in frame_counts:
+        ss = synthetic_session(TRUTH, n, stars_per_frame=(10, 30), noise_px=0.05, seed=3)
+        print(f"methods: {n} frames, {ss.data.n_obs} stars", flush=True)
+        for form in ("cos", "sin"):
+            elapsed, peak = interstar_pass(ss.data, form)
+            print(f"  one interstar normal-equation pass ({form}, 10 parameters): {1000 * elapsed / n * 1000:7.1f} ms "
+                  f"per 1000 frames, peak {peak / 1e6:.1f} MB traced", flush=True)
+        for method in methods:
+            t0 = time.perf_counter()
+            out = calibrate(ss.data, NOMINAL, method)
+            elapsed = time.perf_counter() - t0
+            print(f"  {method:16s} {elapsed:9.2f} s  {1000 * elapsed / n:7.3f} s per 1000 frames  "
+                  f"{len(out.history):3d} iterations  validation residual "
+                  f"{validation_residual_px(out.theta, TRUTH):.5f} px", flush=True)
+
+
 def main() -> None:
+    from hostlink.calibration.run import METHODS
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--memory-frames", type=int, default=0, help="also run the memory check on N frames")
+    parser.add_argument("--methods", default="", help="'all' or a comma list of calibration methods: time each "
+                        "method side by side instead of the scipy comparison")
+    parser.add_argument("--method-frames", default="1000,10000", help="comma list of session sizes for --methods")
     args = parser.parse_args()
+    if args.methods:
+        methods = list(METHODS) if args.methods == "all" else [m.strip() for m in args.methods.split(",")]
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            parser.error(f"unknown method(s) {', '.join(unknown)} (choose from {', '.join(METHODS)})")
+        try:
+            counts = [int(v) for v in args.method_frames.split(",")]
+        except ValueError:
+            parser.error(f"--method-frames: expected a comma list of integers, got {args.method_frames!r}")
+        methods_side_by_side(methods, counts)
+        return
     speed(args.frames)
     if args.memory_frames:
         memory(args.memory_frames)

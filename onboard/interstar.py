@@ -35,17 +35,22 @@ def independent_pairs(n_stars: int) -> tuple[np.ndarray, np.ndarray]:
 
 def order_for_pairs(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
     """Permutation putting a well-separated base pair first: the star farthest from the mean, then the star
-    farthest from that one. Bounded work O(n). Returns int32 indices."""
-    n = x_px.shape[0]
-    order = np.arange(n, dtype=np.int32)
+    farthest from that one. Bounded work O(n). Returns int32 indices.
+
+    x_px, y_px: (..., n); leading axes are frames of the same star count, ordered independently (the host's batch
+    methods order every frame of a session at once). If every star coincides with the first (no second star
+    farther away), the next index is the second of the pair, so the result is always a permutation."""
+    n = x_px.shape[-1]
+    order = np.broadcast_to(np.arange(n, dtype=np.int32), x_px.shape)
     if n < 3:
-        return order
-    d0 = (x_px - np.mean(x_px)) ** 2 + (y_px - np.mean(y_px)) ** 2
-    a = int(np.argmax(d0))
-    d1 = (x_px - x_px[a]) ** 2 + (y_px - y_px[a]) ** 2
-    b = int(np.argmax(d1))
-    rest = order[(order != a) & (order != b)]
-    return np.concatenate([np.array([a, b], dtype=np.int32), rest])
+        return order.copy()
+    d0 = (x_px - np.mean(x_px, axis=-1, keepdims=True)) ** 2 + (y_px - np.mean(y_px, axis=-1, keepdims=True)) ** 2
+    a = np.argmax(d0, axis=-1)[..., None]
+    d1 = (x_px - np.take_along_axis(x_px, a, axis=-1)) ** 2 + (y_px - np.take_along_axis(y_px, a, axis=-1)) ** 2
+    b = np.argmax(d1, axis=-1)[..., None]
+    b = np.where(b == a, np.where(a == 0, 1, 0), b)
+    rest = order[(order != a) & (order != b)].reshape(x_px.shape[:-1] + (n - 2,))
+    return np.concatenate([a.astype(np.int32), b.astype(np.int32), rest], axis=-1)
 
 
 def difference_residuals(b: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -74,15 +79,17 @@ def pair_covariance(
 
     dh_ij/dc_i = -(b_i - b_j)^T Jc_i and dh_ij/dc_j = +(b_i - b_j)^T Jc_j (Jc = db/d(x, y)); pairs that share a
     star are correlated, which is why only 2n - 3 independent pairs are used and whitened together.
+    b (..., n, 3) and jb_centroid (..., n, 3, 2): leading axes are frames of the same star count, giving (..., P, P).
     """
-    n = b.shape[0]
+    n = b.shape[-2]
     p = i.shape[0]
-    db = b[i] - b[j]
-    g = np.zeros((p, n, 2), dtype=b.dtype)
-    gi = -np.einsum("pc,pck->pk", db, jb_centroid[i])
-    gj = np.einsum("pc,pck->pk", db, jb_centroid[j])
+    batch = b.shape[:-2]
+    db = b[..., i, :] - b[..., j, :]
+    g = np.zeros(batch + (p, n, 2), dtype=b.dtype)
+    gi = -np.einsum("...pc,...pck->...pk", db, jb_centroid[..., i, :, :])
+    gj = np.einsum("...pc,...pck->...pk", db, jb_centroid[..., j, :, :])
     rows = np.arange(p)
-    g[rows, i, :] += gi
-    g[rows, j, :] += gj
-    g = g.reshape(p, 2 * n)
-    return (sigma_px * sigma_px) * (g @ g.T)
+    g[..., rows, i, :] += gi
+    g[..., rows, j, :] += gj
+    g = g.reshape(batch + (p, 2 * n))
+    return (sigma_px * sigma_px) * (g @ np.swapaxes(g, -1, -2))

@@ -86,3 +86,22 @@ def test_improved_alternation_that_is_still_moving_is_reported_as_not_converged(
     mild = seed004_camera()
     fit = calibrate_interstar(synthetic_session(mild, 150, seed=4).data, nominal, "cos", True)
     assert fit.converged
+
+
+@pytest.mark.parametrize("method, form, improved", [("cosine", "cos", False), ("sine", "sin", False),
+                                                     ("improved-cosine", "cos", True), ("improved-sine", "sin", True)])
+def test_each_seed000_method_runs_its_own_observation_equation(monkeypatch, method, form, improved):
+    """Regression: 'cosine'.endswith('sine') once sent the cosine methods down the sine path."""
+    from hostlink.calibration import run
+
+    seen = []
+    real = run.calibrate_interstar
+
+    def spy(data, nominal, form_, improved_, *args, **kwargs):
+        seen.append((form_, improved_))
+        return real(data, nominal, form_, improved_, *args, **kwargs)
+
+    monkeypatch.setattr(run, "calibrate_interstar", spy)
+    nominal = load_params(data_file("seed004_nominal.json"))
+    run.calibrate(synthetic_session(seed004_camera(), 30, seed=2).data, nominal, method)
+    assert seen and all(call == (form, improved) for call in seen)

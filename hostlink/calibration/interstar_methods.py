@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostlink.calibration.bundle import parameter_columns, parameter_scales, solve_scaled
+from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales, solve_scaled
 from hostlink.calibration.data import CalibrationData, frame_chunks
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import (
@@ -48,6 +48,9 @@ IMPROVED_ROUNDS = 6
 #: the alternation counts as converged when its last round moved the camera by less than this many joint sigmas
 #: (a move that small changes no reported digit of significance); otherwise the result says "not converged"
 ALTERNATION_CONVERGED_SIGMAS = 0.1
+#: Most entries of the pair-covariance gradients (frames x pairs x 2 stars' coordinates) built at once: bounds the
+#: working memory of a batch of frames with the same star count (~16 MB per array in float64).
+PAIR_BLOCK_ELEMENTS = 2_000_000
 #: Stars used by the first step of the improved method: within this fraction of the half-diagonal from the centre.
 CENTRAL_FRACTION = 0.5
 
@@ -66,12 +69,22 @@ class InterstarFit:
     converged: bool = True
 
 
-def frame_pair_orders(data: CalibrationData) -> list[np.ndarray]:
-    """Per frame, the row order that puts a well-separated base pair first (``order_for_pairs``), as global rows."""
-    orders = []
-    for f in range(data.n_frames):
-        a, b = int(data.frame_starts[f]), int(data.frame_starts[f + 1])
-        orders.append(a + order_for_pairs(data.x_px[a:b], data.y_px[a:b]).astype(np.int64))
+def frame_pair_orders(data: CalibrationData) -> np.ndarray:
+    """(N,) global rows, frame by frame, each frame in the order ``order_for_pairs`` gives it (a well-separated base
+    pair first): the rows of frame f in pair order are ``orders[frame_starts[f]:frame_starts[f + 1]]``.
+
+    Frames with the same star count are ordered together (one batched call per count and block of frames), so the
+    time is linear in frames and the working memory bounded by ``PAIR_BLOCK_ELEMENTS``."""
+    orders = np.arange(data.n_obs, dtype=np.int64)
+    counts = data.counts
+    for n in np.unique(counts[counts >= 3]):
+        n = int(n)
+        frames = np.flatnonzero(counts == n)
+        step = max(PAIR_BLOCK_ELEMENTS // n, 1)
+        for c in range(0, frames.size, step):
+            rows = data.frame_starts[frames[c : c + step], None] + np.arange(n)  # (m, n) global rows
+            local = order_for_pairs(data.x_px[rows], data.y_px[rows]).astype(np.int64)
+            orders[rows] = np.take_along_axis(rows, local, axis=1)
     return orders
 
 
@@ -93,15 +106,21 @@ def interstar_normals(
     theta: np.ndarray,
     cols: np.ndarray,
     form: str,
-    orders: list[np.ndarray],
+    orders: np.ndarray,
     col_scale: np.ndarray,
     frame_mask: np.ndarray | None = None,
-    chunk_obs: int = 50_000,
+    chunk_obs: int = DEFAULT_CHUNK_OBS,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Whitened normal equations of the interstar observation equations over every frame.
 
     Returns (N, g, cost, n_pairs): N = sum H^T P^-1 H, g = sum H^T P^-1 e (columns scaled by ``col_scale``),
     cost = sum e^T P^-1 e for unit centroid noise, with e = z - h (observed minus predicted) and H = dh/dtheta.
+    ``orders`` from :func:`frame_pair_orders`. Frames with fewer than 3 stars (or masked out) contribute nothing.
+
+    Vectorised over frames: per chunk of at most ``chunk_obs`` stars the camera Jacobians are evaluated once, the
+    residuals and Jacobians of every frame's 2n - 3 pairs come from one call on pair index arrays offset by frame,
+    and the pair covariances and their solves are batched over frames with the same star count (blocks of at most
+    ``PAIR_BLOCK_ELEMENTS`` covariance-gradient entries). Memory is bounded by the chunk, time linear in frames.
     """
     k = cols.size
     normal = np.zeros((k, k))
@@ -109,42 +128,45 @@ def interstar_normals(
     cost = 0.0
     n_pairs = 0
     starts = data.frame_starts
+    counts = data.counts
+    usable = counts >= 3
+    if frame_mask is not None:
+        usable &= np.asarray(frame_mask, dtype=bool)
     for f0, f1 in frame_chunks(starts, chunk_obs):
+        chunk_counts = np.where(usable[f0:f1], counts[f0:f1], 0)
+        if not np.any(chunk_counts):
+            continue
         a0, a1 = int(starts[f0]), int(starts[f1])
         b_all, jb_all, jc_all = unit_vector_jacobians(data.x_px[a0:a1], data.y_px[a0:a1], theta)
         jb_all = jb_all[:, :, cols] * col_scale[None, None, :]
-        by_size: dict[int, list] = {}
-        for f in range(f0, f1):
-            if frame_mask is not None and not frame_mask[f]:
-                continue
-            rows = orders[f] - a0
-            if rows.size < 3:
-                continue
-            b, jb, jc, r = b_all[rows], jb_all[rows], jc_all[rows], data.r[orders[f]]
-            i, j = independent_pairs(rows.size)
-            cov = pair_covariance(b, jc, i, j, 1.0)
-            if form == "cos":
-                e = difference_residuals(b, r, i, j)
-                h_jac = difference_jacobian(b, jb, i, j)
-            else:
-                e, h_jac, factor = _sine_terms(b, r, jb, i, j)
-                cov = cov * factor[:, None] * factor[None, :]
-            by_size.setdefault(e.size, []).append((cov, h_jac, e))
-        # generalised least squares per frame, batched over frames with the same number of pairs:
-        # X = P^-1 [H e], then H^T P^-1 H, H^T P^-1 e and e^T P^-1 e
-        for items in by_size.values():
-            cov = np.stack([it[0] for it in items])
-            h_jac = np.stack([it[1] for it in items])
-            e = np.stack([it[2] for it in items])
-            rhs = np.concatenate([h_jac, e[:, :, None]], axis=2)
-            try:
-                x = np.linalg.solve(cov, rhs)
-            except np.linalg.LinAlgError:
-                x = np.stack([_solve_or_zero(c, r) for c, r in zip(cov, rhs, strict=True)])
-            normal += np.einsum("mpk,mpl->kl", h_jac, x[:, :, :k])
-            grad += np.einsum("mpk,mp->k", h_jac, x[:, :, k])
-            cost += float(np.einsum("mp,mp->", e, x[:, :, k]))
-            n_pairs += e.size
+        r_all = data.r[a0:a1]
+        for n in np.unique(chunk_counts[chunk_counts >= 3]):
+            n = int(n)
+            frames = f0 + np.flatnonzero(chunk_counts == n)
+            i, j = independent_pairs(n)
+            step = max(PAIR_BLOCK_ELEMENTS // (i.size * 2 * n), 1)
+            for c in range(0, frames.size, step):
+                rows = orders[starts[frames[c : c + step], None] + np.arange(n)] - a0  # (m, n) chunk rows, pair order
+                pi, pj = rows[:, i].ravel(), rows[:, j].ravel()  # every frame's pairs as chunk rows
+                m, p = rows.shape[0], i.size
+                cov = pair_covariance(b_all[rows], jc_all[rows], i, j, 1.0)
+                if form == "cos":
+                    e = difference_residuals(b_all, r_all, pi, pj).reshape(m, p)
+                    h_jac = difference_jacobian(b_all, jb_all, pi, pj).reshape(m, p, k)
+                else:
+                    e, h_jac, factor = _sine_terms(b_all, r_all, jb_all, pi, pj)
+                    e, h_jac, factor = e.reshape(m, p), h_jac.reshape(m, p, k), factor.reshape(m, p)
+                    cov = cov * factor[:, :, None] * factor[:, None, :]
+                # generalised least squares per frame, batched: X = P^-1 [H e], then H^T P^-1 H, H^T P^-1 e, e^T P^-1 e
+                rhs = np.concatenate([h_jac, e[:, :, None]], axis=2)
+                try:
+                    x = np.linalg.solve(cov, rhs)
+                except np.linalg.LinAlgError:
+                    x = np.stack([_solve_or_zero(cv, rh) for cv, rh in zip(cov, rhs, strict=True)])
+                normal += np.einsum("mpk,mpl->kl", h_jac, x[:, :, :k])
+                grad += np.einsum("mpk,mp->k", h_jac, x[:, :, k])
+                cost += float(np.einsum("mp,mp->", e, x[:, :, k]))
+                n_pairs += e.size
     return normal, grad, cost, n_pairs
 
 
@@ -162,7 +184,7 @@ def fit_interstar(
     params: CameraParams,
     estimate: tuple[str, ...],
     form: str,
-    orders: list[np.ndarray],
+    orders: np.ndarray,
     levenberg_marquardt: bool = False,
     max_iter: int = 30,
     frame_mask: np.ndarray | None = None,

@@ -23,6 +23,13 @@ from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
 METHODS = ("bundle", "cosine", "sine", "improved-cosine", "improved-sine", "seed004")
+#: seed 000's methods: (observation equation, two-step improved iteration of sec. 2)
+INTERSTAR_METHODS = {
+    "cosine": ("cos", False),
+    "sine": ("sin", False),
+    "improved-cosine": ("cos", True),
+    "improved-sine": ("sin", True),
+}
 #: Gate for the interstar methods' post-fit outlier check, in robust sigmas (as the bundle's).
 GATE_SIGMAS = 5.0
 
@@ -63,9 +70,8 @@ def _interstar_with_gating(data, nominal, method, estimate, progress):
     def fit(d):
         if method == "seed004":
             return calibrate_seed004(d, nominal, estimate or SEED004_ESTIMATE, progress=progress)
-        form = "sin" if method.endswith("sine") else "cos"
-        return calibrate_interstar(d, nominal, form, method.startswith("improved"), estimate or ESTIMATE_NAMES,
-                                   progress=progress)
+        form, improved = INTERSTAR_METHODS[method]
+        return calibrate_interstar(d, nominal, form, improved, estimate or ESTIMATE_NAMES, progress=progress)
 
     result = fit(fit_data)
     for _ in range(2):  # gate once, refit, and confirm
