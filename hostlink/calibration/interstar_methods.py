@@ -110,8 +110,14 @@ def interstar_normals(
     col_scale: np.ndarray,
     frame_mask: np.ndarray | None = None,
     chunk_obs: int = DEFAULT_CHUNK_OBS,
+    weight_theta: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Whitened normal equations of the interstar observation equations over every frame.
+
+    The pair covariances P are evaluated at ``weight_theta`` (default: ``theta``). Holding them at the current
+    iterate while a trial step is judged makes the fit iteratively reweighted least squares: letting P follow theta
+    inside the cost lets the optimiser lower e^T P^-1 e by inflating P (P scales like F^-2), which biases f and the
+    radial terms by an amount that does not shrink with more frames.
 
     Returns (N, g, cost, n_pairs): N = sum H^T P^-1 H, g = sum H^T P^-1 e (columns scaled by ``col_scale``),
     cost = sum e^T P^-1 e for unit centroid noise, with e = z - h (observed minus predicted) and H = dh/dtheta.
@@ -140,6 +146,10 @@ def interstar_normals(
         b_all, jb_all, jc_all = unit_vector_jacobians(data.x_px[a0:a1], data.y_px[a0:a1], theta)
         jb_all = jb_all[:, :, cols] * col_scale[None, None, :]
         r_all = data.r[a0:a1]
+        if weight_theta is None:
+            b_w, jc_w = b_all, jc_all
+        else:
+            b_w, _, jc_w = unit_vector_jacobians(data.x_px[a0:a1], data.y_px[a0:a1], weight_theta)
         for n in np.unique(chunk_counts[chunk_counts >= 3]):
             n = int(n)
             frames = f0 + np.flatnonzero(chunk_counts == n)
@@ -149,13 +159,16 @@ def interstar_normals(
                 rows = orders[starts[frames[c : c + step], None] + np.arange(n)] - a0  # (m, n) chunk rows, pair order
                 pi, pj = rows[:, i].ravel(), rows[:, j].ravel()  # every frame's pairs as chunk rows
                 m, p = rows.shape[0], i.size
-                cov = pair_covariance(b_all[rows], jc_all[rows], i, j, 1.0)
+                cov = pair_covariance(b_w[rows], jc_w[rows], i, j, 1.0)
                 if form == "cos":
                     e = difference_residuals(b_all, r_all, pi, pj).reshape(m, p)
                     h_jac = difference_jacobian(b_all, jb_all, pi, pj).reshape(m, p, k)
                 else:
                     e, h_jac, factor = _sine_terms(b_all, r_all, jb_all, pi, pj)
-                    e, h_jac, factor = e.reshape(m, p), h_jac.reshape(m, p, k), factor.reshape(m, p)
+                    e, h_jac = e.reshape(m, p), h_jac.reshape(m, p, k)
+                    if weight_theta is not None:
+                        factor = _sine_terms(b_w, r_all, jb_all, pi, pj)[2]
+                    factor = factor.reshape(m, p)
                     cov = cov * factor[:, :, None] * factor[:, None, :]
                 # generalised least squares per frame, batched: X = P^-1 [H e], then H^T P^-1 H, H^T P^-1 e, e^T P^-1 e
                 rhs = np.concatenate([h_jac, e[:, :, None]], axis=2)
@@ -210,15 +223,18 @@ def fit_interstar(
             dx = solve_scaled(damped, grad)
             trial = theta.copy()
             trial[cols] += dx * scale
-            n_new, g_new, c_new, p_new = interstar_normals(data, trial, cols, form, orders, scale, frame_mask)
-            if not levenberg_marquardt or (np.isfinite(c_new) and c_new <= cost):
+            # judge the step with the weights of the current iterate (IRLS; see interstar_normals)
+            c_trial = interstar_normals(data, trial, cols, form, orders, scale, frame_mask, weight_theta=theta)[2]
+            if not levenberg_marquardt or (np.isfinite(c_trial) and c_trial <= cost):
                 accepted = True
                 break
             damping = max(10.0 * damping, 1e-6)
         if not accepted:
             break
         step_sigmas = float(np.sqrt(max(dx @ grad, 0.0)))
-        decrease = (cost - c_new) / max(cost, 1e-300)
+        decrease = (cost - c_trial) / max(cost, 1e-300)
+        # reweight at the accepted point: the next step starts from its own normal equations and cost
+        n_new, g_new, c_new, p_new = interstar_normals(data, trial, cols, form, orders, scale, frame_mask)
         theta, normal, grad, cost, n_pairs = trial, n_new, g_new, c_new, p_new
         if levenberg_marquardt:
             damping = damping / 10.0 if damping > 1e-12 else 0.0
