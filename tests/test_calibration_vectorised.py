@@ -44,8 +44,9 @@ def reference_orders(data):
     return out
 
 
-def reference_normals(data, theta, cols, form, orders, col_scale, frame_mask=None):
-    """One frame at a time: the whitened normal equations of its 2n - 3 pairs, solved frame by frame."""
+def reference_normals(data, theta, cols, form, orders, col_scale, frame_mask=None, weight_theta=None):
+    """One frame at a time: the whitened normal equations of its 2n - 3 pairs, solved frame by frame (pair
+    covariances at ``weight_theta``, default ``theta``)."""
     k = cols.size
     normal, grad, cost, n_pairs = np.zeros((k, k)), np.zeros(k), 0.0, 0
     for f in range(data.n_frames):
@@ -57,11 +58,14 @@ def reference_normals(data, theta, cols, form, orders, col_scale, frame_mask=Non
         jb = jb[:, :, cols] * col_scale
         r = data.r[rows]
         i, j = independent_pairs(rows.size)
-        cov = pair_covariance(b, jc, i, j, 1.0)
+        wt = theta if weight_theta is None else weight_theta
+        b_w, jb_w, jc_w = unit_vector_jacobians(data.x_px[rows], data.y_px[rows], wt)
+        cov = pair_covariance(b_w, jc_w, i, j, 1.0)
         if form == "cos":
             e, h = difference_residuals(b, r, i, j), difference_jacobian(b, jb, i, j)
         else:
-            e, h, factor = _sine_terms(b, r, jb, i, j)
+            e, h, _ = _sine_terms(b, r, jb, i, j)
+            factor = _sine_terms(b_w, r, jb_w[:, :, cols] * col_scale, i, j)[2]
             cov = cov * factor[:, None] * factor[None, :]
         x = np.linalg.solve(cov, np.column_stack([h, e]))
         normal += h.T @ x[:, :k]
@@ -141,7 +145,8 @@ def test_methods_give_the_reference_results(mixed_session, method, monkeypatch):
 
     got = run()
     monkeypatch.setattr(interstar_methods, "interstar_normals",
-                        lambda d, t, c, f, o, s, m=None, chunk_obs=0: reference_normals(d, t, c, f, o, s, m))
+                        lambda d, t, c, f, o, s, m=None, chunk_obs=0, weight_theta=None:
+                        reference_normals(d, t, c, f, o, s, m, weight_theta))
     ref = run()
     assert len(got.history) == len(ref.history)
     # the iterations see normals equal to ~1e-13 relative, so the cameras agree far inside 1e-6 of a sigma
