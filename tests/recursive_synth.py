@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostlink.calibration.crb import interstar_frame_information
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
 from onboard.interstar import (
     difference_jacobian,
@@ -97,12 +98,7 @@ def crb_information(camera: CameraParams, frames, noise_px: float, idx: np.ndarr
         good = ~fr.misidentified
         x, y = fr.x_px[good], fr.y_px[good]
         # evaluate at the noise-free positions would need them; at the measured ones the difference is O(noise)
-        o = order_for_pairs(x, y)
-        b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
-        i, j = independent_pairs(o.size)
-        hh = difference_jacobian(b, jt[:, :, idx], i, j)
-        r = pair_covariance(b, jc, i, j, noise_px)
-        info += hh.T @ np.linalg.solve(r, hh)
+        info += interstar_frame_information(x, y, theta, noise_px, idx)
     return info
 
 
@@ -125,13 +121,7 @@ def sky_frames(seed: int, n_frames: int, noise_px: float = 0.05):
         frames.append((s.x_px[rows], s.y_px[rows], r_all[rows], ident[rows]))
         keep = ~bad[rows]
         x, y = s.x_px[rows][keep], s.y_px[rows][keep]
-        if x.size < 3:
-            continue
-        o = order_for_pairs(x, y)
-        b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
-        i, j = independent_pairs(o.size)
-        h = difference_jacobian(b, jt, i, j)
-        info += h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), h)
+        info += interstar_frame_information(x, y, theta, noise_px)
     return camera, frames, info
 
 

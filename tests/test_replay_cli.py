@@ -8,14 +8,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hostlink.calibration.crb import crb_validation_px, validation_jacobian, validation_residual_px
+from hostlink.calibration.crb import (
+    crb_validation_px,
+    interstar_frame_information,
+    validation_jacobian,
+    validation_residual_px,
+)
 from hostlink.cli import main
 from hostlink.params_io import load_params
 from hostlink.replay import reference_vectors
 from hostlink.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
-from onboard.camera import unit_vector_jacobians
-from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
 from onboard.params import ESTIMATE_NAMES, CameraParams, params_from_dict
 from onboard.prior import sigma_from_dict
 
@@ -42,13 +45,7 @@ def session_information(result, noise_px: float) -> tuple[CameraParams, np.ndarr
     for rows in s.frame_slices():
         keep = ~bad[rows]
         x, y = s.x_px[rows][keep], s.y_px[rows][keep]
-        if x.size < 3:
-            continue
-        o = order_for_pairs(x, y)
-        b, jt, jc = unit_vector_jacobians(x[o], y[o], theta)
-        i, j = independent_pairs(o.size)
-        h = difference_jacobian(b, jt, i, j)
-        info += h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), h)
+        info += interstar_frame_information(x, y, theta, noise_px)
     return camera, info
 
 

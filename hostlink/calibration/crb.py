@@ -33,6 +33,7 @@ from hostlink.calibration.bundle import accumulate_normals, reduced_normal
 from hostlink.calibration.data import CalibrationData
 from hostlink.calibration.frames import rotation_from_vector, skew, wahba_svd
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
+from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
 from onboard.params import CameraParams
 
 #: Default validation grid: 21 x 21 points over the detector, corners included.
@@ -114,3 +115,21 @@ def crb_validation_px(information: np.ndarray, g_perp: np.ndarray) -> float:
     d = np.sqrt(np.diag(information))
     inv = np.linalg.pinv(information / d[:, None] / d[None, :], rcond=1e-15, hermitian=True) / d[:, None] / d[None, :]
     return float(np.sqrt(np.trace(g_perp @ inv @ g_perp.T) / n_grid))
+
+
+def interstar_frame_information(
+    x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray, noise_px: float, cols: np.ndarray | None = None
+) -> np.ndarray:
+    """Fisher information (K, K), model units (F in px), of one frame's difference-form interstar measurements at
+    ``theta``: H^T R^-1 H over its 2n - 3 independent pairs (``onboard.interstar``), R from centroid noise
+    ``noise_px``. The interstar form eliminates the attitude exactly, so summed over frames this is the Cramer-Rao
+    bound of the onboard estimator's measurement model. ``cols`` selects parameters (default all ten)."""
+    cols = np.arange(theta.shape[0]) if cols is None else np.asarray(cols)
+    if x_px.shape[0] < 3:
+        return np.zeros((cols.size, cols.size))
+    o = order_for_pairs(x_px, y_px)
+    b, jt, jc = unit_vector_jacobians(x_px[o], y_px[o], theta)
+    i, j = independent_pairs(o.size)
+    h = difference_jacobian(b, jt[:, :, cols], i, j)
+    return h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), h)
+
