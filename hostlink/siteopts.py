@@ -56,8 +56,21 @@ def add_site_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dut1", type=float, default=0.0, metavar="SECONDS", help="UT1 - UTC (default 0)")
 
 
+#: IERS keeps |UT1 - UTC| below 0.9 s (INTERFACES.md: dUT1 in seconds); anything at or above 1 s is a unit mistake.
+MAX_ABS_DUT1_S = 1.0
+
+
+def check_dut1(dut1_s: float) -> float:
+    """--dut1 [s]: finite and within +-1 s (UT1 - UTC never leaves +-0.9 s), else a one-line UserError."""
+    if not (math.isfinite(dut1_s) and abs(dut1_s) < MAX_ABS_DUT1_S):
+        raise UserError(f"--dut1 {dut1_s}: UT1 - UTC is always within +-0.9 s")
+    return dut1_s
+
+
 def site_and_weather(args: argparse.Namespace) -> tuple[Site | None, Weather | None]:
-    """Parsed --site/--weather; --weather without --site is an error (refraction needs the site)."""
+    """Parsed --site/--weather (and a checked --dut1); --weather without --site is an error (refraction needs the
+    site)."""
+    check_dut1(float(getattr(args, "dut1", 0.0) or 0.0))
     site = parse_site(args.site) if getattr(args, "site", None) else None
     weather = parse_weather(args.weather) if getattr(args, "weather", None) else None
     if weather is not None and site is None:

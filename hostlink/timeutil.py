@@ -39,6 +39,17 @@ def parse_iso_utc_many(texts) -> tuple[np.ndarray, np.ndarray]:
     return np.atleast_1d(jd1), np.atleast_1d(jd2)
 
 
+def fixed_time_from_iso(text: str):
+    """An ISO UTC time stamp -> ``onboard.timescale.FixedTime`` (UTC) from its calendar fields, as a sensor builds it
+    (``from_calendar``, integer arithmetic). Not via ``dtf2d``: on a day with a leap second its quasi Julian date
+    counts 86401 s, and reading that fraction as one of 86400 s puts the clock up to 1 s (15" of Earth rotation)
+    behind."""
+    from onboard.timescale import from_calendar
+
+    y, mo, d, h, mi, s = parse_iso_utc(text)
+    return from_calendar(y, mo, d, h, mi, round(s * 1_000_000))
+
+
 def utc_to_tt(jd1: np.ndarray, jd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """UTC -> TT two-part Julian dates (ERFA utctai, taitt)."""
     tai1, tai2 = erfa.utctai(jd1, jd2)

@@ -88,7 +88,9 @@ def from_calendar(year, month, day, hour, minute, microsecond_of_minute) -> Fixe
 
 
 def from_julian_date(jd1, jd2) -> FixedTime:
-    """Two-part Julian date (host side, float64, e.g. from erfa.dtf2d) -> FixedTime, rounded to 2^-32 day."""
+    """Two-part Julian date (host side, float64) -> FixedTime, rounded to 2^-32 day. The fraction is read as one of an
+    86400-s day: not for a UTC quasi Julian date (erfa.dtf2d) of a leap-second day, whose fraction counts 86401 s
+    (up to 1 s off; use :func:`from_calendar`)."""
     a = np.asarray(jd1, dtype=np.float64) - JD_J2000
     b = np.asarray(jd2, dtype=np.float64)
     ai, bi = np.floor(a), np.floor(b)

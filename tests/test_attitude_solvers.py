@@ -274,3 +274,30 @@ def test_attitude_command_ship_columns_follow_the_erfa_local_frame(ground_sessio
     assert np.abs(np.cos(want_pitch) * (np.mod(yaw - want_yaw + np.pi, 2 * np.pi) - np.pi)).max() < tol
     assert np.abs(np.cos(want_pitch) * (roll - want_roll)).max() < tol
     assert np.all((yaw >= 0) & (yaw < 2 * np.pi))
+
+
+def test_ship_attitude_on_a_leap_second_day_follows_the_erfa_local_frame():
+    # 2016-12-31 has 86401 UTC seconds: its quasi Julian date (erfa.dtf2d) runs 1/86401 slow, so reading it as an
+    # 86400-s day put the sensor's clock 0.75 s behind at 18:00 (11" of Earth rotation). The ship angles must
+    # follow the local frame of ERFA's own UTC handling (gst06a via utcut1) as on any other day.
+    from hostlink.sky.site import local_north_east, zenith_true_of_date
+
+    cfg = SimConfig(camera=seed004_camera(), frames=3, noise_px=0.0, min_stars=5, maglim=6.0, seed=5, site=SITE,
+                    t0_iso="2016-12-31T18:00:00.000Z", zenith_range_deg=(5.0, 60.0))
+    session = simulate(cfg).session
+    # mounting (0, 0, -90) as in the test above: sensor x = bow, sensor y = -starboard, boresight z = mast
+    cols = solve_session(session, seed004_camera(), SITE, None, 0.0, "none", mounting_rad=(0.0, 0.0, -np.pi / 2))
+    assert np.all(cols["status"] == "ok")
+    yaw, pitch, roll = np.radians(cols["ship_ypr_deg"].T)
+    c = cols["C"]
+    jd1, jd2 = session.frame_times_jd()
+    zen = zenith_true_of_date(jd1, jd2, SITE)
+    north, east = local_north_east(zen)
+    bow, y_s, mast = c[:, 0], c[:, 1], c[:, 2]
+    want_pitch = np.arcsin(np.sum(bow * zen, axis=1))
+    want_yaw = np.arctan2(np.sum(bow * east, axis=1), np.sum(bow * north, axis=1))
+    want_roll = np.arctan2(np.sum(y_s * zen, axis=1), np.sum(mast * zen, axis=1))
+    tol = 0.05 * ARCSEC  # as on an ordinary day: onboard Earth orientation vs ERFA's (truncated nutation)
+    assert np.abs(pitch - want_pitch).max() < tol
+    assert np.abs(np.cos(want_pitch) * (np.mod(yaw - want_yaw + np.pi, 2 * np.pi) - np.pi)).max() < tol
+    assert np.abs(np.cos(want_pitch) * (roll - want_roll)).max() < tol

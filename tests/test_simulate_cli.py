@@ -71,6 +71,9 @@ def test_scripted_attitudes_file_sets_the_frames(tmp_path):
         (["--preset", "seed004", "--t0", "2026-02-30T00:00:00Z"], "start time"),
         (["--preset", "seed004", "--weather", "10,1013"], "--weather needs --site"),
         (["--preset", "seed004", "--site", "95,0,0"], "latitude"),
+        # UT1 - UTC is kept within 0.9 s by IERS: 10 h is a unit mistake, NaN garbage (both once ran silently)
+        (["--preset", "seed004", "--site", "39,116,50", "--dut1", "36000"], "--dut1"),
+        (["--preset", "seed004", "--site", "39,116,50", "--dut1", "nan"], "--dut1"),
         (["--preset", "seed004", "--zenith-range", "a,b"], "--zenith-range"),
         (["--preset", "seed004", "--frames", "2", "--min-stars", "200", "--max-stars", "200"], "min-stars"),
     ],

@@ -288,3 +288,32 @@ def test_truth_names_the_true_star_of_each_misidentified_row_among_false_stars()
     b = pixels_to_unit(s.x_px[mis], s.y_px[mis], cfg.camera.model_vector())
     # the centroid of each misidentified row is exactly its true star's image
     assert _angles(b, np.einsum("nij,nj->ni", att[s.frame[mis]], r_true)).max() < EXACT_RAD
+
+
+def test_star_aberrated_past_the_refraction_limit_is_dropped_not_a_crash():
+    # A star whose apparent zenith distance is just inside MAX_ZENITH_DISTANCE_DEG (85 deg), east of the zenith of an
+    # equatorial site: diurnal aberration (465 m/s eastward) pushes it 0.028" cos-ish lower, past 85 deg. The filter
+    # must act on the direction that is refracted (the topocentric one), else ERFA's model refuses it mid-session.
+    from hostlink.sky.site import MAX_ZENITH_DISTANCE_DEG, _gast_rad
+
+    t0 = "2026-03-14T02:10:00.000Z"
+    s = simulate(replace(seed004_config(frames=1), min_stars=1, noise_px=0.0, t0_iso=t0)).session
+    jd1, jd2 = s.frame_times_jd()
+    cat = load_catalogue(6.0)
+    row = hip_lookup(cat, s.star_id[:1])
+    r = apparent_directions(cat, row, jd1[0], jd2[0])[0]
+    ra, dec = np.arctan2(r[1], r[0]), np.arcsin(r[2])
+    zd = np.radians(MAX_ZENITH_DISTANCE_DEG) - np.radians(0.01 / 3600.0)  # 0.01" above the limit
+    zenith_ra = ra - np.arccos(np.cos(zd) / np.cos(dec))  # the star east of the meridian, at zenith distance zd
+    lon_deg = (np.degrees(zenith_ra - _gast_rad(jd1, jd2, 0.0)[0]) + 180.0) % 360.0 - 180.0
+    site = Site(0.0, float(lon_deg), 0.0)
+    assert abs(np.degrees(zenith_distance_rad(r[None], zenith_true_of_date(jd1[0], jd2[0], site))[0])
+               - (MAX_ZENITH_DISTANCE_DEG - 0.01 / 3600.0)) < 1e-4 / 3600.0  # the setup puts it where intended
+    x = np.cross([0.0, 0.0, 1.0], r)
+    x /= np.linalg.norm(x)
+    att = np.stack([x, np.cross(r, x), r])[None]  # boresight on the star
+    cfg = replace(seed004_config(frames=1), min_stars=1, noise_px=0.0, t0_iso=t0, site=site,
+                  weather=Weather(10.0, 1000.0), attitudes=att)
+    result = simulate(cfg)
+    assert s.star_id[0] not in result.session.star_id  # beyond the model once aberrated: not observed
+    assert len(result.session) > 0 and _measured_vs_truth(result, cfg.weather, site).max() < EXACT_RAD

@@ -159,11 +159,11 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
     import numpy as np
 
     from hostlink.observed_correction import attitude_observed_correction, correct_observed
+    from hostlink.timeutil import fixed_time_from_iso
     from onboard import attitude as att
     from onboard.camera import pixels_to_unit
     from onboard.earth import local_frame_matrix, site_velocity_tod_m_s
     from onboard.refraction import topocentric_observed
-    from onboard.timescale import from_julian_date
 
     dt = np.dtype(dtype)
     theta = params.model_vector(dt)
@@ -200,7 +200,7 @@ def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0,
         if site is not None:
             if leap is None:
                 leap = tai_minus_utc_s(jd1[k], jd2[k])
-            t_k = from_julian_date(jd1[k], jd2[k])
+            t_k = fixed_time_from_iso(session.t_utc[sl.start])  # not jd1/jd2: see fixed_time_from_iso
             r_ig = local_frame_matrix(t_k, site, dut1_s, leap, dt)
             v_tod = site_velocity_tod_m_s(t_k, site, dut1_s, leap, dt) if diurnal_aberration else np.zeros(3, dt)
         try:

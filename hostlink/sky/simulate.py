@@ -52,6 +52,7 @@ from hostlink.sky.site import (
     MAX_ZENITH_DISTANCE_DEG,
     local_north_east,
     observed_directions_truth,
+    refract_directions_truth,
     refraction_observed_rad,
     site_velocity_true_of_date,
     zenith_distance_rad,
@@ -417,14 +418,15 @@ def _observe(
     pos, star = _candidates(ctx, frames, att[:, 2, :])
     frame = frames[pos]
     r_app = apparent_from_astrometry(ctx.stars.take(star), ctx.astrom[frame], ctx.eo[frame])
+    r_obs = r_app
+    if cfg.site is not None:
+        r_obs = observed_directions_truth(r_app, ctx.zenith[frame], ctx.site_velocity[frame], None)
     if cfg.weather is not None:
-        zd = zenith_distance_rad(r_app, ctx.zenith[frame])
+        # the refracted direction is the topocentric one (diurnal aberration can lower a star by 0.03" at 85 deg)
+        zd = zenith_distance_rad(r_obs, ctx.zenith[frame])
         above = zd <= math.radians(MAX_ZENITH_DISTANCE_DEG)  # lower stars are beyond the refraction model
         pos, star, frame, r_app = pos[above], star[above], frame[above], r_app[above]
-    if cfg.site is not None:
-        r_obs = observed_directions_truth(r_app, ctx.zenith[frame], ctx.site_velocity[frame], cfg.weather)
-    else:
-        r_obs = r_app
+        r_obs = refract_directions_truth(r_obs[above], ctx.zenith[frame], cfg.weather)
     b = np.einsum("nij,nj->ni", att[pos], r_obs)
     # thermal drift: F_k b_x / b_z = F (s_k b_x) / b_z, so scaling b_x, b_y by s_k = F_k / F uses the nominal theta
     scale = ctx.focal_scale[frame]
