@@ -14,7 +14,7 @@ the slots, so an interrupted upload (host killed, corrupt chunk, refused set) le
 The checks a staged set must pass (step 3) are exactly :func:`onboard.params.validate_params` and
 :func:`onboard.prior.validate_sigma`, so host and sensor refuse a set for the same reason. Buffers are sized at
 start-up; every step does a bounded amount of work.
-Generations are uint32; wrap-around (4e9 commits) is not handled.
+Generations are uint32 and do not wrap: a commit past :data:`MAX_GENERATION` (4e9 commits) is refused.
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ _CRC = struct.Struct("<I")
 RECORD_BYTES = _GEN.size + TABLE_BYTES + _CRC.size
 ERASED_BYTE = 0xFF
 NO_SLOT = -1
+#: Largest generation a slot record holds (uint32); a commit past it is refused (4e9 commits: never in practice).
+MAX_GENERATION = (1 << (8 * _GEN.size)) - 1
 
 
 @dataclass(frozen=True)
@@ -231,6 +233,8 @@ def commit(store: BankStore, crc: int) -> int | Refusal:
                        f"0x{store.verified_crc:08x}")
     current = active_set(store)
     generation = 1 if current is None else current[0] + 1
+    if generation > MAX_GENERATION:
+        return Refusal(NakCode.BANK_WRITE_FAILED, f"generation counter exhausted at {MAX_GENERATION}; nothing switched")
     slot = 0 if store.active == NO_SLOT else 1 - store.active
     record = make_record(generation, table)
     program_slot(store, slot, record)

@@ -386,7 +386,7 @@ def update(
     ok = np.isfinite(x_px) & np.isfinite(y_px) & np.all(np.isfinite(r_ref), axis=1)
     if identified is not None:
         ok &= np.asarray(identified, dtype=bool)
-    sel = np.flatnonzero(ok)[: cfg.max_stars]
+    sel = _distinct_stars(np.flatnonzero(ok), x_px, y_px, dt)[: cfg.max_stars]
     result = FrameResult(n_stars=int(x_px.shape[0]))
     state.frames += 1
     time_update(state)
@@ -439,6 +439,16 @@ def update(
     _record_history(state, result)
     _detect_drift(state)
     return result
+
+
+def _distinct_stars(rows: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """``rows`` without the stars whose centroid (in the estimator's dtype) repeats an earlier row's, order kept.
+
+    A star reported twice adds a pair of zero length, whose predicted variance is zero: float64 Cholesky of the pair
+    covariance fails and float32 whitens rounding noise with an enormous weight. It carries no information."""
+    xy = np.stack([x_px[rows].astype(dt), y_px[rows].astype(dt)], axis=1)
+    _, first = np.unique(xy, axis=0, return_index=True)
+    return rows[np.sort(first)]
 
 
 def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray, front=None):

@@ -117,3 +117,29 @@ def test_seed004_keeps_improving_with_more_frames():
     data = synthetic_session(seed004_camera(), 4000, noise_px=0.05, seed=4).data
     fit = calibrate_seed004(data, nominal)
     assert validation_residual_px(fit.theta, seed004_camera()) < 0.001
+
+
+@pytest.mark.parametrize("method, estimate", [("seed004", None), ("seed004", ("f", "x0", "y0")),
+                                              ("seed004", ("f", "x0", "y0", "k1")),
+                                              ("improved-cosine", ("f", "x0", "y0", "k1", "k2"))])
+def test_parameters_left_out_of_the_estimate_keep_the_nominal_value(method, estimate):
+    # The seed methods start from "no distortion" (seed 004 sec. 3, seed 000 sec. 2 step 1); they used to zero every
+    # distortion coefficient, so a term reported as "fixed" came back 0 instead of the nominal's value (and seed
+    # 004's step 2 replaced k2 even when only k1 was estimated).
+    from dataclasses import replace
+
+    from hostlink.calibration import run
+
+    cam = seed004_camera()
+    truth = replace(cam, distortion=replace(cam.distortion, k3=2.0e-21, p1=3.0e-7, p2=-2.0e-7, s1=1.0e-7,
+                                            s2=-1.5e-7))
+    nominal = replace(truth, focal_length_mm=70.0, principal_point_px=(511.5, 511.5),
+                      distortion=replace(truth.distortion, k1=0.0, k2=0.0))
+    if estimate is not None and "k1" not in estimate:
+        nominal = replace(nominal, distortion=truth.distortion)
+    out = run.calibrate(synthetic_session(truth, 40, seed=5).data, nominal, method, estimate)
+    fixed = [n for n in ("k1", "k2", "k3", "p1", "p2", "s1", "s2") if n not in out.estimate]
+    assert fixed and out.sigma()["fixed"] == [n for n in ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "s1", "s2")
+                                              if n not in out.estimate]
+    for name in fixed:  # held means held: exactly the nominal's value
+        assert getattr(out.params.distortion, name) == getattr(nominal.distortion, name), name

@@ -151,3 +151,17 @@ def test_erased_flash_has_no_active_set():
     store = banks.erased_store()
     assert store.active == banks.NO_SLOT and banks.active_set(store) is None
     assert upload(store, CAMERA) == 1 and store.active == 0
+
+
+def test_a_commit_past_the_last_generation_is_refused_and_keeps_the_active_set():
+    # generations are uint32 in the slot record: the commit after 2**32 - 1 used to raise struct.error out of
+    # Firmware.handle (which must answer every command) instead of a NAK
+    store = banks.factory_store(NOMINAL)
+    store.slots[0] = banks.make_record(2**32 - 1, banks.params_to_table(NOMINAL))
+    store = banks.boot(store.slots)
+    before = store.slots.copy()
+    _, crc = stage(store, CAMERA)
+    assert banks.stage_verify(store, crc) is None
+    refusal = banks.commit(store, crc)
+    assert isinstance(refusal, banks.Refusal) and refusal.code == NakCode.BANK_WRITE_FAILED
+    assert np.array_equal(store.slots, before) and banks.active_set(store)[0] == 2**32 - 1

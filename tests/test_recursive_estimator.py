@@ -175,3 +175,23 @@ def test_bad_configuration_is_refused_with_a_message():
     with pytest.raises(ValueError, match="prior_sigma"):
         rc.create(SEED004_NOMINAL, config=rc.RecursiveConfig(prior_sigma=(1.0,) * 3))
     assert rc.parse_estimate_names("y0, f") == ("f", "y0")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_star_reported_twice_in_a_frame_is_used_once(dtype):
+    # A centroid repeated in a frame (same position, same reference) adds a pair of zero length and zero variance:
+    # float64 Cholesky then failed (the firmware reset its estimator) and float32 whitened rounding noise with a huge
+    # weight (x0/y0 moved by ~1 px). It carries no information, so the frame must give exactly the undoubled result.
+    frames = make_frames(SEED004_TRUE, 31, NOISE_PX, seed=21, min_stars=10, max_stars=12)
+    st, _ = _run(frames[:30], dtype=dtype)
+    fr = frames[30]
+    plain = rc.restore_state(rc.save_state(st), SEED004_NOMINAL)
+    rc.update(plain, fr.x_px, fr.y_px, fr.r, fr.identified)
+    used = np.flatnonzero(fr.identified)
+    for j in (used[0], used[3]):
+        twice = rc.restore_state(rc.save_state(st), SEED004_NOMINAL)
+        res = rc.update(twice, np.append(fr.x_px, fr.x_px[j]), np.append(fr.y_px, fr.y_px[j]),
+                        np.vstack([fr.r, fr.r[j]]), np.append(fr.identified, fr.identified[j]))
+        assert not res.skipped
+        # the same arithmetic on the same stars: bit for bit
+        assert rc.save_state(twice) == rc.save_state(plain), j

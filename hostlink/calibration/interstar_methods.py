@@ -287,7 +287,8 @@ def calibrate_interstar(
         stages.append({"name": "optical", "theta": theta.copy()})
         final = optical
     else:
-        theta[3:] = 0.0  # step 1: all distortion coefficients 0 (seed 000 sec. 2, step 1)
+        # step 1: the distortion coefficients estimated are 0 (seed 000 sec. 2, step 1); those held keep the nominal
+        theta[[ESTIMATE_NAMES.index(n) for n in distortion]] = 0.0
         if optical:
             central = central_frame_subset(data, nominal)
             source, src_orders = (central, frame_pair_orders(central)) if central.n_frames else (data, orders)
