@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import re
 import sys
 
 from hostlink.errors import UserError
@@ -32,6 +33,12 @@ COMMANDS: tuple[str, ...] = (
 
 
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # A value starting with '-' and a digit is a value, not an option (as Python 3.13's argparse reads it):
+        # `--site -33.9,-70.7,2400` (south, west) and `--weather -5,750` (frost) are INTERFACES.md syntax.
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
     def error(self, message: str) -> None:  # one line, not usage + message
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 

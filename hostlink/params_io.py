@@ -17,11 +17,13 @@ def load_params(path: str | Path) -> CameraParams:
     """Read and validate a camera parameter file; any problem is a one-line :class:`UserError` naming the field."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not a JSON text file ({exc.reason} at byte {exc.start})") from None
     try:
         data = json.loads(text, parse_constant=_json_constant)
     except json.JSONDecodeError as exc:
@@ -35,7 +37,7 @@ def load_params(path: str | Path) -> CameraParams:
 def load_params_with_extras(path: str | Path) -> tuple[CameraParams, dict]:
     """As :func:`load_params`, also returning the file's whole JSON object (for ``sigma`` and other extras)."""
     params = load_params(path)
-    return params, json.loads(Path(path).read_text(encoding="utf-8"), parse_constant=_json_constant)
+    return params, json.loads(Path(path).read_text(encoding="utf-8-sig"), parse_constant=_json_constant)
 
 
 def _json_constant(name: str) -> float:

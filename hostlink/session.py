@@ -105,7 +105,7 @@ def read_session(path: str | Path) -> Session:
     """Read and check a session CSV. Any malformed content is a one-line :class:`UserError` with row and column."""
     path = Path(path)
     try:
-        handle = path.open(newline="", encoding="utf-8")
+        handle = path.open(newline="", encoding="utf-8-sig")
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:
@@ -214,7 +214,7 @@ def write_session(path: str | Path, session: Session, float_format: str = "%.6f"
     ]
     if session.mag is not None:
         header.append("mag")
-        cols.append(["%.3f" % v for v in session.mag])
+        cols.append(["%.3f" % v if np.isfinite(v) else "" for v in session.mag])  # empty = no magnitude
     if session.ra_deg is not None and session.dec_deg is not None:
         header += ["ra_deg", "dec_deg"]
         cols.append(["%.10f" % v if np.isfinite(v) else "" for v in session.ra_deg])

@@ -91,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
     if cfg.nominal is not None and (cfg.nominal.image_size_px != cfg.camera.image_size_px
                                     or cfg.nominal.pixel_pitch_um != cfg.camera.pixel_pitch_um):
         raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
+    try:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {args.out}: cannot create the report folder ({exc.strerror})") from None
     summary = run_bench(cfg, say=print, show_progress=not args.quiet)
     _print_table(summary)
     print(f"report: {Path(args.out) / 'summary.json'} and PNG plots in {args.out}/ ({summary['elapsed_s']:.0f} s)")

@@ -71,7 +71,7 @@ def _read_attitudes(path: str):
 
     names = [f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
             reader = csv.DictReader(handle)
             missing = [n for n in names if n not in (reader.fieldnames or [])]
             if missing:
