@@ -59,9 +59,11 @@ class StreamResult:
 
 
 def stream_frames(link: Link, n_frames: int, progress: Callable[[int], None] | None = None,
-                  frame_timeout_s: float | None = None) -> StreamResult:
-    """Start the stream, receive ``n_frames`` frames (fewer if the sensor's source ends), stop the stream."""
-    result = StreamResult()
+                  frame_timeout_s: float | None = None, result: StreamResult | None = None) -> StreamResult:
+    """Start the stream, receive ``n_frames`` frames (fewer if the sensor's source ends), stop the stream.
+    Frames are appended to ``result`` (a fresh one if None) as they arrive, so a caller that passes its own keeps the
+    frames received before a LinkError or Ctrl-C interrupted the stream."""
+    result = StreamResult() if result is None else result
     link.set_streaming(True)
     try:
         while len(result.frames) < n_frames:

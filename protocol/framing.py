@@ -91,5 +91,15 @@ class FrameSplitter:
                 self._buffer.clear()
             return []
         parts = bytes(self._buffer).split(DELIMITER)
-        self._buffer = bytearray(parts[-1])
-        return [p for p in parts[:-1] if p]
+        rest = parts[-1]
+        if len(rest) > self._max:
+            self.discarded_bytes += len(rest)
+            rest = b""
+        self._buffer = bytearray(rest)
+        out = []
+        for p in parts[:-1]:
+            if len(p) > self._max:  # the limit holds whether or not the read also held a delimiter
+                self.discarded_bytes += len(p)
+            elif p:
+                out.append(p)
+        return out

@@ -26,14 +26,28 @@ def run(args: argparse.Namespace) -> int:
 
     from hostlink.errors import UserError
     from hostlink.progress import progress_bar
-    from hostlink.sensor_client import frames_to_session, stream_frames
+    from hostlink.sensor_client import StreamResult, frames_to_session, stream_frames
     from hostlink.session import write_session
 
     if args.frames < 1:
         raise UserError("--frames must be >= 1")
-    with open_link_from_args(args) as link, \
-            progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
-        result = stream_frames(link, args.frames, progress=advance)
+    result = StreamResult()
+    try:
+        with open_link_from_args(args) as link, \
+                progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
+            stream_frames(link, args.frames, progress=advance, result=result)
+    except (UserError, KeyboardInterrupt) as exc:
+        # nothing lost: the frames that did arrive before the link failed or the user pressed Ctrl-C are written
+        if not result.frames:
+            raise
+        write_session(args.out, frames_to_session(result.frames), float_format="%.10f")
+        saved = f"the {len(result.frames)} frames received before were written to {args.out}"
+        if isinstance(exc, KeyboardInterrupt):
+            print(f"hostlink stream: interrupted; {saved}", file=sys.stderr)
+            return 130
+        err = UserError(f"{exc}; {saved}")
+        err.exit_code = exc.exit_code  # the same exit code as without the partial session
+        raise err from None
     write_session(args.out, frames_to_session(result.frames), float_format="%.10f")
     lost = result.lost_messages
     note = f"; the sensor's stream ended after {len(result.frames)} frames" if result.ended else ""

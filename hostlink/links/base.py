@@ -19,6 +19,7 @@ Contract of every operation (see hostlink/links/INTERFACE.md):
 from __future__ import annotations
 
 import itertools
+import random
 import time
 from abc import ABC, abstractmethod
 from collections import deque
@@ -164,7 +165,10 @@ class MessageLink(Link):
     def __init__(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
         super().__init__()
         self.timeout_s = float(timeout_s)
-        self._tags = itertools.cycle(range(1, 1 << 16))
+        # tags start at a random value, so a stale reply left on the line by an earlier host process (or another
+        # host on a shared CAN bus) is not taken for the answer to this link's first commands
+        first_tag = random.SystemRandom().randrange(1, 1 << 16)
+        self._tags = itertools.cycle([*range(first_tag, 1 << 16), *range(1, first_tag)])
         self._stream: deque[CentroidFrame | EndOfStream] = deque()
         self._ended = False
 

@@ -14,10 +14,21 @@ interface (numbers are converted). Examples:
 The host node uses identifiers 0x0A0 (COMMAND), 0x0A2 (STAGE_FLOAT) and 0x0C0 (ISO-TP to the sensor); the sensor
 0x0A1 (ACK), 0x0C1 (ISO-TP to the host) and 0x100-0x103 (stream). Loss is counted from gaps in the frame counter,
 from frames whose stars did not all arrive, and from stars whose frame parity does not match their header.
+
+Limits, by design of the CAN layout (``protocol/startracker.dbc``):
+
+* FRAME_HEADER's 64 bits are all used (frame 32, n_stars 8, t_offset_us 24), so there is no link sequence number as
+  on serial and Modbus: the frame counter is the sequence. A sensor numbers every exposure and sends every one (a
+  frame without stars is a header with n_stars = 0), so a gap is a loss. An emulator replaying a session whose frame
+  numbers are not consecutive (a session recorded with losses, or simulated with frames left out) therefore reports
+  those gaps as lost messages on CAN only; the frames themselves arrive intact.
+* One host node per bus: two hosts share the host identifiers, so each sees the other's replies (ignored by their
+  tags, which start at a random value per link) and ISO-TP flow control; run one host command at a time.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import queue
 import threading
@@ -34,6 +45,10 @@ from protocol.messages import CentroidFrame, DecodeError, EncodeError, EndOfStre
 from protocol.param_table import TABLE_BYTES
 
 DEFAULT_BITRATE = 500_000
+# can-isotp logs protocol oddities (e.g. "Received a FlowControl message while transmission was Idle") as warnings,
+# which Python prints on stderr without a handler: the link counts them in IsoTpChannel.errors and reports failures
+# in one line itself (CLI contract).
+logging.getLogger("isotp").setLevel(logging.CRITICAL)
 #: ISO-TP settings on both nodes: no separation time and no block limit, so a long message streams back to back
 #: (the bus, not the protocol, sets the pace); 1 s timeouts for a missing flow control or consecutive frame.
 ISOTP_PARAMS: dict[str, object] = {

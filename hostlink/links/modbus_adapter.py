@@ -34,6 +34,9 @@ ILLEGAL_VALUE = 3
 DEVICE_FAILURE = 4
 _EXC = {ILLEGAL_FUNCTION: ExcCodes.ILLEGAL_FUNCTION, ILLEGAL_ADDRESS: ExcCodes.ILLEGAL_ADDRESS,
         ILLEGAL_VALUE: ExcCodes.ILLEGAL_VALUE, DEVICE_FAILURE: ExcCodes.DEVICE_FAILURE}
+#: Names of the exception codes (Modbus application protocol v1.1b3, section 7), for the one-line error.
+_EXC_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "server device failure",
+              6: "server device busy", 10: "gateway path unavailable", 11: "gateway target failed to respond"}
 _HOLDING_FC = {3, 6, 16, 22, 23}
 _INPUT_FC = {4}
 FRAMINGS = ("tcp", "rtu")
@@ -83,8 +86,9 @@ class RegisterClient:
     def _check(self, response: object, what: str) -> object:
         if response.isError():  # type: ignore[attr-defined]
             code = getattr(response, "exception_code", None)
-            raise ModbusAdapterError(f"{self.where}: {what} answered with Modbus exception {code}",
-                                     exception_code=code)
+            name = _EXC_NAMES.get(code, "unknown")
+            raise ModbusAdapterError(f"{self.where}: {what} answered with Modbus exception {code} ({name}) by unit "
+                                     f"{self.unit} (is that the sensor's unit id?)", exception_code=code)
         return response
 
     def read(self, table: str, address: int, count: int) -> list[int]:
@@ -93,7 +97,7 @@ class RegisterClient:
         what = f"read of {count} {table} registers at {address}"
         try:
             rr = self._check(fn(address, count=count, device_id=self.unit), what)
-        except ModbusException as exc:
+        except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(f"{self.where}: {what} failed ({_one_line(exc)})") from None
         regs = list(rr.registers)  # type: ignore[attr-defined]
         if len(regs) < count:
@@ -105,7 +109,7 @@ class RegisterClient:
         what = f"write of {len(values)} holding registers at {address}"
         try:
             self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
-        except ModbusException as exc:
+        except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(f"{self.where}: {what} failed ({_one_line(exc)})") from None
 
     def close(self) -> None:

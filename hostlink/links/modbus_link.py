@@ -267,11 +267,9 @@ class ModbusLink(Link):
                 raise LinkError(f"{self.name}: no centroid frame within {timeout_s:g} s")
             time.sleep(_POLL_S)
         seq = int(self._get(head, base, "window_seq"))
-        if self._last_seq is not None:
-            self.stats.lost_messages += (seq - self._last_seq - 1) % (1 << 32)
-        self._last_seq = seq
         if state == _WINDOW_END:
             self._release(seq)
+            self._count_loss(seq)
             self._ended = True
             return None
         n = int(self._get(head, base, "window_n_stars"))
@@ -280,9 +278,17 @@ class ModbusLink(Link):
             more_from = base + len(head)
             words = head + self._read("input", more_from, self._star_first + n * self._star_stride - more_from)
         self._release(seq)
+        # counted only once the window is released: if a read or the release fails, the next poll sees the same
+        # window_seq again, and that is the same message, not 2**32 - 1 lost ones
+        self._count_loss(seq)
         frame = self._decode_frame(np.asarray(words, dtype=np.int64), base, n)
         self.stats.rx_messages += 1
         return frame
+
+    def _count_loss(self, seq: int) -> None:
+        if self._last_seq is not None:
+            self.stats.lost_messages += (seq - self._last_seq - 1) % (1 << 32)
+        self._last_seq = seq
 
     def _release(self, seq: int) -> None:
         reg = self.map["stream_ack_seq"]

@@ -1,0 +1,121 @@
+"""Link-layer robustness without a subprocess: a Modbus release that fails, oversized serial frames, can-isotp's
+warnings, reply tags of a fresh link."""
+
+import numpy as np
+import pytest
+
+from hostlink.emulator.modbus_endpoint import RegisterSensor
+from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
+from hostlink.errors import LinkError
+from hostlink.links.loopback import LoopbackLink
+from hostlink.links.modbus_adapter import ModbusAdapterError
+from hostlink.links.modbus_link import ModbusLink
+from onboard import banks
+from onboard.firmware import Firmware
+from onboard.params import CameraParams
+from protocol import modbus_map as mm
+from protocol.framing import FrameSplitter, encode_frame
+from protocol.messages import CentroidFrame
+
+NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
+                       image_size_px=(1024, 1024))
+
+
+def _source(n_frames: int):
+    for k in range(n_frames):
+        f = CentroidFrame(frame=k, t_us=1_700_000_000_000_000 + 100_000 * k, star_id=np.array([7, 9], np.uint32),
+                          x_px=np.array([10.0 + k, 20.0]), y_px=np.array([30.0, 40.0 + k]),
+                          mag=np.array([5.0, 6.0]))
+        yield SourceFrame(frame=f, r_ref=None)
+
+
+def _sensor(n_frames: int = 10) -> EmulatedSensor:
+    return EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), _source(n_frames))
+
+
+class _FlakyRegisterClient:
+    """A RegisterClient talking straight to the emulator's register image; ``fail_writes_at`` makes the write to
+    that address fail once (the request reached the sensor or not: ``applied``)."""
+
+    def __init__(self, image: RegisterSensor) -> None:
+        self.image = image
+        self.fail_writes_at: int | None = None
+        self.applied = False
+
+    def read(self, table: str, address: int, count: int) -> list[int]:
+        return self.image.on_read(table, address, count)
+
+    def write(self, address: int, values: list[int]) -> None:
+        if address == self.fail_writes_at:
+            self.fail_writes_at = None
+            if self.applied:
+                self.image.on_write(address, values)
+            raise ModbusAdapterError("127.0.0.1:1: write timed out")
+        self.image.on_write(address, values)
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("applied", [False, True])
+def test_modbus_failed_window_release_is_not_counted_as_2_to_the_32_lost_messages(applied):
+    client = _FlakyRegisterClient(RegisterSensor(_sensor()))
+    link = ModbusLink(client, "modbus-tcp:fake:1", timeout_s=0.5)
+    link.set_streaming(True)
+    assert link.recv_frame().frame == 0
+    client.fail_writes_at, client.applied = mm.load_map()["stream_ack_seq"].address, applied
+    with pytest.raises(LinkError, match="timed out"):
+        link.recv_frame()
+    frame = link.recv_frame()
+    if applied:  # the sensor released frame 1 but the host never returned it: exactly one message lost
+        assert (frame.frame, link.stats.lost_messages) == (2, 1)
+    else:  # the window still holds frame 1: delivered now, nothing lost
+        assert (frame.frame, link.stats.lost_messages) == (1, 0)
+
+
+def test_frame_splitter_discards_an_oversized_frame_even_when_its_delimiter_came_in_the_same_read():
+    splitter = FrameSplitter(max_frame_bytes=64)
+    good = encode_frame(3, b"\x01hello")
+    out = splitter.feed(b"\x55" * 200 + b"\x00" + good)
+    assert out == [good[:-1]]
+    assert splitter.discarded_bytes == 200
+    # a tail longer than the limit is not kept waiting for its delimiter either
+    assert splitter.feed(good + b"\x66" * 100) == [good[:-1]] and splitter.discarded_bytes == 300
+
+
+def test_can_isotp_protocol_warnings_do_not_reach_stderr(caplog):
+    import can
+
+    from hostlink.links.can_link import IsoTpChannel
+    from protocol import can_frames as cf
+
+    ch = IsoTpChannel(lambda msg: None, cf.ISOTP_HOST_TO_SENSOR_ID, cf.ISOTP_SENSOR_TO_HOST_ID)
+    # a flow control frame while nothing is being sent (what a second host on the bus causes)
+    ch.feed(can.Message(arbitration_id=cf.ISOTP_SENSOR_TO_HOST_ID, data=bytes([0x30, 0, 0]), is_extended_id=False))
+    ch.poll()
+    # without a handler Python prints any WARNING record on stderr, a second line after the CLI's one-line error
+    assert [r.getMessage() for r in caplog.records if r.name.startswith("isotp")] == []
+    assert ch.errors == 1  # counted by the link instead
+
+
+def test_fresh_links_do_not_all_start_at_the_same_reply_tag():
+    # a stale reply left on a port by an earlier process must not match a new link's first command
+    first_tags = {next(LoopbackLink(_sensor(0))._tags) for _ in range(20)}
+    assert len(first_tags) > 1
+
+
+def test_modbus_connection_reset_mid_exchange_is_an_adapter_error_not_an_internal_error():
+    from hostlink.links.modbus_adapter import RegisterClient
+
+    class _ResetClient:
+        def read_input_registers(self, *a, **k):
+            raise ConnectionResetError(104, "Connection reset by peer")
+
+        write_registers = read_input_registers
+
+    client = object.__new__(RegisterClient)  # no socket: the pymodbus client is replaced by one whose peer died
+    client.unit, client.where, client._client = 1, "127.0.0.1:1", _ResetClient()
+    with pytest.raises(ModbusAdapterError, match="reset by peer"):
+        client.read("input", 0, 4)
+    with pytest.raises(ModbusAdapterError, match="reset by peer"):
+        client.write(0, [1])
