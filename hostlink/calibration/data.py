@@ -122,3 +122,43 @@ def measured_directions(data: CalibrationData, theta: np.ndarray, max_obs: int =
         z = min(a + max_obs, data.n_obs)
         out[a:z] = pixels_to_unit(data.x_px[a:z], data.y_px[a:z], theta)
     return out
+
+
+@dataclass(frozen=True)
+class PaddedFrames:
+    """Frames [f0, f1) of a chunk laid out as (m, nmax, ...) arrays, padded to the chunk's largest star count, so
+    per-frame pair computations vectorise. ``rows`` are the chunk's data rows; ``frame``/``slot`` place each row."""
+
+    b: np.ndarray  # (m, nmax, 3) measured directions
+    r: np.ndarray  # (m, nmax, 3) reference directions
+    valid: np.ndarray  # (m, nmax) real stars (the rest is padding)
+    rows: np.ndarray
+    frame: np.ndarray
+    slot: np.ndarray
+
+
+def padded_frames(data: CalibrationData, b: np.ndarray, f0: int, f1: int) -> PaddedFrames:
+    """The frames [f0, f1) of ``data`` (with measured directions ``b`` (N, 3)) as :class:`PaddedFrames`."""
+    starts = data.frame_starts
+    counts = np.diff(starts[f0 : f1 + 1])
+    nmax = int(counts.max(initial=0))
+    rows = int(starts[f0]) + np.arange(int(starts[f1] - starts[f0]))
+    frame = np.repeat(np.arange(f1 - f0), counts)
+    slot = rows - np.repeat(starts[f0:f1], counts)
+    pb = np.zeros((f1 - f0, nmax, 3))
+    pr = np.zeros((f1 - f0, nmax, 3))
+    valid = np.zeros((f1 - f0, nmax), dtype=bool)
+    pb[frame, slot] = b[rows]
+    pr[frame, slot] = data.r[rows]
+    valid[frame, slot] = True
+    return PaddedFrames(pb, pr, valid, rows, frame, slot)
+
+
+def pair_angles_rad(v: np.ndarray) -> np.ndarray:
+    """Angles between all vectors of each padded frame (m, n, 3) -> (m, n, n) [rad], from the chord
+    |a - b|^2 = 2 - 2 a.b. In float64 the angle's error is ~1e-16 / angle rad (1e-13 rad at 1 mrad), far below
+    the voting tolerance and the interstar RMS of any real sensor; a batched matrix product keeps it fast."""
+    gram = v @ v.transpose(0, 2, 1)
+    chord = np.sqrt(np.maximum(2.0 - 2.0 * gram, 0.0))
+    return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
+

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from hostlink.calibration.bundle import residuals
-from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.data import CalibrationData, frame_chunks, padded_frames, pair_angles_rad
 from hostlink.calibration.frames import wahba_svd
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
@@ -54,24 +54,10 @@ def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int =
     total, count = 0.0, 0
     starts = data.frame_starts
     for f0, f1 in frame_chunks(starts, chunk_obs):
-        counts = np.diff(starts[f0 : f1 + 1])
-        nmax = int(counts.max(initial=0))
-        rows = np.arange(int(starts[f0]), int(starts[f1]))
-        frame_local = np.repeat(np.arange(f1 - f0), counts)
-        slot = rows - np.repeat(starts[f0:f1], counts)
-        pb = np.zeros((f1 - f0, nmax, 3))
-        pr = np.zeros((f1 - f0, nmax, 3))
-        valid = np.zeros((f1 - f0, nmax), dtype=bool)
-        pb[frame_local, slot] = b_all[rows]
-        pr[frame_local, slot] = data.r[rows]
-        valid[frame_local, slot] = True
-        upper = np.triu(np.ones((nmax, nmax), dtype=bool), 1)[None] & valid[:, :, None] & valid[:, None, :]
-
-        def angles(v):
-            chord = np.linalg.norm(v[:, :, None, :] - v[:, None, :, :], axis=-1)
-            return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
-
-        d = (angles(pb) - angles(pr))[upper]
+        pf = padded_frames(data, b_all, f0, f1)
+        nmax = pf.valid.shape[1]
+        upper = np.triu(np.ones((nmax, nmax), dtype=bool), 1)[None] & pf.valid[:, :, None] & pf.valid[:, None, :]
+        d = (pair_angles_rad(pf.b) - pair_angles_rad(pf.r))[upper]
         total += float(np.sum(d * d))
         count += d.size
     return math.sqrt(total / count) if count else float("nan")
