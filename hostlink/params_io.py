@@ -68,3 +68,20 @@ def save_params(path: str | Path, params: CameraParams, extras: dict | None = No
         tmp.replace(path)
     except OSError as exc:
         raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+
+
+def emit_param_file(data: dict, out: str | Path | None = None) -> None:
+    """Print a parameter-file object as JSON on stdout and, with ``out``, also write it there (atomically)."""
+    import sys
+
+    text = json.dumps(data, indent=2) + "\n"
+    sys.stdout.write(text)
+    if out:
+        path = Path(out)
+        tmp = path.with_name(path.name + ".tmp")
+        try:
+            tmp.write_text(text, encoding="utf-8")
+            tmp.replace(path)
+        except OSError as exc:
+            raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+

@@ -22,23 +22,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
     import sys
 
-    from hostlink.errors import UserError
+    from hostlink.params_io import emit_param_file
     from hostlink.sensor_client import accept_estimate, params_float32_dict
 
     with open_link_from_args(args) as link:
         result, estimate = accept_estimate(link)
-    text = json.dumps(params_float32_dict(result.active, result.sigma), indent=2) + "\n"
-    sys.stdout.write(text)
-    if args.out:
-        from pathlib import Path
-
-        try:
-            Path(args.out).write_text(text, encoding="utf-8")
-        except OSError as exc:
-            raise UserError(f"{args.out}: cannot write ({exc.strerror})") from None
+    emit_param_file(params_float32_dict(result.active, result.sigma), args.out)
     print(f"accepted the estimate after {estimate.n_updates} updates (frame {estimate.last_frame}): generation "
           f"{result.generation}, CRC 0x{result.crc32:08x}", file=sys.stderr)
     return 0

@@ -20,22 +20,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
     import sys
 
-    from hostlink.errors import UserError
+    from hostlink.params_io import emit_param_file
     from hostlink.sensor_client import params_float32_dict, read_active_params
 
     with open_link_from_args(args) as link:
         active = read_active_params(link)
-    text = json.dumps(params_float32_dict(active.params, active.sigma), indent=2) + "\n"
-    sys.stdout.write(text)
-    if args.out:
-        from pathlib import Path
-
-        try:
-            Path(args.out).write_text(text, encoding="utf-8")
-        except OSError as exc:
-            raise UserError(f"{args.out}: cannot write ({exc.strerror})") from None
+    emit_param_file(params_float32_dict(active.params, active.sigma), args.out)
     print(f"generation {active.generation}, CRC 0x{active.crc32:08x}", file=sys.stderr)
     return 0
