@@ -128,9 +128,11 @@ def main() -> None:
     print("  per step [ms/frame]      float32   float64")
     for name in STEPS:
         print(f"    {name:<20s} {1e3 * s32[name] / n:9.3f} {1e3 * s64[name] / n:9.3f}")
-    print(f"  boresight error vs truth (0.05 px noise): float32 {boresight_rms_arcsec(c32, scene['c_true']):.3f}\" "
-          f"RMS, float64 {boresight_rms_arcsec(c64, scene['c_true']):.3f}\" RMS; "
-          f"float32 - float64 {boresight_rms_arcsec(c32, c64):.4f}\" RMS")
+    print(
+        f'  boresight error vs truth (0.05 px noise): float32 {boresight_rms_arcsec(c32, scene["c_true"]):.3f}" '
+        f'RMS, float64 {boresight_rms_arcsec(c64, scene["c_true"]):.3f}" RMS; '
+        f'float32 - float64 {boresight_rms_arcsec(c32, c64):.4f}" RMS'
+    )
 
 
 if __name__ == "__main__":

@@ -70,8 +70,9 @@ def scipy_bundle(data, nominal, max_nfev: int = 100, tol: float | None = None):
     for a in range(3):
         sparsity[rows, 10 + 3 * frame_of_row + a] = 1
     tols = {} if tol is None else {"ftol": tol, "xtol": tol, "gtol": tol}
-    sol = least_squares(fun, np.zeros(10 + 3 * m), jac_sparsity=sparsity, method="trf", x_scale="jac",
-                        max_nfev=max_nfev, **tols)
+    sol = least_squares(
+        fun, np.zeros(10 + 3 * m), jac_sparsity=sparsity, method="trf", x_scale="jac", max_nfev=max_nfev, **tols
+    )
     return theta0 + sol.x[:10] * scale, float(np.sum(sol.fun**2)), sol.nfev, sol.status
 
 
@@ -105,8 +106,9 @@ def ours_time_to_reach(data, target_ssq: float, max_iter: int):
 def speed(frames: int) -> None:
     ss = synthetic_session(TRUTH, frames, stars_per_frame=(10, 30), noise_px=0.05, seed=1)
     d = ss.data
-    print(f"speed: {frames} frames, {d.n_obs} stars, 10 camera parameters + {3 * frames} attitude parameters",
-          flush=True)
+    print(
+        f"speed: {frames} frames, {d.n_obs} stars, 10 camera parameters + {3 * frames} attitude parameters", flush=True
+    )
     res, ssq_ours, t_ours = ours(d, 100)
     t0 = time.perf_counter()
     theta_sp, ssq_sp, nfev, status = scipy_bundle(d, NOMINAL)
@@ -118,19 +120,33 @@ def speed(frames: int) -> None:
     rows = [
         ("ours (Schur, chunked), to convergence", t_ours, ssq_ours, f"{len(res.history)} iterations", res.theta),
         ("scipy, default tolerances", t_scipy, ssq_sp, f"{nfev} evaluations, status {status}", theta_sp),
-        ("scipy, tolerances 1e-15", t_tight, ssq_tight, f"{nfev_tight} evaluations, status {status_tight}",
-         theta_tight),
+        (
+            "scipy, tolerances 1e-15",
+            t_tight,
+            ssq_tight,
+            f"{nfev_tight} evaluations, status {status_tight}",
+            theta_tight,
+        ),
     ]
     for name, t, ssq, what, theta in rows:
-        print(f"  {name:40s} {t:8.3f} s  sum of squares {ssq:.9f}  validation residual "
-              f"{validation_residual_px(theta, TRUTH):.5f} px  ({what})", flush=True)
-    print(f"  ours reaches scipy's default answer (sum of squares <= {ssq_sp:.9f}) in {t_equal:.3f} s "
-          f"({k_equal} iterations)")
-    print(f"  speed ratio at scipy's default answer: {t_scipy / t_equal:.1f}x  (scipy {t_scipy:.2f} s / ours "
-          f"{t_equal:.3f} s)")
+        print(
+            f"  {name:40s} {t:8.3f} s  sum of squares {ssq:.9f}  validation residual "
+            f"{validation_residual_px(theta, TRUTH):.5f} px  ({what})",
+            flush=True,
+        )
+    print(
+        f"  ours reaches scipy's default answer (sum of squares <= {ssq_sp:.9f}) in {t_equal:.3f} s "
+        f"({k_equal} iterations)"
+    )
+    print(
+        f"  speed ratio at scipy's default answer: {t_scipy / t_equal:.1f}x  (scipy {t_scipy:.2f} s / ours "
+        f"{t_equal:.3f} s)"
+    )
     if ssq_tight > ssq_ours * (1 + 1e-9):
-        print(f"  scipy with tight tolerances stopped above our optimum after {t_tight:.1f} s: at our answer the "
-              f"ratio is more than {t_tight / t_ours:.0f}x")
+        print(
+            f"  scipy with tight tolerances stopped above our optimum after {t_tight:.1f} s: at our answer the "
+            f"ratio is more than {t_tight / t_ours:.0f}x"
+        )
     else:
         print(f"  speed ratio at the common optimum: {t_tight / t_ours:.1f}x")
     print(f"  speed ratio, each to its own stopping rule (scipy stops before the optimum): {t_scipy / t_ours:.1f}x")
@@ -147,9 +163,11 @@ def memory(frames: int) -> None:
         elapsed = time.perf_counter() - t0
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
-        print(f"memory: {n} frames, {d.n_obs} stars: peak {peak / 1e6:.1f} MB traced "
-              f"({peak / input_bytes:.1f}x the {input_bytes / 1e6:.1f} MB input), {elapsed:.1f} s, "
-              f"{len(res.history)} iterations, validation residual {validation_residual_px(res.theta, TRUTH):.5f} px")
+        print(
+            f"memory: {n} frames, {d.n_obs} stars: peak {peak / 1e6:.1f} MB traced "
+            f"({peak / input_bytes:.1f}x the {input_bytes / 1e6:.1f} MB input), {elapsed:.1f} s, "
+            f"{len(res.history)} iterations, validation residual {validation_residual_px(res.theta, TRUTH):.5f} px"
+        )
 
 
 def interstar_pass(data, form: str) -> tuple[float, int]:
@@ -181,15 +199,21 @@ def methods_side_by_side(methods: list[str], frame_counts: list[int]) -> None:
         print(f"methods: {n} frames, {ss.data.n_obs} stars", flush=True)
         for form in ("cos", "sin"):
             elapsed, peak = interstar_pass(ss.data, form)
-            print(f"  one interstar normal-equation pass ({form}, 10 parameters): {1000 * elapsed / n * 1000:7.1f} ms "
-                  f"per 1000 frames, peak {peak / 1e6:.1f} MB traced", flush=True)
+            print(
+                f"  one interstar normal-equation pass ({form}, 10 parameters): {1000 * elapsed / n * 1000:7.1f} ms "
+                f"per 1000 frames, peak {peak / 1e6:.1f} MB traced",
+                flush=True,
+            )
         for method in methods:
             t0 = time.perf_counter()
             out = calibrate(ss.data, NOMINAL, method)
             elapsed = time.perf_counter() - t0
-            print(f"  {method:16s} {elapsed:9.2f} s  {1000 * elapsed / n:7.3f} s per 1000 frames  "
-                  f"{len(out.history):3d} iterations  validation residual "
-                  f"{validation_residual_px(out.theta, TRUTH):.5f} px", flush=True)
+            print(
+                f"  {method:16s} {elapsed:9.2f} s  {1000 * elapsed / n:7.3f} s per 1000 frames  "
+                f"{len(out.history):3d} iterations  validation residual "
+                f"{validation_residual_px(out.theta, TRUTH):.5f} px",
+                flush=True,
+            )
 
 
 def main() -> None:
@@ -198,8 +222,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--memory-frames", type=int, default=0, help="also run the memory check on N frames")
-    parser.add_argument("--methods", default="", help="'all' or a comma list of calibration methods: time each "
-                        "method side by side instead of the scipy comparison")
+    parser.add_argument(
+        "--methods",
+        default="",
+        help="'all' or a comma list of calibration methods: time each "
+        "method side by side instead of the scipy comparison",
+    )
     parser.add_argument("--method-frames", default="1000,10000", help="comma list of session sizes for --methods")
     args = parser.parse_args()
     if args.methods:

@@ -64,7 +64,7 @@ def can_wire(frames) -> list[tuple[int, bytes]]:
             out.append((cf.TIME_BASE.frame_id, cf.encode_time_base(t_base)))
         out.append((cf.FRAME_HEADER.frame_id, cf.encode_header(f.frame, f.n_stars, f.t_us - t_base)))
         stars = cf.word_bytes(cf.encode_stars(f))
-        out += [(cf.STAR.frame_id, stars[k:k + 8]) for k in range(0, len(stars), 8)]
+        out += [(cf.STAR.frame_id, stars[k : k + 8]) for k in range(0, len(stars), 8)]
     return out
 
 
@@ -109,8 +109,9 @@ def slcan_parse_stars_per_s(frames, scheme: str = "socket") -> float:
 
     threading.Thread(target=serve, daemon=True).start()
     url = f"socket://127.0.0.1:{server.getsockname()[1]}"
-    bus = can.Bus(interface="slcan", channel=_buffered_socket_url(url) if scheme == "bufsocket" else url,
-                  sleep_after_open=0)
+    bus = can.Bus(
+        interface="slcan", channel=_buffered_socket_url(url) if scheme == "bufsocket" else url, sleep_after_open=0
+    )
     n_can = can_frames_for(frames)
     t0 = time.perf_counter()
     got = 0
@@ -136,36 +137,65 @@ def main(argv: list[str] | None = None) -> int:
             frames, elapsed, lost = stream(info["link"], args.frames)
         stars = sum(f.n_stars for f in frames)
         limit = physical_limit_stars_per_s(frames, info)
-        results["can"].append({"bitrate": bitrate, "frames": len(frames), "stars": stars, "seconds": elapsed,
-                               "stars_per_s": stars / elapsed, "limit_stars_per_s": limit,
-                               "fraction_of_limit": stars / elapsed / limit, "lost": lost})
+        results["can"].append(
+            {
+                "bitrate": bitrate,
+                "frames": len(frames),
+                "stars": stars,
+                "seconds": elapsed,
+                "stars_per_s": stars / elapsed,
+                "limit_stars_per_s": limit,
+                "fraction_of_limit": stars / elapsed / limit,
+                "lost": lost,
+            }
+        )
         sample = sample or frames
     for key in ("link", "link_rtu"):
         with running_emulator("modbus") as info:
             frames, elapsed, lost = stream(info[key], args.modbus_frames)
             stars = sum(f.n_stars for f in frames)
-            results["modbus"].append({"link": key, "frames": len(frames), "stars": stars, "seconds": elapsed,
-                                      "stars_per_s": stars / elapsed, "frames_per_s": len(frames) / elapsed,
-                                      "lost": lost})
+            results["modbus"].append(
+                {
+                    "link": key,
+                    "frames": len(frames),
+                    "stars": stars,
+                    "seconds": elapsed,
+                    "stars_per_s": stars / elapsed,
+                    "frames_per_s": len(frames) / elapsed,
+                    "lost": lost,
+                }
+            )
             sample = sample or frames
     fastest = physical_limit_stars_per_s(sample, {"bitrate": FASTEST_CAN_BITRATE})
     decode = host_decode_stars_per_s(sample)
     slcan = slcan_parse_stars_per_s(sample)
     slcan_buf = slcan_parse_stars_per_s(sample, "bufsocket")
-    results["host_decode"] = {"stars_per_s": decode, "fastest_line_stars_per_s": fastest,
-                              "ratio": decode / fastest, "slcan_socket_stars_per_s": slcan,
-                              "slcan_bufsocket_stars_per_s": slcan_buf}
+    results["host_decode"] = {
+        "stars_per_s": decode,
+        "fastest_line_stars_per_s": fastest,
+        "ratio": decode / fastest,
+        "slcan_socket_stars_per_s": slcan,
+        "slcan_bufsocket_stars_per_s": slcan_buf,
+    }
     print(f"{'CAN bit rate':>12s} {'stars/s':>9s} {'limit':>9s} {'fraction':>9s} {'lost':>5s}")
     for r in results["can"]:
-        print(f"{r['bitrate']:12d} {r['stars_per_s']:9.0f} {r['limit_stars_per_s']:9.0f} "
-              f"{r['fraction_of_limit']:9.3f} {r['lost']:5d}")
+        print(
+            f"{r['bitrate']:12d} {r['stars_per_s']:9.0f} {r['limit_stars_per_s']:9.0f} "
+            f"{r['fraction_of_limit']:9.3f} {r['lost']:5d}"
+        )
     for r in results["modbus"]:
-        print(f"modbus {r['link']:8s}: {r['stars_per_s']:.0f} stars/s, {r['frames_per_s']:.0f} frames/s "
-              f"(>= 2 register transactions each), lost {r['lost']}")
-    print(f"host CAN stream decoding: {decode:.0f} stars/s = {decode / fastest:.1f} x the fastest line "
-          f"(CAN @ 1 Mbit/s: {fastest:.0f} stars/s)")
-    print(f"python-can slcan reading the same frames as SLCAN text: socket:// {slcan:.0f} stars/s "
-          f"({slcan / fastest:.2f} x), bufsocket:// {slcan_buf:.0f} stars/s ({slcan_buf / fastest:.2f} x)")
+        print(
+            f"modbus {r['link']:8s}: {r['stars_per_s']:.0f} stars/s, {r['frames_per_s']:.0f} frames/s "
+            f"(>= 2 register transactions each), lost {r['lost']}"
+        )
+    print(
+        f"host CAN stream decoding: {decode:.0f} stars/s = {decode / fastest:.1f} x the fastest line "
+        f"(CAN @ 1 Mbit/s: {fastest:.0f} stars/s)"
+    )
+    print(
+        f"python-can slcan reading the same frames as SLCAN text: socket:// {slcan:.0f} stars/s "
+        f"({slcan / fastest:.2f} x), bufsocket:// {slcan_buf:.0f} stars/s ({slcan_buf / fastest:.2f} x)"
+    )
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=2))
     return 0

@@ -134,16 +134,28 @@ def main(argv: list[str] | None = None) -> int:
     decode_rate = host_decode_stars_per_s(sample[1:])
     print(f"{'transport':10s} {'stars/s':>10s} {'limit':>10s} {'fraction':>9s} {'lost':>5s}")
     for r in results:
-        print(f"{r['transport']:10s} {r['stars_per_s']:10.0f} {r['limit_stars_per_s']:10.0f} "
-              f"{r['fraction_of_limit']:9.3f} {r['lost_messages']:5d}")
-    print(f"host decoding: {decode_rate:.0f} stars/s = {decode_rate / fastest:.1f} x the fastest line "
-          f"({max(line_rates, key=line_rates.get)}, {fastest:.0f} stars/s)")
+        print(
+            f"{r['transport']:10s} {r['stars_per_s']:10.0f} {r['limit_stars_per_s']:10.0f} "
+            f"{r['fraction_of_limit']:9.3f} {r['lost_messages']:5d}"
+        )
+    print(
+        f"host decoding: {decode_rate:.0f} stars/s = {decode_rate / fastest:.1f} x the fastest line "
+        f"({max(line_rates, key=line_rates.get)}, {fastest:.0f} stars/s)"
+    )
     if args.out:
         for r in results:
             r.pop("frames_sample")
-        Path(args.out).write_text(json.dumps({"links": results, "line_rates_stars_per_s": line_rates,
-                                              "host_decode_stars_per_s": decode_rate,
-                                              "host_decode_over_fastest_line": decode_rate / fastest}, indent=2))
+        Path(args.out).write_text(
+            json.dumps(
+                {
+                    "links": results,
+                    "line_rates_stars_per_s": line_rates,
+                    "host_decode_stars_per_s": decode_rate,
+                    "host_decode_over_fastest_line": decode_rate / fastest,
+                },
+                indent=2,
+            )
+        )
     return 0
 
 

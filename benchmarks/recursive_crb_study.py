@@ -63,7 +63,8 @@ def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED
             ml.append((batch_ml(camera, frames) - camera.model_vector()) / crb)
         if verbose:
             print(
-                f"  seed {seed:3d}: " + " ".join(f"{v:+5.2f}" for v in errs[-1])
+                f"  seed {seed:3d}: "
+                + " ".join(f"{v:+5.2f}" for v in errs[-1])
                 + f"  | maha {np.sqrt(maha[-1]):.2f}  ({time.perf_counter() - t0:.1f} s)",
                 flush=True,
             )

@@ -80,14 +80,28 @@ def simulate_phases(cfg: BenchConfig):
     from hostlink.sky.simulate import SimConfig, simulate
     from hostlink.timeutil import iso_plus_seconds
 
-    common = dict(camera=cfg.camera, noise_px=cfg.noise_px, misid_fraction=cfg.misid_fraction, site=cfg.site,
-                  weather=cfg.weather, frame_interval_s=1.0, maglim=cfg.maglim, min_stars=cfg.min_stars,
-                  max_stars=cfg.max_stars)
+    common = dict(
+        camera=cfg.camera,
+        noise_px=cfg.noise_px,
+        misid_fraction=cfg.misid_fraction,
+        site=cfg.site,
+        weather=cfg.weather,
+        frame_interval_s=1.0,
+        maglim=cfg.maglim,
+        min_stars=cfg.min_stars,
+        max_stars=cfg.max_stars,
+    )
     cal = simulate(SimConfig(frames=cfg.cal_frames, seed=cfg.seed, t0_iso=cfg.t0_iso, **common))
-    drift = simulate(SimConfig(frames=cfg.drift_frames, seed=cfg.seed + 1000,
-                               t0_iso=iso_plus_seconds(cfg.t0_iso, float(cfg.cal_frames)),
-                               focal_drift_um=cfg.drift_um, focal_drift_period_frames=cfg.drift_period_frames,
-                               **common))
+    drift = simulate(
+        SimConfig(
+            frames=cfg.drift_frames,
+            seed=cfg.seed + 1000,
+            t0_iso=iso_plus_seconds(cfg.t0_iso, float(cfg.cal_frames)),
+            focal_drift_um=cfg.drift_um,
+            focal_drift_period_frames=cfg.drift_period_frames,
+            **common,
+        )
+    )
     return cal, drift
 
 
@@ -138,7 +152,9 @@ class Emulator:
 
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "hostlink.cli", "emulate", "--transport", transport, *args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         sel = selectors.DefaultSelector()
         sel.register(self.proc.stdout, selectors.EVENT_READ)
@@ -205,8 +221,12 @@ def estimate_rows(estimates) -> dict[str, np.ndarray]:
     sig = np.array([e.sigma for _, e in estimates], dtype=np.float64)
     return {
         "frame": np.array([f for f, _ in estimates], dtype=np.int64),
-        "f_mm": vals[:, 0], "x0_px": vals[:, 1], "y0_px": vals[:, 2],
-        "sigma_f_mm": sig[:, 0], "sigma_x0_px": sig[:, 1], "sigma_y0_px": sig[:, 2],
+        "f_mm": vals[:, 0],
+        "x0_px": vals[:, 1],
+        "y0_px": vals[:, 2],
+        "sigma_f_mm": sig[:, 0],
+        "sigma_x0_px": sig[:, 1],
+        "sigma_y0_px": sig[:, 2],
         "n_updates": np.array([e.n_updates for _, e in estimates], dtype=np.int64),
         "generation": np.array([e.base_generation for _, e in estimates], dtype=np.int64),
     }
@@ -271,14 +291,22 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     save_params(out / "true-camera.json", cfg.camera)
     nominal_path = out / "nominal.json"
     save_params(nominal_path, nominal)
-    phases.append(Phase("simulate", time.perf_counter() - t,
-                        f"{cfg.cal_frames} + {cfg.drift_frames} frames, {len(replay)} stars"))
+    phases.append(
+        Phase("simulate", time.perf_counter() - t, f"{cfg.cal_frames} + {cfg.drift_frames} frames, {len(replay)} stars")
+    )
     say(f"[1/6] simulated {cfg.cal_frames} calibration + {cfg.drift_frames} drift frames ({len(replay)} stars)")
 
     # 2. stream the calibration phase from the emulated sensor
     t = time.perf_counter()
-    args = ["--replay", str(replay_path), "--nominal", str(nominal_path), "--noise-px", repr(cfg.noise_px),
-            *cfg.emulator_args]
+    args = [
+        "--replay",
+        str(replay_path),
+        "--nominal",
+        str(nominal_path),
+        "--noise-px",
+        repr(cfg.noise_px),
+        *cfg.emulator_args,
+    ]
     with Emulator(cfg.transport, args) as emu:
         say(f"[2/6] emulated sensor on {emu.link}")
         with open_link(emu.link) as link:
@@ -290,8 +318,13 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
                 raise LinkError(f"the sensor sent {len(cal_frames)} of {cfg.cal_frames} calibration frames")
             streamed = frames_to_session(cal_frames)
             write_session(out / "session.csv", streamed)
-            phases.append(Phase("stream", time.perf_counter() - t,
-                                f"{len(cal_frames)} frames, {len(streamed)} stars, {lost_cal} lost"))
+            phases.append(
+                Phase(
+                    "stream",
+                    time.perf_counter() - t,
+                    f"{len(cal_frames)} frames, {len(streamed)} stars, {lost_cal} lost",
+                )
+            )
             say(f"      streamed {len(cal_frames)} frames / {len(streamed)} stars, {lost_cal} messages lost")
 
             # 3. calibrate on the host
@@ -311,8 +344,12 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
             t = time.perf_counter()
             steps: list[str] = []
             # the calibration's 1-sigma travels with the set: the onboard estimator restarts from it as its prior
-            uploaded = safe_upload(link, outcome.params, step=lambda k, text: steps.append(f"{k}. {text}"),
-                                   sigma=sigma_from_dict(outcome.sigma()))
+            uploaded = safe_upload(
+                link,
+                outcome.params,
+                step=lambda k, text: steps.append(f"{k}. {text}"),
+                sigma=sigma_from_dict(outcome.sigma()),
+            )
             active = read_active_params(link)
             phases.append(Phase("upload", time.perf_counter() - t, f"generation {uploaded.generation}"))
             say(f"[4/6] uploaded and verified: generation {before_active.generation} -> {uploaded.generation}")
@@ -322,17 +359,35 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
             with progress_bar("streaming drift frames", cfg.drift_frames, show_progress) as advance:
                 drift_frames, drift_estimates = poll_stream(link, cfg.drift_frames, cfg.poll_every_frames, advance)
             phases.append(Phase("track", time.perf_counter() - t, f"{len(drift_frames)} frames"))
-            say(f"[5/6] onboard estimator tracked {len(drift_frames)} drift frames "
-                f"({len(drift_estimates)} estimates read)")
+            say(
+                f"[5/6] onboard estimator tracked {len(drift_frames)} drift frames "
+                f"({len(drift_estimates)} estimates read)"
+            )
             lost_total = link.stats.lost_messages
 
     # 6. report
-    summary = summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active, uploaded, lost_total,
-                        cal_estimates, drift_estimates, len(drift_frames), steps, phases)
+    summary = summarise(
+        cfg,
+        nominal,
+        outcome,
+        data,
+        ref_info,
+        cal_sim,
+        drift_sim,
+        active,
+        uploaded,
+        lost_total,
+        cal_estimates,
+        drift_estimates,
+        len(drift_frames),
+        steps,
+        phases,
+    )
     summary["elapsed_s"] = time.perf_counter() - t_start
     write_plots(out, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_estimates, drift_estimates, summary)
-    (out / "summary.json").write_text(json.dumps(_nan_to_null(summary), indent=2, default=_json_default,
-                                                 allow_nan=False) + "\n")
+    (out / "summary.json").write_text(
+        json.dumps(_nan_to_null(summary), indent=2, default=_json_default, allow_nan=False) + "\n"
+    )
     return summary
 
 
@@ -365,8 +420,23 @@ def truth_attitudes(sim) -> np.ndarray:
     return np.asarray(sim.truth["attitude"], dtype=np.float64).reshape(-1, 3, 3)
 
 
-def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active, uploaded, lost_total,
-              cal_estimates, drift_estimates, n_drift_streamed, steps, phases) -> dict:
+def summarise(
+    cfg,
+    nominal,
+    outcome,
+    data,
+    ref_info,
+    cal_sim,
+    drift_sim,
+    active,
+    uploaded,
+    lost_total,
+    cal_estimates,
+    drift_estimates,
+    n_drift_streamed,
+    steps,
+    phases,
+) -> dict:
     from hostlink.sensor_client import float32_equal
     from onboard.prior import sigma_from_dict
 
@@ -374,10 +444,12 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
     first_frame = int(cal_sim.session.frame[0])
     frame_index = data.frame_number - first_frame
     truth_c = truth_attitudes(cal_sim)
-    att_before = attitude_error_summary(attitude_error_vectors_arcsec(data, nominal.model_vector(), truth_c,
-                                                                      frame_index))
-    att_after = attitude_error_summary(attitude_error_vectors_arcsec(data, outcome.params.model_vector(), truth_c,
-                                                                     frame_index))
+    att_before = attitude_error_summary(
+        attitude_error_vectors_arcsec(data, nominal.model_vector(), truth_c, frame_index)
+    )
+    att_after = attitude_error_summary(
+        attitude_error_vectors_arcsec(data, outcome.params.model_vector(), truth_c, frame_index)
+    )
 
     # focal tracking in the drift phase
     est = estimate_rows(drift_estimates)
@@ -405,20 +477,26 @@ def summarise(cfg, nominal, outcome, data, ref_info, cal_sim, drift_sim, active,
         "attitude_error_arcsec": {"before": att_before, "after": att_after},
         "parameters": {
             "true": {"focal_length_mm": truth.focal_length_mm, "principal_point_px": list(truth.principal_point_px)},
-            "nominal": {"focal_length_mm": nominal.focal_length_mm,
-                        "principal_point_px": list(nominal.principal_point_px)},
-            "calibrated": {"focal_length_mm": outcome.params.focal_length_mm,
-                           "principal_point_px": list(outcome.params.principal_point_px)},
+            "nominal": {
+                "focal_length_mm": nominal.focal_length_mm,
+                "principal_point_px": list(nominal.principal_point_px),
+            },
+            "calibrated": {
+                "focal_length_mm": outcome.params.focal_length_mm,
+                "principal_point_px": list(outcome.params.principal_point_px),
+            },
             "sigma": outcome.sigma(),
             "error_focal_um": (outcome.params.focal_length_mm - truth.focal_length_mm) * 1000.0,
-            "error_principal_point_px": [outcome.params.principal_point_px[i] - truth.principal_point_px[i]
-                                         for i in range(2)],
+            "error_principal_point_px": [
+                outcome.params.principal_point_px[i] - truth.principal_point_px[i] for i in range(2)
+            ],
         },
         "upload": {
             "generation": uploaded.generation,
             "crc32": f"0x{uploaded.crc32:08x}",
-            "read_back_equal_float32": bool(float32_equal(active.params, outcome.params, active.sigma,
-                                                          sigma_from_dict(outcome.sigma()))),
+            "read_back_equal_float32": bool(
+                float32_equal(active.params, outcome.params, active.sigma, sigma_from_dict(outcome.sigma()))
+            ),
             "sigma_prior_parameters": int(np.count_nonzero(np.isfinite(active.sigma) & (active.sigma > 0))),
             "steps": steps,
         },
@@ -445,25 +523,30 @@ def after_upload_summary(cfg, drift_sim, drift_estimates) -> dict:
         return {}
     f_true = truth_focal_mm(drift_sim)
     drift_index = np.clip(est["frame"] - cfg.cal_frames - int(drift_sim.session.frame[0]), 0, f_true.size - 1)
-    err = {"f_um": (est["f_mm"] - f_true[drift_index]) * 1000.0,
-           "x0_px": est["x0_px"] - cfg.camera.principal_point_px[0],
-           "y0_px": est["y0_px"] - cfg.camera.principal_point_px[1]}
+    err = {
+        "f_um": (est["f_mm"] - f_true[drift_index]) * 1000.0,
+        "x0_px": est["x0_px"] - cfg.camera.principal_point_px[0],
+        "y0_px": est["y0_px"] - cfg.camera.principal_point_px[1],
+    }
     sig = {"f_um": est["sigma_f_mm"] * 1000.0, "x0_px": est["sigma_x0_px"], "y0_px": est["sigma_y0_px"]}
     return {
         "first_estimate": {"n_updates": int(est["n_updates"][0])}
-        | {f"error_{k}": float(v[0]) for k, v in err.items()} | {f"sigma_{k}": float(v[0]) for k, v in sig.items()},
+        | {f"error_{k}": float(v[0]) for k, v in err.items()}
+        | {f"sigma_{k}": float(v[0]) for k, v in sig.items()},
         "x0_error_rms_px": rms(err["x0_px"]),
         "y0_error_rms_px": rms(err["y0_px"]),
         "x0_error_max_px": float(np.max(np.abs(err["x0_px"]))),
         "y0_error_max_px": float(np.max(np.abs(err["y0_px"]))),
-        "principal_point_normalised_error_rms": rms(np.concatenate([err["x0_px"] / sig["x0_px"],
-                                                                    err["y0_px"] / sig["y0_px"]])),
+        "principal_point_normalised_error_rms": rms(
+            np.concatenate([err["x0_px"] / sig["x0_px"], err["y0_px"] / sig["y0_px"]])
+        ),
     }
 
 
 # ------------------------------------------------------------------------------------------------- plots
-def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_estimates, drift_estimates,
-                summary) -> list[Path]:
+def write_plots(
+    out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_estimates, drift_estimates, summary
+) -> list[Path]:
     from hostlink.calibration.bundle import residuals
     from hostlink.calibration.plots import _pyplot, residual_field_png
     from hostlink.calibration.report import fitted_attitudes
@@ -472,11 +555,19 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
     theta0 = nominal.model_vector()
     e_before = residuals(data, theta0, fitted_attitudes(data, theta0))
     e_after = residuals(data, outcome.theta, outcome.attitudes)
-    for name, e, label in (("residuals-before.png", e_before, "nominal camera"),
-                           ("residuals-after.png", e_after, "calibrated camera")):
+    for name, e, label in (
+        ("residuals-before.png", e_before, "nominal camera"),
+        ("residuals-after.png", e_after, "calibrated camera"),
+    ):
         path = out / name
-        residual_field_png(path, data.x_px, data.y_px, e, nominal.image_size_px,
-                           f"Mean residual per cell, {label} (RMS {rms(np.linalg.norm(e, axis=1)):.4f} px)")
+        residual_field_png(
+            path,
+            data.x_px,
+            data.y_px,
+            e,
+            nominal.image_size_px,
+            f"Mean residual per cell, {label} (RMS {rms(np.linalg.norm(e, axis=1)):.4f} px)",
+        )
         paths.append(path)
 
     plt = _pyplot()
@@ -493,8 +584,10 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
         (axes[1], "x0_px", "sigma_x0_px", truth.principal_point_px[0], "|x0 error| [px]", 1.0),
         (axes[2], "y0_px", "sigma_y0_px", truth.principal_point_px[1], "|y0 error| [px]", 1.0),
     ):
-        for rows, colour, label in ((cal, "tab:orange", "cold start from nominal"),
-                                    (drift, "tab:blue", "restarted from the uploaded set")):
+        for rows, colour, label in (
+            (cal, "tab:orange", "cold start from nominal"),
+            (drift, "tab:blue", "restarted from the uploaded set"),
+        ):
             if rows["frame"].size == 0:
                 continue
             ref = np.interp(rows["frame"], frames_true, f_true) if key == "f_mm" else true_val
@@ -503,8 +596,9 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
         ax.axvline(cfg.cal_frames, color="grey", ls="--", lw=0.8)
         ax.set_ylabel(label_unit)
         ax.grid(True, which="major", alpha=0.3)
-    axes[0].set_title("Onboard recursive estimator: error against truth and its own 1-sigma (dashed: upload)",
-                      fontsize=10)
+    axes[0].set_title(
+        "Onboard recursive estimator: error against truth and its own 1-sigma (dashed: upload)", fontsize=10
+    )
     axes[0].legend(loc="upper right", fontsize=7)
     axes[-1].set_xlabel("frame")
     fig.tight_layout()
@@ -521,12 +615,20 @@ def write_plots(out: Path, cfg, nominal, outcome, data, cal_sim, drift_sim, cal_
     ax.plot(fr, (f_drift_true - f_ref) * 1000.0, color="k", lw=1.2, label="true focal length")
     if drift["frame"].size:
         ax.plot(drift["frame"], (drift["f_mm"] - f_ref) * 1000.0, color="tab:blue", label="onboard estimate")
-        ax.fill_between(drift["frame"], (drift["f_mm"] - drift["sigma_f_mm"] - f_ref) * 1000.0,
-                        (drift["f_mm"] + drift["sigma_f_mm"] - f_ref) * 1000.0, color="tab:blue", alpha=0.2,
-                        label="estimate 1-sigma")
+        ax.fill_between(
+            drift["frame"],
+            (drift["f_mm"] - drift["sigma_f_mm"] - f_ref) * 1000.0,
+            (drift["f_mm"] + drift["sigma_f_mm"] - f_ref) * 1000.0,
+            color="tab:blue",
+            alpha=0.2,
+            label="estimate 1-sigma",
+        )
     track = summary["drift_tracking"]
-    ax.set_title(f"Thermal focal-length drift: {cfg.drift_um:g} um amplitude; tracking error "
-                 f"{track['focal_error_rms_um_converged']:.2f} um RMS once converged", fontsize=10)
+    ax.set_title(
+        f"Thermal focal-length drift: {cfg.drift_um:g} um amplitude; tracking error "
+        f"{track['focal_error_rms_um_converged']:.2f} um RMS once converged",
+        fontsize=10,
+    )
     ax.set_xlabel("frame")
     ax.set_ylabel(f"focal length - {f_ref:g} mm [um]")
     ax.legend(fontsize=8)
@@ -547,24 +649,40 @@ def summary_table(summary: dict) -> list[tuple[str, str, str]]:
     track = summary["drift_tracking"]
     pp_nominal = [p["nominal"]["principal_point_px"][i] - p["true"]["principal_point_px"][i] for i in range(2)]
     return [
-        ("residual RMS (px)", f"{b['rms_px']:.4f}",
-         f"{a['rms_px']:.4f} (noise floor {summary['noise_floor_rms_px']:.4f})"),
+        (
+            "residual RMS (px)",
+            f"{b['rms_px']:.4f}",
+            f"{a['rms_px']:.4f} (noise floor {summary['noise_floor_rms_px']:.4f})",
+        ),
         ("residual max (px)", f"{b['max_px']:.3f}", f"{a['max_px']:.3f}"),
         ("residual RMS (arcsec)", f"{b['rms_arcsec']:.3f}", f"{a['rms_arcsec']:.3f}"),
-        ("attitude scatter, boresight / roll (arcsec RMS)",
-         f"{att_b['boresight_scatter_rms']:.2f} / {att_b['roll_scatter_rms']:.2f}",
-         f"{att_a['boresight_scatter_rms']:.3f} / {att_a['roll_scatter_rms']:.3f}"),
-        ("attitude bias, boresight / roll (arcsec)",
-         f"{att_b['boresight_bias']:.1f} / {att_b['roll_bias']:.1f}",
-         f"{att_a['boresight_bias']:.1f} / {att_a['roll_bias']:.1f} (= principal point error x 1/F)"),
-        ("focal length error (um)",
-         f"{(p['nominal']['focal_length_mm'] - p['true']['focal_length_mm']) * 1000:.1f}",
-         f"{p['error_focal_um']:.2f} (1-sigma {sig['focal_length_mm'] * 1000:.2f})"),
-        ("principal point error (px)", "{:.2f}, {:.2f}".format(*pp_nominal),
-         "{:.2f}, {:.2f} (1-sigma {:.2f}, {:.2f})".format(*p["error_principal_point_px"],
-                                                          *sig["principal_point_px"])),
-        ("focal drift tracking (um RMS)", f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
-         f"{track['focal_error_rms_um_converged']:.2f} once converged"
-         if np.isfinite(track["focal_error_rms_um_converged"])
-         else "n/a (no onboard estimate in the settled drift phase: more --drift-frames)"),
+        (
+            "attitude scatter, boresight / roll (arcsec RMS)",
+            f"{att_b['boresight_scatter_rms']:.2f} / {att_b['roll_scatter_rms']:.2f}",
+            f"{att_a['boresight_scatter_rms']:.3f} / {att_a['roll_scatter_rms']:.3f}",
+        ),
+        (
+            "attitude bias, boresight / roll (arcsec)",
+            f"{att_b['boresight_bias']:.1f} / {att_b['roll_bias']:.1f}",
+            f"{att_a['boresight_bias']:.1f} / {att_a['roll_bias']:.1f} (= principal point error x 1/F)",
+        ),
+        (
+            "focal length error (um)",
+            f"{(p['nominal']['focal_length_mm'] - p['true']['focal_length_mm']) * 1000:.1f}",
+            f"{p['error_focal_um']:.2f} (1-sigma {sig['focal_length_mm'] * 1000:.2f})",
+        ),
+        (
+            "principal point error (px)",
+            "{:.2f}, {:.2f}".format(*pp_nominal),
+            "{:.2f}, {:.2f} (1-sigma {:.2f}, {:.2f})".format(
+                *p["error_principal_point_px"], *sig["principal_point_px"]
+            ),
+        ),
+        (
+            "focal drift tracking (um RMS)",
+            f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
+            f"{track['focal_error_rms_um_converged']:.2f} once converged"
+            if np.isfinite(track["focal_error_rms_um_converged"])
+            else "n/a (no onboard estimate in the settled drift phase: more --drift-frames)",
+        ),
     ]

@@ -14,8 +14,9 @@ LINK_HELP = (
 
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--link", required=True, help=LINK_HELP)
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
-                        help="longest wait for a reply or a frame [s] (default 2)")
+    parser.add_argument(
+        "--timeout", type=float, default=2.0, metavar="S", help="longest wait for a reply or a frame [s] (default 2)"
+    )
 
 
 def open_link_from_args(args: argparse.Namespace):

@@ -31,8 +31,9 @@ from onboard.site import Weather
 OBSERVED_CORRECTION_PASSES = 2
 
 
-def correct_observed(b: np.ndarray, zenith_sensor: np.ndarray, weather: Weather, model: str = "atan",
-                     lat_rad: float | None = None) -> np.ndarray:
+def correct_observed(
+    b: np.ndarray, zenith_sensor: np.ndarray, weather: Weather, model: str = "atan", lat_rad: float | None = None
+) -> np.ndarray:
     """Observed (refracted) sensor-frame directions b (N, 3) -> true directions (N, 3): each turned away from the
     zenith (given in sensor axes) by R(z_a), z_a its apparent zenith distance (seed 001 eq. 12-13, sec. 3.4)."""
     a, bb = model_coefficients(weather, model, lat_rad)
@@ -43,9 +44,16 @@ def correct_observed(b: np.ndarray, zenith_sensor: np.ndarray, weather: Weather,
     return rotate_in_vertical(b, sz, tangential, -refr, limit)
 
 
-def attitude_observed_correction(b: np.ndarray, r: np.ndarray, zenith_ref: np.ndarray, weather: Weather,
-                                 model: str = "atan", lat_rad: float | None = None, weights=None,
-                                 passes: int = OBSERVED_CORRECTION_PASSES) -> tuple[np.ndarray, np.ndarray]:
+def attitude_observed_correction(
+    b: np.ndarray,
+    r: np.ndarray,
+    zenith_ref: np.ndarray,
+    weather: Weather,
+    model: str = "atan",
+    lat_rad: float | None = None,
+    weights=None,
+    passes: int = OBSERVED_CORRECTION_PASSES,
+) -> tuple[np.ndarray, np.ndarray]:
     """Attitude C (b = C r) with the observation-quantity correction: returns (C, corrected b).
 
     ``r`` (N, 3) and ``zenith_ref`` (3,) are in the same reference frame (e.g. TOD, with the zenith from

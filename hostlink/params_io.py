@@ -84,4 +84,3 @@ def emit_param_file(data: dict, out: str | Path | None = None) -> None:
             tmp.replace(path)
         except OSError as exc:
             raise UserError(f"{path}: cannot write ({exc.strerror})") from None
-

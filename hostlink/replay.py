@@ -125,9 +125,7 @@ def replay_session(
     trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
     for k, rows in enumerate(session.frame_slices()):
         if fixed is None:
-            res = recursive.update(
-                state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows]
-            )
+            res = recursive.update(state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows])
         else:
             res = _update_fixed(state, fixed, rows, r_all, nominal, int(session.frame[rows.start]))
         _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
@@ -146,8 +144,10 @@ def check_estimate(params: CameraParams, trace: dict[str, list]) -> None:
     bad = ~np.isfinite(focal)
     if np.any(bad):
         frame = trace["frame"][int(np.argmax(bad))]
-        raise UserError(f"the onboard estimator diverged (non-finite estimate at frame {frame}); check the nominal "
-                        "parameters and --noise-px")
+        raise UserError(
+            f"the onboard estimator diverged (non-finite estimate at frame {frame}); check the nominal "
+            "parameters and --noise-px"
+        )
     try:
         validate_params(params)
     except ParameterError as exc:
@@ -162,8 +162,12 @@ def _update_fixed(state, fixed: _FixedInputs, rows: slice, r_all, nominal: Camer
     front = fixedpoint.FixedFrame(fixed.x_steps[rows], fixed.y_steps[rows], fixed.r_q30[rows], nominal.image_size_px)
     try:
         return recursive.update(
-            state, dequantise_px(fixed.x_steps[rows]), dequantise_px(fixed.y_steps[rows]), r_all[rows],
-            fixed.usable[rows], front_end=front,
+            state,
+            dequantise_px(fixed.x_steps[rows]),
+            dequantise_px(fixed.y_steps[rows]),
+            r_all[rows],
+            fixed.usable[rows],
+            front_end=front,
         )
     except fixedpoint.FixedRangeError as exc:
         raise UserError(f"--precision fixed: frame {frame}: the estimate left the fixed-point range: {exc}") from None

@@ -58,8 +58,13 @@ class StreamResult:
         return sum(f.n_stars for f in self.frames)
 
 
-def stream_frames(link: Link, n_frames: int, progress: Callable[[int], None] | None = None,
-                  frame_timeout_s: float | None = None, result: StreamResult | None = None) -> StreamResult:
+def stream_frames(
+    link: Link,
+    n_frames: int,
+    progress: Callable[[int], None] | None = None,
+    frame_timeout_s: float | None = None,
+    result: StreamResult | None = None,
+) -> StreamResult:
     """Start the stream, receive ``n_frames`` frames (fewer if the sensor's source ends), stop the stream.
     Frames are appended to ``result`` (a fresh one if None) as they arrive, so a caller that passes its own keeps the
     frames received before a LinkError or Ctrl-C interrupted the stream."""
@@ -118,8 +123,13 @@ def chunks(table: bytes, size: int) -> list[tuple[int, bytes]]:
     return [(off, table[off : off + size]) for off in range(0, len(table), size)]
 
 
-def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
-                step: Callable[[int, str], None] | None = None, sigma: np.ndarray | None = None) -> UploadResult:
+def safe_upload(
+    link: Link,
+    params: CameraParams,
+    host_check: bool = True,
+    step: Callable[[int, str], None] | None = None,
+    sigma: np.ndarray | None = None,
+) -> UploadResult:
     """The six-step safe upload (module docstring) of ``params`` with its 1-sigma prior ``sigma`` (10 values,
     ESTIMATE_NAMES order, parameter units; NaN or 0 = unknown; None = nothing known: the sensor's estimator restarts
     cold). Raises UserError (host refused), CommandRefused (sensor refused, with its reason), UploadMismatch (a
@@ -147,22 +157,31 @@ def safe_upload(link: Link, params: CameraParams, host_check: bool = True,
     report(3, f"sensor verified CRC 0x{crc:08x} and ranges")
     staged = link.read_staged()
     if bytes(staged.table) != table or staged.crc32 != crc:
-        raise UploadMismatch(f"staged set read back differs from the upload (CRC 0x{staged.crc32:08x}, expected "
-                             f"0x{crc:08x}); nothing was committed")
+        raise UploadMismatch(
+            f"staged set read back differs from the upload (CRC 0x{staged.crc32:08x}, expected "
+            f"0x{crc:08x}); nothing was committed"
+        )
     report(4, "staged set read back equal")
     generation = link.commit(crc)
     report(5, f"committed as generation {generation}")
     active = link.read_active()
     if bytes(active.table) != table or active.crc32 != crc or active.generation != generation:
-        raise UploadMismatch(f"active set read back (generation {active.generation}, CRC 0x{active.crc32:08x}) is "
-                             f"not the upload (generation {generation}, CRC 0x{crc:08x})")
+        raise UploadMismatch(
+            f"active set read back (generation {active.generation}, CRC 0x{active.crc32:08x}) is "
+            f"not the upload (generation {generation}, CRC 0x{crc:08x})"
+        )
     report(6, "active set read back equal")
-    return UploadResult(generation=generation, crc32=crc, active=table_to_params(bytes(active.table)),
-                        sigma=table_to_sigma(bytes(active.table)))
+    return UploadResult(
+        generation=generation,
+        crc32=crc,
+        active=table_to_params(bytes(active.table)),
+        sigma=table_to_sigma(bytes(active.table)),
+    )
 
 
-def float32_equal(a: CameraParams, b: CameraParams, sigma_a: np.ndarray | None = None,
-                  sigma_b: np.ndarray | None = None) -> bool:
+def float32_equal(
+    a: CameraParams, b: CameraParams, sigma_a: np.ndarray | None = None, sigma_b: np.ndarray | None = None
+) -> bool:
     """Every parameter of ``a`` and ``b`` (and their sigmas, None = unknown) equal after rounding to float32, bit for
     bit (INTERFACES.md, ``hostlink upload``)."""
     return params_to_table(a, sigma_a) == params_to_table(b, sigma_b)
@@ -202,8 +221,10 @@ def accept_estimate(link: Link, step: Callable[[int, str], None] | None = None) 
     active = read_active_params(link)
     estimate = link.read_estimate()
     if estimate.base_generation != active.generation:
-        raise UserError(f"the onboard estimate started from generation {estimate.base_generation} but generation "
-                        f"{active.generation} is active; read it again")
+        raise UserError(
+            f"the onboard estimate started from generation {estimate.base_generation} but generation "
+            f"{active.generation} is active; read it again"
+        )
     params = estimate_to_params(active.params, estimate)
     sigma = estimate_to_sigma(active.sigma, estimate)
     return safe_upload(link, params, step=step, sigma=sigma), estimate

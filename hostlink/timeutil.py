@@ -11,9 +11,7 @@ from datetime import datetime, timedelta, timezone
 import erfa
 import numpy as np
 
-_ISO = re.compile(
-    r"^(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2}):(\d{2}(?:\.\d+)?)(Z|[+-]00:?00)?$"
-)
+_ISO = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2}):(\d{2}(?:\.\d+)?)(Z|[+-]00:?00)?$")
 
 
 def parse_iso_utc(text: str) -> tuple[int, int, int, int, int, float]:
@@ -32,8 +30,15 @@ def parse_iso_utc_many(texts) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(0), np.zeros(0)
     arr = np.array(fields, dtype=np.float64)
     try:
-        jd1, jd2 = erfa.dtf2d("UTC", arr[:, 0].astype(int), arr[:, 1].astype(int), arr[:, 2].astype(int),
-                              arr[:, 3].astype(int), arr[:, 4].astype(int), arr[:, 5])
+        jd1, jd2 = erfa.dtf2d(
+            "UTC",
+            arr[:, 0].astype(int),
+            arr[:, 1].astype(int),
+            arr[:, 2].astype(int),
+            arr[:, 3].astype(int),
+            arr[:, 4].astype(int),
+            arr[:, 5],
+        )
     except (erfa.ErfaError, ValueError) as exc:
         raise ValueError(f"invalid date or time ({exc})") from None
     return np.atleast_1d(jd1), np.atleast_1d(jd2)

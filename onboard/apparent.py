@@ -45,12 +45,30 @@ EPOCH_J2000_JYEAR = 2000.0
 #: the major planets", JPL, Table 1, 1800-2050): a [AU], e, I [deg], L [deg], varpi [deg], Omega [deg], each with its
 #: rate per Julian century.
 _ELEMENTS = {
-    "emb": ((1.00000261, 0.00000562), (0.01671123, -0.00004392), (-0.00001531, -0.01294668),
-            (100.46457166, 35999.37244981), (102.93768193, 0.32327364), (0.0, 0.0)),
-    "jupiter": ((5.20288700, -0.00011607), (0.04838624, -0.00013253), (1.30439695, -0.00183714),
-                (34.39644051, 3034.74612775), (14.72847983, 0.21252668), (100.47390909, 0.20469106)),
-    "saturn": ((9.53667594, -0.00125060), (0.05386179, -0.00050991), (2.48599187, 0.00193609),
-               (49.95424423, 1222.49362201), (92.59887831, -0.41897216), (113.66242448, -0.28867794)),
+    "emb": (
+        (1.00000261, 0.00000562),
+        (0.01671123, -0.00004392),
+        (-0.00001531, -0.01294668),
+        (100.46457166, 35999.37244981),
+        (102.93768193, 0.32327364),
+        (0.0, 0.0),
+    ),
+    "jupiter": (
+        (5.20288700, -0.00011607),
+        (0.04838624, -0.00013253),
+        (1.30439695, -0.00183714),
+        (34.39644051, 3034.74612775),
+        (14.72847983, 0.21252668),
+        (100.47390909, 0.20469106),
+    ),
+    "saturn": (
+        (9.53667594, -0.00125060),
+        (0.05386179, -0.00050991),
+        (2.48599187, 0.00193609),
+        (49.95424423, 1222.49362201),
+        (92.59887831, -0.41897216),
+        (113.66242448, -0.28867794),
+    ),
 }
 #: Planet / Sun mass ratios (IAU 2009 / DE405): the Sun's reflex about the solar-system barycentre.
 _MASS_RATIO = {"jupiter": 1.0 / 1047.3486, "saturn": 1.0 / 3497.898}
@@ -161,8 +179,9 @@ def _normalise(v: np.ndarray) -> np.ndarray:
 # cross terms (aberration of a star that moved 600" since the catalogue epoch) are kept.
 
 
-def space_motion_change(r0: np.ndarray, pm_rad_yr: np.ndarray, parallax_mas, years: np.ndarray,
-                        earth_bary_au: np.ndarray) -> np.ndarray:
+def space_motion_change(
+    r0: np.ndarray, pm_rad_yr: np.ndarray, parallax_mas, years: np.ndarray, earth_bary_au: np.ndarray
+) -> np.ndarray:
     """Proper motion and parallax (ERFA pmpx without the Roemer term; seed 000 eq. 14 in vector form):
     years * pm - plx E_b, to be added to r0 (the sum is not yet unit length: later steps are insensitive to a
     1e-5 scale error, and the end result is normalised). Radial velocity is taken as zero."""
@@ -197,8 +216,14 @@ def aberration_change(p: np.ndarray, velocity_c: np.ndarray) -> np.ndarray:
     return (w1[..., None] * v - (pv + v2 / (1 + bm1))[..., None] * p) / (1 + pv)[..., None]
 
 
-def apparent_place_vectors(r0: np.ndarray, pm_rad_yr: np.ndarray, parallax_mas, epoch_jyear: float,
-                           t_tt: FixedTime, observer_velocity_gcrs_m_s=None) -> np.ndarray:
+def apparent_place_vectors(
+    r0: np.ndarray,
+    pm_rad_yr: np.ndarray,
+    parallax_mas,
+    epoch_jyear: float,
+    t_tt: FixedTime,
+    observer_velocity_gcrs_m_s=None,
+) -> np.ndarray:
     """Catalogue vectors (``catalogue_vectors``) -> apparent directions in TOD (N, 3), computed in r0's dtype.
 
     ``t_tt``: one instant (TT; UTC is 0.001" close). ``epoch_jyear``: the catalogue epoch (1991.25 for Hipparcos,
@@ -219,8 +244,17 @@ def apparent_place_vectors(r0: np.ndarray, pm_rad_yr: np.ndarray, parallax_mas, 
     return _normalise(r0 + change) @ true_of_date_matrix(t_tt, dtype).T
 
 
-def apparent_place(ra_rad, dec_rad, pm_ra_cosdec_mas_yr, pm_dec_mas_yr, parallax_mas, epoch_jyear: float,
-                   t_tt: FixedTime, observer_velocity_gcrs_m_s=None, dtype=np.float32) -> np.ndarray:
+def apparent_place(
+    ra_rad,
+    dec_rad,
+    pm_ra_cosdec_mas_yr,
+    pm_dec_mas_yr,
+    parallax_mas,
+    epoch_jyear: float,
+    t_tt: FixedTime,
+    observer_velocity_gcrs_m_s=None,
+    dtype=np.float32,
+) -> np.ndarray:
     """Catalogue rows (ICRS RA/Dec [rad] at ``epoch_jyear``, mu_alpha* and mu_delta [mas/yr], parallax [mas]) ->
     apparent unit vectors in TOD, shape (N, 3), dtype ``dtype``. See :func:`apparent_place_vectors`."""
     r0, pm = catalogue_vectors(ra_rad, dec_rad, pm_ra_cosdec_mas_yr, pm_dec_mas_yr, dtype)

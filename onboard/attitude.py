@@ -132,8 +132,9 @@ def residuals_rad(b: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.arctan2(np.sqrt(np.sum(cross * cross, axis=1)), np.sum(b * p, axis=1))
 
 
-def attitude_with_rejection(b: np.ndarray, r: np.ndarray, threshold_rad: float, min_stars: int = 3,
-                            weights=None) -> tuple[np.ndarray, np.ndarray]:
+def attitude_with_rejection(
+    b: np.ndarray, r: np.ndarray, threshold_rad: float, min_stars: int = 3, weights=None
+) -> tuple[np.ndarray, np.ndarray]:
     """Attitude (b = C r) after dropping, one at a time, the star with the largest residual while it exceeds
     ``threshold_rad`` and more than ``min_stars`` remain (a misidentified star is off by degrees, a good one by the
     noise). Returns (C, inlier mask (N,)). At most N - min_stars extra solutions: a bounded cost."""

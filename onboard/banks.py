@@ -121,7 +121,7 @@ def parse_record(record: np.ndarray) -> tuple[int, bytes] | None:
     body = raw[: _GEN.size + TABLE_BYTES]
     if crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
         return None
-    return _GEN.unpack_from(raw)[0], body[_GEN.size:]
+    return _GEN.unpack_from(raw)[0], body[_GEN.size :]
 
 
 def program_slot(store: BankStore, slot: int, record: np.ndarray, n_bytes: int = RECORD_BYTES) -> None:
@@ -182,8 +182,9 @@ def stage_chunk(store: BankStore, offset: int, data: bytes) -> Refusal | None:
     if store.stage_state == StageState.EMPTY:
         return Refusal(NakCode.NOT_STAGED, "no upload in progress (send STAGE_BEGIN first)")
     if offset < 0 or len(data) == 0 or offset + len(data) > TABLE_BYTES:
-        return Refusal(NakCode.BAD_LENGTH, f"chunk of {len(data)} bytes at offset {offset} is outside the "
-                       f"{TABLE_BYTES}-byte table")
+        return Refusal(
+            NakCode.BAD_LENGTH, f"chunk of {len(data)} bytes at offset {offset} is outside the {TABLE_BYTES}-byte table"
+        )
     store.staged[offset : offset + len(data)] = np.frombuffer(bytes(data), dtype=np.uint8)
     store.received[offset : offset + len(data)] = True
     store.stage_state = StageState.RECEIVING
@@ -229,8 +230,9 @@ def commit(store: BankStore, crc: int) -> int | Refusal:
         return Refusal(NakCode.NOT_VERIFIED, "the staged set has not passed STAGE_VERIFY")
     table = store.staged.tobytes()
     if crc != store.verified_crc or crc32(table) != crc:
-        return Refusal(NakCode.NOT_VERIFIED, f"CRC 0x{crc:08x} is not that of the verified staged set "
-                       f"0x{store.verified_crc:08x}")
+        return Refusal(
+            NakCode.NOT_VERIFIED, f"CRC 0x{crc:08x} is not that of the verified staged set 0x{store.verified_crc:08x}"
+        )
     current = active_set(store)
     generation = 1 if current is None else current[0] + 1
     if generation > MAX_GENERATION:

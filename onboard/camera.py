@@ -144,9 +144,7 @@ def offsets_from_direction(b_sensor: np.ndarray, focal_px: float) -> tuple[np.nd
     return focal_px * b_sensor[:, 0] / b_sensor[:, 2], focal_px * b_sensor[:, 1] / b_sensor[:, 2]
 
 
-def unit_to_pixels(
-    b_sensor: np.ndarray, theta: np.ndarray, tol_px: float = 1e-10
-) -> tuple[np.ndarray, np.ndarray]:
+def unit_to_pixels(b_sensor: np.ndarray, theta: np.ndarray, tol_px: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
     """Sensor-frame directions -> measured centroids (x, y) [px]: the inverse of :func:`pixels_to_unit`.
 
     Solves u - dx(u, v) = F b_x / b_z, v - dy(u, v) = F b_y / b_z by Newton's method on the 2 x 2 system (exact

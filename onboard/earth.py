@@ -267,8 +267,9 @@ def equation_of_equinoxes(t_c: np.ndarray) -> np.ndarray:
     return dpsi * np.cos(epsa) + ct
 
 
-def sidereal_time_bam(t_ut1: FixedTime, t_tt: FixedTime, east_longitude_deg: float = 0.0, apparent: bool = True,
-                      dtype=np.float32) -> np.ndarray:
+def sidereal_time_bam(
+    t_ut1: FixedTime, t_tt: FixedTime, east_longitude_deg: float = 0.0, apparent: bool = True, dtype=np.float32
+) -> np.ndarray:
     """Greenwich (or local, with a longitude) apparent sidereal time as a binary angle.
 
     GAST = ERA + (GMST - ERA)(t_TT) + EE(t_TT) (IERS 2010 eq. 5.32, 5.35); ``apparent=False`` gives mean sidereal
@@ -299,23 +300,27 @@ def local_frame_from_sidereal(last_bam: np.ndarray, lat_deg: float, dtype=np.flo
     )
 
 
-def local_frame_matrix(t_utc: FixedTime, site: Site, dut1_s: float = 0.0,
-                       tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32) -> np.ndarray:
+def local_frame_matrix(
+    t_utc: FixedTime, site: Site, dut1_s: float = 0.0, tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32
+) -> np.ndarray:
     """R_ig (3, 3): TOD -> local north-up-east at the site, ``r_local = R_ig @ r_tod``, from UTC (one instant),
     the site and dUT1 (UT1 = UTC + dUT1)."""
-    last = sidereal_time_bam(ut1_from_utc(t_utc, dut1_s), tt_from_utc(t_utc, tai_minus_utc_s), site.lon_deg,
-                             dtype=dtype)
+    last = sidereal_time_bam(
+        ut1_from_utc(t_utc, dut1_s), tt_from_utc(t_utc, tai_minus_utc_s), site.lon_deg, dtype=dtype
+    )
     return local_frame_from_sidereal(last, site.lat_deg, dtype)
 
 
-def zenith_true_of_date(t_utc: FixedTime, site: Site, dut1_s: float = 0.0,
-                        tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32) -> np.ndarray:
+def zenith_true_of_date(
+    t_utc: FixedTime, site: Site, dut1_s: float = 0.0, tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32
+) -> np.ndarray:
     """The site's zenith (geodetic normal) as a TOD unit vector (3,): the U row of :func:`local_frame_matrix`."""
     return local_frame_matrix(t_utc, site, dut1_s, tai_minus_utc_s, dtype)[1]
 
 
-def site_velocity_tod_m_s(t_utc: FixedTime, site: Site, dut1_s: float = 0.0,
-                          tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32) -> np.ndarray:
+def site_velocity_tod_m_s(
+    t_utc: FixedTime, site: Site, dut1_s: float = 0.0, tai_minus_utc_s: int = DEFAULT_TAI_MINUS_UTC_S, dtype=np.float32
+) -> np.ndarray:
     """The site's velocity from Earth rotation, TOD axes [m/s] (3,): omega x r, eastward, omega (N + h) cos(phi)
     with N the ellipsoid's prime-vertical radius (GRS80). Feed it (rotated to GCRS) to the apparent place as the
     observer's velocity to include diurnal aberration (0.32" cos(phi) at most)."""

@@ -66,8 +66,7 @@ class EstimatorSeam(Protocol):
         """A fresh estimator state starting from the active set ``nominal`` and its 1-sigma prior ``sigma`` (10 values,
         ESTIMATE_NAMES order, parameter units; NaN or 0 = unknown: the cold-start prior)."""
 
-    def update(self, state: Any, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
-               identified: np.ndarray) -> None:
+    def update(self, state: Any, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray, identified: np.ndarray) -> None:
         """One frame: centroids [px] (float32), reference unit vectors (N, 3) (float32), identified mask."""
 
     def estimate(self, state: Any) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -111,8 +110,12 @@ class Firmware:
         """One command -> its reply (Ack, Nak, Telemetry, ParamTable or Estimate). Never raises for bad input."""
         handler = self._handlers.get(type(command))
         if handler is None:
-            return Nak(tag=getattr(command, "tag", 0), command=int(getattr(command, "TYPE", 0)),
-                       code=NakCode.UNKNOWN_COMMAND, text=f"{type(command).__name__} is not a command")
+            return Nak(
+                tag=getattr(command, "tag", 0),
+                command=int(getattr(command, "TYPE", 0)),
+                code=NakCode.UNKNOWN_COMMAND,
+                text=f"{type(command).__name__} is not a command",
+            )
         return handler(command)
 
     def _ack(self, cmd: Message, value: int = 0) -> Ack:
@@ -256,7 +259,6 @@ def estimate_to_sigma(active_sigma: np.ndarray | None, estimate: Estimate) -> np
     return out
 
 
-
 @dataclass
 class RecursiveEstimator:
     """``onboard.recursive`` behind the firmware's seam, in the sensor's precision (float32 by default)."""
@@ -269,8 +271,14 @@ class RecursiveEstimator:
         config = prior_config(self.config, nominal, sigma, self.estimate_names)
         return recursive.create(nominal, self.estimate_names, config, self.dtype)
 
-    def update(self, state: recursive.RecursiveState, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray,
-               identified: np.ndarray) -> None:
+    def update(
+        self,
+        state: recursive.RecursiveState,
+        x_px: np.ndarray,
+        y_px: np.ndarray,
+        r_ref: np.ndarray,
+        identified: np.ndarray,
+    ) -> None:
         recursive.update(state, x_px, y_px, r_ref, identified)
 
     def estimate(self, state: recursive.RecursiveState) -> tuple[np.ndarray, np.ndarray, int, int]:

@@ -65,9 +65,7 @@ class CameraParams:
 
     def vector(self, dtype: type | np.dtype = np.float64) -> np.ndarray:
         """Parameter vector in ESTIMATE_NAMES order, with the focal length in millimetres."""
-        return np.array(
-            [self.focal_length_mm, *self.principal_point_px, *self.distortion.as_tuple()], dtype=dtype
-        )
+        return np.array([self.focal_length_mm, *self.principal_point_px, *self.distortion.as_tuple()], dtype=dtype)
 
     def model_vector(self, dtype: type | np.dtype = np.float64) -> np.ndarray:
         """Vector the camera-model functions take: as :meth:`vector` but with F in pixels in slot 0."""
@@ -133,9 +131,7 @@ def params_from_dict(data: dict) -> CameraParams:
         pixel_pitch_um=number("pixel_pitch_um", data["pixel_pitch_um"]),
         principal_point_px=pair("principal_point_px"),
         image_size_px=(int(width), int(height)),
-        distortion=Distortion(
-            **{k: number(f"distortion.{k}", dist_obj.get(k, 0.0)) for k in DISTORTION_KEYS}
-        ),
+        distortion=Distortion(**{k: number(f"distortion.{k}", dist_obj.get(k, 0.0)) for k in DISTORTION_KEYS}),
     )
     validate_params(params)
     return params
@@ -177,9 +173,7 @@ def validate_params(params: CameraParams) -> None:
             raise ParameterError(f"image_size_px[{i}]", f"must be >= 1, got {n!r}")
     for i, (c, n) in enumerate(zip(params.principal_point_px, (width, height), strict=True)):
         if not (-0.5 <= c <= n - 0.5):
-            raise ParameterError(
-                f"principal_point_px[{i}]", f"{c!r} is off the detector [-0.5, {n - 0.5}]"
-            )
+            raise ParameterError(f"principal_point_px[{i}]", f"{c!r} is off the detector [-0.5, {n - 0.5}]")
     det_min, where = min_mapping_determinant(params)
     if not det_min > 0:
         raise ParameterError(

@@ -146,9 +146,12 @@ def refined_mask(sigma: Sequence[float] | np.ndarray | None) -> np.ndarray:
     return np.isfinite(values) & (values > 0)
 
 
-def prior_sigma(nominal: CameraParams, sigma: Sequence[float] | np.ndarray | None,
-                cold: Sequence[float] | np.ndarray | None = None,
-                inflation: float = CORRELATION_INFLATION) -> np.ndarray:
+def prior_sigma(
+    nominal: CameraParams,
+    sigma: Sequence[float] | np.ndarray | None,
+    cold: Sequence[float] | np.ndarray | None = None,
+    inflation: float = CORRELATION_INFLATION,
+) -> np.ndarray:
     """The estimator's prior 1-sigma per parameter (parameter units): ``inflation`` times the set's sigma where it is
     finite and > 0 (:data:`CORRELATION_INFLATION`: the set carries marginal sigmas, not their correlations), else
     ``cold`` (default: :func:`onboard.recursive.default_prior_sigma` of ``nominal``)."""
@@ -158,8 +161,12 @@ def prior_sigma(nominal: CameraParams, sigma: Sequence[float] | np.ndarray | Non
     return np.where(mask, float(inflation) * given, base)
 
 
-def prior_config(config: RecursiveConfig | None, nominal: CameraParams, sigma: Sequence[float] | np.ndarray | None,
-                 estimate: Sequence[str] = ESTIMATE_NAMES) -> RecursiveConfig:
+def prior_config(
+    config: RecursiveConfig | None,
+    nominal: CameraParams,
+    sigma: Sequence[float] | np.ndarray | None,
+    estimate: Sequence[str] = ESTIMATE_NAMES,
+) -> RecursiveConfig:
     """``config`` with the prior taken from the set's ``sigma`` (:func:`prior_sigma`; ``config.prior_sigma``, when
     given, is the cold-start fallback) and the burn-in switched off when every estimated parameter starts from a
     refined prior (module docstring). With no usable sigma the config is returned unchanged (a cold start)."""
@@ -173,5 +180,9 @@ def prior_config(config: RecursiveConfig | None, nominal: CameraParams, sigma: S
         return replace(config, prior_sigma=tuple(float(v) for v in prior))
     # no burn-in; the focal-drift detector, which waits for the burn-in to end, may then start as soon as its window
     # of W frames is full (a confident prior otherwise holds f still while a thermal drift runs away)
-    return replace(config, prior_sigma=tuple(float(v) for v in prior), burn_in_frames=0,
-                   drift_start_frames=min(config.drift_start_frames, config.drift_window_frames))
+    return replace(
+        config,
+        prior_sigma=tuple(float(v) for v in prior),
+        burn_in_frames=0,
+        drift_start_frames=min(config.drift_start_frames, config.drift_window_frames),
+    )

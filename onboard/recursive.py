@@ -454,7 +454,7 @@ def _distinct_stars(rows: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, dt: np
 def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray, front=None):
     """Gate at the prior, removing misidentified stars from ``keep`` (at most two passes). Returns
     (order, linearisation, failing pairs, status) with status "" when the frame can be used."""
-    gate2 = state.config.pair_gate_sigma ** 2
+    gate2 = state.config.pair_gate_sigma**2
     order = lin = fail = None
     for pass_ in range(3):
         live = np.flatnonzero(keep)
@@ -526,7 +526,7 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
     result.nis = nis / max(1, n_rows)
     # post-fit residuals of every pair (used or not) at the updated state, linear prediction from the last point
     post = lin.e - lin.h @ step_state
-    fail_post = post * post > cfg.pair_gate_sigma ** 2 * np.diag(lin.r) * dt.type(lin.r_norm)
+    fail_post = post * post > cfg.pair_gate_sigma**2 * np.diag(lin.r) * dt.type(lin.r_norm)
     bad = _misidentified(fail_post, order.size)
     if np.any(bad) and np.count_nonzero(bad) <= order.size // 2:
         post_bad[order[bad]] = True

@@ -105,8 +105,7 @@ def refraction_apparent(cos_za, sin_za, a_rad: float, b_rad: float):
     return (dt(a_rad) + dt(b_rad) * tz * tz) * tz
 
 
-def refraction_from_true_zenith(cos_zt, sin_zt, a_rad: float, b_rad: float,
-                                steps: int = TRUE_ZENITH_NEWTON_STEPS):
+def refraction_from_true_zenith(cos_zt, sin_zt, a_rad: float, b_rad: float, steps: int = TRUE_ZENITH_NEWTON_STEPS):
     """R [rad] such that z_t = z_a + R(z_a), z_a = z_t - R, from cos and sin of the true zenith distance.
 
     Newton on g(z_a) = z_a + A tan z_a + B tan^3 z_a - z_t from z_a = z_t: the first step is
@@ -138,8 +137,9 @@ def zenith_geometry(r: np.ndarray, zenith: np.ndarray):
     return cz, sz, tangential
 
 
-def rotate_in_vertical(r: np.ndarray, sz: np.ndarray, tangential: np.ndarray, angle_rad: np.ndarray,
-                       angle_over_sin_z_at_zenith: np.ndarray) -> np.ndarray:
+def rotate_in_vertical(
+    r: np.ndarray, sz: np.ndarray, tangential: np.ndarray, angle_rad: np.ndarray, angle_over_sin_z_at_zenith: np.ndarray
+) -> np.ndarray:
     """Rotate each r by ``angle_rad`` toward the zenith (negative: away), about the axis r x U, keeping the azimuth:
     r cos(angle) + tangential sin(angle) / sin z. At the zenith itself (sin z = 0) the ratio sin(angle) / sin z is
     the given limit (refraction is proportional to tan z, so the ratio stays finite)."""
@@ -149,8 +149,14 @@ def rotate_in_vertical(r: np.ndarray, sz: np.ndarray, tangential: np.ndarray, an
     return np.cos(angle_rad)[:, None] * r + ratio[:, None] * tangential
 
 
-def refract_toward_zenith(r: np.ndarray, zenith: np.ndarray, weather: Weather, model: str = "atan",
-                          lat_rad: float | None = None, true_zenith_argument: bool = False) -> np.ndarray:
+def refract_toward_zenith(
+    r: np.ndarray,
+    zenith: np.ndarray,
+    weather: Weather,
+    model: str = "atan",
+    lat_rad: float | None = None,
+    true_zenith_argument: bool = False,
+) -> np.ndarray:
     """Lift true directions (N, 3) toward the zenith (3,) by the refraction: the apparent directions (N, 3).
 
     Seed 001 sec. 4 (eq. 22-25: add R to the elevation, keep the azimuth), with R evaluated at the correct argument
@@ -170,9 +176,15 @@ def refract_toward_zenith(r: np.ndarray, zenith: np.ndarray, weather: Weather, m
     return rotate_in_vertical(r, sz, tangential, refr, limit)
 
 
-def topocentric_observed(r: np.ndarray, zenith: np.ndarray, site_velocity_m_s: np.ndarray,
-                         weather: Weather | None = None, model: str = "atan", lat_rad: float | None = None,
-                         true_zenith_argument: bool = False) -> np.ndarray:
+def topocentric_observed(
+    r: np.ndarray,
+    zenith: np.ndarray,
+    site_velocity_m_s: np.ndarray,
+    weather: Weather | None = None,
+    model: str = "atan",
+    lat_rad: float | None = None,
+    true_zenith_argument: bool = False,
+) -> np.ndarray:
     """Geocentric apparent unit directions r (N, 3) -> the directions observed at a ground site (N, 3), dtype of r.
 
     1. Diurnal aberration: r + ``aberration_change(r, v / c)`` with v the site's velocity from the Earth's rotation

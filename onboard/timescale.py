@@ -63,11 +63,7 @@ def julian_day_number(year, month, day) -> np.ndarray:
     d = np.asarray(day, dtype=np.int64)
     a = np.where(m <= 2, -1, 0).astype(np.int64)  # the paper's (m - 14) / 12 with C's truncating division
     return (
-        (1461 * (y + 4800 + a)) // 4
-        + (367 * (m - 2 - 12 * a)) // 12
-        - (3 * ((y + 4900 + a) // 100)) // 4
-        + d
-        - 32075
+        (1461 * (y + 4800 + a)) // 4 + (367 * (m - 2 - 12 * a)) // 12 - (3 * ((y + 4900 + a) // 100)) // 4 + d - 32075
     )
 
 

@@ -126,16 +126,34 @@ def _u(name: str, start: int, length: int, **kw: object) -> CanSignal:
 
 
 _COMMAND_CHOICES = tuple(
-    (int(t), t.name) for t in (MsgType.GET_STATUS, MsgType.STREAM_CONTROL, MsgType.STAGE_BEGIN,
-                               MsgType.STAGE_VERIFY, MsgType.READ_STAGED, MsgType.COMMIT, MsgType.READ_ACTIVE,
-                               MsgType.READ_ESTIMATE)
+    (int(t), t.name)
+    for t in (
+        MsgType.GET_STATUS,
+        MsgType.STREAM_CONTROL,
+        MsgType.STAGE_BEGIN,
+        MsgType.STAGE_VERIFY,
+        MsgType.READ_STAGED,
+        MsgType.COMMIT,
+        MsgType.READ_ACTIVE,
+        MsgType.READ_ESTIMATE,
+    )
 )
 
 COMMAND = CanMessageDef(
-    "COMMAND", 0x0A0, 8, HOST, (SENSOR,),
+    "COMMAND",
+    0x0A0,
+    8,
+    HOST,
+    (SENSOR,),
     (
-        _u("type", 0, 8, is_multiplexer=True, choices=_COMMAND_CHOICES,
-           comment="protocol.messages.MsgType of the command"),
+        _u(
+            "type",
+            0,
+            8,
+            is_multiplexer=True,
+            choices=_COMMAND_CHOICES,
+            comment="protocol.messages.MsgType of the command",
+        ),
         _u("tag", 8, 16, comment="echoed by the reply"),
         _u("enable", 24, 8, mux=int(MsgType.STREAM_CONTROL), maximum=1.0, comment="1 = start the stream"),
         _u("length", 24, 16, mux=int(MsgType.STAGE_BEGIN), unit="byte", comment=f"table length ({TABLE_BYTES})"),
@@ -145,7 +163,11 @@ COMMAND = CanMessageDef(
     "A short command (protocol.messages), multiplexed by its type byte; unused bytes are 0.",
 )
 ACK = CanMessageDef(
-    "ACK", 0x0A1, 8, SENSOR, (HOST,),
+    "ACK",
+    0x0A1,
+    8,
+    SENSOR,
+    (HOST,),
     (
         _u("type", 0, 8, choices=((int(MsgType.ACK), "ACK"),), comment="always 0x80 (protocol.messages.Ack)"),
         _u("tag", 8, 16, comment="tag of the command"),
@@ -155,25 +177,60 @@ ACK = CanMessageDef(
     "Command done. A refusal (NAK, with its reason text) comes by ISO-TP.",
 )
 STAGE_FLOAT = CanMessageDef(
-    "STAGE_FLOAT", 0x0A2, 8, HOST, (SENSOR,),
+    "STAGE_FLOAT",
+    0x0A2,
+    8,
+    HOST,
+    (SENSOR,),
     (
         _u("tag", 0, 16, comment="echoed by the ACK (command STAGE_CHUNK)"),
-        _u("field", 16, 8, maximum=float(len(PARAM_FIELDS) - 1),
-           choices=tuple(enumerate(PARAM_FIELDS)), comment="index in protocol.param_table.PARAM_FIELDS"),
+        _u(
+            "field",
+            16,
+            8,
+            maximum=float(len(PARAM_FIELDS) - 1),
+            choices=tuple(enumerate(PARAM_FIELDS)),
+            comment="index in protocol.param_table.PARAM_FIELDS",
+        ),
         _u("reserved", 24, 8, maximum=0.0),
-        CanSignal("value", 32, 32, is_float=True, minimum=-3.4e38, maximum=3.4e38,
-                  comment="float32 value of the field (units of the parameter file)"),
+        CanSignal(
+            "value",
+            32,
+            32,
+            is_float=True,
+            minimum=-3.4e38,
+            maximum=3.4e38,
+            comment="float32 value of the field (units of the parameter file)",
+        ),
     ),
     "Stage one parameter: the STAGE_CHUNK of the 4 table bytes of field `field` (after STAGE_BEGIN).",
 )
 TIME_BASE = CanMessageDef(
-    "TIME_BASE", 0x102, 8, SENSOR, (HOST,),
-    (CanSignal("t_base_us", 0, 64, signed=True, minimum=-9.2e18, maximum=9.2e18, unit="us",
-               comment="microseconds since 1970-01-01T00:00:00 UTC (POSIX)"),),
+    "TIME_BASE",
+    0x102,
+    8,
+    SENSOR,
+    (HOST,),
+    (
+        CanSignal(
+            "t_base_us",
+            0,
+            64,
+            signed=True,
+            minimum=-9.2e18,
+            maximum=9.2e18,
+            unit="us",
+            comment="microseconds since 1970-01-01T00:00:00 UTC (POSIX)",
+        ),
+    ),
     "Time base of the following FRAME_HEADERs; sent when a stream starts and when an offset would not fit.",
 )
 FRAME_HEADER = CanMessageDef(
-    "FRAME_HEADER", 0x100, 8, SENSOR, (HOST,),
+    "FRAME_HEADER",
+    0x100,
+    8,
+    SENSOR,
+    (HOST,),
     (
         _u("frame", 0, 32, comment="frame counter"),
         _u("n_stars", 32, 8, comment="STAR frames that follow"),
@@ -182,27 +239,53 @@ FRAME_HEADER = CanMessageDef(
     "Start of one centroid frame: its STAR frames follow in order.",
 )
 STAR = CanMessageDef(
-    "STAR", 0x101, 8, SENSOR, (HOST,),
+    "STAR",
+    0x101,
+    8,
+    SENSOR,
+    (HOST,),
     (
-        _u("x_px", 0, STAR_XY_BITS, factor=2.0**-10, offset=STAR_XY_OFFSET_PX, minimum=STAR_XY_OFFSET_PX,
-           maximum=STAR_XY_OFFSET_PX + ((1 << STAR_XY_BITS) - 1) * 2.0**-10, unit="px", comment="centroid column"),
-        _u("y_px", STAR_XY_BITS, STAR_XY_BITS, factor=2.0**-10, offset=STAR_XY_OFFSET_PX,
-           minimum=STAR_XY_OFFSET_PX, maximum=STAR_XY_OFFSET_PX + ((1 << STAR_XY_BITS) - 1) * 2.0**-10,
-           unit="px", comment="centroid row"),
+        _u(
+            "x_px",
+            0,
+            STAR_XY_BITS,
+            factor=2.0**-10,
+            offset=STAR_XY_OFFSET_PX,
+            minimum=STAR_XY_OFFSET_PX,
+            maximum=STAR_XY_OFFSET_PX + ((1 << STAR_XY_BITS) - 1) * 2.0**-10,
+            unit="px",
+            comment="centroid column",
+        ),
+        _u(
+            "y_px",
+            STAR_XY_BITS,
+            STAR_XY_BITS,
+            factor=2.0**-10,
+            offset=STAR_XY_OFFSET_PX,
+            minimum=STAR_XY_OFFSET_PX,
+            maximum=STAR_XY_OFFSET_PX + ((1 << STAR_XY_BITS) - 1) * 2.0**-10,
+            unit="px",
+            comment="centroid row",
+        ),
         _u("star_id", 2 * STAR_XY_BITS, STAR_ID_BITS, comment="Hipparcos number, 0 = not identified"),
         _u("frame_parity", 2 * STAR_XY_BITS + STAR_ID_BITS, 1, comment="frame counter mod 2 (catches a lost header)"),
     ),
     "One star of the frame announced by the last FRAME_HEADER. No magnitude (see protocol/can_frames.py).",
 )
 END_OF_STREAM = CanMessageDef(
-    "END_OF_STREAM", 0x103, 8, SENSOR, (HOST,),
+    "END_OF_STREAM",
+    0x103,
+    8,
+    SENSOR,
+    (HOST,),
     (_u("frames_sent", 0, 32), _u("last_frame", 32, 32, comment="frame counter of the last frame produced")),
     "The sensor's frame source is exhausted; a receiver counts the frames lost after its last one from last_frame.",
 )
 
 #: Every single-frame message, in identifier order (the DBC lists them so).
-CAN_MESSAGES: tuple[CanMessageDef, ...] = tuple(sorted(
-    (COMMAND, ACK, STAGE_FLOAT, TIME_BASE, FRAME_HEADER, STAR, END_OF_STREAM), key=lambda m: m.frame_id))
+CAN_MESSAGES: tuple[CanMessageDef, ...] = tuple(
+    sorted((COMMAND, ACK, STAGE_FLOAT, TIME_BASE, FRAME_HEADER, STAR, END_OF_STREAM), key=lambda m: m.frame_id)
+)
 MESSAGES_BY_ID: dict[int, CanMessageDef] = {m.frame_id: m for m in CAN_MESSAGES}
 
 
@@ -258,8 +341,10 @@ def encode_stars(frame: CentroidFrame) -> np.ndarray:
     y = quantise_px(frame.y_px) + _XY_RAW_OFFSET
     limit = 1 << STAR_XY_BITS
     if np.any((x < 0) | (x >= limit) | (y < 0) | (y >= limit)):
-        raise EncodeError(f"centroid outside the CAN star range [{STAR_XY_OFFSET_PX:g}, "
-                          f"{STAR_XY_OFFSET_PX + limit / CENTROID_STEPS_PER_PX:g}) px")
+        raise EncodeError(
+            f"centroid outside the CAN star range [{STAR_XY_OFFSET_PX:g}, "
+            f"{STAR_XY_OFFSET_PX + limit / CENTROID_STEPS_PER_PX:g}) px"
+        )
     star_id = np.asarray(frame.star_id, dtype=np.int64)
     if np.any((star_id < 0) | (star_id >= 1 << STAR_ID_BITS)):
         raise EncodeError(f"star number does not fit in {STAR_ID_BITS} bits")
@@ -317,8 +402,10 @@ def needs_time_base(t_us: int, t_base_us: int | None) -> bool:
 
 # ------------------------------------------------------------------------------- short commands and ACK
 _COMMAND_ARG = {StreamControl: "enable", StageBegin: "length", StageVerify: "verify_crc32", Commit: "commit_crc32"}
-_COMMAND_CLASS = {cls.TYPE: cls for cls in (GetStatus, StreamControl, StageBegin, StageVerify, ReadStaged, Commit,
-                                            ReadActive, ReadEstimate)}
+_COMMAND_CLASS = {
+    cls.TYPE: cls
+    for cls in (GetStatus, StreamControl, StageBegin, StageVerify, ReadStaged, Commit, ReadActive, ReadEstimate)
+}
 _ARG_ATTR = {StreamControl: "enable", StageBegin: "length", StageVerify: "crc32", Commit: "crc32"}
 
 
@@ -330,8 +417,9 @@ def is_single_frame(msg: Message) -> bool:
 def encode_single(msg: Message) -> tuple[int, bytes]:
     """(identifier, 8 data bytes) of a short command or an ACK."""
     if isinstance(msg, Ack):
-        return ACK.frame_id, word_bytes(pack(ACK, {"type": int(MsgType.ACK), "tag": msg.tag,
-                                                   "command": msg.command, "value": msg.value}))
+        return ACK.frame_id, word_bytes(
+            pack(ACK, {"type": int(MsgType.ACK), "tag": msg.tag, "command": msg.command, "value": msg.value})
+        )
     cls = type(msg)
     if cls not in _COMMAND_CLASS.values():
         raise EncodeError(f"{cls.__name__} is not a single-frame CAN message")
@@ -389,8 +477,10 @@ def _fmt(value: float) -> str:
 def _signal_line(sig: CanSignal, receivers: tuple[str, ...]) -> str:
     mux = " M" if sig.is_multiplexer else (f" m{sig.mux}" if sig.mux is not None else "")
     sign = "-" if sig.signed else "+"
-    return (f' SG_ {sig.name}{mux} : {sig.start}|{sig.length}@1{sign} ({_fmt(sig.factor)},{_fmt(sig.offset)}) '
-            f'[{_fmt(sig.minimum)}|{_fmt(sig.maximum)}] "{sig.unit}" {",".join(receivers)}')
+    return (
+        f" SG_ {sig.name}{mux} : {sig.start}|{sig.length}@1{sign} ({_fmt(sig.factor)},{_fmt(sig.offset)}) "
+        f'[{_fmt(sig.minimum)}|{_fmt(sig.maximum)}] "{sig.unit}" {",".join(receivers)}'
+    )
 
 
 def dbc_text() -> str:
@@ -409,8 +499,10 @@ def dbc_text() -> str:
         lines.append(f"BO_ {msg.frame_id} {msg.name}: {msg.length} {msg.sender}")
         lines += [_signal_line(sig, msg.receivers) for sig in msg.signals]
         lines.append("")
-    lines.append('CM_ "Star sensor companion: single-frame CAN messages (generated by protocol.can_frames.dbc_text; '
-                 'ISO-TP on 0x0C0/0x0C1 carries the longer messages of protocol.messages)";')
+    lines.append(
+        'CM_ "Star sensor companion: single-frame CAN messages (generated by protocol.can_frames.dbc_text; '
+        'ISO-TP on 0x0C0/0x0C1 carries the longer messages of protocol.messages)";'
+    )
     for msg in CAN_MESSAGES:
         if msg.comment:
             lines.append(f'CM_ BO_ {msg.frame_id} "{msg.comment}";')

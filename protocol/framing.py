@@ -55,10 +55,10 @@ def decode_frame(encoded: bytes) -> SerialFrame:
         raise FramingError(f"bad COBS encoding ({exc})") from None
     if len(raw) < FRAME_FIELDS_BYTES:
         raise FramingError(f"frame too short ({len(raw)} bytes)")
-    body, (crc,) = raw[:-_CRC.size], _CRC.unpack_from(raw, len(raw) - _CRC.size)
+    body, (crc,) = raw[: -_CRC.size], _CRC.unpack_from(raw, len(raw) - _CRC.size)
     if crc32(body) != crc:
         raise FramingError("CRC mismatch")
-    return SerialFrame(seq=_SEQ.unpack_from(body)[0], payload=bytes(body[_SEQ.size:]))
+    return SerialFrame(seq=_SEQ.unpack_from(body)[0], payload=bytes(body[_SEQ.size :]))
 
 
 def framed_size(payload_bytes: int) -> int:

@@ -314,8 +314,17 @@ Message = (
     | CentroidFrame
     | EndOfStream
 )
-COMMAND_TYPES = (GetStatus, StreamControl, StageBegin, StageChunk, StageVerify, ReadStaged, Commit, ReadActive,
-                 ReadEstimate)
+COMMAND_TYPES = (
+    GetStatus,
+    StreamControl,
+    StageBegin,
+    StageChunk,
+    StageVerify,
+    ReadStaged,
+    Commit,
+    ReadActive,
+    ReadEstimate,
+)
 
 
 # ------------------------------------------------------------------------------------------------ fixed point
@@ -361,8 +370,12 @@ _PARAM_TABLE = struct.Struct(f"<BHBII{TABLE_BYTES}s")
 _ESTIMATE = struct.Struct("<BHBHIII10f10f")
 _FRAME_HEAD = struct.Struct("<BIqH")
 _END = struct.Struct("<BI")
-_TAG_ONLY = {MsgType.GET_STATUS: GetStatus, MsgType.READ_STAGED: ReadStaged, MsgType.READ_ACTIVE: ReadActive,
-             MsgType.READ_ESTIMATE: ReadEstimate}
+_TAG_ONLY = {
+    MsgType.GET_STATUS: GetStatus,
+    MsgType.READ_STAGED: ReadStaged,
+    MsgType.READ_ACTIVE: ReadActive,
+    MsgType.READ_ESTIMATE: ReadEstimate,
+}
 
 #: Bytes of a centroid frame message: FRAME_HEADER_BYTES + n * STAR_DTYPE.itemsize.
 FRAME_HEADER_BYTES = _FRAME_HEAD.size
@@ -391,8 +404,10 @@ def encode_frame_message(frame: CentroidFrame) -> bytes:
     stars["star_id"] = frame.star_id
     stars["x"], stars["y"] = x, y
     stars["mag"] = quantise_mag(frame.mag)
-    return _FRAME_HEAD.pack(MsgType.CENTROID_FRAME, _check_u(frame.frame, 32, "frame"), int(frame.t_us), n) + \
-        stars.tobytes()
+    return (
+        _FRAME_HEAD.pack(MsgType.CENTROID_FRAME, _check_u(frame.frame, 32, "frame"), int(frame.t_us), n)
+        + stars.tobytes()
+    )
 
 
 def decode_frame_message(data: bytes) -> CentroidFrame:
@@ -425,8 +440,9 @@ def encode(msg: Message) -> bytes:
         if isinstance(msg, StageBegin):
             return _STAGE_BEGIN.pack(t, msg.tag, msg.length)
         if isinstance(msg, StageChunk):
-            return _STAGE_CHUNK.pack(t, msg.tag, msg.offset, _check_u(len(msg.data), 8, "chunk length")) + \
-                bytes(msg.data)
+            return _STAGE_CHUNK.pack(t, msg.tag, msg.offset, _check_u(len(msg.data), 8, "chunk length")) + bytes(
+                msg.data
+            )
         if isinstance(msg, (StageVerify, Commit)):
             return _WITH_CRC.pack(t, msg.tag, msg.crc32)
         if isinstance(msg, Ack):
@@ -435,15 +451,33 @@ def encode(msg: Message) -> bytes:
             text = nak_text_bytes(msg.text)
             return _NAK.pack(t, msg.tag, msg.command, msg.code, len(text)) + text
         if isinstance(msg, Telemetry):
-            return _TELEMETRY.pack(t, msg.tag, int(msg.streaming), msg.stage_state, msg.active_generation,
-                                   msg.active_crc32, msg.frames_processed, msg.last_frame, msg.estimator_updates)
+            return _TELEMETRY.pack(
+                t,
+                msg.tag,
+                int(msg.streaming),
+                msg.stage_state,
+                msg.active_generation,
+                msg.active_crc32,
+                msg.frames_processed,
+                msg.last_frame,
+                msg.estimator_updates,
+            )
         if isinstance(msg, ParamTable):
             if len(msg.table) != TABLE_BYTES:
                 raise EncodeError(f"parameter table must be {TABLE_BYTES} bytes, got {len(msg.table)}")
             return _PARAM_TABLE.pack(t, msg.tag, msg.bank, msg.generation, msg.crc32, bytes(msg.table))
         if isinstance(msg, Estimate):
-            return _ESTIMATE.pack(t, msg.tag, msg.status, msg.estimated_mask, msg.base_generation, msg.n_updates,
-                                  msg.last_frame, *msg.values, *msg.sigma)
+            return _ESTIMATE.pack(
+                t,
+                msg.tag,
+                msg.status,
+                msg.estimated_mask,
+                msg.base_generation,
+                msg.n_updates,
+                msg.last_frame,
+                *msg.values,
+                *msg.sigma,
+            )
         if isinstance(msg, EndOfStream):
             return _END.pack(t, msg.frames_sent)
     except struct.error as exc:
@@ -475,7 +509,7 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
             _, tag, offset, n = _STAGE_CHUNK.unpack_from(data)
             if len(data) != _STAGE_CHUNK.size + n:
                 raise DecodeError(f"stage chunk says {n} bytes, carries {len(data) - _STAGE_CHUNK.size}")
-            return StageChunk(tag=tag, offset=offset, data=data[_STAGE_CHUNK.size:])
+            return StageChunk(tag=tag, offset=offset, data=data[_STAGE_CHUNK.size :])
         if t in (MsgType.STAGE_VERIFY, MsgType.COMMIT):
             _, tag, crc = _unpack_exact(_WITH_CRC, data)
             return (StageVerify if t == MsgType.STAGE_VERIFY else Commit)(tag=tag, crc32=crc)
@@ -486,19 +520,34 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
             _, tag, command, code, n = _NAK.unpack_from(data)
             if len(data) != _NAK.size + n:
                 raise DecodeError(f"NAK says {n} text bytes, carries {len(data) - _NAK.size}")
-            return Nak(tag=tag, command=command, code=code,
-                       text=data[_NAK.size:].decode("utf-8", "replace"))
+            return Nak(tag=tag, command=command, code=code, text=data[_NAK.size :].decode("utf-8", "replace"))
         if t == MsgType.TELEMETRY:
             _, tag, streaming, stage, gen, crc, frames, last, updates = _unpack_exact(_TELEMETRY, data)
-            return Telemetry(tag=tag, streaming=bool(streaming), stage_state=stage, active_generation=gen,
-                             active_crc32=crc, frames_processed=frames, last_frame=last, estimator_updates=updates)
+            return Telemetry(
+                tag=tag,
+                streaming=bool(streaming),
+                stage_state=stage,
+                active_generation=gen,
+                active_crc32=crc,
+                frames_processed=frames,
+                last_frame=last,
+                estimator_updates=updates,
+            )
         if t == MsgType.PARAM_TABLE:
             _, tag, bank, gen, crc, table = _unpack_exact(_PARAM_TABLE, data)
             return ParamTable(tag=tag, bank=bank, generation=gen, crc32=crc, table=table)
         if t == MsgType.ESTIMATE:
             v = _unpack_exact(_ESTIMATE, data)
-            return Estimate(tag=v[1], status=v[2], estimated_mask=v[3], base_generation=v[4], n_updates=v[5],
-                            last_frame=v[6], values=tuple(v[7:17]), sigma=tuple(v[17:27]))
+            return Estimate(
+                tag=v[1],
+                status=v[2],
+                estimated_mask=v[3],
+                base_generation=v[4],
+                n_updates=v[5],
+                last_frame=v[6],
+                values=tuple(v[7:17]),
+                sigma=tuple(v[17:27]),
+            )
         if t == MsgType.END_OF_STREAM:
             return EndOfStream(frames_sent=_unpack_exact(_END, data)[1])
     except struct.error as exc:

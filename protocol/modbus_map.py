@@ -139,10 +139,18 @@ def parse_map(text: str) -> ModbusMap:
     regs = []
     for e in doc["registers"]:
         reg = Register(
-            name=e["name"], table=e["table"], address=int(e["address"]), type=e["type"],
-            word_order=e.get("word_order", "n/a"), units=e.get("units", ""), access=e.get("access", "r"),
-            description=e.get("description", ""), count=int(e.get("count", 1)), stride=int(e.get("stride", 0)),
-            scale=e.get("scale"), length_bytes=int(e.get("length_bytes", 0)),
+            name=e["name"],
+            table=e["table"],
+            address=int(e["address"]),
+            type=e["type"],
+            word_order=e.get("word_order", "n/a"),
+            units=e.get("units", ""),
+            access=e.get("access", "r"),
+            description=e.get("description", ""),
+            count=int(e.get("count", 1)),
+            stride=int(e.get("stride", 0)),
+            scale=e.get("scale"),
+            length_bytes=int(e.get("length_bytes", 0)),
         )
         if reg.table not in TABLES:
             raise MapError(f"{reg.name}: table {reg.table!r} is not one of {TABLES}")
@@ -172,9 +180,13 @@ def parse_map(text: str) -> ModbusMap:
     if len(set(names)) != len(names):
         raise MapError("duplicate register names")
     return ModbusMap(
-        title=doc.get("title", "Modbus register map"), unit_id=int(doc.get("unit_id", 1)),
-        word_order=doc.get("word_order", "big"), word_order_description=doc.get("word_order_description", ""),
-        addressing=doc.get("addressing", ""), registers=tuple(regs), commands=tuple(doc.get("commands", [])),
+        title=doc.get("title", "Modbus register map"),
+        unit_id=int(doc.get("unit_id", 1)),
+        word_order=doc.get("word_order", "big"),
+        word_order_description=doc.get("word_order_description", ""),
+        addressing=doc.get("addressing", ""),
+        registers=tuple(regs),
+        commands=tuple(doc.get("commands", [])),
         nak_codes=tuple(doc.get("nak_codes", [])),
     )
 
@@ -223,13 +235,13 @@ def from_registers(reg: Register, words: list[int] | tuple[int, ...]) -> Any:
 def put(image: list[int], reg: Register, value: Any, index: int = 0) -> None:
     """Write one element into a table image (a mutable list of register values indexed by address)."""
     start = reg.element_address(index)
-    image[start:start + reg.width] = to_registers(reg, value)
+    image[start : start + reg.width] = to_registers(reg, value)
 
 
 def get(image: list[int] | np.ndarray, reg: Register, index: int = 0, base: int = 0) -> Any:
     """Read one element from a list of registers that starts at address ``base``."""
     start = reg.element_address(index) - base
-    return from_registers(reg, list(image[start:start + reg.width]))
+    return from_registers(reg, list(image[start : start + reg.width]))
 
 
 def array_raw(words: np.ndarray, reg: Register, n: int, base: int) -> np.ndarray:
@@ -283,8 +295,7 @@ def render_markdown(m: ModbusMap) -> str:
         f"- Word order: `{m.word_order}`. {m.word_order_description}",
         f"- Unit (slave) id: {m.unit_id} (`hostlink emulate --unit`).",
         "- Holding registers are read/write (function codes 3, 6, 16); input registers are read-only (4).",
-        "- Arrays: element `i` of an entry with `count` starts at `address + i * stride`; "
-        "value = raw * `scale`.",
+        "- Arrays: element `i` of an entry with `count` starts at `address + i * stride`; value = raw * `scale`.",
         "",
         "## Commands",
         "",
@@ -294,20 +305,28 @@ def render_markdown(m: ModbusMap) -> str:
         "| code | command | uses | does |",
         "|---:|---|---|---|",
     ]
-    lines += [f"| {c['code']} | {c['name']} | {_md(c.get('uses', ''))} | {_md(c.get('description', ''))} |"
-              for c in m.commands]
+    lines += [
+        f"| {c['code']} | {c['name']} | {_md(c.get('uses', ''))} | {_md(c.get('description', ''))} |"
+        for c in m.commands
+    ]
     lines += ["", "## NAK codes", "", "| code | name |", "|---:|---|"]
     lines += [f"| {c['code']} | {c['name']} |" for c in m.nak_codes]
     for table in TABLES:
-        lines += ["", f"## {table.capitalize()} registers", "",
-                  "| address | registers | name | type | word order | units | scale | access | description |",
-                  "|---:|---:|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"## {table.capitalize()} registers",
+            "",
+            "| address | registers | name | type | word order | units | scale | access | description |",
+            "|---:|---:|---|---|---|---|---|---|---|",
+        ]
         for r in m.table(table):
             addr = f"{r.address}" if r.count == 1 else f"{r.address} + {r.stride} i (i < {r.count})"
             typ = r.type if r.type != "string" else f"string[{r.length_bytes}]"
             scale = "" if r.scale is None else _scale_text(r.scale)
-            lines.append(f"| {addr} | {r.width} | `{r.name}` | {typ} | {r.word_order} | {_md(r.units)} | {scale} "
-                         f"| {r.access} | {_md(r.description)} |")
+            lines.append(
+                f"| {addr} | {r.width} | `{r.name}` | {typ} | {r.word_order} | {_md(r.units)} | {scale} "
+                f"| {r.access} | {_md(r.description)} |"
+            )
     lines += [
         "",
         "## Worked example: upload a parameter set with any Modbus client",

@@ -37,8 +37,14 @@ def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize(
     "fields",
-    [(2000, 1, 1, 12, 0, 0), (2000, 1, 1, 0, 0, 0), (1999, 12, 31, 23, 59, 59_999_000),
-     (2014, 7, 9, 11, 48, 59_600_000), (2024, 2, 29, 6, 30, 15_250_000), (2050, 12, 31, 18, 0, 1_000)],
+    [
+        (2000, 1, 1, 12, 0, 0),
+        (2000, 1, 1, 0, 0, 0),
+        (1999, 12, 31, 23, 59, 59_999_000),
+        (2014, 7, 9, 11, 48, 59_600_000),
+        (2024, 2, 29, 6, 30, 15_250_000),
+        (2050, 12, 31, 18, 0, 1_000),
+    ],
 )
 @pytest.mark.filterwarnings("ignore::erfa.ErfaWarning")  # ERFA calls years past its leap-second table "dubious"
 def test_calendar_time_matches_erfa_dtf2d(fields):
@@ -222,8 +228,9 @@ def test_apparent_place_from_a_hipparcos_epoch_catalogue_matches_erfa():
     ra, dec, pm_ra, pm_dec, plx = _random_stars(rng, 200)
     mas = 1e-3 * ARCSEC
     # ERFA's route: pmsafe from J1991.25 to J2000 (rv = 0), then atci13
-    r2, d2, pr2, pd2, px2, _ = erfa.pmsafe(ra, dec, pm_ra * mas / np.cos(dec), pm_dec * mas, plx * 1e-3, 0.0,
-                                            2448349.0625, 0.0, 2451545.0, 0.0)
+    r2, d2, pr2, pd2, px2, _ = erfa.pmsafe(
+        ra, dec, pm_ra * mas / np.cos(dec), pm_dec * mas, plx * 1e-3, 0.0, 2448349.0625, 0.0, 2451545.0, 0.0
+    )
     t = ts.from_calendar(2031, 5, 17, 21, 0, 0)
     jd1, jd2 = ts.to_julian_date(t)
     ri, di, eo = erfa.atci13(r2, d2, pr2, pd2, px2, 0.0, jd1, jd2)
@@ -250,8 +257,7 @@ def test_observer_velocity_adds_orbital_aberration_as_erfa_apcs():
     _, sun = _erfa_apparent_tod(ra, dec, pm_ra, pm_dec, plx, t)
     r0 = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], 1)
     away = _angle_between(r0, np.broadcast_to(sun, r0.shape)) > np.radians(10)
-    got = ap.apparent_place(ra, dec, pm_ra, pm_dec, plx, 2000.0, t, observer_velocity_gcrs_m_s=v_obs,
-                            dtype=np.float32)
+    got = ap.apparent_place(ra, dec, pm_ra, pm_dec, plx, 2000.0, t, observer_velocity_gcrs_m_s=v_obs, dtype=np.float32)
     assert _angle_between(got, want)[away].max() < 0.06 * ARCSEC  # the geocentric budget: the velocity is exact
     geocentric = ap.apparent_place(ra, dec, pm_ra, pm_dec, plx, 2000.0, t, dtype=np.float32)
     assert _angle_between(got, geocentric).max() > 4.0 * ARCSEC  # and the input really acts (7.5 km/s ~ 5")

@@ -60,8 +60,18 @@ def sessions():
     out = {}
     # typical (15-30 stars) and the 10.7-star session of the earlier measurement
     for name, maglim, min_stars, seed in (("hp6.5", 6.5, 10, 0), ("hp6.0", 6.0, 5, 1)):
-        cfg = SimConfig(camera=cam, frames=FRAMES, noise_px=NOISE_PX, min_stars=min_stars, max_stars=30,
-                        maglim=maglim, seed=seed, site=SITE, weather=WEATHER, zenith_range_deg=(5.0, 75.0))
+        cfg = SimConfig(
+            camera=cam,
+            frames=FRAMES,
+            noise_px=NOISE_PX,
+            min_stars=min_stars,
+            max_stars=30,
+            maglim=maglim,
+            seed=seed,
+            site=SITE,
+            weather=WEATHER,
+            zenith_range_deg=(5.0, 75.0),
+        )
         out[name] = simulate(cfg)
     return cam, out
 
@@ -77,8 +87,10 @@ def _boresight_floor_arcsec(session, cam) -> float:
     for isotropic direction noise of NOISE_PX / F rad (seed 004's 8.4 deg field: the pixel scale varies by < 0.3%)."""
     theta = cam.model_vector(np.float64)
     sigma_rad = NOISE_PX / cam.focal_length_px
-    var = [np.trace(att.attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta),
-                                            sigma_rad)[:2, :2]) for sl in session.frame_slices()]
+    var = [
+        np.trace(att.attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta), sigma_rad)[:2, :2])
+        for sl in session.frame_slices()
+    ]
     return float(np.sqrt(np.mean(var))) / ARCSEC
 
 

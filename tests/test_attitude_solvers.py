@@ -25,11 +25,13 @@ def _random_rotation(rng) -> np.ndarray:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _field(rng, n, radius_deg=6.0) -> np.ndarray:
@@ -132,8 +134,17 @@ def ground_sessions():
     cam = seed004_camera()
     out = {}
     for noise in (0.05, 0.0):
-        cfg = SimConfig(camera=cam, frames=150, noise_px=noise, min_stars=5, maglim=6.0, seed=3, site=SITE,
-                        weather=WEATHER, zenith_range_deg=(5.0, 75.0))
+        cfg = SimConfig(
+            camera=cam,
+            frames=150,
+            noise_px=noise,
+            min_stars=5,
+            maglim=6.0,
+            seed=3,
+            site=SITE,
+            weather=WEATHER,
+            zenith_range_deg=(5.0, 75.0),
+        )
         out[noise] = simulate(cfg)
     return cam, out
 
@@ -189,8 +200,22 @@ def test_attitude_command_writes_one_row_per_frame(ground_sessions, tmp_path):
     session_path, params_path, out_path = tmp_path / "s.csv", tmp_path / "p.json", tmp_path / "a.csv"
     write_session(session_path, sim.session)
     save_params(params_path, cam, {})
-    code = main(["attitude", str(session_path), "--params", str(params_path), "--out", str(out_path),
-                 "--site", "39.9,116.4,50", "--weather", "10,1013.25,0.5", "--precision", "float32"])
+    code = main(
+        [
+            "attitude",
+            str(session_path),
+            "--params",
+            str(params_path),
+            "--out",
+            str(out_path),
+            "--site",
+            "39.9,116.4,50",
+            "--weather",
+            "10,1013.25,0.5",
+            "--precision",
+            "float32",
+        ]
+    )
     assert code == 0
     with out_path.open() as fh:
         rows = list(csv.DictReader(fh))
@@ -220,8 +245,7 @@ def test_attitude_command_rejects_bad_options_in_one_line(ground_sessions, tmp_p
     session_path, params_path = tmp_path / "s.csv", tmp_path / "p.json"
     write_session(session_path, sims[0.05].session)
     save_params(params_path, cam, {})
-    code = main(["attitude", str(session_path), "--params", str(params_path), "--out", str(tmp_path / "a.csv")]
-                + extra)
+    code = main(["attitude", str(session_path), "--params", str(params_path), "--out", str(tmp_path / "a.csv")] + extra)
     err = capsys.readouterr().err
     assert code != 0 and message in err and len(err.strip().splitlines()) == 1
 
@@ -251,8 +275,9 @@ def test_attitude_command_ship_columns_follow_the_erfa_local_frame(ground_sessio
     with (tmp_path / "ship.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     c = np.array([[float(row[f"c{i}{j}"]) for i in (1, 2, 3) for j in (1, 2, 3)] for row in rows]).reshape(-1, 3, 3)
-    yaw, pitch, roll = np.radians([[float(row[k]) for row in rows]
-                                   for k in ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")])
+    yaw, pitch, roll = np.radians(
+        [[float(row[k]) for row in rows] for k in ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")]
+    )
     # the same quantities from ERFA's zenith (gst06a) and the definitions of seed 001's angles: the bow (sensor x,
     # C's row 0 in TOD) has elevation = pitch and azimuth = yaw; the mast (boresight) has up-components
     # cos(roll) cos(pitch), and the sensor's y = -starboard sin(roll) cos(pitch)
@@ -282,8 +307,17 @@ def test_ship_attitude_on_a_leap_second_day_follows_the_erfa_local_frame():
     # follow the local frame of ERFA's own UTC handling (gst06a via utcut1) as on any other day.
     from hostlink.sky.site import local_north_east, zenith_true_of_date
 
-    cfg = SimConfig(camera=seed004_camera(), frames=3, noise_px=0.0, min_stars=5, maglim=6.0, seed=5, site=SITE,
-                    t0_iso="2016-12-31T18:00:00.000Z", zenith_range_deg=(5.0, 60.0))
+    cfg = SimConfig(
+        camera=seed004_camera(),
+        frames=3,
+        noise_px=0.0,
+        min_stars=5,
+        maglim=6.0,
+        seed=5,
+        site=SITE,
+        t0_iso="2016-12-31T18:00:00.000Z",
+        zenith_range_deg=(5.0, 60.0),
+    )
     session = simulate(cfg).session
     # mounting (0, 0, -90) as in the test above: sensor x = bow, sensor y = -starboard, boresight z = mast
     cols = solve_session(session, seed004_camera(), SITE, None, 0.0, "none", mounting_rad=(0.0, 0.0, -np.pi / 2))

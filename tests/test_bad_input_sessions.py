@@ -31,23 +31,26 @@ def test_a_parameter_file_of_a_smaller_detector_is_refused(tmp_path, capsys, ses
     (tmp_path / "small.json").write_text(json.dumps(small))
     write_session(tmp_path / "s.csv", session)
     flag = "--params" if command == "attitude" else "--nominal"
-    code, err = _run(capsys, [command, str(tmp_path / "s.csv"), flag, str(tmp_path / "small.json"), "--out",
-                              str(tmp_path / "o")])
+    code, err = _run(
+        capsys, [command, str(tmp_path / "s.csv"), flag, str(tmp_path / "small.json"), "--out", str(tmp_path / "o")]
+    )
     assert code == 2 and "off the 640 x 480 px detector" in err and err.count("\n") == 1
 
 
 def test_attitude_refuses_a_session_without_identified_stars(tmp_path, capsys, session):
     s = replace(session, star_id=np.zeros_like(session.star_id))
     write_session(tmp_path / "s.csv", s)
-    code, err = _run(capsys, ["attitude", str(tmp_path / "s.csv"), "--params", NOMINAL, "--out",
-                              str(tmp_path / "a.csv")])
+    code, err = _run(
+        capsys, ["attitude", str(tmp_path / "s.csv"), "--params", NOMINAL, "--out", str(tmp_path / "a.csv")]
+    )
     assert code == 2 and "every star_id is 0" in err and err.count("\n") == 1
 
 
 def test_attitude_with_no_solvable_frame_exits_non_zero(tmp_path, capsys, session):
     first = np.concatenate([[True], session.frame[1:] != session.frame[:-1]])  # one star per frame
     write_session(tmp_path / "s.csv", session.select(np.flatnonzero(first)))
-    code, err = _run(capsys, ["attitude", str(tmp_path / "s.csv"), "--params", NOMINAL, "--out",
-                              str(tmp_path / "a.csv")])
+    code, err = _run(
+        capsys, ["attitude", str(tmp_path / "s.csv"), "--params", NOMINAL, "--out", str(tmp_path / "a.csv")]
+    )
     assert code == 2 and "no frame solved" in err and err.count("\n") == 1
     assert (tmp_path / "a.csv").exists()  # the per-frame statuses say why

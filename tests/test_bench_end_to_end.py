@@ -11,9 +11,24 @@ import pytest
 def bench_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     run = subprocess.run(
-        [sys.executable, "-m", "hostlink.cli", "bench", "--out", str(out), "--quiet", "--frames", "300",
-         "--drift-frames", "1500", "--seed", "3"],
-        capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "hostlink.cli",
+            "bench",
+            "--out",
+            str(out),
+            "--quiet",
+            "--frames",
+            "300",
+            "--drift-frames",
+            "1500",
+            "--seed",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert run.returncode == 0, run.stderr
     return out, json.loads((out / "summary.json").read_text()), run.stdout
@@ -62,7 +77,10 @@ def test_report_has_summary_plots_and_a_terminal_table(bench_report):
 
 
 def test_bad_bench_option_is_one_line_and_non_zero(tmp_path):
-    run = subprocess.run([sys.executable, "-m", "hostlink.cli", "bench", "--out", str(tmp_path), "--noise-px", "-1"],
-                         capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "hostlink.cli", "bench", "--out", str(tmp_path), "--noise-px", "-1"],
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 2
     assert len(run.stderr.strip().splitlines()) == 1 and "--noise-px" in run.stderr

@@ -22,8 +22,13 @@ from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion, distortion_
 SEED004 = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), distortion_from_seed004(2e-10, -3.5e-15))
 SEED004_NOMINAL = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
 # every Weng term on, a few tenths of a pixel each at the corner (as in test_camera_model.py)
-FULL_WENG = CameraParams(50.0, 5.5, (1030.3, 1018.7), (2048, 2048),
-                         Distortion(k1=-3.0e-9, k2=2.0e-15, k3=-4.0e-22, p1=1.5e-7, p2=-2.0e-7, s1=8.0e-8, s2=-6.0e-8))
+FULL_WENG = CameraParams(
+    50.0,
+    5.5,
+    (1030.3, 1018.7),
+    (2048, 2048),
+    Distortion(k1=-3.0e-9, k2=2.0e-15, k3=-4.0e-22, p1=1.5e-7, p2=-2.0e-7, s1=8.0e-8, s2=-6.0e-8),
+)
 FULL_WENG_NOMINAL = CameraParams(50.5, 5.5, (1023.5, 1023.5), (2048, 2048))
 ALL = parameter_columns(ESTIMATE_NAMES)
 
@@ -129,8 +134,9 @@ def _efficiency(camera, nominal, trials, frames, misid=0.0, seed0=0):
     return float(np.sqrt(np.mean(v2))), float(np.sqrt(np.mean(c2))), np.array(nees)
 
 
-@pytest.mark.parametrize("camera,nominal", [(SEED004, SEED004_NOMINAL), (FULL_WENG, FULL_WENG_NOMINAL)],
-                         ids=["seed004", "full_weng"])
+@pytest.mark.parametrize(
+    "camera,nominal", [(SEED004, SEED004_NOMINAL), (FULL_WENG, FULL_WENG_NOMINAL)], ids=["seed004", "full_weng"]
+)
 def test_default_method_reaches_the_cramer_rao_bound(camera, nominal):
     """Validation residual within 1.2x of the CRB (issue 3). 16 trials of 200 frames; V^2 is a weighted chi-square
     whose spread over 16 trials is ~+-15 % in RMS for an efficient estimator, so an efficient fit passes and a

@@ -23,8 +23,9 @@ def session_path(tmp_path_factory):
 
 def test_calibrate_writes_parameters_sigma_statistics_and_plots(session_path, tmp_path, capsys):
     out = tmp_path / "r.json"
-    code = main(["calibrate", str(session_path), "--nominal", NOMINAL, "--out", str(out), "--plot",
-                 str(tmp_path / "plots")])
+    code = main(
+        ["calibrate", str(session_path), "--nominal", NOMINAL, "--out", str(out), "--plot", str(tmp_path / "plots")]
+    )
     assert code == 0
     r = json.loads(out.read_text())
     truth = seed004_camera()
@@ -45,8 +46,10 @@ def test_calibrate_writes_parameters_sigma_statistics_and_plots(session_path, tm
 @pytest.mark.parametrize("method", ["cosine", "seed004"])
 def test_seed_methods_are_selectable(session_path, tmp_path, method):
     out = tmp_path / "r.json"
-    assert main(["calibrate", str(session_path), "--nominal", NOMINAL, "--out", str(out), "--method", method,
-                 "--quiet"]) == 0
+    assert (
+        main(["calibrate", str(session_path), "--nominal", NOMINAL, "--out", str(out), "--method", method, "--quiet"])
+        == 0
+    )
     r = json.loads(out.read_text())
     assert r["method"] == method
     assert r["sigma"]["fixed"]  # these methods leave some parameters at their nominal values

@@ -78,8 +78,13 @@ def test_improved_alternation_that_is_still_moving_is_reported_as_not_converged(
     it converges."""
     from onboard.params import CameraParams, Distortion
 
-    strong = CameraParams(70.2, 12.0, (520.0, 500.0), (1024, 1024),
-                          Distortion(k1=-1.5e-9, k2=2e-15, k3=-8e-21, p1=1e-6, p2=-8e-7, s1=6e-7, s2=-1e-6))
+    strong = CameraParams(
+        70.2,
+        12.0,
+        (520.0, 500.0),
+        (1024, 1024),
+        Distortion(k1=-1.5e-9, k2=2e-15, k3=-8e-21, p1=1e-6, p2=-8e-7, s1=6e-7, s2=-1e-6),
+    )
     nominal = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
     fit = calibrate_interstar(synthetic_session(strong, 150, seed=4).data, nominal, "cos", True)
     assert not fit.converged and fit.last_round_step_sigmas > 0.1
@@ -88,8 +93,15 @@ def test_improved_alternation_that_is_still_moving_is_reported_as_not_converged(
     assert fit.converged
 
 
-@pytest.mark.parametrize("method, form, improved", [("cosine", "cos", False), ("sine", "sin", False),
-                                                     ("improved-cosine", "cos", True), ("improved-sine", "sin", True)])
+@pytest.mark.parametrize(
+    "method, form, improved",
+    [
+        ("cosine", "cos", False),
+        ("sine", "sin", False),
+        ("improved-cosine", "cos", True),
+        ("improved-sine", "sin", True),
+    ],
+)
 def test_each_seed000_method_runs_its_own_observation_equation(monkeypatch, method, form, improved):
     """Regression: 'cosine'.endswith('sine') once sent the cosine methods down the sine path."""
     from hostlink.calibration import run
@@ -119,9 +131,15 @@ def test_seed004_keeps_improving_with_more_frames():
     assert validation_residual_px(fit.theta, seed004_camera()) < 0.001
 
 
-@pytest.mark.parametrize("method, estimate", [("seed004", None), ("seed004", ("f", "x0", "y0")),
-                                              ("seed004", ("f", "x0", "y0", "k1")),
-                                              ("improved-cosine", ("f", "x0", "y0", "k1", "k2"))])
+@pytest.mark.parametrize(
+    "method, estimate",
+    [
+        ("seed004", None),
+        ("seed004", ("f", "x0", "y0")),
+        ("seed004", ("f", "x0", "y0", "k1")),
+        ("improved-cosine", ("f", "x0", "y0", "k1", "k2")),
+    ],
+)
 def test_parameters_left_out_of_the_estimate_keep_the_nominal_value(method, estimate):
     # The seed methods start from "no distortion" (seed 004 sec. 3, seed 000 sec. 2 step 1); they used to zero every
     # distortion coefficient, so a term reported as "fixed" came back 0 instead of the nominal's value (and seed
@@ -131,15 +149,19 @@ def test_parameters_left_out_of_the_estimate_keep_the_nominal_value(method, esti
     from hostlink.calibration import run
 
     cam = seed004_camera()
-    truth = replace(cam, distortion=replace(cam.distortion, k3=2.0e-21, p1=3.0e-7, p2=-2.0e-7, s1=1.0e-7,
-                                            s2=-1.5e-7))
-    nominal = replace(truth, focal_length_mm=70.0, principal_point_px=(511.5, 511.5),
-                      distortion=replace(truth.distortion, k1=0.0, k2=0.0))
+    truth = replace(cam, distortion=replace(cam.distortion, k3=2.0e-21, p1=3.0e-7, p2=-2.0e-7, s1=1.0e-7, s2=-1.5e-7))
+    nominal = replace(
+        truth,
+        focal_length_mm=70.0,
+        principal_point_px=(511.5, 511.5),
+        distortion=replace(truth.distortion, k1=0.0, k2=0.0),
+    )
     if estimate is not None and "k1" not in estimate:
         nominal = replace(nominal, distortion=truth.distortion)
     out = run.calibrate(synthetic_session(truth, 40, seed=5).data, nominal, method, estimate)
     fixed = [n for n in ("k1", "k2", "k3", "p1", "p2", "s1", "s2") if n not in out.estimate]
-    assert fixed and out.sigma()["fixed"] == [n for n in ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "s1", "s2")
-                                              if n not in out.estimate]
+    assert fixed and out.sigma()["fixed"] == [
+        n for n in ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "s1", "s2") if n not in out.estimate
+    ]
     for name in fixed:  # held means held: exactly the nominal's value
         assert getattr(out.params.distortion, name) == getattr(nominal.distortion, name), name

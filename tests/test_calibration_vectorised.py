@@ -82,8 +82,9 @@ def mixed_session():
     few = synthetic_session(TRUTH, 6, stars_per_frame=(1, 2), noise_px=0.1, seed=22).data
     d = ss.data
     key = np.concatenate([d.frame_index(), d.n_frames + few.frame_index()])
-    data = build_data(np.concatenate([d.x_px, few.x_px]), np.concatenate([d.y_px, few.y_px]),
-                      np.concatenate([d.r, few.r]), key)
+    data = build_data(
+        np.concatenate([d.x_px, few.x_px]), np.concatenate([d.y_px, few.y_px]), np.concatenate([d.r, few.r]), key
+    )
     return data
 
 
@@ -144,9 +145,13 @@ def test_methods_give_the_reference_results(mixed_session, method, monkeypatch):
         return calibrate_interstar(data, NOMINAL, form, improved=method.startswith("improved"), rounds=2)
 
     got = run()
-    monkeypatch.setattr(interstar_methods, "interstar_normals",
-                        lambda d, t, c, f, o, s, m=None, chunk_obs=0, weight_theta=None:
-                        reference_normals(d, t, c, f, o, s, m, weight_theta))
+    monkeypatch.setattr(
+        interstar_methods,
+        "interstar_normals",
+        lambda d, t, c, f, o, s, m=None, chunk_obs=0, weight_theta=None: reference_normals(
+            d, t, c, f, o, s, m, weight_theta
+        ),
+    )
     ref = run()
     assert len(got.history) == len(ref.history)
     # the iterations see normals equal to ~1e-13 relative, so the cameras agree far inside 1e-6 of a sigma

@@ -111,8 +111,23 @@ def test_scripted_attitudes_saved_with_a_byte_order_mark_are_read(tmp_path, caps
     att = tmp_path / "att.csv"
     att.write_bytes(b"\xef\xbb\xbfc11,c12,c13,c21,c22,c23,c31,c32,c33\n1,0,0,0,1,0,0,0,1\n")
     out = tmp_path / "s.csv"
-    code = main(["simulate", "--camera", str(nominal), "--frames", "1", "--out", str(out), "--attitudes", str(att),
-                 "--min-stars", "1", "--maglim", "7"])
+    code = main(
+        [
+            "simulate",
+            "--camera",
+            str(nominal),
+            "--frames",
+            "1",
+            "--out",
+            str(out),
+            "--attitudes",
+            str(att),
+            "--min-stars",
+            "1",
+            "--maglim",
+            "7",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     truth = json.loads((tmp_path / "s.truth.json").read_text())
     assert np.allclose(np.reshape(truth["attitude"][0], (3, 3)), np.eye(3))
@@ -124,8 +139,23 @@ def test_southern_western_sites_and_frost_weather_parse_with_a_space_after_the_o
     camera = tmp_path / "camera.json"
     camera.write_text(json.dumps(NOMINAL))
     out = tmp_path / "s.csv"
-    code = main(["simulate", "--camera", str(camera), "--frames", "1", "--out", str(out),
-                 "--site", "-33.9,-70.7,2400", "--weather", "-5,750,30", "--dut1", "-0.2"])
+    code = main(
+        [
+            "simulate",
+            "--camera",
+            str(camera),
+            "--frames",
+            "1",
+            "--out",
+            str(out),
+            "--site",
+            "-33.9,-70.7,2400",
+            "--weather",
+            "-5,750,30",
+            "--dut1",
+            "-0.2",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     truth = json.loads((tmp_path / "s.truth.json").read_text())
     assert (truth["site"]["lat_deg"], truth["site"]["lon_deg"], truth["site"]["height_m"]) == (-33.9, -70.7, 2400)

@@ -100,8 +100,11 @@ def test_estimator_runs_only_when_it_fits_before_the_line_is_free():
 
     sim = simulate(SimConfig(camera=seed004_camera(), frames=6, seed=2))
     now = [100.0]
-    sensor = EmulatedSensor(Firmware(banks.factory_store(seed004_camera()), RecursiveEstimator()),
-                            session_frames(sim.session), clock=lambda: now[0])
+    sensor = EmulatedSensor(
+        Firmware(banks.factory_store(seed004_camera()), RecursiveEstimator()),
+        session_frames(sim.session),
+        clock=lambda: now[0],
+    )
     sensor.deferred_estimation = True
     sensor.handle(StreamControl(tag=1, enable=True))
     sensor.next_stream_message()

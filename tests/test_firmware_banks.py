@@ -15,8 +15,9 @@ from protocol.messages import NakCode, StageState
 from protocol.param_table import TABLE_BYTES
 
 CAMERA = seed004_camera()
-NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
-                       image_size_px=(1024, 1024))
+NOMINAL = CameraParams(
+    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
+)
 
 
 def stage(store, params_or_table, chunk=16):
@@ -139,6 +140,7 @@ def test_invalid_sets_are_refused_with_the_field_and_reason(change, field):
 
 def test_fractional_image_size_is_refused():
     from protocol.param_table import encode_table
+
     values = list(np.frombuffer(banks.params_to_table(CAMERA), "<f4"))
     values[4] = 1023.5
     store = banks.factory_store(NOMINAL)

@@ -16,8 +16,9 @@ from onboard.prior import CORRELATION_INFLATION
 from protocol.crc import crc32
 from protocol.messages import NakCode
 
-NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
-                       image_size_px=(1024, 1024))
+NOMINAL = CameraParams(
+    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
+)
 CAMERA = seed004_camera()
 SIGMA = np.array([7e-4, 1.3, 1.29, 1.4e-10, 5.8e-16, 7.4e-22, 2.2e-8, 2.1e-8, 2e-8, 2e-8])
 
@@ -42,8 +43,7 @@ def test_the_sigma_is_committed_with_the_set_and_survives_a_reboot():
 
 @pytest.mark.parametrize(
     ("index", "value", "field"),
-    [(1, -1.0, "sigma.principal_point_px[0]"), (0, np.inf, "sigma.focal_length_mm"),
-     (9, -2e-8, "sigma.distortion.s2")],
+    [(1, -1.0, "sigma.principal_point_px[0]"), (0, np.inf, "sigma.focal_length_mm"), (9, -2e-8, "sigma.distortion.s2")],
     ids=["negative", "infinite", "negative-distortion"],
 )
 def test_a_bad_sigma_is_refused_with_its_field_and_nothing_commits(index, value, field):

@@ -12,8 +12,9 @@ from onboard.params import ESTIMATE_NAMES, CameraParams
 from protocol import messages as m
 from protocol.crc import crc32
 
-NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
-                       image_size_px=(1024, 1024))
+NOMINAL = CameraParams(
+    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
+)
 
 
 @pytest.fixture(scope="module")
@@ -68,13 +69,17 @@ def test_without_estimator_the_estimate_is_refused_with_a_reason():
 def test_firmware_estimate_is_the_float32_recursive_estimator_bit_for_bit(frames):
     fw = Firmware(banks.factory_store(NOMINAL), RecursiveEstimator())
     assert fw.handle(m.ReadEstimate(tag=1)).code == m.NakCode.NO_ESTIMATE  # before any frame
-    direct = recursive.create(banks.table_to_params(banks.params_to_table(NOMINAL)), ESTIMATE_NAMES, None,
-                              np.float32)
+    direct = recursive.create(banks.table_to_params(banks.params_to_table(NOMINAL)), ESTIMATE_NAMES, None, np.float32)
     for item in frames:
         fw.process_frame(item.frame, item.r_ref)
         ident = item.frame.star_id != 0
-        recursive.update(direct, item.frame.x_px.astype(np.float32), item.frame.y_px.astype(np.float32),
-                         np.where(ident[:, None], item.r_ref, 0).astype(np.float32), ident)
+        recursive.update(
+            direct,
+            item.frame.x_px.astype(np.float32),
+            item.frame.y_px.astype(np.float32),
+            np.where(ident[:, None], item.r_ref, 0).astype(np.float32),
+            ident,
+        )
     est = fw.handle(m.ReadEstimate(tag=2))
     assert isinstance(est, m.Estimate)
     assert est.n_updates == direct.updates > 0 and est.last_frame == frames[-1].frame.frame

@@ -20,7 +20,10 @@ from onboard.params import CameraParams, Distortion
 
 #: seed 004's camera with every Weng term present at a realistic size (0.5-2 px at the detector corner)
 FULL = CameraParams(
-    70.2262, 12.0, (500.0, 530.0), (1024, 1024),
+    70.2262,
+    12.0,
+    (500.0, 530.0),
+    (1024, 1024),
     Distortion(k1=-2.0e-10, k2=3.5e-15, k3=-4e-21, p1=2e-7, p2=-1.5e-7, s1=1e-7, s2=-2e-7),
 )
 NOISE_PX = 0.05
@@ -98,10 +101,12 @@ def test_fixed_residuals_stay_far_below_the_pair_noise():
 
 def test_reciprocal_square_root_is_accurate_to_q30_over_its_whole_input_range():
     rng = np.random.default_rng(0)
-    n2 = np.concatenate([
-        [2**50, 2**50 + 1, 2**60, 3 * 2**60 - 1, 2**61 - 1, 2**61, 2**62 - 1],
-        rng.integers(2**50, 3 * 2**60, 5000, dtype=np.int64),
-    ]).astype(np.int64)
+    n2 = np.concatenate(
+        [
+            [2**50, 2**50 + 1, 2**60, 3 * 2**60 - 1, 2**61 - 1, 2**61, 2**62 - 1],
+            rng.integers(2**50, 3 * 2**60, 5000, dtype=np.int64),
+        ]
+    ).astype(np.int64)
     y, k = fx.rsqrt_q30(n2)
     for a, yy, kk in zip(n2.tolist(), y.tolist(), k.tolist(), strict=True):
         # exact check in Python integers: y^2 n2 / 2^(60 + 2k) = 1 within 2^-28: y within 2 steps of 2^-30

@@ -28,8 +28,9 @@ def _replay(tmp_path, session, precision):
         write_session(path, session)
         (tmp_path / "nominal.json").write_text(json.dumps(NOMINAL))
     out = tmp_path / f"estimate_{id(session)}_{precision}.json"
-    code = main(["replay", str(path), "--nominal", str(tmp_path / "nominal.json"), "--out", str(out),
-                 "--precision", precision])
+    code = main(
+        ["replay", str(path), "--nominal", str(tmp_path / "nominal.json"), "--out", str(out), "--precision", precision]
+    )
     assert code == 0
     return load_params(out).model_vector(), json.loads(out.read_text())
 
@@ -107,8 +108,18 @@ def test_fixed_replay_refuses_a_nominal_outside_the_fixed_range_in_one_line(tmp_
     write_session(tmp_path / "s.csv", result.session)
     nominal = dict(NOMINAL, distortion={"k1": -1e-5})  # monotonic, so a valid set, but a 1000 % correction
     (tmp_path / "n.json").write_text(json.dumps(nominal))
-    code = main(["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out",
-                 str(tmp_path / "e.json"), "--precision", "fixed"])
+    code = main(
+        [
+            "replay",
+            str(tmp_path / "s.csv"),
+            "--nominal",
+            str(tmp_path / "n.json"),
+            "--out",
+            str(tmp_path / "e.json"),
+            "--precision",
+            "fixed",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "fixed-point range" in err and err.count("\n") == 1
 

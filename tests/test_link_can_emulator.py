@@ -148,8 +148,13 @@ def test_a_plain_dbc_tool_uploads_with_single_frames(can_sensor):
     bus = can.Bus(interface="slcan", channel=url, sleep_after_open=0)
 
     def send_and_ack(name, signals, tag):
-        bus.send(can.Message(arbitration_id=db.get_message_by_name(name).frame_id, is_extended_id=False,
-                             data=db.encode_message(name, {"tag": tag, **signals})))
+        bus.send(
+            can.Message(
+                arbitration_id=db.get_message_by_name(name).frame_id,
+                is_extended_id=False,
+                data=db.encode_message(name, {"tag": tag, **signals}),
+            )
+        )
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             msg = bus.recv(0.5)

@@ -26,8 +26,12 @@ def _slcan(hub, **kw):
 
 
 def test_slcan_lines_round_trip():
-    for frame in (HubFrame(0x101, False, False, 8, bytes(range(8))), HubFrame(0x1ABCDEF0, True, False, 2, b"\x01\xff"),
-                  HubFrame(0x7FF, False, True, 3, b""), HubFrame(0x0, False, False, 0, b"")):
+    for frame in (
+        HubFrame(0x101, False, False, 8, bytes(range(8))),
+        HubFrame(0x1ABCDEF0, True, False, 2, b"\x01\xff"),
+        HubFrame(0x7FF, False, True, 3, b""),
+        HubFrame(0x0, False, False, 0, b""),
+    ):
         line = format_slcan_frame(frame)
         assert line.endswith(b"\r") and parse_slcan_frame(line[:-1]) == frame
     for bad in (b"t12", b"t1238001122", b"tXYZ0", b"t8001", b"t1239" + b"00" * 9, b"d1238" + b"00" * 8, b""):
@@ -57,9 +61,13 @@ def test_the_bus_is_never_faster_than_its_bit_rate(hub):
     try:
         time.sleep(0.05)
         start = time.monotonic()
-        threading.Thread(target=lambda: [sensor.send(can.Message(arbitration_id=0x101, data=bytes(8),
-                                                                 is_extended_id=False), timeout=5)
-                                         for _ in range(n)], daemon=True).start()
+        threading.Thread(
+            target=lambda: [
+                sensor.send(can.Message(arbitration_id=0x101, data=bytes(8), is_extended_id=False), timeout=5)
+                for _ in range(n)
+            ],
+            daemon=True,
+        ).start()
         got = 0
         while got < n and (msg := host.recv(2.0)) is not None:
             got += msg.arbitration_id == 0x101
@@ -107,8 +115,9 @@ def test_a_node_at_another_bit_rate_never_joins_the_bus(hub):
 
 
 def test_can_link_strings_name_any_python_can_interface():
-    assert parse_target("slcan:socket://127.0.0.1:5000@500000") == CanTarget("slcan", "socket://127.0.0.1:5000",
-                                                                             500_000)
+    assert parse_target("slcan:socket://127.0.0.1:5000@500000") == CanTarget(
+        "slcan", "socket://127.0.0.1:5000", 500_000
+    )
     assert parse_target("socketcan:can0") == CanTarget("socketcan", "can0", None)
     t = parse_target("pcan:PCAN_USBBUS1@250000,fd=false,tty_baudrate=115200")
     assert t.bitrate == 250_000 and t.options == {"fd": False, "tty_baudrate": 115200}

@@ -78,7 +78,7 @@ def test_unaligned_chunks_are_merged_in_the_staging_mailbox(modbus_sensor):
     with open_link(modbus_sensor["link"]) as link:
         link.stage_begin(len(table))
         for offset in range(0, len(table), 7):  # 7-byte pieces split float32 values
-            link.stage_chunk(offset, table[offset:offset + 7])
+            link.stage_chunk(offset, table[offset : offset + 7])
         link.stage_verify(crc32(table))
         assert bytes(link.read_staged().table) == table
 
@@ -102,14 +102,26 @@ def test_a_bad_set_is_refused_by_the_sensor_with_its_reason(modbus_sensor, which
 
 
 def test_modbus_link_strings():
-    assert parse_target("modbus-tcp", "127.0.0.1:5020") == {"unit": 1, "host": "127.0.0.1", "port": 5020,
-                                                           "framing": "tcp"}
+    assert parse_target("modbus-tcp", "127.0.0.1:5020") == {
+        "unit": 1,
+        "host": "127.0.0.1",
+        "port": 5020,
+        "framing": "tcp",
+    }
     assert parse_target("modbus-rtu", "tcp://10.0.0.5:4001,unit=7")["framing"] == "rtu"
-    assert parse_target("modbus-rtu", "/dev/ttyUSB0@9600,parity=N") == {"unit": 1, "parity": "N",
-                                                                        "serial_port": "/dev/ttyUSB0", "baud": 9600,
-                                                                        "framing": "rtu"}
-    for scheme, bad in (("modbus-tcp", "127.0.0.1"), ("modbus-tcp", "h:99999"), ("modbus-tcp", "h:502,unit=300"),
-                        ("modbus-tcp", "h:502,parity=E")):
+    assert parse_target("modbus-rtu", "/dev/ttyUSB0@9600,parity=N") == {
+        "unit": 1,
+        "parity": "N",
+        "serial_port": "/dev/ttyUSB0",
+        "baud": 9600,
+        "framing": "rtu",
+    }
+    for scheme, bad in (
+        ("modbus-tcp", "127.0.0.1"),
+        ("modbus-tcp", "h:99999"),
+        ("modbus-tcp", "h:502,unit=300"),
+        ("modbus-tcp", "h:502,parity=E"),
+    ):
         with pytest.raises(UserError):
             parse_target(scheme, bad)
 

@@ -17,15 +17,21 @@ from protocol import modbus_map as mm
 from protocol.framing import FrameSplitter, encode_frame
 from protocol.messages import CentroidFrame
 
-NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
-                       image_size_px=(1024, 1024))
+NOMINAL = CameraParams(
+    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
+)
 
 
 def _source(n_frames: int):
     for k in range(n_frames):
-        f = CentroidFrame(frame=k, t_us=1_700_000_000_000_000 + 100_000 * k, star_id=np.array([7, 9], np.uint32),
-                          x_px=np.array([10.0 + k, 20.0]), y_px=np.array([30.0, 40.0 + k]),
-                          mag=np.array([5.0, 6.0]))
+        f = CentroidFrame(
+            frame=k,
+            t_us=1_700_000_000_000_000 + 100_000 * k,
+            star_id=np.array([7, 9], np.uint32),
+            x_px=np.array([10.0 + k, 20.0]),
+            y_px=np.array([30.0, 40.0 + k]),
+            mag=np.array([5.0, 6.0]),
+        )
         yield SourceFrame(frame=f, r_ref=None)
 
 

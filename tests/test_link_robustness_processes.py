@@ -18,9 +18,25 @@ _GRACE_S = 15.0
 
 
 def _start_stream(link: str, out) -> subprocess.Popen:
-    return subprocess.Popen([*_CLI, "stream", "--link", link, "--frames", "1000000", "--out", str(out), "--quiet",
-                             "--timeout", str(_TIMEOUT_S)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=_env())
+    return subprocess.Popen(
+        [
+            *_CLI,
+            "stream",
+            "--link",
+            link,
+            "--frames",
+            "1000000",
+            "--out",
+            str(out),
+            "--quiet",
+            "--timeout",
+            str(_TIMEOUT_S),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
 
 
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus"])

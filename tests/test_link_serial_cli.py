@@ -47,8 +47,13 @@ def test_upload_then_params_reads_back_the_file_to_float32(emulator, tmp_path):
     printed = tmp_path / "printed.json"
     printed.write_text(shown.stdout)
     assert params_to_table(load_params(printed)) == params_to_table(load_params(camera))
-    assert set(json.loads(shown.stdout)) == {"focal_length_mm", "pixel_pitch_um", "principal_point_px",
-                                             "image_size_px", "distortion"}
+    assert set(json.loads(shown.stdout)) == {
+        "focal_length_mm",
+        "pixel_pitch_um",
+        "principal_point_px",
+        "image_size_px",
+        "distortion",
+    }
 
 
 def test_a_set_the_sensor_refuses_prints_its_reason_on_one_line(emulator, tmp_path):

@@ -12,8 +12,14 @@ from protocol.framing import encode_frame
 
 
 def frame(k):
-    return m.CentroidFrame(frame=k, t_us=1_000_000 * k, star_id=np.array([k + 1], np.uint32),
-                           x_px=np.array([k + 0.5]), y_px=np.array([2.25]), mag=np.array([3.0]))
+    return m.CentroidFrame(
+        frame=k,
+        t_us=1_000_000 * k,
+        star_id=np.array([k + 1], np.uint32),
+        x_px=np.array([k + 0.5]),
+        y_px=np.array([2.25]),
+        mag=np.array([3.0]),
+    )
 
 
 def test_link_strings_are_parsed_once():

@@ -12,17 +12,22 @@ from emulator_fixtures import hostlink, running_emulator
 from hostlink.sky.simulate import data_file
 from onboard.prior import sigma_from_dict
 
-SIGMA = {"focal_length_mm": 7e-4, "principal_point_px": [1.3, 1.29],
-         "distortion": {"k1": 1.4e-10, "k2": 5.8e-16, "k3": None, "p1": 2.2e-8, "p2": 2.1e-8, "s1": 2e-8, "s2": 2e-8},
-         "fixed": [], "unobservable": ["k3"]}
+SIGMA = {
+    "focal_length_mm": 7e-4,
+    "principal_point_px": [1.3, 1.29],
+    "distortion": {"k1": 1.4e-10, "k2": 5.8e-16, "k3": None, "p1": 2.2e-8, "p2": 2.1e-8, "s1": 2e-8, "s2": 2e-8},
+    "fixed": [],
+    "unobservable": ["k3"],
+}
 TRANSPORTS = [("serial", ()), ("can", ("--bitrate", "500000")), ("modbus", ()), ("modbus-rtu", ())]
 
 
 @pytest.fixture(scope="module", params=TRANSPORTS, ids=[t for t, _ in TRANSPORTS])
 def sensor_link(request):
     transport, extra = request.param
-    with running_emulator("modbus" if transport.startswith("modbus") else transport, "--sim-frames", "60",
-                          *extra) as info:
+    with running_emulator(
+        "modbus" if transport.startswith("modbus") else transport, "--sim-frames", "60", *extra
+    ) as info:
         yield info["link_rtu" if transport == "modbus-rtu" else "link"]
 
 
@@ -44,8 +49,9 @@ def test_upload_sends_the_sigma_and_params_prints_it_back(sensor_link, tmp_path)
     assert shown.returncode == 0, shown.stderr
     printed = json.loads(shown.stdout)["sigma"]
     assert printed["distortion"]["k3"] is None  # unknown stays unknown
-    np.testing.assert_array_equal(sigma_from_dict(printed).astype(np.float32),
-                                  sigma_from_dict(SIGMA).astype(np.float32))  # float32, bit for bit (NaN = NaN)
+    np.testing.assert_array_equal(
+        sigma_from_dict(printed).astype(np.float32), sigma_from_dict(SIGMA).astype(np.float32)
+    )  # float32, bit for bit (NaN = NaN)
 
 
 def test_a_refused_sigma_names_its_field_on_one_line(sensor_link, tmp_path):

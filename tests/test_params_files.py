@@ -122,9 +122,19 @@ def test_cli_reports_bad_parameter_file_in_one_line_with_nonzero_exit(tmp_path):
     session = tmp_path / "s.csv"
     session.write_text("frame,t_utc,star_id,x_px,y_px\n0,2026-03-14T02:10:00.000Z,1,10,10\n")
     out = subprocess.run(
-        [sys.executable, "-m", "hostlink.cli", "replay", str(session), "--nominal", str(bad), "--out",
-         str(tmp_path / "o.json")],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "hostlink.cli",
+            "replay",
+            str(session),
+            "--nominal",
+            str(bad),
+            "--out",
+            str(tmp_path / "o.json"),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert out.returncode != 0
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]

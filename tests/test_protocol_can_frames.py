@@ -54,8 +54,14 @@ def test_dbc_describes_every_single_frame_message_with_float_signals_declared(db
 
 def _random_frame(rng, n, frame=7):
     steps = rng.integers(-512 * 1024, 7680 * 1024, size=(2, n))  # the whole star range, on the 2^-10 grid
-    return CentroidFrame(frame=frame, t_us=1_773_000_000_000_000, star_id=rng.integers(0, 131072, n).astype(np.uint32),
-                         x_px=dequantise_px(steps[0]), y_px=dequantise_px(steps[1]), mag=np.full(n, np.nan))
+    return CentroidFrame(
+        frame=frame,
+        t_us=1_773_000_000_000_000,
+        star_id=rng.integers(0, 131072, n).astype(np.uint32),
+        x_px=dequantise_px(steps[0]),
+        y_px=dequantise_px(steps[1]),
+        mag=np.full(n, np.nan),
+    )
 
 
 def test_cantools_decodes_star_frames_to_the_same_centroids(db):
@@ -64,7 +70,7 @@ def test_cantools_decodes_star_frames_to_the_same_centroids(db):
     payloads = cf.word_bytes(cf.encode_stars(frame))
     star = db.get_message_by_name("STAR")
     for i in range(frame.n_stars):
-        sig = star.decode(payloads[8 * i:8 * i + 8], scaling=True)
+        sig = star.decode(payloads[8 * i : 8 * i + 8], scaling=True)
         # cantools computes raw * 2^-10 - 512 in float64: exact for 23-bit raws, so equality is exact
         assert sig["x_px"] == frame.x_px[i] and sig["y_px"] == frame.y_px[i]
         assert sig["star_id"] == frame.star_id[i] and sig["frame_parity"] == 1
@@ -85,8 +91,14 @@ def test_star_positions_travel_on_the_protocol_fixed_point_grid_exactly():
 
 @pytest.mark.parametrize("x_px, star_id", [(-512.001, 1), (7680.0, 1), (100.0, 131072)])
 def test_a_star_outside_the_can_layout_is_refused(x_px, star_id):
-    frame = CentroidFrame(frame=0, t_us=0, star_id=np.array([star_id], np.uint32), x_px=np.array([x_px]),
-                          y_px=np.array([10.0]), mag=np.array([np.nan]))
+    frame = CentroidFrame(
+        frame=0,
+        t_us=0,
+        star_id=np.array([star_id], np.uint32),
+        x_px=np.array([x_px]),
+        y_px=np.array([10.0]),
+        mag=np.array([np.nan]),
+    )
     with pytest.raises(EncodeError):
         cf.encode_stars(frame)
 
@@ -108,9 +120,17 @@ def test_time_base_is_needed_exactly_when_the_offset_does_not_fit():
     assert cf.needs_time_base(10 + (1 << 24), 10) and cf.needs_time_base(9, 10)
 
 
-COMMANDS = [GetStatus(tag=1), StreamControl(tag=2, enable=True), StreamControl(tag=3, enable=False),
-            StageBegin(tag=4, length=52), StageVerify(tag=5, crc32=0xCBF43926), ReadStaged(tag=6),
-            Commit(tag=7, crc32=0xFFFFFFFF), ReadActive(tag=8), ReadEstimate(tag=65535)]
+COMMANDS = [
+    GetStatus(tag=1),
+    StreamControl(tag=2, enable=True),
+    StreamControl(tag=3, enable=False),
+    StageBegin(tag=4, length=52),
+    StageVerify(tag=5, crc32=0xCBF43926),
+    ReadStaged(tag=6),
+    Commit(tag=7, crc32=0xFFFFFFFF),
+    ReadActive(tag=8),
+    ReadEstimate(tag=65535),
+]
 
 
 @pytest.mark.parametrize("cmd", COMMANDS, ids=lambda c: type(c).__name__ + str(c.tag))
@@ -120,11 +140,16 @@ def test_short_commands_round_trip_and_cantools_reads_them(db, cmd):
     assert cf.decode_single(fid, data) == cmd
     decoded = db.decode_message(fid, data, decode_choices=False)
     assert decoded["type"] == int(cmd.TYPE) and decoded["tag"] == cmd.tag
-    arg = {"StreamControl": "enable", "StageBegin": "length", "StageVerify": "verify_crc32",
-           "Commit": "commit_crc32"}.get(type(cmd).__name__)
+    arg = {
+        "StreamControl": "enable",
+        "StageBegin": "length",
+        "StageVerify": "verify_crc32",
+        "Commit": "commit_crc32",
+    }.get(type(cmd).__name__)
     if arg:
-        assert decoded[arg] == int(getattr(cmd, "enable" if arg == "enable" else
-                                           "length" if arg == "length" else "crc32"))
+        assert decoded[arg] == int(
+            getattr(cmd, "enable" if arg == "enable" else "length" if arg == "length" else "crc32")
+        )
 
 
 def test_a_dbc_tool_can_build_commands_and_read_acks(db):

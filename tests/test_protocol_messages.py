@@ -33,11 +33,27 @@ EXAMPLES = [
     m.ReadEstimate(tag=10),
     m.Ack(tag=11, command=m.MsgType.COMMIT, value=42),
     m.Nak(tag=12, command=m.MsgType.STAGE_VERIFY, code=m.NakCode.INVALID_PARAMS, text="focal_length_mm: must be > 0"),
-    m.Telemetry(tag=13, streaming=True, stage_state=2, active_generation=7, active_crc32=0xFFFFFFFF,
-                frames_processed=10, last_frame=9, estimator_updates=8),
+    m.Telemetry(
+        tag=13,
+        streaming=True,
+        stage_state=2,
+        active_generation=7,
+        active_crc32=0xFFFFFFFF,
+        frames_processed=10,
+        last_frame=9,
+        estimator_updates=8,
+    ),
     m.ParamTable(tag=14, bank=m.TableBank.STAGED, generation=0, crc32=5, table=bytes(range(TABLE_BYTES))),
-    m.Estimate(tag=15, status=1, estimated_mask=0x3FF, base_generation=2, n_updates=100, last_frame=99,
-               values=tuple(float(np.float32(v)) for v in np.linspace(1, 10, 10)), sigma=(0.5,) * 10),
+    m.Estimate(
+        tag=15,
+        status=1,
+        estimated_mask=0x3FF,
+        base_generation=2,
+        n_updates=100,
+        last_frame=99,
+        values=tuple(float(np.float32(v)) for v in np.linspace(1, 10, 10)),
+        sigma=(0.5,) * 10,
+    ),
     m.EndOfStream(frames_sent=123),
 ]
 
@@ -104,21 +120,41 @@ def test_magnitudes_travel_in_millimagnitudes_and_absent_stays_absent():
 
 def test_unrepresentable_frames_are_refused_when_encoding():
     with pytest.raises(m.EncodeError):
-        m.encode(m.CentroidFrame(frame=1, t_us=0, star_id=np.array([1], np.uint32), x_px=np.array([np.nan]),
-                                 y_px=np.array([1.0]), mag=np.array([1.0])))
+        m.encode(
+            m.CentroidFrame(
+                frame=1,
+                t_us=0,
+                star_id=np.array([1], np.uint32),
+                x_px=np.array([np.nan]),
+                y_px=np.array([1.0]),
+                mag=np.array([1.0]),
+            )
+        )
     n = m.MAX_STARS + 1
     with pytest.raises(m.EncodeError):
-        m.encode(m.CentroidFrame(frame=1, t_us=0, star_id=np.ones(n, np.uint32), x_px=np.zeros(n),
-                                 y_px=np.zeros(n), mag=np.zeros(n)))
+        m.encode(
+            m.CentroidFrame(
+                frame=1, t_us=0, star_id=np.ones(n, np.uint32), x_px=np.zeros(n), y_px=np.zeros(n), mag=np.zeros(n)
+            )
+        )
     with pytest.raises(m.EncodeError):
-        m.encode(m.CentroidFrame(frame=1, t_us=0, star_id=np.ones(1, np.uint32), x_px=np.array([3e6]),
-                                 y_px=np.zeros(1), mag=np.zeros(1)))
+        m.encode(
+            m.CentroidFrame(
+                frame=1, t_us=0, star_id=np.ones(1, np.uint32), x_px=np.array([3e6]), y_px=np.zeros(1), mag=np.zeros(1)
+            )
+        )
 
 
 @pytest.mark.parametrize(
     "data",
-    [b"", b"\x7f", bytes([m.MsgType.ACK]), bytes([m.MsgType.ACK]) + bytes(10),
-     m.encode(m.StageChunk(tag=1, offset=0, data=b"abc"))[:-1], m.encode(EXAMPLES[-4])[:-1]],
+    [
+        b"",
+        b"\x7f",
+        bytes([m.MsgType.ACK]),
+        bytes([m.MsgType.ACK]) + bytes(10),
+        m.encode(m.StageChunk(tag=1, offset=0, data=b"abc"))[:-1],
+        m.encode(EXAMPLES[-4])[:-1],
+    ],
     ids=["empty", "unknown-type", "truncated-ack", "long-ack", "short-chunk", "short-table"],
 )
 def test_malformed_bytes_raise_decode_error(data):
@@ -155,8 +191,31 @@ def test_crc_check_values_match_the_published_catalogue():
 
 
 def test_parameter_table_is_camera_fields_then_sigmas_as_little_endian_float32():
-    values = [70.2262, 12.0, 500.0, 530.0, 1024, 1024, -2e-10, 3.5e-15, 1e-21, 1e-7, -1e-7, 2e-8, -2e-8,
-              7e-4, 1.3, 1.29, 1.4e-10, 5.8e-16, 7.4e-22, 2.2e-8, 2.1e-8, 2e-8, 2e-8]
+    values = [
+        70.2262,
+        12.0,
+        500.0,
+        530.0,
+        1024,
+        1024,
+        -2e-10,
+        3.5e-15,
+        1e-21,
+        1e-7,
+        -1e-7,
+        2e-8,
+        -2e-8,
+        7e-4,
+        1.3,
+        1.29,
+        1.4e-10,
+        5.8e-16,
+        7.4e-22,
+        2.2e-8,
+        2.1e-8,
+        2e-8,
+        2e-8,
+    ]
     data = encode_table(values)
     # 13 camera fields then 10 sigmas (ESTIMATE_NAMES order)
     assert len(data) == TABLE_BYTES == 92 == 4 * len(PARAM_FIELDS)

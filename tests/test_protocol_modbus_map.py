@@ -75,8 +75,9 @@ def test_word_order_agrees_with_pymodbus_big_word_order():
 
 
 def test_parameter_table_survives_registers_bit_for_bit():
-    values = np.array([25.0, 5.5, 511.25, 510.75, 1024, 1024, -3e-8, 1e-14, -2e-21, 1e-6, -1e-6, 0.0, -0.0],
-                      dtype="<f4")
+    values = np.array(
+        [25.0, 5.5, 511.25, 510.75, 1024, 1024, -3e-8, 1e-14, -2e-21, 1e-6, -1e-6, 0.0, -0.0], dtype="<f4"
+    )
     table = values.tobytes()
     words = mm.registers_from_table(table)
     assert words[:2] == list(struct.unpack(">HH", struct.pack(">f", 25.0)))
@@ -101,9 +102,9 @@ def test_signed_star_arrays_decode_vectorised_as_the_scalar_decoder_does():
     words = [0] * (x.address - base + 3 * x.stride)
     for i, (xv, mv) in enumerate([(-1.5, -32.768), (2047.0009765625, 5.1), (0.0, 0.0)]):
         start = x.element_address(i) - base
-        words[start:start + 2] = mm.to_registers(x, xv)
+        words[start : start + 2] = mm.to_registers(x, xv)
         start = mag.element_address(i) - base
-        words[start:start + 1] = mm.to_registers(mag, mv)
+        words[start : start + 1] = mm.to_registers(mag, mv)
     raw_x = mm.array_raw(np.array(words), x, 3, base)
     raw_mag = mm.array_raw(np.array(words), mag, 3, base)
     assert list(raw_x * 2.0**-10) == [-1.5, 2047.0009765625, 0.0]

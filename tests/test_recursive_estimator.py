@@ -190,8 +190,13 @@ def test_a_star_reported_twice_in_a_frame_is_used_once(dtype):
     used = np.flatnonzero(fr.identified)
     for j in (used[0], used[3]):
         twice = rc.restore_state(rc.save_state(st), SEED004_NOMINAL)
-        res = rc.update(twice, np.append(fr.x_px, fr.x_px[j]), np.append(fr.y_px, fr.y_px[j]),
-                        np.vstack([fr.r, fr.r[j]]), np.append(fr.identified, fr.identified[j]))
+        res = rc.update(
+            twice,
+            np.append(fr.x_px, fr.x_px[j]),
+            np.append(fr.y_px, fr.y_px[j]),
+            np.vstack([fr.r, fr.r[j]]),
+            np.append(fr.identified, fr.identified[j]),
+        )
         assert not res.skipped
         # the same arithmetic on the same stars: bit for bit
         assert rc.save_state(twice) == rc.save_state(plain), j

@@ -38,8 +38,13 @@ def to_param_units(model_sigma):
 
 # ------------------------------------------------------------------------------------------------ sigma values
 def test_sigma_is_read_from_the_file_layout_and_the_flat_layout():
-    file_layout = {"focal_length_mm": 7e-4, "principal_point_px": [1.3, None], "distortion": {"k1": 1.4e-10},
-                   "fixed": [], "unobservable": ["y0"]}
+    file_layout = {
+        "focal_length_mm": 7e-4,
+        "principal_point_px": [1.3, None],
+        "distortion": {"k1": 1.4e-10},
+        "fixed": [],
+        "unobservable": ["y0"],
+    }
     got = sigma_from_dict(file_layout)
     assert got[0] == 7e-4 and got[1] == 1.3 and np.isnan(got[2]) and got[3] == 1.4e-10 and np.all(np.isnan(got[4:]))
     flat = sigma_from_dict({"f": 7e-4, "x0": 1.3, "s2": 2e-8})
@@ -177,11 +182,18 @@ def calibrated_files(tmp_path_factory):
     sim = simulate(seed004_config(150, seed=4))
     write_session(tmp / "session.csv", sim.session)
     truth = sim.truth["camera"]
-    sigma = {"focal_length_mm": 7e-4, "principal_point_px": [1.3, 1.3],
-             "distortion": {"k1": 1.4e-10, "k2": 5.8e-16, "k3": 7.4e-22, "p1": 2.2e-8, "p2": 2.1e-8, "s1": 2e-8,
-                            "s2": 2e-8}, "fixed": [], "unobservable": []}
-    calibrated = dict(truth, principal_point_px=[truth["principal_point_px"][0] + 1.0,
-                                                 truth["principal_point_px"][1] - 1.0], sigma=sigma)
+    sigma = {
+        "focal_length_mm": 7e-4,
+        "principal_point_px": [1.3, 1.3],
+        "distortion": {"k1": 1.4e-10, "k2": 5.8e-16, "k3": 7.4e-22, "p1": 2.2e-8, "p2": 2.1e-8, "s1": 2e-8, "s2": 2e-8},
+        "fixed": [],
+        "unobservable": [],
+    }
+    calibrated = dict(
+        truth,
+        principal_point_px=[truth["principal_point_px"][0] + 1.0, truth["principal_point_px"][1] - 1.0],
+        sigma=sigma,
+    )
     (tmp / "calibrated.json").write_text(json.dumps(calibrated))
     save_params(tmp / "plain.json", SEED004_TRUE)
     return tmp
@@ -197,8 +209,10 @@ def test_replay_starts_from_the_file_sigma_by_default_and_from_cold_on_request(c
     tmp = calibrated_files
     common = [str(tmp / "session.csv"), "--nominal", str(tmp / "calibrated.json")]
     assert main(["replay", *common, "--out", str(tmp / "file.json"), "--trace", str(tmp / "file.csv")]) == 0
-    assert main(["replay", *common, "--out", str(tmp / "cold.json"), "--trace", str(tmp / "cold.csv"),
-                 "--prior", "cold"]) == 0
+    assert (
+        main(["replay", *common, "--out", str(tmp / "cold.json"), "--trace", str(tmp / "cold.csv"), "--prior", "cold"])
+        == 0
+    )
     file_doc, cold_doc = (json.loads((tmp / n).read_text()) for n in ("file.json", "cold.json"))
     assert (file_doc["prior"], file_doc["burn_in_frames"]) == ("file", 0)
     assert (cold_doc["prior"], cold_doc["burn_in_frames"]) == ("cold", 300)
@@ -215,14 +229,23 @@ def test_replay_starts_from_the_file_sigma_by_default_and_from_cold_on_request(c
 
 def test_replay_refuses_a_missing_or_bad_sigma_on_one_line(calibrated_files, capsys):
     tmp = calibrated_files
-    code = main(["replay", str(tmp / "session.csv"), "--nominal", str(tmp / "plain.json"), "--out",
-                 str(tmp / "x.json"), "--prior", "file"])
+    code = main(
+        [
+            "replay",
+            str(tmp / "session.csv"),
+            "--nominal",
+            str(tmp / "plain.json"),
+            "--out",
+            str(tmp / "x.json"),
+            "--prior",
+            "file",
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1 and "sigma" in err
     bad = json.loads((tmp / "calibrated.json").read_text())
     bad["sigma"]["principal_point_px"] = [-1.0, 1.0]
     (tmp / "bad.json").write_text(json.dumps(bad))
-    code = main(["replay", str(tmp / "session.csv"), "--nominal", str(tmp / "bad.json"), "--out",
-                 str(tmp / "x.json")])
+    code = main(["replay", str(tmp / "session.csv"), "--nominal", str(tmp / "bad.json"), "--out", str(tmp / "x.json")])
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1 and "sigma.principal_point_px[0]" in err

@@ -25,8 +25,20 @@ def _erfa_refraction(weather: Weather, z_true: np.ndarray) -> np.ndarray:
     lat = np.radians(30.0)
 
     def observed_zd(phpa):
-        astrom = erfa.apio13(2451545.0, 0.3, 0.0, 0.0, lat, 0.0, 0.0, 0.0, phpa, weather.temp_c,
-                             weather.rel_humidity, weather.wavelength_um)
+        astrom = erfa.apio13(
+            2451545.0,
+            0.3,
+            0.0,
+            0.0,
+            lat,
+            0.0,
+            0.0,
+            0.0,
+            phpa,
+            weather.temp_c,
+            weather.rel_humidity,
+            weather.wavelength_um,
+        )
         # a star on the meridian, south of the zenith, at declination lat - z
         _, zob, *_ = erfa.atioq(astrom["eral"] + 0 * z_true, lat - z_true, astrom)
         return zob
@@ -68,12 +80,14 @@ def test_seed001_formula_converts_hpa_to_mmhg():
     assert rf.seed001_coefficient_rad(0.0, 1013.25) == pytest.approx(60.2 * ARCSEC, rel=1e-12)
     # seed 001 Table 4 weather: 23.9 C, 1006.7 hPa = 755.09 mmHg -> 60.2" (1 - 0.08411 - 0.00646) = 54.75"
     k = rf.seed001_coefficient_rad(23.9, 1006.7) / ARCSEC
-    assert k == pytest.approx(60.2 * (1 - 0.00383 * 23.9 / (1 + 0.00367 * 23.9) + 1006.7 * 0.750062 / 760 - 1),
-                              abs=1e-4)  # hand-evaluated eq. 14-17, 0.750062 mmHg/hPa to 6 digits
+    assert k == pytest.approx(
+        60.2 * (1 - 0.00383 * 23.9 / (1 + 0.00367 * 23.9) + 1006.7 * 0.750062 / 760 - 1), abs=1e-4
+    )  # hand-evaluated eq. 14-17, 0.750062 mmHg/hPa to 6 digits
     assert 54.6 < k < 54.9  # not the 83" a reading of hPa as mmHg would give
     # eq. 16's gravity reduction at 45 deg latitude is zero (cos 90 deg) and 0.26% at the equator
     assert rf.seed001_coefficient_rad(10.0, 1000.0, np.radians(45.0)) == pytest.approx(
-        rf.seed001_coefficient_rad(10.0, 1000.0), rel=1e-12)
+        rf.seed001_coefficient_rad(10.0, 1000.0), rel=1e-12
+    )
 
 
 def test_seed001_true_zenith_shortcut_holds_to_60_deg_only():
@@ -130,6 +144,7 @@ def test_observed_correction_undoes_the_reference_lift(model):
 
 # ------------------------------------------------------------------ apparent -> observed at a site (one function)
 
+
 def _local_directions(n: int, max_zd_deg: float, seed: int) -> np.ndarray:
     """Random unit directions (n, 3) in the local north-up-east frame, zenith distance uniform up to max_zd_deg."""
     rng = np.random.default_rng(seed)
@@ -168,8 +183,9 @@ def test_topocentric_observed_matches_erfa_aberration_then_erfa_refraction(weath
 def test_topocentric_observed_with_no_velocity_is_the_refraction_lift_alone():
     r = _local_directions(200, 80.0, 5)
     np.testing.assert_array_equal(rf.topocentric_observed(r, UP, np.zeros(3)), r)
-    np.testing.assert_array_equal(rf.topocentric_observed(r, UP, np.zeros(3), WEATHERS[0]),
-                                  rf.refract_toward_zenith(r, UP, WEATHERS[0]))
+    np.testing.assert_array_equal(
+        rf.topocentric_observed(r, UP, np.zeros(3), WEATHERS[0]), rf.refract_toward_zenith(r, UP, WEATHERS[0])
+    )
 
 
 def test_topocentric_observed_in_float32_stays_within_float32_rounding_of_float64():

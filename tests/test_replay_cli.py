@@ -56,8 +56,21 @@ def _replay(tmp_path, result, precision="float32", extra=()):
         (tmp_path / "nominal.json").write_text(json.dumps(NOMINAL))
     out = tmp_path / f"estimate_{precision}.json"
     trace = tmp_path / f"trace_{precision}.csv"
-    code = main(["replay", str(session_path), "--nominal", str(tmp_path / "nominal.json"), "--out", str(out),
-                 "--trace", str(trace), "--precision", precision, *extra])
+    code = main(
+        [
+            "replay",
+            str(session_path),
+            "--nominal",
+            str(tmp_path / "nominal.json"),
+            "--out",
+            str(out),
+            "--trace",
+            str(trace),
+            "--precision",
+            precision,
+            *extra,
+        ]
+    )
     assert code == 0
     return load_params(out), json.loads(out.read_text()), trace
 
@@ -108,8 +121,21 @@ def test_replay_estimates_only_the_named_parameters(tmp_path, seed004_session):
     small = seed004_session.session.select(seed004_session.session.frame < 50)
     write_session(tmp_path / "s.csv", small)
     (tmp_path / "n.json").write_text(json.dumps(NOMINAL))
-    assert main(["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out",
-                 str(tmp_path / "e.json"), "--estimate", "f,x0,y0"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(tmp_path / "s.csv"),
+                "--nominal",
+                str(tmp_path / "n.json"),
+                "--out",
+                str(tmp_path / "e.json"),
+                "--estimate",
+                "f,x0,y0",
+            ]
+        )
+        == 0
+    )
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["estimated"] == ["f", "x0", "y0"] and all(v == 0.0 for v in doc["distortion"].values())
 
@@ -125,8 +151,17 @@ def test_replay_estimates_only_the_named_parameters(tmp_path, seed004_session):
 def test_replay_refuses_bad_options_in_one_line(tmp_path, capsys, seed004_session, args, message):
     write_session(tmp_path / "s.csv", seed004_session.session.select(seed004_session.session.frame < 3))
     (tmp_path / "n.json").write_text(json.dumps(NOMINAL))
-    code = main(["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out",
-                 str(tmp_path / "e.json"), *args])
+    code = main(
+        [
+            "replay",
+            str(tmp_path / "s.csv"),
+            "--nominal",
+            str(tmp_path / "n.json"),
+            "--out",
+            str(tmp_path / "e.json"),
+            *args,
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and message in err and err.count("\n") == 1
 
@@ -139,8 +174,9 @@ def test_replay_refuses_a_star_id_unknown_to_hipparcos_when_the_file_has_no_refe
     s.star_id[0] = 999_999  # Hipparcos numbers stop at 120404
     write_session(tmp_path / "s.csv", s)
     (tmp_path / "n.json").write_text(json.dumps(NOMINAL))
-    code = main(["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out",
-                 str(tmp_path / "e.json")])
+    code = main(
+        ["replay", str(tmp_path / "s.csv"), "--nominal", str(tmp_path / "n.json"), "--out", str(tmp_path / "e.json")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "999999" in err and len(err.strip().splitlines()) == 1
 

@@ -43,18 +43,29 @@ TAI_MINUS_UTC_2014_S = 35
 
 # eq. 26 and Tables 6-8 as printed
 EQ26 = np.array([[0.0262, -0.0035, -0.9997], [-0.6359, -0.7716, -0.014], [-0.7713, 0.6361, -0.0224]])
-IDEAL_XY = np.array([[235.6149, 235.1945, 244.0265, 296.6477, 301.2075],
-                     [173.3413, 354.4091, 407.6546, 453.5867, 586.7066]])
-REFRACTED_XY = np.array([[235.6892, 235.2712, 244.1015, 296.7095, 301.2695],
-                         [171.3418, 352.3034, 405.5160, 451.4202, 584.4516]])
-OBSERVED_CORRECTION_XY = np.array([[235.6149, 235.1945, 244.0265, 296.6477, 301.2075],
-                                   [173.3401, 354.4078, 407.6532, 453.5852, 586.7050]])
-REFERENCE_LOCAL = np.array([[0.2312, 0.2358, 0.2359, 0.2296, 0.2321],
-                            [0.6690, 0.6489, 0.6430, 0.6380, 0.6228],
-                            [0.7063, 0.7233, 0.7285, 0.7349, 0.7471]]).T
-CORRECTED_LOCAL = np.array([[0.2312, 0.2358, 0.2358, 0.2295, 0.2320],
-                            [0.6692, 0.6492, 0.6432, 0.6382, 0.6231],
-                            [0.7061, 0.7231, 0.7283, 0.7347, 0.7469]]).T
+IDEAL_XY = np.array(
+    [[235.6149, 235.1945, 244.0265, 296.6477, 301.2075], [173.3413, 354.4091, 407.6546, 453.5867, 586.7066]]
+)
+REFRACTED_XY = np.array(
+    [[235.6892, 235.2712, 244.1015, 296.7095, 301.2695], [171.3418, 352.3034, 405.5160, 451.4202, 584.4516]]
+)
+OBSERVED_CORRECTION_XY = np.array(
+    [[235.6149, 235.1945, 244.0265, 296.6477, 301.2075], [173.3401, 354.4078, 407.6532, 453.5852, 586.7050]]
+)
+REFERENCE_LOCAL = np.array(
+    [
+        [0.2312, 0.2358, 0.2359, 0.2296, 0.2321],
+        [0.6690, 0.6489, 0.6430, 0.6380, 0.6228],
+        [0.7063, 0.7233, 0.7285, 0.7349, 0.7471],
+    ]
+).T
+CORRECTED_LOCAL = np.array(
+    [
+        [0.2312, 0.2358, 0.2358, 0.2295, 0.2320],
+        [0.6692, 0.6492, 0.6432, 0.6382, 0.6231],
+        [0.7061, 0.7231, 0.7283, 0.7347, 0.7469],
+    ]
+).T
 #: Table 8: the paper's attitude errors of either method are all below 0.05".
 TABLE8_MAX_ERROR_ARCSEC = 0.05
 
@@ -75,8 +86,13 @@ def scene():
     v_local = camera.radec_to_unit(_deg(RA_DEG), _deg(DEC_DEG)) @ npb.T @ r_ig.T
     r_bs = att.euler_matrix(*_deg(MOUNT_YPR_DEG))
     r_gs = r_bs @ att.euler_matrix(*_deg(SHIP_YPR_DEG))
-    return {"v_local": v_local, "r_bs": r_bs, "r_gs": r_gs, "theta": CAMERA.model_vector(np.float64),
-            "lat": np.radians(SITE.lat_deg)}
+    return {
+        "v_local": v_local,
+        "r_bs": r_bs,
+        "r_gs": r_gs,
+        "theta": CAMERA.model_vector(np.float64),
+        "lat": np.radians(SITE.lat_deg),
+    }
 
 
 def _pixels(b_sensor, theta):
@@ -139,8 +155,9 @@ def test_table6_refraction_lifts_each_star_by_its_printed_amount(scene):
     # printed refracted - ideal displacement (about 2 px = 61-69") against ours: a check on eq. 13-17 alone, free of
     # the common Earth-orientation offset
     lifted = refract_toward_zenith(scene["v_local"], UP, WEATHER, "seed001", scene["lat"], True)
-    ours = _pixels(lifted @ scene["r_gs"].T, scene["theta"]) - _pixels(scene["v_local"] @ scene["r_gs"].T,
-                                                                      scene["theta"])
+    ours = _pixels(lifted @ scene["r_gs"].T, scene["theta"]) - _pixels(
+        scene["v_local"] @ scene["r_gs"].T, scene["theta"]
+    )
     assert np.abs(ours - (REFRACTED_XY - IDEAL_XY)).max() < 0.01  # px; 0.3", the printed decimals and eq. 16
 
 
@@ -154,7 +171,8 @@ def test_table8_both_methods_recover_the_ship_attitude_from_simulated_stars(scen
     lifted = refract_toward_zenith(scene["v_local"], UP, WEATHER, "seed001", scene["lat"], True)
     b_obs = lifted @ scene["r_gs"].T
     c_ref = att.attitude_from_vectors(
-        b_obs, refract_toward_zenith(scene["v_local"], UP, WEATHER, "seed001", scene["lat"], True))
+        b_obs, refract_toward_zenith(scene["v_local"], UP, WEATHER, "seed001", scene["lat"], True)
+    )
     c_obs, _ = attitude_observed_correction(b_obs, scene["v_local"], UP, WEATHER, "seed001", scene["lat"])
     err_ref = _ship_attitude_errors_arcsec(c_ref, scene["r_bs"])
     err_obs = _ship_attitude_errors_arcsec(c_obs, scene["r_bs"])
@@ -196,9 +214,15 @@ def table_files(tmp_path_factory):
     npb = erfa.pnm06a(jd1, jd2 + TT_MINUS_UTC_2014_S / 86400.0)
     ra_tod, dec_tod = camera.unit_to_radec(camera.radec_to_unit(_deg(RA_DEG), _deg(DEC_DEG)) @ npb.T)
     n = RA_DEG.size
-    session = Session(frame=np.zeros(n, np.int64), t_utc=np.array([T_UTC_ISO] * n, dtype=object),
-                      star_id=np.arange(1, n + 1, dtype=np.int64), x_px=REFRACTED_XY[0], y_px=REFRACTED_XY[1],
-                      ra_deg=np.degrees(ra_tod), dec_deg=np.degrees(dec_tod))
+    session = Session(
+        frame=np.zeros(n, np.int64),
+        t_utc=np.array([T_UTC_ISO] * n, dtype=object),
+        star_id=np.arange(1, n + 1, dtype=np.int64),
+        x_px=REFRACTED_XY[0],
+        y_px=REFRACTED_XY[1],
+        ra_deg=np.degrees(ra_tod),
+        dec_deg=np.degrees(dec_tod),
+    )
     root = tmp_path_factory.mktemp("seed001")
     write_session(root / "session.csv", session)
     save_params(root / "camera.json", CAMERA, {})
@@ -211,10 +235,28 @@ def _ship_from_cli(root, refraction, precision="float64"):
     from hostlink.cli import main
 
     out = root / f"att_{refraction}_{precision}.csv"
-    code = main(["attitude", str(root / "session.csv"), "--params", str(root / "camera.json"), "--out", str(out),
-                 "--site", f"{SITE.lat_deg},{SITE.lon_deg},0", "--weather", "23.9,1006.7",
-                 "--refraction-model", "seed001", "--refraction", refraction, "--precision", precision,
-                 "--mounting", ",".join(str(v) for v in MOUNT_YPR_DEG)])
+    code = main(
+        [
+            "attitude",
+            str(root / "session.csv"),
+            "--params",
+            str(root / "camera.json"),
+            "--out",
+            str(out),
+            "--site",
+            f"{SITE.lat_deg},{SITE.lon_deg},0",
+            "--weather",
+            "23.9,1006.7",
+            "--refraction-model",
+            "seed001",
+            "--refraction",
+            refraction,
+            "--precision",
+            precision,
+            "--mounting",
+            ",".join(str(v) for v in MOUNT_YPR_DEG),
+        ]
+    )
     assert code == 0
     with out.open() as fh:
         (row,) = list(csv.DictReader(fh))
@@ -246,7 +288,8 @@ FLOAT32_ULP_RAD = 6e-8
 
 def test_table8_ship_attitude_in_float32_stays_at_the_float32_floor_of_five_stars(table_files, scene):
     gap = _arcsec_from_table2(_ship_from_cli(table_files, "reference", "float32")) - _arcsec_from_table2(
-        _ship_from_cli(table_files, "reference"))
+        _ship_from_cli(table_files, "reference")
+    )
     b = camera.pixels_to_unit(REFRACTED_XY[0], REFRACTED_XY[1], scene["theta"])
     floor_arcsec = np.sqrt(np.trace(att.attitude_covariance(b, FLOAT32_ULP_RAD))) / ARCSEC
     # float32 acts as 6e-8 rad of direction noise; five stars nearly in a line (x spans 66 px) leave the roll about

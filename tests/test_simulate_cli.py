@@ -27,11 +27,45 @@ def test_preset_seed004_writes_session_and_truth(tmp_path, capsys):
 
 def test_camera_file_and_every_option_reach_the_truth(tmp_path):
     out = tmp_path / "g.csv"
-    args = ["simulate", "--camera", str(data_file("seed004_camera.json")), "--frames", "12", "--out", str(out),
-            "--noise-px", "0.1", "--min-stars", "5", "--max-stars", "9", "--maglim", "6.5", "--seed", "4",
-            "--t0", "2026-06-01T20:00:00Z", "--interval", "2", "--misid", "0.1", "--false-stars", "0.2",
-            "--focal-drift-um", "15", "--focal-drift-period", "6", "--site", "39.9,116.4,50",
-            "--weather", "10,1013,0.5", "--zenith-range", "10,60", "--dut1", "0.2"]
+    args = [
+        "simulate",
+        "--camera",
+        str(data_file("seed004_camera.json")),
+        "--frames",
+        "12",
+        "--out",
+        str(out),
+        "--noise-px",
+        "0.1",
+        "--min-stars",
+        "5",
+        "--max-stars",
+        "9",
+        "--maglim",
+        "6.5",
+        "--seed",
+        "4",
+        "--t0",
+        "2026-06-01T20:00:00Z",
+        "--interval",
+        "2",
+        "--misid",
+        "0.1",
+        "--false-stars",
+        "0.2",
+        "--focal-drift-um",
+        "15",
+        "--focal-drift-period",
+        "6",
+        "--site",
+        "39.9,116.4,50",
+        "--weather",
+        "10,1013,0.5",
+        "--zenith-range",
+        "10,60",
+        "--dut1",
+        "0.2",
+    ]
     assert main(args) == 0
     truth = read_truth(tmp_path / "g.truth.json")
     assert truth["noise_px"] == 0.1 and truth["min_stars"] == 5 and truth["max_stars"] == 9

@@ -49,8 +49,9 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
 
 
-def _measured_vs_truth(result, weather: Weather | None = None, site: Site | None = None,
-                       diurnal: bool = True) -> np.ndarray:
+def _measured_vs_truth(
+    result, weather: Weather | None = None, site: Site | None = None, diurnal: bool = True
+) -> np.ndarray:
     """Angle between the camera's direction of each identified centroid (true camera, frame's focal length) and
     C r, with r the session's reference direction (at a ground site: aberrated by the site velocity, unless
     ``diurnal`` is False, and refracted by the truth's model)."""
@@ -91,8 +92,9 @@ def test_noise_free_centroids_obey_the_camera_with_focal_drift():
 
 def test_noise_free_ground_session_obeys_refraction_truth_and_reports_unrefracted_reference():
     site, weather = Site(39.9, 116.4, 50.0), Weather(5.0, 1005.0, 0.4)
-    cfg = replace(seed004_config(frames=40, seed=2), noise_px=0.0, site=site, weather=weather,
-                  zenith_range_deg=(50.0, 75.0))
+    cfg = replace(
+        seed004_config(frames=40, seed=2), noise_px=0.0, site=site, weather=weather, zenith_range_deg=(50.0, 75.0)
+    )
     result = simulate(cfg)
     assert _measured_vs_truth(result, weather, site).max() < EXACT_RAD
     # the boresights respect the zenith range (measured at frame centre, before refraction)
@@ -223,8 +225,7 @@ def test_same_seed_same_session_different_seed_different_session():
 
 
 def test_session_and_truth_round_trip_through_files(tmp_path):
-    cfg = replace(seed004_config(frames=50, seed=2), misid_fraction=0.05, false_star_fraction=0.1,
-                  focal_drift_um=10.0)
+    cfg = replace(seed004_config(frames=50, seed=2), misid_fraction=0.05, false_star_fraction=0.1, focal_drift_um=10.0)
     result = simulate(cfg)
     path = tmp_path / "sim.csv"
     write_session(path, result.session)
@@ -251,7 +252,10 @@ def test_frame_times_step_by_the_interval():
     s = simulate(replace(seed004_config(frames=4), frame_interval_s=0.25)).session
     starts = s.frame_starts[:-1]
     assert list(s.t_utc[starts]) == [
-        "2026-03-14T02:10:00.000Z", "2026-03-14T02:10:00.250Z", "2026-03-14T02:10:00.500Z", "2026-03-14T02:10:00.750Z"
+        "2026-03-14T02:10:00.000Z",
+        "2026-03-14T02:10:00.250Z",
+        "2026-03-14T02:10:00.500Z",
+        "2026-03-14T02:10:00.750Z",
     ]
 
 
@@ -307,13 +311,25 @@ def test_star_aberrated_past_the_refraction_limit_is_dropped_not_a_crash():
     zenith_ra = ra - np.arccos(np.cos(zd) / np.cos(dec))  # the star east of the meridian, at zenith distance zd
     lon_deg = (np.degrees(zenith_ra - _gast_rad(jd1, jd2, 0.0)[0]) + 180.0) % 360.0 - 180.0
     site = Site(0.0, float(lon_deg), 0.0)
-    assert abs(np.degrees(zenith_distance_rad(r[None], zenith_true_of_date(jd1[0], jd2[0], site))[0])
-               - (MAX_ZENITH_DISTANCE_DEG - 0.01 / 3600.0)) < 1e-4 / 3600.0  # the setup puts it where intended
+    assert (
+        abs(
+            np.degrees(zenith_distance_rad(r[None], zenith_true_of_date(jd1[0], jd2[0], site))[0])
+            - (MAX_ZENITH_DISTANCE_DEG - 0.01 / 3600.0)
+        )
+        < 1e-4 / 3600.0
+    )  # the setup puts it where intended
     x = np.cross([0.0, 0.0, 1.0], r)
     x /= np.linalg.norm(x)
     att = np.stack([x, np.cross(r, x), r])[None]  # boresight on the star
-    cfg = replace(seed004_config(frames=1), min_stars=1, noise_px=0.0, t0_iso=t0, site=site,
-                  weather=Weather(10.0, 1000.0), attitudes=att)
+    cfg = replace(
+        seed004_config(frames=1),
+        min_stars=1,
+        noise_px=0.0,
+        t0_iso=t0,
+        site=site,
+        weather=Weather(10.0, 1000.0),
+        attitudes=att,
+    )
     result = simulate(cfg)
     assert s.star_id[0] not in result.session.star_id  # beyond the model once aberrated: not observed
     assert len(result.session) > 0 and _measured_vs_truth(result, cfg.weather, site).max() < EXACT_RAD

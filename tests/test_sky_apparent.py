@@ -31,8 +31,16 @@ def reference_chain(cat, rows, jd_utc1: float, jd_utc2: float) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", erfa.ErfaWarning)  # non-positive parallaxes: pmsafe's safe override
         ra, de, _, _, px, _ = erfa.pmsafe(
-            cat.ra_rad[rows], dec, cat.pmra_masyr[rows] / np.cos(dec) * MAS_TO_RAD, cat.pmdec_masyr[rows] * MAS_TO_RAD,
-            np.maximum(cat.plx_mas[rows], 0) / 1000.0, 0.0, HIPPARCOS_EPOCH_JD_TT, 0.0, tt1[0], tt2[0],
+            cat.ra_rad[rows],
+            dec,
+            cat.pmra_masyr[rows] / np.cos(dec) * MAS_TO_RAD,
+            cat.pmdec_masyr[rows] * MAS_TO_RAD,
+            np.maximum(cat.plx_mas[rows], 0) / 1000.0,
+            0.0,
+            HIPPARCOS_EPOCH_JD_TT,
+            0.0,
+            tt1[0],
+            tt2[0],
         )
     pvh, pvb = erfa.epv00(tt1[0], tt2[0])
     p = erfa.pmpx(ra, de, 0.0, 0.0, px, 0.0, 0.0, pvb["p"])  # parallax only: motion already applied

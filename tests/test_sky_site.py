@@ -39,8 +39,9 @@ def _eo(jd1: float, jd2: float) -> float:
 
 def _observer(site: Site, jd1: float, jd2: float, dut1: float, weather: Weather | None):
     phpa, tc, rh = (weather.pressure_hpa, weather.temp_c, weather.rel_humidity) if weather else (0.0, 0.0, 0.0)
-    return erfa.apio13(jd1, jd2, dut1, np.radians(site.lon_deg), np.radians(site.lat_deg), site.height_m,
-                       0.0, 0.0, phpa, tc, rh, 0.55)
+    return erfa.apio13(
+        jd1, jd2, dut1, np.radians(site.lon_deg), np.radians(site.lat_deg), site.height_m, 0.0, 0.0, phpa, tc, rh, 0.55
+    )
 
 
 @pytest.mark.parametrize("site", [BEIJING, Site(-33.9, -70.7, 2400.0), Site(0.0, 180.0, 0.0)])
@@ -136,8 +137,9 @@ def test_refraction_at_45_deg_is_about_one_arcminute_as_in_seed_001():
 def test_observed_form_is_erfa_refco_model_definition():
     refa, refb = refraction_constants(WEATHER)
     z = np.radians(np.array([10.0, 50.0, 78.0]))
-    np.testing.assert_allclose(refraction_observed_rad(z, WEATHER), refa * np.tan(z) + refb * np.tan(z) ** 3,
-                               rtol=1e-15)
+    np.testing.assert_allclose(
+        refraction_observed_rad(z, WEATHER), refa * np.tan(z) + refb * np.tan(z) ** 3, rtol=1e-15
+    )
     # and the truth inverts it: z_top - R_truth(z_top) = z_obs with z_obs + R_observed(z_obs) = z_top, to the
     # one-Newton-step error of ERFA's scheme, R'' R^2 / 2: 0.74 mas at 70 deg (3 mas at 75, 20 mas at 80)
     z_top = np.radians(np.array([10.0, 40.0, 60.0, 70.0]))
@@ -172,11 +174,14 @@ def _hipparcos_above(jd1: float, jd2: float, site: Site, dut1: float, max_zd_deg
     return stars.take(sel), r_app[sel], zen
 
 
-@pytest.mark.parametrize("site,dut1,iso", [
-    (BEIJING, 0.3, "2026-03-14T18:10:00.000Z"),
-    (Site(-24.6, -70.4, 2635.0), -0.2, "2027-11-02T03:00:00.000Z"),
-    (Site(0.5, 10.0, 0.0), 0.0, "2026-06-21T12:00:00.000Z"),
-])
+@pytest.mark.parametrize(
+    "site,dut1,iso",
+    [
+        (BEIJING, 0.3, "2026-03-14T18:10:00.000Z"),
+        (Site(-24.6, -70.4, 2635.0), -0.2, "2027-11-02T03:00:00.000Z"),
+        (Site(0.5, 10.0, 0.0), 0.0, "2026-06-21T12:00:00.000Z"),
+    ],
+)
 @pytest.mark.parametrize("weather", [None, WEATHER])
 def test_simulated_observed_directions_match_erfa_atco13_for_hipparcos_stars(site, dut1, iso, weather):
     # The simulator's truth (geocentric apparent place, diurnal aberration by erfa.pvtob's site velocity, then
@@ -189,11 +194,28 @@ def test_simulated_observed_directions_match_erfa_atco13_for_hipparcos_stars(sit
     obs = observed_directions_truth(r_app, zen, site_velocity_true_of_date(jd1, jd2, site, dut1), weather)
     north, east = local_north_east(zen)
     zd_ours, az_ours = zenith_distance_rad(obs, zen), np.arctan2(obs @ east, obs @ north)
-    air = (weather.pressure_hpa, weather.temp_c, weather.rel_humidity, weather.wavelength_um) if weather else (
-        0.0, 0.0, 0.0, 0.55)
-    aob, zob, *_ = erfa.atco13(stars.ra_rad, stars.dec_rad, stars.pmra_radyr, stars.pmdec_radyr, stars.plx_arcsec,
-                               stars.rv_kms, jd1, jd2, dut1, np.radians(site.lon_deg), np.radians(site.lat_deg),
-                               site.height_m, 0.0, 0.0, *air)
+    air = (
+        (weather.pressure_hpa, weather.temp_c, weather.rel_humidity, weather.wavelength_um)
+        if weather
+        else (0.0, 0.0, 0.0, 0.55)
+    )
+    aob, zob, *_ = erfa.atco13(
+        stars.ra_rad,
+        stars.dec_rad,
+        stars.pmra_radyr,
+        stars.pmdec_radyr,
+        stars.plx_arcsec,
+        stars.rv_kms,
+        jd1,
+        jd2,
+        dut1,
+        np.radians(site.lon_deg),
+        np.radians(site.lat_deg),
+        site.height_m,
+        0.0,
+        0.0,
+        *air,
+    )
     d_zd = zd_ours - zob
     d_az = np.angle(np.exp(1j * (az_ours - aob))) * np.sin(zob)  # azimuth difference as an angle on the sky
     assert np.abs(d_zd).max() < ATCO13_BOUND_RAD
@@ -201,8 +223,10 @@ def test_simulated_observed_directions_match_erfa_atco13_for_hipparcos_stars(sit
     # control: the geocentric apparent place (refracted alike) misses ERFA by the diurnal aberration, 0.32" cos(lat)
     # at most, which is 30x the bound at these latitudes
     geo = r_app if weather is None else refract_directions_truth(r_app, zen, weather)
-    miss = np.hypot(zenith_distance_rad(geo, zen) - zob,
-                    np.angle(np.exp(1j * (np.arctan2(geo @ east, geo @ north) - aob))) * np.sin(zob))
+    miss = np.hypot(
+        zenith_distance_rad(geo, zen) - zob,
+        np.angle(np.exp(1j * (np.arctan2(geo @ east, geo @ north) - aob))) * np.sin(zob),
+    )
     assert 0.3 * np.cos(np.radians(site.lat_deg)) * ARCSEC < miss.max() < 0.33 * ARCSEC
 
 

@@ -75,14 +75,38 @@ def test_bench_runs_a_narrow_field_camera_with_its_own_magnitude_limit(tmp_path,
     """--maglim reaches the simulator (at Hp <= 6 a 4 deg field rarely holds 10 stars), a --camera without
     --nominal gets its own design nominal, and a drift phase too short for an estimate still reports."""
     cam = tmp_path / "narrow.json"
-    cam.write_text(json.dumps({"focal_length_mm": 200.0, "pixel_pitch_um": 3.45, "principal_point_px": [2060, 2030],
-                               "image_size_px": [4096, 4096], "distortion": {"k1": -4.0e-11}}))
+    cam.write_text(
+        json.dumps(
+            {
+                "focal_length_mm": 200.0,
+                "pixel_pitch_um": 3.45,
+                "principal_point_px": [2060, 2030],
+                "image_size_px": [4096, 4096],
+                "distortion": {"k1": -4.0e-11},
+            }
+        )
+    )
     out = tmp_path / "b"
-    code = main(["bench", "--camera", str(cam), "--frames", "30", "--drift-frames", "5", "--maglim", "8.5",
-                 "--quiet", "--out", str(out)])
+    code = main(
+        [
+            "bench",
+            "--camera",
+            str(cam),
+            "--frames",
+            "30",
+            "--drift-frames",
+            "5",
+            "--maglim",
+            "8.5",
+            "--quiet",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
-    summary = json.loads((out / "summary.json").read_text(),
-                         parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))  # strict: no NaN
+    summary = json.loads(
+        (out / "summary.json").read_text(), parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c))
+    )  # strict: no NaN
     assert summary["config"]["maglim"] == 8.5
     assert summary["parameters"]["nominal"]["principal_point_px"] == [2047.5, 2047.5]  # design nominal: centre
     assert "n/a" in capsys.readouterr().out

@@ -25,8 +25,9 @@ from onboard.firmware import Firmware, RecursiveEstimator, estimate_to_params
 from onboard.params import CameraParams, params_from_dict
 from protocol import messages as m
 
-NOMINAL = CameraParams(focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5),
-                       image_size_px=(1024, 1024))
+NOMINAL = CameraParams(
+    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
+)
 CAMERA = seed004_camera()
 
 
@@ -94,9 +95,12 @@ def test_a_chunk_corrupted_in_transit_is_caught_by_the_crc_and_nothing_commits()
 
 @pytest.mark.parametrize(
     ("change", "field"),
-    [({"focal_length_mm": math.nan}, "focal_length_mm"), ({"focal_length_mm": -1.0}, "focal_length_mm"),
-     ({"principal_point_px": (-3.0, 500.0)}, "principal_point_px[0]"),
-     ({"distortion": dataclasses.replace(CAMERA.distortion, k1=1e-5)}, "distortion")],
+    [
+        ({"focal_length_mm": math.nan}, "focal_length_mm"),
+        ({"focal_length_mm": -1.0}, "focal_length_mm"),
+        ({"principal_point_px": (-3.0, 500.0)}, "principal_point_px[0]"),
+        ({"distortion": dataclasses.replace(CAMERA.distortion, k1=1e-5)}, "distortion"),
+    ],
     ids=["nan", "negative-focal", "off-detector", "non-monotonic"],
 )
 def test_the_sensor_refuses_a_bad_set_with_code_and_reason_on_one_line(change, field):

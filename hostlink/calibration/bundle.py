@@ -126,8 +126,9 @@ def observation_terms(
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
         jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
-    j_theta = np.stack([i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1],
-                        i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1)
+    j_theta = np.stack(
+        [i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1], i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1
+    )
     j_theta += whitening_jacobian(x_px - theta[1], y_px - theta[2], theta, cols, e, (i00, i01, i10, i11))
     # dp/dphi for s -> s + phi x s: row k of dp/ds times [s]x, i.e. (dp_k/ds) x s, with
     # dp_0/ds = (F/z, 0, -p_0/z) and dp_1/ds = (0, F/z, -p_1/z)
@@ -208,8 +209,14 @@ def accumulate_normals(
     m = data.n_frames
     starts = data.frame_starts
     counts = data.counts
-    blocks = NormalBlocks(np.zeros((k, k)), np.zeros(k), np.zeros((m, 3, 3)), np.zeros((m, k, 3)),
-                          np.zeros((m, 3)), np.zeros((data.n_obs, 2)))
+    blocks = NormalBlocks(
+        np.zeros((k, k)),
+        np.zeros(k),
+        np.zeros((m, 3, 3)),
+        np.zeros((m, k, 3)),
+        np.zeros((m, 3)),
+        np.zeros((data.n_obs, 2)),
+    )
     for f0, f1 in frame_chunks(starts, chunk_obs):
         a, b = int(starts[f0]), int(starts[f1])
         att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)

@@ -41,7 +41,10 @@ GRID_SIDE = 21
 
 
 def fisher_information(
-    data_noise_free: CalibrationData, theta_true: np.ndarray, attitudes_true: np.ndarray, cols: np.ndarray,
+    data_noise_free: CalibrationData,
+    theta_true: np.ndarray,
+    attitudes_true: np.ndarray,
+    cols: np.ndarray,
     sigma_px: float,
 ) -> np.ndarray:
     """Camera Fisher information (K, K) with the per-frame attitudes eliminated (Schur complement), in model-vector
@@ -132,4 +135,3 @@ def interstar_frame_information(
     i, j = independent_pairs(o.size)
     h = difference_jacobian(b, jt[:, :, cols], i, j)
     return h.T @ np.linalg.solve(pair_covariance(b, jc, i, j, noise_px), h)
-

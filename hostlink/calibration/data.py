@@ -61,8 +61,9 @@ class CalibrationData:
         per_frame = np.bincount(fidx, weights=keep, minlength=self.n_frames)
         frame_kept = per_frame >= min_stars
         keep &= frame_kept[fidx]
-        new = build_data(self.x_px[keep], self.y_px[keep], self.r[keep], fidx[keep], self.frame_number,
-                         self.star_id[keep])
+        new = build_data(
+            self.x_px[keep], self.y_px[keep], self.r[keep], fidx[keep], self.frame_number, self.star_id[keep]
+        )
         return new, keep, frame_kept
 
 
@@ -161,4 +162,3 @@ def pair_angles_rad(v: np.ndarray) -> np.ndarray:
     gram = v @ v.transpose(0, 2, 1)
     chord = np.sqrt(np.maximum(2.0 - 2.0 * gram, 0.0))
     return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
-

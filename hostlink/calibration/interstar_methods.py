@@ -238,8 +238,13 @@ def fit_interstar(
         theta, normal, grad, cost, n_pairs = trial, n_new, g_new, c_new, p_new
         if levenberg_marquardt:
             damping = damping / 10.0 if damping > 1e-12 else 0.0
-        entry = {"iteration": len(history or []) + 1, "stage": label, "cost": cost, "step_sigmas": step_sigmas,
-                 "n_pairs": n_pairs}
+        entry = {
+            "iteration": len(history or []) + 1,
+            "stage": label,
+            "cost": cost,
+            "step_sigmas": step_sigmas,
+            "n_pairs": n_pairs,
+        }
         if history is not None:
             history.append(entry)
         if progress:
@@ -282,8 +287,9 @@ def calibrate_interstar(
     if not improved:
         if not optical:
             raise ValueError("the plain interstar methods estimate f, x0, y0: none of them selected")
-        theta, normal, cost, n_pairs = fit_interstar(data, theta, nominal, optical, form, orders, history=history,
-                                                     label="optical", progress=progress)
+        theta, normal, cost, n_pairs = fit_interstar(
+            data, theta, nominal, optical, form, orders, history=history, label="optical", progress=progress
+        )
         stages.append({"name": "optical", "theta": theta.copy()})
         final = optical
     else:
@@ -292,16 +298,43 @@ def calibrate_interstar(
         if optical:
             central = central_frame_subset(data, nominal)
             source, src_orders = (central, frame_pair_orders(central)) if central.n_frames else (data, orders)
-            theta = fit_interstar(source, theta, nominal, optical, form, src_orders, history=history,
-                                  label="optical (central field)", progress=progress)[0]
+            theta = fit_interstar(
+                source,
+                theta,
+                nominal,
+                optical,
+                form,
+                src_orders,
+                history=history,
+                label="optical (central field)",
+                progress=progress,
+            )[0]
             stages.append({"name": "optical (central field)", "theta": theta.copy()})
         for k in range(rounds):
             if distortion:
-                theta = fit_interstar(data, theta, nominal, distortion, form, orders, history=history,
-                                      label=f"distortion {k + 1}", progress=progress)[0]
+                theta = fit_interstar(
+                    data,
+                    theta,
+                    nominal,
+                    distortion,
+                    form,
+                    orders,
+                    history=history,
+                    label=f"distortion {k + 1}",
+                    progress=progress,
+                )[0]
             if optical:
-                theta = fit_interstar(data, theta, nominal, optical, form, orders, history=history,
-                                      label=f"optical {k + 1}", progress=progress)[0]
+                theta = fit_interstar(
+                    data,
+                    theta,
+                    nominal,
+                    optical,
+                    form,
+                    orders,
+                    history=history,
+                    label=f"optical {k + 1}",
+                    progress=progress,
+                )[0]
             stages.append({"name": f"round {k + 1}", "theta": theta.copy()})
         final = optical + distortion
         # the covariance of the alternation's fixed point is that of the joint problem: evaluate it there
@@ -314,7 +347,13 @@ def calibrate_interstar(
         cols = parameter_columns(final)
         delta = (stages[-1]["theta"] - stages[-2]["theta"])[cols]
         step_sigmas = float(np.sqrt(max(delta @ normal @ delta, 0.0))) / max(sigma_px, 1e-300)
-    return InterstarFit(theta=theta, estimate=tuple(n for n in ESTIMATE_NAMES if n in final), normal=normal,
-                        sigma_estimated_px=sigma_px, history=history, stages=stages,
-                        last_round_step_sigmas=step_sigmas,
-                        converged=step_sigmas < ALTERNATION_CONVERGED_SIGMAS)
+    return InterstarFit(
+        theta=theta,
+        estimate=tuple(n for n in ESTIMATE_NAMES if n in final),
+        normal=normal,
+        sigma_estimated_px=sigma_px,
+        history=history,
+        stages=stages,
+        last_round_step_sigmas=step_sigmas,
+        converged=step_sigmas < ALTERNATION_CONVERGED_SIGMAS,
+    )

@@ -41,10 +41,25 @@ def residual_field_png(
     # one reference arrow of the largest mean residual spans one cell width
     scale = ref / (w / FIELD_CELLS)
     fig, ax = plt.subplots(figsize=(7, 7))
-    q = ax.quiver(gx.ravel()[used], gy.ravel()[used], mx[used], my[used], angles="xy", scale_units="xy",
-                  scale=scale, color="tab:blue")
-    ax.quiverkey(q, 0.80, 1.02, ref, f"{ref:.3g} px mean residual (drawn {1 / scale:.3g}x enlarged)",
-                 labelpos="W", coordinates="axes")
+    q = ax.quiver(
+        gx.ravel()[used],
+        gy.ravel()[used],
+        mx[used],
+        my[used],
+        angles="xy",
+        scale_units="xy",
+        scale=scale,
+        color="tab:blue",
+    )
+    ax.quiverkey(
+        q,
+        0.80,
+        1.02,
+        ref,
+        f"{ref:.3g} px mean residual (drawn {1 / scale:.3g}x enlarged)",
+        labelpos="W",
+        coordinates="axes",
+    )
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)  # rows grow downwards, as on the detector
     ax.set_aspect("equal")

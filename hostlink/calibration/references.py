@@ -48,7 +48,12 @@ def reference_directions(session: Session, rows: np.ndarray, dut1_s: float = 0.0
 
 
 def refract_references(
-    r: np.ndarray, frame_starts: np.ndarray, jd1: np.ndarray, jd2: np.ndarray, site: Site, weather: Weather | None,
+    r: np.ndarray,
+    frame_starts: np.ndarray,
+    jd1: np.ndarray,
+    jd2: np.ndarray,
+    site: Site,
+    weather: Weather | None,
     dut1_s: float = 0.0,
 ) -> np.ndarray:
     """Each frame's geocentric apparent reference directions as observed from the site: aberrated by the site's
@@ -86,8 +91,10 @@ def calibration_data_from_session(
         if weather is None:
             refraction = f"reference directions with diurnal aberration only (no weather: no refraction) {where}"
         else:
-            refraction = (f"reference directions with diurnal aberration and refraction (seed 001 sec. 4) for "
-                          f"{weather.temp_c:g} C, {weather.pressure_hpa:g} hPa {where}")
+            refraction = (
+                f"reference directions with diurnal aberration and refraction (seed 001 sec. 4) for "
+                f"{weather.temp_c:g} C, {weather.pressure_hpa:g} hPa {where}"
+            )
     data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
     if data.n_frames == 0:
         raise UserError("no frame has at least 3 identified stars")

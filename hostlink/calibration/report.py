@@ -127,8 +127,10 @@ def degeneracies(normal: np.ndarray, estimate: tuple[str, ...], u_diag: np.ndarr
         for i, name in enumerate(estimate):
             if lost[i] > ATTITUDE_LIMIT:
                 tradeoff.append({"parameter": name, "information_absorbed_by_attitude": float(lost[i])})
-                messages.append(f"{name} trades off against attitude ({100 * lost[i]:.4g} % of its information "
-                                "is absorbed by the per-frame attitudes)")
+                messages.append(
+                    f"{name} trades off against attitude ({100 * lost[i]:.4g} % of its information "
+                    "is absorbed by the per-frame attitudes)"
+                )
     return {
         "condition_number": cond,
         "correlated": correlated,

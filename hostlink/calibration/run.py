@@ -104,22 +104,29 @@ def calibrate(
     theta0 = nominal.model_vector(np.float64)
     stages: list[dict] = []
     if method == "bundle":
-        options = BundleOptions(estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter,
-                                progress=progress)
+        options = BundleOptions(
+            estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
+        )
         res = bundle_adjust(data, nominal, options)
         theta, fit_data, att = res.theta, res.data, res.attitudes
         normal, est, sigma_est = res.normal, res.estimate, res.sigma_estimated_px
         u_diag = res.normal_u_diag
-        rejected = {"voting": res.n_rejected_voting, "gating": res.n_rejected_gating,
-                    "frames_dropped": res.n_frames_dropped}
+        rejected = {
+            "voting": res.n_rejected_voting,
+            "gating": res.n_rejected_gating,
+            "frames_dropped": res.n_frames_dropped,
+        }
         history, converged = res.history, res.converged
     else:
         fit, fit_data, n_voted, n_gated = _interstar_with_gating(data, nominal, method, estimate, progress)
         theta, normal, est, sigma_est = fit.theta, fit.normal, fit.estimate, fit.sigma_estimated_px
         att = fitted_attitudes(fit_data, theta)
         u_diag = None
-        rejected = {"voting": n_voted, "gating": n_gated,
-                    "frames_dropped": int(data.select(np.ones(data.n_obs, bool))[0].n_frames - fit_data.n_frames)}
+        rejected = {
+            "voting": n_voted,
+            "gating": n_gated,
+            "frames_dropped": int(data.select(np.ones(data.n_obs, bool))[0].n_frames - fit_data.n_frames),
+        }
         history, converged, stages = fit.history, fit.converged, fit.stages
     rejected["total_stars"] = int(data.n_obs - fit_data.n_obs)
     sigma = float(noise_px) if noise_px else sigma_est

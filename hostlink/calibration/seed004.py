@@ -64,17 +64,42 @@ def calibrate_seed004(
     theta = np.where(held, nominal_theta, 0.0)  # the paper's start: no distortion (parameters held stay nominal)
     theta[:3] = nominal_theta[:3]
     optical = tuple(n for n in ("f", "x0", "y0") if n in estimate)
-    theta = fit_interstar(data, theta, nominal, optical, "cos", orders, levenberg_marquardt=True, history=history,
-                          label="step 1: LM (x0, y0, f)", progress=progress)[0]
+    theta = fit_interstar(
+        data,
+        theta,
+        nominal,
+        optical,
+        "cos",
+        orders,
+        levenberg_marquardt=True,
+        history=history,
+        label="step 1: LM (x0, y0, f)",
+        progress=progress,
+    )[0]
     stages.append({"name": "step 1 (least squares, Table 2 group 1)", "theta": theta.copy()})
     if "k1" in estimate or "k2" in estimate:
         theta = np.where(held, nominal_theta, radial_least_squares(data, theta))  # (k1, k2) together
     stages.append({"name": "step 2 (optical then radial, Table 2 group 2)", "theta": theta.copy()})
     final = tuple(n for n in ESTIMATE_NAMES if n in estimate)
-    theta, normal, cost, n_pairs = fit_interstar(data, theta, nominal, final, "cos", orders,
-                                                 levenberg_marquardt=True, history=history,
-                                                 label="step 3: LM (all)", progress=progress)
+    theta, normal, cost, n_pairs = fit_interstar(
+        data,
+        theta,
+        nominal,
+        final,
+        "cos",
+        orders,
+        levenberg_marquardt=True,
+        history=history,
+        label="step 3: LM (all)",
+        progress=progress,
+    )
     stages.append({"name": "step 3 (all parameters, Table 2 group 3)", "theta": theta.copy()})
     dof = max(n_pairs - len(final), 1)
-    return InterstarFit(theta=theta, estimate=final, normal=normal, sigma_estimated_px=float(np.sqrt(cost / dof)),
-                        history=history, stages=stages)
+    return InterstarFit(
+        theta=theta,
+        estimate=final,
+        normal=normal,
+        sigma_estimated_px=float(np.sqrt(cost / dof)),
+        history=history,
+        stages=stages,
+    )

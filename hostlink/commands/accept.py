@@ -30,6 +30,9 @@ def run(args: argparse.Namespace) -> int:
     with open_link_from_args(args) as link:
         result, estimate = accept_estimate(link)
     emit_param_file(params_float32_dict(result.active, result.sigma), args.out)
-    print(f"accepted the estimate after {estimate.n_updates} updates (frame {estimate.last_frame}): generation "
-          f"{result.generation}, CRC 0x{result.crc32:08x}", file=sys.stderr)
+    print(
+        f"accepted the estimate after {estimate.n_updates} updates (frame {estimate.last_frame}): generation "
+        f"{result.generation}, CRC 0x{result.crc32:08x}",
+        file=sys.stderr,
+    )
     return 0

@@ -53,9 +53,13 @@ REFRACTION_MODES = ("reference", "observed", "none")
 #: Default residual above which a star is dropped as misidentified [arcsec]: far above noise (a few arcsec) and
 #: uncorrected differential refraction across a field (< 20" at 75 deg), far below a wrong identity (degrees).
 DEFAULT_REJECT_ARCSEC = 60.0
-OUTPUT_COLUMNS = ("frame", "t_utc", "n_stars", "n_used") + tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)) + (
-    "residual_rms_arcsec",
-    "status",
+OUTPUT_COLUMNS = (
+    ("frame", "t_utc", "n_stars", "n_used")
+    + tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
+    + (
+        "residual_rms_arcsec",
+        "status",
+    )
 )
 SHIP_COLUMNS = ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")
 
@@ -75,14 +79,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--refraction-model",
         choices=("atan", "seed001"),
         default="atan",
-        help="atan: A tan z + B tan^3 z from T, P, RH, wavelength (default); seed001: 60.2\" tan z (1 + M + N)",
+        help='atan: A tan z + B tan^3 z from T, P, RH, wavelength (default); seed001: 60.2" tan z (1 + M + N)',
     )
-    parser.add_argument("--reject-arcsec", type=float, default=DEFAULT_REJECT_ARCSEC, metavar="ARCSEC",
-                        help=f"drop stars with a larger residual (default {DEFAULT_REJECT_ARCSEC:g})")
-    parser.add_argument("--min-stars", type=int, default=2, metavar="K",
-                        help="fewest identified stars for an attitude (default 2)")
-    parser.add_argument("--precision", choices=("float64", "float32"), default="float64",
-                        help="arithmetic of the onboard steps (float32: as the sensor)")
+    parser.add_argument(
+        "--reject-arcsec",
+        type=float,
+        default=DEFAULT_REJECT_ARCSEC,
+        metavar="ARCSEC",
+        help=f"drop stars with a larger residual (default {DEFAULT_REJECT_ARCSEC:g})",
+    )
+    parser.add_argument(
+        "--min-stars", type=int, default=2, metavar="K", help="fewest identified stars for an attitude (default 2)"
+    )
+    parser.add_argument(
+        "--precision",
+        choices=("float64", "float32"),
+        default="float64",
+        help="arithmetic of the onboard steps (float32: as the sensor)",
+    )
     parser.add_argument(
         "--mounting",
         metavar="YAW_DEG,PITCH_DEG,ROLL_DEG",
@@ -147,10 +161,20 @@ def tai_minus_utc_s(jd1: float, jd2: float) -> int:
     return int(round(float(erfa.dat(y, m, d, fd))))
 
 
-def solve_session(session, params, site=None, weather=None, dut1_s: float = 0.0, mode: str = "none",
-                  model: str = "atan", reject_arcsec: float = DEFAULT_REJECT_ARCSEC, min_stars: int = 2,
-                  dtype="float64", mounting_rad: tuple[float, float, float] | None = None,
-                  diurnal_aberration: bool = True):
+def solve_session(
+    session,
+    params,
+    site=None,
+    weather=None,
+    dut1_s: float = 0.0,
+    mode: str = "none",
+    model: str = "atan",
+    reject_arcsec: float = DEFAULT_REJECT_ARCSEC,
+    min_stars: int = 2,
+    dtype="float64",
+    mounting_rad: tuple[float, float, float] | None = None,
+    diurnal_aberration: bool = True,
+):
     """Per-frame attitudes. Returns a dict of columns (numpy arrays, one entry per frame): frame, t_utc, n_stars,
     n_used, C (F, 3, 3; NaN when unsolved), residual_rms_arcsec, status; with a site and ``mounting_rad`` (the
     sensor's (yaw, pitch, roll) in the ship's body frame [rad]) also ship_ypr_deg (F, 3; NaN when unsolved).
@@ -259,8 +283,12 @@ def write_attitudes(path: str, cols: dict) -> None:
                 w.writerow(
                     [int(cols["frame"][k]), cols["t_utc"][k], int(cols["n_stars"][k]), int(cols["n_used"][k])]
                     + ["" if not math.isfinite(v) else repr(float(v)) for v in c]
-                    + ["" if not math.isfinite(cols["residual_rms_arcsec"][k])
-                       else f"{cols['residual_rms_arcsec'][k]:.4f}", cols["status"][k]]
+                    + [
+                        ""
+                        if not math.isfinite(cols["residual_rms_arcsec"][k])
+                        else f"{cols['residual_rms_arcsec'][k]:.4f}",
+                        cols["status"][k],
+                    ]
                     + ship_cells
                 )
         os.replace(tmp, path)
@@ -290,12 +318,24 @@ def run(args: argparse.Namespace) -> int:
     check_on_detector(session, params.image_size_px, args.session, args.params)
     if not (session.star_id != 0).any():
         raise UserError(f"{args.session}: no identified star (every star_id is 0); an attitude needs identified stars")
-    cols = solve_session(session, params, site, weather, args.dut1 or 0.0, mode, args.refraction_model,
-                         args.reject_arcsec, args.min_stars, args.precision, mounting)
+    cols = solve_session(
+        session,
+        params,
+        site,
+        weather,
+        args.dut1 or 0.0,
+        mode,
+        args.refraction_model,
+        args.reject_arcsec,
+        args.min_stars,
+        args.precision,
+        mounting,
+    )
     write_attitudes(args.out, cols)
     solved = int(sum(s == "ok" for s in cols["status"]))
     print(f"hostlink attitude: {solved}/{len(cols['status'])} frames solved (refraction: {mode}) -> {args.out}")
     if solved == 0:
-        raise UserError(f"no frame solved (each frame's reason is in the status column of {args.out}; "
-                        f"--min-stars {args.min_stars})")
+        raise UserError(
+            f"no frame solved (each frame's reason is in the status column of {args.out}; --min-stars {args.min_stars})"
+        )
     return 0

@@ -29,31 +29,75 @@ def _positive_int(text: str) -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="bench-report", metavar="DIR", help="report folder (default bench-report/)")
-    parser.add_argument("--transport", default="serial", choices=("serial", "can", "modbus"),
-                        help="link to the emulated sensor (default serial, on a pty)")
-    parser.add_argument("--frames", type=_positive_int, default=600, metavar="N",
-                        help="frames streamed for the ground calibration (default 600)")
-    parser.add_argument("--drift-frames", type=_positive_int, default=3000, metavar="N",
-                        help="frames of the drift phase, tracked by the onboard estimator (default 3000)")
-    parser.add_argument("--drift-um", type=float, default=6.0, metavar="UM",
-                        help="amplitude of the sinusoidal focal-length drift [um] (default 6)")
-    parser.add_argument("--drift-period", type=float, default=None, metavar="FRAMES",
-                        help="period of the drift [frames] (default: the drift phase's length)")
-    parser.add_argument("--noise-px", type=float, default=0.05, metavar="S",
-                        help="centroid noise, 1-sigma per axis [px] (default 0.05)")
-    parser.add_argument("--misid", type=float, default=0.0, metavar="FRACTION",
-                        help="fraction of misidentified stars (default 0)")
-    parser.add_argument("--camera", metavar="CAMERA.json", help="the sensor's true camera (default: built in, "
-                        "seed 004's camera after a launch shock, with decentering and thin-prism terms)")
-    parser.add_argument("--nominal", metavar="NOMINAL.json",
-                        help="the sensor's factory parameters (default: hostlink/data/seed004_nominal.json)")
+    parser.add_argument(
+        "--transport",
+        default="serial",
+        choices=("serial", "can", "modbus"),
+        help="link to the emulated sensor (default serial, on a pty)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=600,
+        metavar="N",
+        help="frames streamed for the ground calibration (default 600)",
+    )
+    parser.add_argument(
+        "--drift-frames",
+        type=_positive_int,
+        default=3000,
+        metavar="N",
+        help="frames of the drift phase, tracked by the onboard estimator (default 3000)",
+    )
+    parser.add_argument(
+        "--drift-um",
+        type=float,
+        default=6.0,
+        metavar="UM",
+        help="amplitude of the sinusoidal focal-length drift [um] (default 6)",
+    )
+    parser.add_argument(
+        "--drift-period",
+        type=float,
+        default=None,
+        metavar="FRAMES",
+        help="period of the drift [frames] (default: the drift phase's length)",
+    )
+    parser.add_argument(
+        "--noise-px", type=float, default=0.05, metavar="S", help="centroid noise, 1-sigma per axis [px] (default 0.05)"
+    )
+    parser.add_argument(
+        "--misid", type=float, default=0.0, metavar="FRACTION", help="fraction of misidentified stars (default 0)"
+    )
+    parser.add_argument(
+        "--camera",
+        metavar="CAMERA.json",
+        help="the sensor's true camera (default: built in, "
+        "seed 004's camera after a launch shock, with decentering and thin-prism terms)",
+    )
+    parser.add_argument(
+        "--nominal",
+        metavar="NOMINAL.json",
+        help="the sensor's factory parameters (default: hostlink/data/seed004_nominal.json)",
+    )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
-    parser.add_argument("--maglim", type=float, default=6.0, metavar="M",
-                        help="faintest Hipparcos magnitude Hp simulated (default 6; raise it for a narrow field)")
-    parser.add_argument("--min-stars", type=_positive_int, default=10, metavar="K",
-                        help="fewest stars per frame (default 10)")
-    parser.add_argument("--max-stars", type=_positive_int, default=30, metavar="K",
-                        help="most stars per frame, brightest kept (default 30)")
+    parser.add_argument(
+        "--maglim",
+        type=float,
+        default=6.0,
+        metavar="M",
+        help="faintest Hipparcos magnitude Hp simulated (default 6; raise it for a narrow field)",
+    )
+    parser.add_argument(
+        "--min-stars", type=_positive_int, default=10, metavar="K", help="fewest stars per frame (default 10)"
+    )
+    parser.add_argument(
+        "--max-stars",
+        type=_positive_int,
+        default=30,
+        metavar="K",
+        help="most stars per frame, brightest kept (default 30)",
+    )
     add_site_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -77,10 +121,20 @@ def run(args: argparse.Namespace) -> int:
     if site is not None and weather is None:
         raise UserError("--site needs --weather for a ground session (refraction depends on it)")
     cfg = BenchConfig(
-        out_dir=Path(args.out), transport=args.transport, cal_frames=args.frames, drift_frames=args.drift_frames,
-        noise_px=args.noise_px, misid_fraction=args.misid, drift_um=args.drift_um,
-        drift_period_frames=float(args.drift_period or args.drift_frames), seed=args.seed, site=site, weather=weather,
-        maglim=args.maglim, min_stars=args.min_stars, max_stars=args.max_stars,
+        out_dir=Path(args.out),
+        transport=args.transport,
+        cal_frames=args.frames,
+        drift_frames=args.drift_frames,
+        noise_px=args.noise_px,
+        misid_fraction=args.misid,
+        drift_um=args.drift_um,
+        drift_period_frames=float(args.drift_period or args.drift_frames),
+        seed=args.seed,
+        site=site,
+        weather=weather,
+        maglim=args.maglim,
+        min_stars=args.min_stars,
+        max_stars=args.max_stars,
     )
     if args.camera:
         cfg.camera = load_params(args.camera)
@@ -88,8 +142,9 @@ def run(args: argparse.Namespace) -> int:
         cfg.nominal = load_params(args.nominal)
     elif args.camera:
         cfg.nominal = design_nominal(cfg.camera)
-    if cfg.nominal is not None and (cfg.nominal.image_size_px != cfg.camera.image_size_px
-                                    or cfg.nominal.pixel_pitch_um != cfg.camera.pixel_pitch_um):
+    if cfg.nominal is not None and (
+        cfg.nominal.image_size_px != cfg.camera.image_size_px or cfg.nominal.pixel_pitch_um != cfg.camera.pixel_pitch_um
+    ):
         raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
     try:
         Path(args.out).mkdir(parents=True, exist_ok=True)

@@ -26,14 +26,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
     parser.add_argument("--nominal", required=True, metavar="NOMINAL.json", help="nominal camera parameter file")
     parser.add_argument("--out", required=True, metavar="RESULT.json", help="result parameter file to write")
-    parser.add_argument("--method", default="bundle",
-                        choices=("bundle", "cosine", "sine", "improved-cosine", "improved-sine", "seed004"),
-                        help="calibration method (default bundle)")
-    parser.add_argument("--estimate", metavar="NAMES",
-                        help=f"comma-separated parameters to estimate (default: the method's own set; all = "
-                             f"{','.join(ESTIMATE_NAMES)})")
-    parser.add_argument("--noise-px", type=float, metavar="S",
-                        help="centroid noise per axis [px] for the reported sigma (default: from the residuals)")
+    parser.add_argument(
+        "--method",
+        default="bundle",
+        choices=("bundle", "cosine", "sine", "improved-cosine", "improved-sine", "seed004"),
+        help="calibration method (default bundle)",
+    )
+    parser.add_argument(
+        "--estimate",
+        metavar="NAMES",
+        help=f"comma-separated parameters to estimate (default: the method's own set; all = "
+        f"{','.join(ESTIMATE_NAMES)})",
+    )
+    parser.add_argument(
+        "--noise-px",
+        type=float,
+        metavar="S",
+        help="centroid noise per axis [px] for the reported sigma (default: from the residuals)",
+    )
     parser.add_argument("--max-iter", type=int, default=100, metavar="N", help="most iterations (default 100)")
     parser.add_argument("--plot", metavar="DIR", help="write residual-field and convergence PNGs into DIR")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
@@ -48,8 +58,10 @@ def _parse_estimate(text: str | None) -> tuple[str, ...] | None:
     names = [n.strip() for n in text.split(",") if n.strip()]
     unknown = [n for n in names if n not in ESTIMATE_NAMES]
     if unknown or not names:
-        raise UserError(f"--estimate {text!r}: unknown name {unknown[0] if unknown else '(empty)'!r} "
-                        f"(allowed: {','.join(ESTIMATE_NAMES)})")
+        raise UserError(
+            f"--estimate {text!r}: unknown name {unknown[0] if unknown else '(empty)'!r} "
+            f"(allowed: {','.join(ESTIMATE_NAMES)})"
+        )
     return tuple(n for n in ESTIMATE_NAMES if n in names)
 
 
@@ -86,8 +98,10 @@ def run(args: argparse.Namespace) -> int:
     check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
     data, info = calibration_data_from_session(session, site, weather, args.dut1)
     say = (lambda *a: None) if args.quiet else print
-    say(f"calibrate: {data.n_obs} identified stars in {data.n_frames} frames ({info.n_unidentified} unidentified "
-        f"rows ignored); references from {info.source}; refraction: {info.refraction}")
+    say(
+        f"calibrate: {data.n_obs} identified stars in {data.n_frames} frames ({info.n_unidentified} unidentified "
+        f"rows ignored); references from {info.source}; refraction: {info.refraction}"
+    )
 
     def progress(entry: dict) -> None:
         if not args.quiet and data.n_obs > 200_000:
@@ -102,8 +116,11 @@ def run(args: argparse.Namespace) -> int:
     except ParameterError as exc:
         raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
     extras = result_extras(outcome)
-    extras["references"] = {"source": info.source, "refraction": info.refraction,
-                            "unidentified_rows": info.n_unidentified}
+    extras["references"] = {
+        "source": info.source,
+        "refraction": info.refraction,
+        "unidentified_rows": info.n_unidentified,
+    }
     save_params(args.out, outcome.params, _json_safe(extras))
     if not args.quiet:
         _print_report(outcome, args.out)
@@ -117,10 +134,14 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise UserError(f"--plot {out_dir}: cannot create ({exc.strerror})") from None
         e = residuals(outcome.data, outcome.theta, outcome.attitudes)
-        residual_field_png(out_dir / "residual_field.png", outcome.data.x_px, outcome.data.y_px, e,
-                           nominal.image_size_px,
-                           f"{outcome.method}: mean residual per cell after calibration "
-                           f"(RMS {outcome.after['rms_px']:.4f} px)")
+        residual_field_png(
+            out_dir / "residual_field.png",
+            outcome.data.x_px,
+            outcome.data.y_px,
+            e,
+            nominal.image_size_px,
+            f"{outcome.method}: mean residual per cell after calibration (RMS {outcome.after['rms_px']:.4f} px)",
+        )
         convergence_png(out_dir / "convergence.png", outcome.history, f"{outcome.method}: convergence")
         say(f"plots written to {out_dir}/residual_field.png and convergence.png")
     return 0
@@ -129,9 +150,11 @@ def run(args: argparse.Namespace) -> int:
 def _print_report(outcome, out_path: str) -> None:
     sig = outcome.sigma()
     p = outcome.params
-    rows = [("f [mm]", p.focal_length_mm, sig["focal_length_mm"]),
-            ("x0 [px]", p.principal_point_px[0], sig["principal_point_px"][0]),
-            ("y0 [px]", p.principal_point_px[1], sig["principal_point_px"][1])]
+    rows = [
+        ("f [mm]", p.focal_length_mm, sig["focal_length_mm"]),
+        ("x0 [px]", p.principal_point_px[0], sig["principal_point_px"][0]),
+        ("y0 [px]", p.principal_point_px[1], sig["principal_point_px"][1]),
+    ]
     rows += [(k, getattr(p.distortion, k), sig["distortion"][k]) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")]
     b, a = outcome.before, outcome.after
     stats = [

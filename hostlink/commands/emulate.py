@@ -16,27 +16,46 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--transport", required=True, choices=("serial", "can", "modbus"), help="link to emulate")
-    parser.add_argument("--replay", metavar="SESSION.csv", help="stream this session's frames (once) instead of the "
-                        "simulator")
-    parser.add_argument("--nominal", metavar="PARAMS.json", help="the factory parameter set in bank A, generation 1 "
-                        "(default: the seed-004 nominal camera shipped in hostlink/data)")
+    parser.add_argument(
+        "--replay", metavar="SESSION.csv", help="stream this session's frames (once) instead of the simulator"
+    )
+    parser.add_argument(
+        "--nominal",
+        metavar="PARAMS.json",
+        help="the factory parameter set in bank A, generation 1 "
+        "(default: the seed-004 nominal camera shipped in hostlink/data)",
+    )
     parser.add_argument("--camera", metavar="CAMERA.json", help="the simulator's true camera (default: seed 004's)")
-    parser.add_argument("--sim-frames", type=int, default=500, metavar="N",
-                        help="simulated frames, cycled forever (default 500)")
-    parser.add_argument("--noise-px", type=float, default=0.05,
-                        help="simulated centroid noise [px], also the estimator's noise model (default 0.05)")
+    parser.add_argument(
+        "--sim-frames", type=int, default=500, metavar="N", help="simulated frames, cycled forever (default 500)"
+    )
+    parser.add_argument(
+        "--noise-px",
+        type=float,
+        default=0.05,
+        help="simulated centroid noise [px], also the estimator's noise model (default 0.05)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="simulator seed")
     parser.add_argument("--baud", type=int, default=921_600, help="serial / Modbus RTU baud rate (default 921600)")
     parser.add_argument("--bitrate", type=int, default=1_000_000, help="CAN bit rate (default 1000000)")
     parser.add_argument("--port", type=int, default=0, help="TCP port for CAN hub / Modbus TCP (default: a free one)")
     parser.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id (default 1)")
-    parser.add_argument("--estimate", metavar="NAMES", help="parameters the onboard estimator estimates "
-                        "(comma-separated, default all: f,x0,y0,k1,k2,k3,p1,p2,s1,s2)")
+    parser.add_argument(
+        "--estimate",
+        metavar="NAMES",
+        help="parameters the onboard estimator estimates (comma-separated, default all: f,x0,y0,k1,k2,k3,p1,p2,s1,s2)",
+    )
     parser.add_argument("--no-estimator", action="store_true", help="run without the onboard recursive estimator")
-    parser.add_argument("--drop-every", type=int, default=0, metavar="K",
-                        help="testing: lose every Kth streamed message on the line (default 0 = never)")
-    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                        help="transport-specific setting (repeatable)")
+    parser.add_argument(
+        "--drop-every",
+        type=int,
+        default=0,
+        metavar="K",
+        help="testing: lose every Kth streamed message on the line (default 0 = never)",
+    )
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="KEY=VALUE", help="transport-specific setting (repeatable)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,8 +93,9 @@ def run(args: argparse.Namespace) -> int:
         estimator=not args.no_estimator,
         estimate_names=args.estimate,
     )
-    options = EndpointOptions(baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit,
-                              drop_every=args.drop_every, extra=extra)
+    options = EndpointOptions(
+        baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra
+    )
     try:
         endpoint = importlib.import_module(ENDPOINTS[args.transport])
     except ModuleNotFoundError as exc:

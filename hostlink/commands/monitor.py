@@ -16,8 +16,9 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_link_arguments(parser)
-    parser.add_argument("--count", type=int, default=10, metavar="N", help="polls before exiting (default 10; 0 = "
-                        "until interrupted)")
+    parser.add_argument(
+        "--count", type=int, default=10, metavar="N", help="polls before exiting (default 10; 0 = until interrupted)"
+    )
     parser.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between polls (default 1)")
     parser.add_argument("--no-stream", action="store_true", help="do not switch the centroid stream on")
     parser.add_argument("--json", action="store_true", help="one JSON object per line instead of text")
@@ -52,17 +53,27 @@ def run(args: argparse.Namespace) -> int:
                 except CommandRefused as exc:
                     if exc.code != NakCode.NO_ESTIMATE:
                         raise
-                    print(json.dumps({"estimate": None, "reason": exc.text}) if args.json else
-                          f"no estimate: {exc.text}", flush=True)
+                    print(
+                        json.dumps({"estimate": None, "reason": exc.text}) if args.json else f"no estimate: {exc.text}",
+                        flush=True,
+                    )
                     continue
                 names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
                 values = {n: est.values[ESTIMATE_FIELDS.index(n)] for n in names}
                 sigmas = {n: est.sigma[ESTIMATE_FIELDS.index(n)] for n in names}
                 if args.json:
-                    print(json.dumps({"frame": est.last_frame, "updates": est.n_updates,
-                                      "base_generation": est.base_generation, "values": values,
-                                      "sigma": {k: (None if math.isnan(v) else v) for k, v in sigmas.items()}}),
-                          flush=True)
+                    print(
+                        json.dumps(
+                            {
+                                "frame": est.last_frame,
+                                "updates": est.n_updates,
+                                "base_generation": est.base_generation,
+                                "values": values,
+                                "sigma": {k: (None if math.isnan(v) else v) for k, v in sigmas.items()},
+                            }
+                        ),
+                        flush=True,
+                    )
                 else:
                     parts = " ".join(f"{n}={values[n]:.7g}\u00b1{sigmas[n]:.2g}" for n in names)
                     print(f"frame {est.last_frame} updates {est.n_updates} {parts}", flush=True)

@@ -33,8 +33,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--frames must be >= 1")
     result = StreamResult()
     try:
-        with open_link_from_args(args) as link, \
-                progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
+        with open_link_from_args(args) as link, progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
             stream_frames(link, args.frames, progress=advance, result=result)
     except (UserError, KeyboardInterrupt) as exc:
         # nothing lost: the frames that did arrive before the link failed or the user pressed Ctrl-C are written

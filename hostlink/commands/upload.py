@@ -21,8 +21,11 @@ DESCRIPTION = (
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("params", metavar="PARAMS.json", help="camera parameter file")
     add_link_arguments(parser)
-    parser.add_argument("--no-host-check", action="store_true",
-                        help="skip step 1 (testing: let the sensor's own checks refuse a bad set)")
+    parser.add_argument(
+        "--no-host-check",
+        action="store_true",
+        help="skip step 1 (testing: let the sensor's own checks refuse a bad set)",
+    )
     parser.add_argument("--verbose", action="store_true", help="print each step")
 
 
@@ -47,9 +50,11 @@ def run(args: argparse.Namespace) -> int:
     if not float32_equal(result.active, params, result.sigma, sigma):
         raise UserError("the sensor's active parameters differ from the file")
     known = int(np.count_nonzero(refined_mask(sigma)))
-    print(f"{args.params}: committed as generation {result.generation} (CRC 0x{result.crc32:08x}); active "
-          f"parameters read back equal to the file (float32); sigma prior for {known} of 10 parameters",
-          file=sys.stderr)
+    print(
+        f"{args.params}: committed as generation {result.generation} (CRC 0x{result.crc32:08x}); active "
+        f"parameters read back equal to the file (float32); sigma prior for {known} of 10 parameters",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -78,8 +83,10 @@ def load_unchecked(path: str):
     from onboard.prior import sigma_from_dict
 
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"),
-                          parse_constant=lambda c: {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}[c])
+        data = json.loads(
+            Path(path).read_text(encoding="utf-8"),
+            parse_constant=lambda c: {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}[c],
+        )
         dist = data.get("distortion", {}) or {}
         params = CameraParams(
             focal_length_mm=float(data["focal_length_mm"]),

@@ -63,8 +63,10 @@ class SensorNode:
         self._order = threading.Lock()  # a command + its reply vs. one stream message
         self._command_waiting = threading.Event()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_SENSOR_TO_HOST_ID, cf.ISOTP_HOST_TO_SENSOR_ID)
-        self._threads = [threading.Thread(target=self._command_loop, name="can-sensor-commands", daemon=True),
-                         threading.Thread(target=self._stream_loop, name="can-sensor-stream", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._command_loop, name="can-sensor-commands", daemon=True),
+            threading.Thread(target=self._stream_loop, name="can-sensor-stream", daemon=True),
+        ]
 
     def start(self) -> SensorNode:
         for t in self._threads:
@@ -119,8 +121,12 @@ class SensorNode:
                 if isinstance(cmd, StreamControl) and cmd.enable:
                     self.t_base_us = None  # a (re)started stream begins with a TIME_BASE
             else:
-                reply = Nak(tag=getattr(cmd, "tag", 0), command=int(cmd.TYPE), code=NakCode.UNKNOWN_COMMAND,
-                            text=f"{cmd.TYPE.name} is not a command")
+                reply = Nak(
+                    tag=getattr(cmd, "tag", 0),
+                    command=int(cmd.TYPE),
+                    code=NakCode.UNKNOWN_COMMAND,
+                    text=f"{cmd.TYPE.name} is not a command",
+                )
             try:
                 if cf.is_single_frame(reply):
                     self._send_data(*cf.encode_single(reply))
@@ -162,7 +168,7 @@ class SensorNode:
             self.t_base_us = msg.t_us
         self._send_data(cf.FRAME_HEADER.frame_id, cf.encode_header(msg.frame, msg.n_stars, msg.t_us - self.t_base_us))
         for k in range(0, len(stars), cf.CAN_PAYLOAD_BYTES):
-            self._send_data(cf.STAR.frame_id, stars[k:k + cf.CAN_PAYLOAD_BYTES])
+            self._send_data(cf.STAR.frame_id, stars[k : k + cf.CAN_PAYLOAD_BYTES])
 
 
 def check_bitrate(bitrate: int) -> int:
@@ -172,15 +178,23 @@ def check_bitrate(bitrate: int) -> int:
     return int(bitrate)
 
 
-def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None],
-          stop: threading.Event) -> None:
+def serve(
+    sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None], stop: threading.Event
+) -> None:
     bitrate = check_bitrate(options.bitrate)
     hub = SlcanHub(bitrate, host=options.host, port=options.port).start()
     bus: HubBus = hub.attach("sensor", tx_queue_frames=SENSOR_TX_RING_FRAMES)
     node = SensorNode(sensor, bus, stop, options.drop_every).start()
     try:
-        ready({"link": f"can:slcan:{hub.url}@{bitrate}", "transport": "can", "bitrate": bitrate,
-               "port": hub.port, "bits_per_frame": frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False)})
+        ready(
+            {
+                "link": f"can:slcan:{hub.url}@{bitrate}",
+                "transport": "can",
+                "bitrate": bitrate,
+                "port": hub.port,
+                "bits_per_frame": frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False),
+            }
+        )
         stop.wait()
     finally:
         stop.set()

@@ -94,11 +94,11 @@ class RegisterSensor:
     def on_read(self, table: str, address: int, count: int) -> list[int]:
         with self._lock:
             if table == "holding":
-                return self.holding[address:address + count]
+                return self.holding[address : address + count]
             for (lo, hi), refresh in self._refreshers:
                 if address < hi and address + count > lo:
                     refresh()
-            return self.inputs[address:address + count]
+            return self.inputs[address : address + count]
 
     def on_write(self, address: int, values: list[int]) -> None:
         with self._lock:
@@ -127,7 +127,7 @@ class RegisterSensor:
                 raise ModbusAdapterError("chunk outside the staging mailbox", ILLEGAL_VALUE)
             lo, hi = self._stage
             table = mm.table_from_registers(h[lo:hi])
-            cmd = StageChunk(offset=arg, data=table[arg:arg + length])
+            cmd = StageChunk(offset=arg, data=table[arg : arg + length])
         elif code == MsgType.STAGE_VERIFY:
             cmd = StageVerify(crc32=crc)
         elif code == MsgType.COMMIT:
@@ -161,11 +161,15 @@ class RegisterSensor:
         if not isinstance(t, Telemetry):
             return
         m, i = self.map, self.inputs
-        for name, value in (("status_streaming", int(t.streaming)), ("status_stage_state", t.stage_state),
-                            ("status_active_generation", t.active_generation),
-                            ("status_active_crc32", t.active_crc32),
-                            ("status_frames_processed", t.frames_processed), ("status_last_frame", t.last_frame),
-                            ("status_estimator_updates", t.estimator_updates)):
+        for name, value in (
+            ("status_streaming", int(t.streaming)),
+            ("status_stage_state", t.stage_state),
+            ("status_active_generation", t.active_generation),
+            ("status_active_crc32", t.active_crc32),
+            ("status_frames_processed", t.frames_processed),
+            ("status_last_frame", t.last_frame),
+            ("status_estimator_updates", t.estimator_updates),
+        ):
             mm.put(i, m[name], value)
 
     def _refresh_table(self, prefix: str, reply: Message) -> None:
@@ -176,13 +180,13 @@ class RegisterSensor:
             mm.put(i, m[f"{prefix}_crc32"], reply.crc32)
             if prefix == "active":
                 mm.put(i, m["active_generation"], reply.generation)
-            i[first:first + 2 * N_FIELDS] = mm.registers_from_table(reply.table)
+            i[first : first + 2 * N_FIELDS] = mm.registers_from_table(reply.table)
         else:
             mm.put(i, m[f"{prefix}_nak_code"], reply.code if isinstance(reply, Nak) else 0xFFFF)
             mm.put(i, m[f"{prefix}_crc32"], 0)
             if prefix == "active":
                 mm.put(i, m["active_generation"], 0)
-            i[first:first + 2 * N_FIELDS] = [0] * (2 * N_FIELDS)
+            i[first : first + 2 * N_FIELDS] = [0] * (2 * N_FIELDS)
 
     def _refresh_active(self) -> None:
         self._refresh_table("active", self.sensor.handle(ReadActive()))
@@ -196,9 +200,13 @@ class RegisterSensor:
         ok = isinstance(e, Estimate)
         mm.put(i, m["estimate_nak_code"], 0 if ok else (e.code if isinstance(e, Nak) else 0xFFFF))
         est = e if ok else Estimate()
-        for name, value in (("estimate_status", est.status), ("estimate_mask", est.estimated_mask),
-                            ("estimate_base_generation", est.base_generation), ("estimate_updates", est.n_updates),
-                            ("estimate_last_frame", est.last_frame)):
+        for name, value in (
+            ("estimate_status", est.status),
+            ("estimate_mask", est.estimated_mask),
+            ("estimate_base_generation", est.base_generation),
+            ("estimate_updates", est.n_updates),
+            ("estimate_last_frame", est.last_frame),
+        ):
             mm.put(i, m[name], value)
         for k, f in enumerate(ESTIMATE_FIELDS):
             mm.put(i, m[f"estimate_{f}"], est.values[k])
@@ -230,7 +238,7 @@ class RegisterSensor:
 
         def put(name: str, value: int) -> None:
             reg = m[name]
-            w[reg.address - lo:reg.address - lo + reg.width] = mm.to_registers(reg, value)
+            w[reg.address - lo : reg.address - lo + reg.width] = mm.to_registers(reg, value)
 
         put("window_seq", seq)
         if isinstance(msg, EndOfStream):
@@ -244,9 +252,12 @@ class RegisterSensor:
         n = msg.n_stars
         if n:
             words = np.asarray(w, dtype=np.int64)
-            for name, raw in (("window_star_x_px", quantise_px(msg.x_px)), ("window_star_y_px", quantise_px(msg.y_px)),
-                              ("window_star_id", np.asarray(msg.star_id, dtype=np.int64)),
-                              ("window_star_mag", quantise_mag(msg.mag).astype(np.int64))):
+            for name, raw in (
+                ("window_star_x_px", quantise_px(msg.x_px)),
+                ("window_star_y_px", quantise_px(msg.y_px)),
+                ("window_star_id", np.asarray(msg.star_id, dtype=np.int64)),
+                ("window_star_mag", quantise_mag(msg.mag).astype(np.int64)),
+            ):
                 reg = m[name]
                 idx = reg.address - lo + reg.stride * np.arange(n)
                 value = raw.astype(np.int64) & ((1 << (16 * reg.width)) - 1)  # two's complement of the width
@@ -256,11 +267,18 @@ class RegisterSensor:
         return w
 
 
-def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None],
-          stop: threading.Event) -> None:
+def serve(
+    sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None], stop: threading.Event
+) -> None:
     image = RegisterSensor(sensor, options.drop_every)
-    sizes = dict(holding_size=len(image.holding), input_size=len(image.inputs), on_read=image.on_read,
-                 on_write=image.on_write, host=options.host, unit=options.unit)
+    sizes = dict(
+        holding_size=len(image.holding),
+        input_size=len(image.inputs),
+        on_read=image.on_read,
+        on_write=image.on_write,
+        host=options.host,
+        unit=options.unit,
+    )
     rtu_port = int(options.extra.get("rtu_port", 0))
     try:
         tcp = RegisterServer(framing="tcp", port=options.port, **sizes).start()
@@ -268,9 +286,16 @@ def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dic
     except ModbusAdapterError as exc:
         raise UserError(f"cannot start the Modbus emulator: {exc}") from None
     try:
-        ready({"link": f"modbus-tcp:{options.host}:{tcp.port},unit={options.unit}",
-               "link_rtu": f"modbus-rtu:tcp://{options.host}:{rtu.port},unit={options.unit}",
-               "transport": "modbus", "port": tcp.port, "rtu_port": rtu.port, "unit": options.unit})
+        ready(
+            {
+                "link": f"modbus-tcp:{options.host}:{tcp.port},unit={options.unit}",
+                "link_rtu": f"modbus-rtu:tcp://{options.host}:{rtu.port},unit={options.unit}",
+                "transport": "modbus",
+                "port": tcp.port,
+                "rtu_port": rtu.port,
+                "unit": options.unit,
+            }
+        )
         stop.wait()
     finally:
         tcp.stop()

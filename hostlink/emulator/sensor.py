@@ -100,8 +100,9 @@ class EmulatedSensor:
     #: Assumed cost of one estimator update until one was measured [s].
     INITIAL_ESTIMATOR_COST_S = 2e-3
 
-    def __init__(self, firmware: Firmware, source: Iterator[SourceFrame],
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, firmware: Firmware, source: Iterator[SourceFrame], clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.firmware = firmware
         self._source = source
         self._lock = threading.Lock()
@@ -180,8 +181,13 @@ class Pacer:
     average.
     """
 
-    def __init__(self, bits_per_s: float, credit_s: float = 0.005,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        bits_per_s: float,
+        credit_s: float = 0.005,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         if bits_per_s <= 0:
             raise ValueError("line rate must be > 0")
         self.bits_per_s = float(bits_per_s)

@@ -48,7 +48,7 @@ class _PtyLine:
         while view and not self.stop.is_set():
             _, writable, _ = select.select([], [self.fd], [], _IDLE_WAIT_S)
             if writable:
-                view = view[os.write(self.fd, view):]
+                view = view[os.write(self.fd, view) :]
 
     def commands(self, wait_s: float) -> list[Message]:
         readable, _, _ = select.select([self.fd], [], [], wait_s)
@@ -67,8 +67,9 @@ class _PtyLine:
         return out
 
 
-def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None],
-          stop: threading.Event) -> None:
+def serve(
+    sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dict], None], stop: threading.Event
+) -> None:
     master, slave = os.openpty()
     try:
         tty.setraw(slave)
@@ -81,8 +82,14 @@ def serve(sensor: EmulatedSensor, options: EndpointOptions, ready: Callable[[dic
                 if is_command(cmd):
                     line.send(sensor.handle(cmd))
                 else:
-                    line.send(Nak(tag=getattr(cmd, "tag", 0), command=int(cmd.TYPE), code=NakCode.UNKNOWN_COMMAND,
-                                  text=f"{cmd.TYPE.name} is not a command"))
+                    line.send(
+                        Nak(
+                            tag=getattr(cmd, "tag", 0),
+                            command=int(cmd.TYPE),
+                            code=NakCode.UNKNOWN_COMMAND,
+                            text=f"{cmd.TYPE.name} is not a command",
+                        )
+                    )
             msg = sensor.next_stream_message()
             if msg is not None:
                 line.send(msg, stream=True)

@@ -39,8 +39,11 @@ def build_sensor(
         session = read_session(replay)
         cycle = False
     else:
-        sim = simulate(SimConfig(camera=load_params(camera or data_file(DEFAULT_CAMERA)), frames=sim_frames,
-                                 noise_px=noise_px, seed=seed))
+        sim = simulate(
+            SimConfig(
+                camera=load_params(camera or data_file(DEFAULT_CAMERA)), frames=sim_frames, noise_px=noise_px, seed=seed
+            )
+        )
         session, cycle = sim.session, True
     try:
         source = session_frames(session, cycle=cycle)

@@ -67,8 +67,9 @@ class CommandRefused(SensorRefused):
             code_name = NakCode(code).name
         except ValueError:
             code_name = f"code {code}"
-        super().__init__(f"sensor refused {cmd_name}: {code_name}: {text}" if text else
-                         f"sensor refused {cmd_name}: {code_name}")
+        super().__init__(
+            f"sensor refused {cmd_name}: {code_name}: {text}" if text else f"sensor refused {cmd_name}: {code_name}"
+        )
 
 
 @dataclass

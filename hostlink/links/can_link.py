@@ -87,8 +87,10 @@ def _option_value(text: str) -> object:
 
 def parse_target(target: str) -> CanTarget:
     """``"slcan:socket://127.0.0.1:5000@500000,sleep_after_open=0"`` -> CanTarget. One-line UserError if malformed."""
-    usage = (f"--link can:{target}: expected can:INTERFACE:CHANNEL[@BITRATE][,KEY=VALUE...], "
-             "e.g. can:socketcan:can0 or can:slcan:socket://127.0.0.1:5000@500000")
+    usage = (
+        f"--link can:{target}: expected can:INTERFACE:CHANNEL[@BITRATE][,KEY=VALUE...], "
+        "e.g. can:socketcan:can0 or can:slcan:socket://127.0.0.1:5000@500000"
+    )
     main, *opts = str(target).split(",")
     interface, sep, rest = main.partition(":")
     if not sep or not interface or not rest:
@@ -180,8 +182,9 @@ class IsoTpChannel:
 
     def feed(self, msg: can.Message) -> None:
         with self._lock:
-            self._rx.append(isotp.CanMessage(arbitration_id=msg.arbitration_id, data=bytes(msg.data),
-                                             extended_id=False))
+            self._rx.append(
+                isotp.CanMessage(arbitration_id=msg.arbitration_id, data=bytes(msg.data), extended_id=False)
+            )
 
     def send(self, payload: bytes) -> None:
         with self._lock:
@@ -199,8 +202,7 @@ class IsoTpChannel:
     @property
     def busy(self) -> bool:
         with self._lock:
-            return self._stack.transmitting() or bool(self._rx) or self._stack.rx_state != \
-                self._stack.RxState.IDLE
+            return self._stack.transmitting() or bool(self._rx) or self._stack.rx_state != self._stack.RxState.IDLE
 
 
 # --------------------------------------------------------------------------------------- stream decoding
@@ -286,8 +288,9 @@ class StreamAssembler:
         frame, _, t_us = self._frame
         star_id, x, y, _ = cf.decode_stars(np.array(self._words, dtype=np.uint64))
         self._frame, self._words = None, []
-        return CentroidFrame(frame=frame, t_us=t_us, star_id=star_id, x_px=x, y_px=y,
-                             mag=np.full(star_id.shape[0], math.nan))
+        return CentroidFrame(
+            frame=frame, t_us=t_us, star_id=star_id, x_px=x, y_px=y, mag=np.full(star_id.shape[0], math.nan)
+        )
 
 
 _STREAM_IDS = frozenset(m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.TIME_BASE, cf.END_OF_STREAM))
@@ -412,7 +415,6 @@ class CanLink(MessageLink):
             self._bus.shutdown()
         except (can.CanError, OSError):
             pass
-
 
 
 def can_frames_for(frames: list[CentroidFrame]) -> int:

@@ -19,8 +19,13 @@ from protocol.messages import DecodeError, Message, decode, encode
 class LoopbackLink(MessageLink):
     max_chunk_bytes = 16
 
-    def __init__(self, sensor: EmulatedSensor, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 tamper: Callable[[bytes], bytes | None] | None = None, max_chunk_bytes: int = 16) -> None:
+    def __init__(
+        self,
+        sensor: EmulatedSensor,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        tamper: Callable[[bytes], bytes | None] | None = None,
+        max_chunk_bytes: int = 16,
+    ) -> None:
         super().__init__(timeout_s)
         self.name = "loopback"
         self.sensor = sensor

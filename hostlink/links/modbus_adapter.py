@@ -32,11 +32,22 @@ ILLEGAL_FUNCTION = 1
 ILLEGAL_ADDRESS = 2
 ILLEGAL_VALUE = 3
 DEVICE_FAILURE = 4
-_EXC = {ILLEGAL_FUNCTION: ExcCodes.ILLEGAL_FUNCTION, ILLEGAL_ADDRESS: ExcCodes.ILLEGAL_ADDRESS,
-        ILLEGAL_VALUE: ExcCodes.ILLEGAL_VALUE, DEVICE_FAILURE: ExcCodes.DEVICE_FAILURE}
+_EXC = {
+    ILLEGAL_FUNCTION: ExcCodes.ILLEGAL_FUNCTION,
+    ILLEGAL_ADDRESS: ExcCodes.ILLEGAL_ADDRESS,
+    ILLEGAL_VALUE: ExcCodes.ILLEGAL_VALUE,
+    DEVICE_FAILURE: ExcCodes.DEVICE_FAILURE,
+}
 #: Names of the exception codes (Modbus application protocol v1.1b3, section 7), for the one-line error.
-_EXC_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "server device failure",
-              6: "server device busy", 10: "gateway path unavailable", 11: "gateway target failed to respond"}
+_EXC_NAMES = {
+    1: "illegal function",
+    2: "illegal data address",
+    3: "illegal data value",
+    4: "server device failure",
+    6: "server device busy",
+    10: "gateway path unavailable",
+    11: "gateway target failed to respond",
+}
 _HOLDING_FC = {3, 6, 16, 22, 23}
 _INPUT_FC = {4}
 FRAMINGS = ("tcp", "rtu")
@@ -62,20 +73,44 @@ class RegisterClient:
     """A Modbus client for one unit. ``framing``: ``"tcp"`` (MBAP) or ``"rtu"``; ``serial_port`` set = RTU on a
     serial line (``host``/``port`` ignored) with ``baud`` and ``parity`` (``N``, ``E``, ``O``)."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 502, *, framing: str = "tcp", unit: int = 1,
-                 timeout_s: float = 2.0, serial_port: str | None = None, baud: int = 19200,
-                 parity: str = "E") -> None:
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 502,
+        *,
+        framing: str = "tcp",
+        unit: int = 1,
+        timeout_s: float = 2.0,
+        serial_port: str | None = None,
+        baud: int = 19200,
+        parity: str = "E",
+    ) -> None:
         if framing not in FRAMINGS:
             raise ValueError(f"framing must be one of {FRAMINGS}")
         self.unit = int(unit)
         self.where = serial_port or f"{host}:{port}"
         framer = FramerType.RTU if framing == "rtu" else FramerType.SOCKET
         if serial_port is not None:
-            self._client = ModbusSerialClient(serial_port, framer=FramerType.RTU, baudrate=int(baud),
-                                              parity=parity, stopbits=1, bytesize=8, timeout=timeout_s, retries=0)
+            self._client = ModbusSerialClient(
+                serial_port,
+                framer=FramerType.RTU,
+                baudrate=int(baud),
+                parity=parity,
+                stopbits=1,
+                bytesize=8,
+                timeout=timeout_s,
+                retries=0,
+            )
         else:
-            self._client = ModbusTcpClient(host, port=int(port), framer=framer, timeout=timeout_s, retries=0,
-                                           reconnect_delay=0, reconnect_delay_max=0)
+            self._client = ModbusTcpClient(
+                host,
+                port=int(port),
+                framer=framer,
+                timeout=timeout_s,
+                retries=0,
+                reconnect_delay=0,
+                reconnect_delay_max=0,
+            )
         try:
             ok = self._client.connect()
         except (ModbusException, OSError) as exc:
@@ -87,8 +122,11 @@ class RegisterClient:
         if response.isError():  # type: ignore[attr-defined]
             code = getattr(response, "exception_code", None)
             name = _EXC_NAMES.get(code, "unknown")
-            raise ModbusAdapterError(f"{self.where}: {what} answered with Modbus exception {code} ({name}) by unit "
-                                     f"{self.unit} (is that the sensor's unit id?)", exception_code=code)
+            raise ModbusAdapterError(
+                f"{self.where}: {what} answered with Modbus exception {code} ({name}) by unit "
+                f"{self.unit} (is that the sensor's unit id?)",
+                exception_code=code,
+            )
         return response
 
     def read(self, table: str, address: int, count: int) -> list[int]:
@@ -121,9 +159,18 @@ class RegisterServer:
     """A Modbus server on ``host:port`` (``port=0``: any free port, see :attr:`port` after :meth:`start`) serving
     ``holding_size`` holding and ``input_size`` input registers of unit ``unit`` through the two callbacks."""
 
-    def __init__(self, *, holding_size: int, input_size: int,
-                 on_read: Callable[[str, int, int], list[int]], on_write: Callable[[int, list[int]], None],
-                 framing: str = "tcp", host: str = "127.0.0.1", port: int = 0, unit: int = 1) -> None:
+    def __init__(
+        self,
+        *,
+        holding_size: int,
+        input_size: int,
+        on_read: Callable[[str, int, int], list[int]],
+        on_write: Callable[[int, list[int]], None],
+        framing: str = "tcp",
+        host: str = "127.0.0.1",
+        port: int = 0,
+        unit: int = 1,
+    ) -> None:
         if framing not in FRAMINGS:
             raise ValueError(f"framing must be one of {FRAMINGS}")
         self.framing = framing
@@ -138,8 +185,15 @@ class RegisterServer:
         self._started = threading.Event()
         self._error: BaseException | None = None
 
-    async def _action(self, function_code: int, start_address: int, address: int, count: int,
-                      current_registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes | None:
+    async def _action(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        current_registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
         if function_code in _HOLDING_FC:
             table = "holding"
         elif function_code in _INPUT_FC:
@@ -152,7 +206,7 @@ class RegisterServer:
             else:
                 values = self._on_read(table, address, count)
                 offset = address - start_address
-                current_registers[offset:offset + count] = [int(v) & 0xFFFF for v in values]
+                current_registers[offset : offset + count] = [int(v) & 0xFFFF for v in values]
         except ModbusAdapterError as exc:
             return _EXC.get(exc.exception_code or DEVICE_FAILURE, ExcCodes.DEVICE_FAILURE)
         return None

@@ -45,8 +45,10 @@ _WINDOW_FRAME, _WINDOW_END = 1, 2
 
 def parse_target(scheme: str, target: str) -> dict:
     """Keyword arguments of :class:`RegisterClient` for a link string; one-line UserError if malformed."""
-    usage = (f"--link {scheme}:{target}: expected modbus-tcp:HOST:PORT[,unit=N], modbus-rtu:tcp://HOST:PORT[,unit=N] "
-             "or modbus-rtu:/dev/ttyUSB0[@BAUD][,unit=N,parity=E]")
+    usage = (
+        f"--link {scheme}:{target}: expected modbus-tcp:HOST:PORT[,unit=N], modbus-rtu:tcp://HOST:PORT[,unit=N] "
+        "or modbus-rtu:/dev/ttyUSB0[@BAUD][,unit=N,parity=E]"
+    )
     main, *opts = target.split(",")
     kw: dict = {"unit": mm.load_map().unit_id}
     for opt in opts:
@@ -68,7 +70,7 @@ def parse_target(scheme: str, target: str) -> dict:
             raise UserError(usage)
         kw.update(serial_port=port, baud=int(baud), framing="rtu")
         return kw
-    hostport = main[len("tcp://"):] if main.startswith("tcp://") else main
+    hostport = main[len("tcp://") :] if main.startswith("tcp://") else main
     host, colon, port_text = hostport.rpartition(":")
     if not colon or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
         raise UserError(usage)
@@ -91,8 +93,13 @@ class ModbusLink(Link):
     #: A whole table per STAGE_CHUNK (the staging mailbox holds every table value).
     max_chunk_bytes = TABLE_BYTES
 
-    def __init__(self, client: RegisterClient, name: str, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 regmap: mm.ModbusMap | None = None) -> None:
+    def __init__(
+        self,
+        client: RegisterClient,
+        name: str,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        regmap: mm.ModbusMap | None = None,
+    ) -> None:
         super().__init__()
         self.name = name
         self.timeout_s = float(timeout_s)
@@ -149,20 +156,27 @@ class ModbusLink(Link):
         m = self.map
         lo, count = self._cmd_block
         words = [0] * count
-        for name, value in (("command_arg", arg), ("command_length", length), ("command_crc32", crc32),
-                            ("command", int(msg_type))):
+        for name, value in (
+            ("command_arg", arg),
+            ("command_length", length),
+            ("command_crc32", crc32),
+            ("command", int(msg_type)),
+        ):
             reg = m[name]
-            words[reg.address - lo:reg.address - lo + reg.width] = mm.to_registers(reg, value)
+            words[reg.address - lo : reg.address - lo + reg.width] = mm.to_registers(reg, value)
         self._write(lo, words)
         rlo, rcount = self._result_block
         res = self._read("input", rlo, rcount)
         if self._get(res, rlo, "result_command") != int(msg_type):
-            raise LinkError(f"{self.name}: the sensor reports command {self._get(res, rlo, 'result_command')} "
-                            f"as its last, not {msg_type.name}")
+            raise LinkError(
+                f"{self.name}: the sensor reports command {self._get(res, rlo, 'result_command')} "
+                f"as its last, not {msg_type.name}"
+            )
         status = self._get(res, rlo, "result_status")
         if status == _RESULT_NAK:
-            raise CommandRefused(int(msg_type), int(self._get(res, rlo, "result_code")),
-                                 str(self._get(res, rlo, "result_text")))
+            raise CommandRefused(
+                int(msg_type), int(self._get(res, rlo, "result_code")), str(self._get(res, rlo, "result_text"))
+            )
         if status != _RESULT_ACK:
             raise LinkError(f"{self.name}: no result for {msg_type.name} (result_status {status})")
         self.stats.rx_messages += 1
@@ -203,7 +217,7 @@ class ModbusLink(Link):
         if offset % 4 or len(data) % 4:  # partial values: merge with what the mailbox holds
             old = mm.table_from_registers(self._read("holding", addr, 2 * (last - first)))
             start = offset - 4 * first
-            patch = old[:start] + data + old[start + len(data):]
+            patch = old[:start] + data + old[start + len(data) :]
         else:
             patch = data
         self._write(addr, mm.registers_from_table(patch))
@@ -224,9 +238,12 @@ class ModbusLink(Link):
             raise CommandRefused(int(command), code, "")
         first = m[f"{prefix}_{PARAM_FIELDS[0]}"].address - lo
         self.stats.rx_messages += 1
-        return ParamTable(bank=bank, generation=int(self._get(w, lo, "active_generation")) if prefix == "active" else 0,
-                          crc32=int(self._get(w, lo, f"{prefix}_crc32")),
-                          table=mm.table_from_registers(w[first:first + 2 * N_FIELDS]))
+        return ParamTable(
+            bank=bank,
+            generation=int(self._get(w, lo, "active_generation")) if prefix == "active" else 0,
+            crc32=int(self._get(w, lo, f"{prefix}_crc32")),
+            table=mm.table_from_registers(w[first : first + 2 * N_FIELDS]),
+        )
 
     def read_staged(self) -> ParamTable:
         return self._read_table("staged", MsgType.READ_STAGED, TableBank.STAGED)
@@ -297,8 +314,8 @@ class ModbusLink(Link):
     def _decode_frame(self, words: np.ndarray, base: int, n: int) -> CentroidFrame:
         x_reg, y_reg, id_reg, mag_reg = self._star_regs
         return CentroidFrame(
-            frame=int(self._get(list(words[:self._star_first - base]), base, "window_frame")),
-            t_us=int(self._get(list(words[:self._star_first - base]), base, "window_t_us")),
+            frame=int(self._get(list(words[: self._star_first - base]), base, "window_frame")),
+            t_us=int(self._get(list(words[: self._star_first - base]), base, "window_t_us")),
             star_id=mm.array_raw(words, id_reg, n, base).astype(np.uint32),
             x_px=dequantise_px(mm.array_raw(words, x_reg, n, base)),
             y_px=dequantise_px(mm.array_raw(words, y_reg, n, base)),

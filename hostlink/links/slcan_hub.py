@@ -111,11 +111,17 @@ def parse_slcan_frame(line: bytes) -> HubFrame | None:
 def format_slcan_frame(frame: HubFrame) -> bytes:
     """The SLCAN line (with its CR) that reports ``frame`` to an adapter's host."""
     if frame.is_remote_frame:
-        head = f"R{frame.arbitration_id:08X}{frame.dlc:d}" if frame.is_extended_id else (
-            f"r{frame.arbitration_id:03X}{frame.dlc:d}")
+        head = (
+            f"R{frame.arbitration_id:08X}{frame.dlc:d}"
+            if frame.is_extended_id
+            else (f"r{frame.arbitration_id:03X}{frame.dlc:d}")
+        )
         return head.encode("ascii") + _OK
-    head = f"T{frame.arbitration_id:08X}{frame.dlc:d}" if frame.is_extended_id else (
-        f"t{frame.arbitration_id:03X}{frame.dlc:d}")
+    head = (
+        f"T{frame.arbitration_id:08X}{frame.dlc:d}"
+        if frame.is_extended_id
+        else (f"t{frame.arbitration_id:03X}{frame.dlc:d}")
+    )
     return head.encode("ascii") + frame.data.hex().upper().encode("ascii") + _OK
 
 
@@ -182,8 +188,9 @@ class SlcanHub:
     (read :attr:`port` / :attr:`url` after ``start``).
     """
 
-    def __init__(self, bitrate: int = 500_000, host: str = "127.0.0.1", port: int = 0,
-                 tx_queue_frames: int = 16) -> None:
+    def __init__(
+        self, bitrate: int = 500_000, host: str = "127.0.0.1", port: int = 0, tx_queue_frames: int = 16
+    ) -> None:
         if int(bitrate) not in SLCAN_BITRATES.values():
             allowed = ", ".join(str(v) for v in sorted(SLCAN_BITRATES.values()))
             raise ValueError(f"CAN bit rate {bitrate} is not an SLCAN rate (allowed: {allowed})")
@@ -474,8 +481,9 @@ class HubBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd:
             raise can.CanOperationError("the emulated bus is classic CAN: no FD frames")
-        frame = HubFrame(int(msg.arbitration_id), bool(msg.is_extended_id), bool(msg.is_remote_frame),
-                         int(msg.dlc), bytes(msg.data))
+        frame = HubFrame(
+            int(msg.arbitration_id), bool(msg.is_extended_id), bool(msg.is_remote_frame), int(msg.dlc), bytes(msg.data)
+        )
         if not self._hub._submit(self._node, frame, timeout):
             raise can.CanOperationError("transmit queue full (bus busy) or bus stopped")
 
@@ -487,8 +495,14 @@ class HubBus(can.BusABC):
             if not node.rx:
                 return None, False
             t_s, frame = node.rx.popleft()
-        msg = can.Message(timestamp=t_s, arbitration_id=frame.arbitration_id, is_extended_id=frame.is_extended_id,
-                          is_remote_frame=frame.is_remote_frame, dlc=frame.dlc, data=frame.data)
+        msg = can.Message(
+            timestamp=t_s,
+            arbitration_id=frame.arbitration_id,
+            is_extended_id=frame.is_extended_id,
+            is_remote_frame=frame.is_remote_frame,
+            dlc=frame.dlc,
+            data=frame.data,
+        )
         return msg, False
 
     def shutdown(self) -> None:

@@ -77,8 +77,9 @@ def frame_astrometry(jd_utc1: np.ndarray, jd_utc2: np.ndarray) -> tuple[np.ndarr
 def apparent_from_astrometry(stars: StarsJ2000, astrom: np.ndarray, eo_rad: np.ndarray) -> np.ndarray:
     """Apparent directions (N, 3), true equator and equinox of date, of ``stars`` (N entries) with per-star
     ``astrom``/``eo_rad`` (N entries, or one for all): ``atciq`` then ra = ri - eo."""
-    ri, di = erfa.atciq(stars.ra_rad, stars.dec_rad, stars.pmra_radyr, stars.pmdec_radyr, stars.plx_arcsec,
-                        stars.rv_kms, astrom)
+    ri, di = erfa.atciq(
+        stars.ra_rad, stars.dec_rad, stars.pmra_radyr, stars.pmdec_radyr, stars.plx_arcsec, stars.rv_kms, astrom
+    )
     return radec_to_unit(np.asarray(ri) - eo_rad, np.asarray(di))
 
 
@@ -90,8 +91,9 @@ def apparent_directions(
     and not used: a geocentric apparent place does not depend on UT1."""
     del dut1_s
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
-    jd1, jd2 = np.broadcast_arrays(np.atleast_1d(np.asarray(jd_utc1, dtype=np.float64)),
-                                   np.atleast_1d(np.asarray(jd_utc2, dtype=np.float64)))
+    jd1, jd2 = np.broadcast_arrays(
+        np.atleast_1d(np.asarray(jd_utc1, dtype=np.float64)), np.atleast_1d(np.asarray(jd_utc2, dtype=np.float64))
+    )
     if jd1.size not in (1, rows.size):
         raise ValueError(f"expected one time or one per row ({rows.size}), got {jd1.size}")
     stars = stars_at_j2000(cat, rows)

@@ -409,9 +409,7 @@ def _rank_within_groups(group: np.ndarray) -> np.ndarray:
     return np.arange(n) - run_start
 
 
-def _observe(
-    ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, att: np.ndarray
-) -> dict[str, np.ndarray]:
+def _observe(ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, att: np.ndarray) -> dict[str, np.ndarray]:
     """Observe the sky in ``frames`` (global indices) with attitudes ``att`` (n, 3, 3): the kept rows, sorted by
     (frame, magnitude), at most max_stars per frame. Returns global frame, catalogue row, x, y, apparent r."""
     cfg = ctx.cfg
@@ -635,9 +633,13 @@ def _truth(
         "zenith_range_deg": [float(v) for v in cfg.zenith_range_deg] if cfg.site is not None else None,
         "attitude_source": "scripted" if cfg.attitudes is not None else "random",
         "reference": "geocentric apparent place, true equator and equinox of date (ERFA apci13/atciq, ra = ri - eo)",
-        "attitude_maps": ("apparent direction" if cfg.site is None else
-                          "observed direction (apparent + diurnal aberration + ERFA refraction)" if refracted else
-                          "topocentric direction (apparent + diurnal aberration)"),
+        "attitude_maps": (
+            "apparent direction"
+            if cfg.site is None
+            else "observed direction (apparent + diurnal aberration + ERFA refraction)"
+            if refracted
+            else "topocentric direction (apparent + diurnal aberration)"
+        ),
         "refraction": refracted,
         "diurnal_aberration": cfg.site is not None,
         "attitude_layout": "per frame c11 c12 c13 c21 c22 c23 c31 c32 c33 (row-major), b = C r",

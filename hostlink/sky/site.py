@@ -53,8 +53,7 @@ def zenith_true_of_date(
     scalar = np.ndim(jd_utc1) == 0 and np.ndim(jd_utc2) == 0
     theta = _gast_rad(jd_utc1, jd_utc2, dut1_s) + np.radians(site.lon_deg)
     phi = np.radians(site.lat_deg)
-    z = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.full_like(theta, np.sin(phi))],
-                 axis=-1)
+    z = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.full_like(theta, np.sin(phi))], axis=-1)
     return z[0] if scalar else z
 
 
@@ -161,8 +160,9 @@ def diurnal_aberration_truth(r: np.ndarray, velocity_m_s: np.ndarray) -> np.ndar
     return np.asarray(erfa.ab(r, beta, _NO_POTENTIAL_AU, bm1))
 
 
-def observed_directions_truth(r: np.ndarray, zenith: np.ndarray, velocity_m_s: np.ndarray,
-                              weather: Weather | None) -> np.ndarray:
+def observed_directions_truth(
+    r: np.ndarray, zenith: np.ndarray, velocity_m_s: np.ndarray, weather: Weather | None
+) -> np.ndarray:
     """What a ground sensor sees (N, 3): geocentric apparent directions r (N, 3) aberrated by the site velocity
     ((3,) or (N, 3) [m/s], :func:`site_velocity_true_of_date`), then, with weather, refracted toward the zenith
     ((3,) or (N, 3)) by :func:`refract_directions_truth`. Without weather (no atmosphere) only the aberration."""
