@@ -20,13 +20,14 @@ are the same on serial, CAN and Modbus, and against real or emulated sensors.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hostlink.errors import LinkError, UserError
-from hostlink.links.base import Link
+from hostlink.links.base import CommandRefused, Link
 from hostlink.session import Session
 from hostlink.wiretime import t_us_to_iso
 from onboard.banks import params_to_table, table_to_params, table_to_sigma
@@ -34,7 +35,7 @@ from onboard.firmware import estimate_to_params, estimate_to_sigma
 from onboard.params import CameraParams, ParameterError, validate_params
 from onboard.prior import sigma_to_dict, validate_sigma
 from protocol.crc import crc32
-from protocol.messages import CentroidFrame, Estimate
+from protocol.messages import CentroidFrame, Estimate, NakCode
 from protocol.param_table import TABLE_BYTES, decode_table
 
 
@@ -45,40 +46,114 @@ class UploadMismatch(UserError):
 
 
 # ---------------------------------------------------------------------------------------------------- streaming
+@dataclass(frozen=True)
+class EstimatePoll:
+    """One read of the onboard estimate during a stream: after ``frames_received`` frames, the ``estimate`` (None
+    while the sensor has none yet, with its ``reason``)."""
+
+    frames_received: int
+    estimate: Estimate | None
+    reason: str = ""
+
+
 @dataclass
 class StreamResult:
+    #: the frames received (empty when the stream was asked not to keep them)
     frames: list[CentroidFrame] = field(default_factory=list)
+    frames_received: int = 0
+    stars_received: int = 0
     lost_messages: int = 0
     corrupt_frames: int = 0
     #: True when the sensor reported the end of its source before N frames arrived.
     ended: bool = False
+    polls: list[EstimatePoll] = field(default_factory=list)
 
     @property
     def n_stars(self) -> int:
-        return sum(f.n_stars for f in self.frames)
+        return self.stars_received
+
+    @property
+    def estimates(self) -> list[Estimate]:
+        """The polls that returned an estimate, in order."""
+        return [p.estimate for p in self.polls if p.estimate is not None]
+
+
+def poll_estimate(link: Link, frames_received: int = 0) -> EstimatePoll:
+    """Read the onboard estimate; a sensor that has none yet (NAK NO_ESTIMATE: no frame processed since its last
+    restart, or no estimator) gives an :class:`EstimatePoll` without one instead of an error."""
+    try:
+        return EstimatePoll(frames_received, link.read_estimate())
+    except CommandRefused as exc:
+        if exc.code != NakCode.NO_ESTIMATE:
+            raise
+        return EstimatePoll(frames_received, None, exc.text)
 
 
 def stream_frames(
     link: Link,
-    n_frames: int,
+    n_frames: int | None,
     progress: Callable[[int], None] | None = None,
     frame_timeout_s: float | None = None,
     result: StreamResult | None = None,
+    *,
+    on_frame: Callable[[CentroidFrame], None] | None = None,
+    keep_frames: bool = True,
+    poll_every_frames: int = 0,
+    poll_every_s: float = 0.0,
+    max_polls: int | None = None,
+    on_poll: Callable[[EstimatePoll], None] | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
 ) -> StreamResult:
-    """Start the stream, receive ``n_frames`` frames (fewer if the sensor's source ends), stop the stream.
-    Frames are appended to ``result`` (a fresh one if None) as they arrive, so a caller that passes its own keeps the
-    frames received before a LinkError or Ctrl-C interrupted the stream."""
+    """The one stream loop (``stream``, ``monitor`` and the bench): start the stream, receive frames until
+    ``n_frames`` arrived (None: no limit), the sensor's source ends, or ``max_polls`` polls were made; stop the stream.
+
+    Each frame goes to ``on_frame`` and, if ``keep_frames``, into ``result.frames``. The onboard estimate is polled
+    (:func:`poll_estimate`, tolerant of "no estimate yet") every ``poll_every_frames`` frames and/or every
+    ``poll_every_s`` seconds; each poll goes to ``on_poll`` and ``result.polls``. After the source ended, time-based
+    polls go on (the estimate is still readable) until ``max_polls``. Everything received is in ``result`` (pass your
+    own to keep it when a LinkError or Ctrl-C interrupts the loop)."""
     result = StreamResult() if result is None else result
+    if poll_every_frames < 0 or poll_every_s < 0:
+        raise ValueError("poll intervals must be >= 0")
+    timed = poll_every_s > 0
+    next_poll_t = clock() + poll_every_s
+
+    def poll() -> None:
+        p = poll_estimate(link, result.frames_received)
+        result.polls.append(p)
+        if on_poll is not None:
+            on_poll(p)
+
+    def polls_done() -> bool:
+        return max_polls is not None and len(result.polls) >= max_polls
+
     link.set_streaming(True)
     try:
-        while len(result.frames) < n_frames:
-            frame = link.recv_frame(frame_timeout_s)
-            if frame is None:
-                result.ended = True
-                break
-            result.frames.append(frame)
-            if progress is not None:
-                progress(len(result.frames))
+        while not polls_done() and (n_frames is None or result.frames_received < n_frames):
+            if result.ended:
+                if not timed:
+                    break
+                sleep(max(0.0, next_poll_t - clock()))
+            else:
+                frame = link.recv_frame(frame_timeout_s)
+                if frame is None:
+                    result.ended = True
+                    continue
+                result.frames_received += 1
+                result.stars_received += frame.n_stars
+                if keep_frames:
+                    result.frames.append(frame)
+                if on_frame is not None:
+                    on_frame(frame)
+                if progress is not None:
+                    progress(result.frames_received)
+                if poll_every_frames and result.frames_received % poll_every_frames == 0:
+                    poll()
+                    continue
+            if timed and clock() >= next_poll_t:
+                poll()
+                next_poll_t = max(next_poll_t + poll_every_s, clock())
     finally:
         result.lost_messages = link.stats.lost_messages
         result.corrupt_frames = link.stats.corrupt_frames

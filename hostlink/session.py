@@ -201,34 +201,99 @@ def read_session(path: str | Path) -> Session:
     return session
 
 
+class SessionWriter:
+    """The one session CSV writer: rows are appended in chunks (whole frames) as they come, into ``PATH.partial``,
+    which :meth:`commit` renames to ``PATH`` (atomic: a reader never sees half a file). The columns are those of the
+    first chunk. Until then the partial file holds every row written so far (flushed per chunk), so a process that
+    is killed loses nothing it had received. Angles are written with 10 decimals of a degree (3.6e-8 deg = 0.13 mas).
+    Use as a context manager: leaving the block normally commits; leaving it by an exception keeps the partial file.
+    """
+
+    def __init__(self, path: str | Path, float_format: str = "%.6f") -> None:
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.float_format = float_format
+        self.rows = 0
+        self._handle = None
+        self._writer = None
+        self._header: list[str] | None = None
+
+    def _open(self, session: Session) -> None:
+        header = list(REQUIRED_COLUMNS)
+        if session.mag is not None:
+            header.append("mag")
+        if session.ra_deg is not None and session.dec_deg is not None:
+            header += ["ra_deg", "dec_deg"]
+        header += list(session.extra)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._handle = self.partial.open("w", newline="", encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+        self._writer = csv.writer(self._handle, lineterminator="\n")
+        self._header = header
+        self._write([header])
+
+    def _write(self, rows) -> None:
+        try:
+            self._writer.writerows(rows)
+            self._handle.flush()
+        except OSError as exc:
+            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+
+    def append(self, session: Session) -> None:
+        """Append the rows of ``session`` (whole frames, in time order, with the columns of the first chunk)."""
+        if self._header is None:
+            self._open(session)
+        ff = self.float_format
+        cols: list[list[str]] = [
+            [str(int(v)) for v in session.frame],
+            [str(v) for v in session.t_utc],
+            [str(int(v)) for v in session.star_id],
+            [ff % v for v in session.x_px],
+            [ff % v for v in session.y_px],
+        ]
+        if "mag" in self._header:
+            cols.append(["%.3f" % v if np.isfinite(v) else "" for v in _column(session.mag, len(session))])
+        if "ra_deg" in self._header:
+            cols.append(["%.10f" % v if np.isfinite(v) else "" for v in _column(session.ra_deg, len(session))])
+            cols.append(["%.10f" % v if np.isfinite(v) else "" for v in _column(session.dec_deg, len(session))])
+        for name in self._header[len(cols) :]:
+            values = session.extra.get(name)
+            cols.append([""] * len(session) if values is None else [str(v) for v in values])
+        self._write(zip(*cols, strict=True))
+        self.rows += len(session)
+
+    def commit(self) -> None:
+        """Close and rename the partial file to ``path`` (an empty session is written as its header)."""
+        if self._header is None:
+            self._open(Session(*(np.zeros(0, dtype=t) for t in (np.int64, object, np.int64, float, float))))
+        self._handle.close()
+        try:
+            self.partial.replace(self.path)
+        except OSError as exc:
+            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+
+    def close_partial(self) -> None:
+        """Close without renaming: the rows written so far stay in :attr:`partial`."""
+        if self._handle is not None and not self._handle.closed:
+            self._handle.close()
+
+    def __enter__(self) -> SessionWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.close_partial()
+
+
+def _column(values: np.ndarray | None, n: int) -> np.ndarray:
+    return np.full(n, np.nan) if values is None else values
+
+
 def write_session(path: str | Path, session: Session, float_format: str = "%.6f") -> None:
-    """Write a session CSV (atomically). Angles are written with 10 decimals of a degree (3.6e-8 deg = 0.13 mas)."""
-    path = Path(path)
-    header = list(REQUIRED_COLUMNS)
-    cols: list[list[str]] = [
-        [str(int(v)) for v in session.frame],
-        [str(v) for v in session.t_utc],
-        [str(int(v)) for v in session.star_id],
-        [float_format % v for v in session.x_px],
-        [float_format % v for v in session.y_px],
-    ]
-    if session.mag is not None:
-        header.append("mag")
-        cols.append(["%.3f" % v if np.isfinite(v) else "" for v in session.mag])  # empty = no magnitude
-    if session.ra_deg is not None and session.dec_deg is not None:
-        header += ["ra_deg", "dec_deg"]
-        cols.append(["%.10f" % v if np.isfinite(v) else "" for v in session.ra_deg])
-        cols.append(["%.10f" % v if np.isfinite(v) else "" for v in session.dec_deg])
-    for name, values in session.extra.items():
-        header.append(name)
-        cols.append([str(v) for v in values])
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("w", newline="", encoding="utf-8") as handle:
-            writer = csv.writer(handle, lineterminator="\n")
-            writer.writerow(header)
-            writer.writerows(zip(*cols, strict=True))
-        tmp.replace(path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+    """Write a session CSV atomically (one :class:`SessionWriter` chunk)."""
+    with SessionWriter(path, float_format) as writer:
+        writer.append(session)

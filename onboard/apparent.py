@@ -124,11 +124,11 @@ def _kepler_state(elements, t_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     m = big_l - varpi
     ecc_anom = m
     for _ in range(_KEPLER_ITERATIONS):
-        ecc_anom = ecc_anom - (ecc_anom - e * np.sin(ecc_anom) - m) / (1 - e * np.cos(ecc_anom))
+        ecc_anom = ecc_anom - (ecc_anom - e * np.sin(ecc_anom) - m) / (dt(1) - e * np.cos(ecc_anom))
     ce, se = np.cos(ecc_anom), np.sin(ecc_anom)
-    root = np.sqrt(1 - e * e)
+    root = np.sqrt(dt(1) - e * e)
     x, y = a * (ce - e), a * root * se
-    edot = mean_motion / (1 - e * ce)
+    edot = mean_motion / (dt(1) - e * ce)
     vx, vy = -a * se * edot, a * root * ce * edot
     argp = varpi - node
     cw, sw, co, so, ci, si = np.cos(argp), np.sin(argp), np.cos(node), np.sin(node), np.cos(inc), np.sin(inc)
@@ -212,8 +212,9 @@ def aberration_change(p: np.ndarray, velocity_c: np.ndarray) -> np.ndarray:
     v2 = np.sum(v * v)
     bm1 = np.sqrt(dt(1) - v2)
     pv = p @ v
-    w1 = 1 + pv / (1 + bm1)
-    return (w1[..., None] * v - (pv + v2 / (1 + bm1))[..., None] * p) / (1 + pv)[..., None]
+    one = dt(1)
+    w1 = one + pv / (one + bm1)
+    return (w1[..., None] * v - (pv + v2 / (one + bm1))[..., None] * p) / (one + pv)[..., None]
 
 
 def apparent_place_vectors(

@@ -68,8 +68,8 @@ def small_rotation(phi: np.ndarray) -> np.ndarray:
     dt = phi.dtype.type
     angle2 = np.sum(phi * phi)
     # sin(a)/a and (1 - cos a)/a^2 by their series: |phi| is a residual correction (< 1e-3 rad), 3 terms are exact
-    s = 1 - angle2 / 6 + angle2 * angle2 / 120
-    k = dt(0.5) - angle2 / 24 + angle2 * angle2 / 720
+    s = dt(1) - angle2 / dt(6) + angle2 * angle2 / dt(120)
+    k = dt(0.5) - angle2 / dt(24) + angle2 * angle2 / dt(720)
     x = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]], dtype=phi.dtype)
     return np.eye(3, dtype=phi.dtype) + s * x + k * (x @ x)
 
@@ -114,7 +114,7 @@ def euler_angles(m: np.ndarray) -> tuple[float, float, float]:
     """
     m = np.asarray(m)
     pitch = np.arcsin(np.clip(m[0, 1], -1, 1))
-    yaw = np.mod(np.arctan2(m[0, 2], m[0, 0]), 2 * np.pi)
+    yaw = np.mod(np.arctan2(m[0, 2], m[0, 0]), m.dtype.type(2 * np.pi))
     roll = np.arctan2(-m[2, 1], m[1, 1])
     return yaw, pitch, roll
 
@@ -143,7 +143,7 @@ def attitude_with_rejection(
     w = np.ones(n, dtype=b.dtype) if weights is None else np.asarray(weights, dtype=b.dtype)
     c = attitude_from_vectors(b, r, w)
     while int(keep.sum()) > min_stars:
-        res = np.where(keep, residuals_rad(b, r, c), -1)
+        res = np.where(keep, residuals_rad(b, r, c), b.dtype.type(-1))
         worst = int(np.argmax(res))
         if not res[worst] > threshold_rad:
             break

@@ -28,7 +28,7 @@ def focal_scale_mm_per_px(pixel_pitch_um: float) -> float:
 def distortion_px(u: np.ndarray, v: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weng distortion (dx, dy) at measured offsets (u, v) from the principal point [px] (seed 000 eq. 7)."""
     k1, k2, k3, p1, p2, s1, s2 = (theta[i] for i in range(3, 10))
-    g1, g2, g3, g4 = s1 + p1, s2 + p2, 2 * p1, 2 * p2
+    g1, g2, g3, g4 = s1 + p1, s2 + p2, p1 + p1, p2 + p2
     r2 = u * u + v * v
     radial = r2 * (k1 + r2 * (k2 + r2 * k3))
     dx = (g1 + g3) * u * u + g4 * u * v + g1 * v * v + u * radial
@@ -60,14 +60,15 @@ def pixels_to_unit(x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray) -> np.
 def distortion_partials(u: np.ndarray, v: np.ndarray, theta: np.ndarray):
     """Partial derivatives of (dx, dy) with respect to (u, v): returns dx_u, dx_v, dy_u, dy_v."""
     k1, k2, k3, p1, p2, s1, s2 = (theta[i] for i in range(3, 10))
-    g1, g2, g3, g4 = s1 + p1, s2 + p2, 2 * p1, 2 * p2
+    two, three = theta.dtype.type(2), theta.dtype.type(3)  # typed constants: no float64 scalar on numpy 1.x either
+    g1, g2, g3, g4 = s1 + p1, s2 + p2, p1 + p1, p2 + p2
     r2 = u * u + v * v
     radial = r2 * (k1 + r2 * (k2 + r2 * k3))
-    radial_d = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    dx_u = 2 * (g1 + g3) * u + g4 * v + radial + 2 * u * u * radial_d
-    dx_v = g4 * u + 2 * g1 * v + 2 * u * v * radial_d
-    dy_u = 2 * g2 * u + g3 * v + 2 * u * v * radial_d
-    dy_v = g3 * u + 2 * (g2 + g4) * v + radial + 2 * v * v * radial_d
+    radial_d = k1 + r2 * (two * k2 + three * k3 * r2)  # d radial / d r2
+    dx_u = two * (g1 + g3) * u + g4 * v + radial + two * u * u * radial_d
+    dx_v = g4 * u + two * g1 * v + two * u * v * radial_d
+    dy_u = two * g2 * u + g3 * v + two * u * v * radial_d
+    dy_v = g3 * u + two * (g2 + g4) * v + radial + two * v * v * radial_d
     return dx_u, dx_v, dy_u, dy_v
 
 

@@ -123,7 +123,8 @@ def bam_from_turns(turns: float) -> np.uint64:
 
 def bam_from_small_rad(angle_rad: np.ndarray) -> np.ndarray:
     """A small floating angle (|x| < 2^31 * 2 pi) -> binary angle, at 2^-32-turn resolution (0.0003")."""
-    units = np.rint(angle_rad * (float(1 << 32) / _TWO_PI)).astype(np.int64)
+    angle_rad = np.asarray(angle_rad)
+    units = np.rint(angle_rad * angle_rad.dtype.type(float(1 << 32) / _TWO_PI)).astype(np.int64)
     return (units << np.int64(32)).astype(np.uint64)
 
 
@@ -165,7 +166,7 @@ def earth_rotation_angle_bam(t_ut1: FixedTime) -> np.ndarray:
 
 def _poly(coeffs: tuple[float, ...], t: np.ndarray) -> np.ndarray:
     """Horner evaluation of sum c_k t^k in the dtype of ``t``."""
-    acc = t * 0 + t.dtype.type(coeffs[-1])
+    acc = t * t.dtype.type(0) + t.dtype.type(coeffs[-1])
     for c in coeffs[-2::-1]:
         acc = acc * t + t.dtype.type(c)
     return acc
@@ -263,7 +264,7 @@ def equation_of_equinoxes(t_c: np.ndarray) -> np.ndarray:
     _, _, _, epsa = precession_angles(t_c)  # cos(eps_A) only: float32 rounding of eps_A is harmless here
     dpsi, _ = nutation(t_c)
     om = delaunay_arguments(t_c)[..., 4]
-    ct = (dt(0.00264096) * np.sin(om) + dt(0.00006352) * np.sin(2 * om)) * dt(ARCSEC_TO_RAD)
+    ct = (dt(0.00264096) * np.sin(om) + dt(0.00006352) * np.sin(dt(2) * om)) * dt(ARCSEC_TO_RAD)
     return dpsi * np.cos(epsa) + ct
 
 

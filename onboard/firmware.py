@@ -23,6 +23,12 @@ READ_ESTIMATE      an estimator with at least one update (NO_ESTIMATE)
 
 Pure: no I/O, no clock, no threads (time comes in with each frame). The estimator is plugged in through a small
 seam (:class:`EstimatorSeam`); :class:`RecursiveEstimator` adapts ``onboard.recursive`` to it.
+
+Scheduling: the estimator is the sensor's background task. Which exposures it processes is decided by a modelled
+budget (:class:`EstimatorBudget`: the estimator's declared worst-case cost per update against the time between
+exposures, both in the sensor's own time, which comes with each frame), never by how fast the machine running this
+model happens to be; the same frames and budget give the same sequence of estimates everywhere. Exposures that
+arrive while the modelled processor is still busy are counted in ``Counters.estimator_skipped``.
 """
 
 from __future__ import annotations
@@ -73,21 +79,55 @@ class EstimatorSeam(Protocol):
         """(values, sigma, estimated_mask, n_updates): values and 1-sigma in ESTIMATE_NAMES order, f in mm
         (float32, sigma NaN where unknown), bit i of the mask = ESTIMATE_NAMES[i] is estimated."""
 
+    def cost_flops(self, n_stars: int) -> int:
+        """Declared worst-case floating-point operations of one update with ``n_stars`` identified stars."""
+
+
+@dataclass(frozen=True)
+class EstimatorBudget:
+    """The sensor's processor as its scheduler models it.
+
+    An exposure taken at sensor time t is given to the estimator when the modelled processor is idle at t; it is then
+    busy until t + cost / ``flops_per_s`` (cost: :meth:`EstimatorSeam.cost_flops`, the worst case). Exposures whose
+    time does not advance (a session with one time for every frame) are taken ``min_frame_period_s`` apart, the
+    sensor's fastest frame rate. The default, 50 Mflop/s sustained, is a Cortex-M7-class single-precision FPU: the
+    worst case of 30 stars and 10 parameters (0.86 Mflop) takes 17 ms, so every exposure at up to 50 Hz is processed.
+    """
+
+    flops_per_s: float = 50e6
+    min_frame_period_s: float = 0.1
+
+    def busy_us(self, flops: int) -> int:
+        """Modelled processor time of ``flops`` operations [us], rounded up."""
+        return int(np.ceil(flops * 1e6 / self.flops_per_s))
+
 
 @dataclass
 class Counters:
     frames_processed: int = 0
     last_frame: int = 0
     estimator_faults: int = 0
+    #: exposures given to the estimator / skipped because the modelled processor was still busy (EstimatorBudget)
+    estimator_runs: int = 0
+    estimator_skipped: int = 0
 
 
 class Firmware:
     """One sensor's state: banks, stream flag, estimator state, counters."""
 
-    def __init__(self, store: banks.BankStore, estimator: EstimatorSeam | None = None) -> None:
+    def __init__(
+        self, store: banks.BankStore, estimator: EstimatorSeam | None = None, budget: EstimatorBudget | None = None
+    ) -> None:
         self.store = store
         self.streaming = False
         self.counters = Counters()
+        self.budget = budget or EstimatorBudget()
+        if not (np.isfinite(self.budget.flops_per_s) and self.budget.flops_per_s > 0):
+            raise ValueError("the estimator budget needs flops_per_s > 0")
+        if not (np.isfinite(self.budget.min_frame_period_s) and self.budget.min_frame_period_s > 0):
+            raise ValueError("the estimator budget needs min_frame_period_s > 0")
+        self._sensor_time_us: int | None = None  # time of the last exposure, as the scheduler saw it
+        self._busy_until_us: int | None = None  # the modelled processor is busy with the estimator until then
         self._estimator = estimator
         self._est_state: Any = None
         self._est_generation = 0
@@ -194,10 +234,24 @@ class Firmware:
         )
 
     # --------------------------------------------------------------------------------------------- frames
-    def process_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> None:
-        """One exposure: :meth:`count_frame`, then :meth:`estimate_frame`."""
+    def process_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> bool:
+        """One exposure: :meth:`count_frame`, then :meth:`estimate_frame` if the modelled budget leaves the processor
+        idle at the exposure's time (:class:`EstimatorBudget`). Returns whether the estimator ran."""
         self.count_frame(frame)
+        t_us = int(frame.t_us)
+        if self._sensor_time_us is not None and t_us <= self._sensor_time_us:
+            t_us = self._sensor_time_us + int(round(self.budget.min_frame_period_s * 1e6))
+        self._sensor_time_us = t_us
+        if self._estimator is None or self._est_state is None or r_ref is None or frame.n_stars == 0:
+            return False
+        if self._busy_until_us is not None and t_us < self._busy_until_us:
+            self.counters.estimator_skipped += 1
+            return False
+        n_identified = int(np.count_nonzero(np.asarray(frame.star_id) != 0))
+        self._busy_until_us = t_us + self.budget.busy_us(self._estimator.cost_flops(n_identified))
+        self.counters.estimator_runs += 1
         self.estimate_frame(frame, r_ref)
+        return True
 
     def count_frame(self, frame: CentroidFrame) -> None:
         """The exposure was taken (and is streamed): frame counters only, constant work."""
@@ -206,8 +260,8 @@ class Firmware:
 
     def estimate_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> None:
         """Run the estimator on an exposure's identified stars (``r_ref``: reference unit vectors (N, 3) from the
-        catalogue, NaN rows for stars without one; None = no catalogue for this frame). The estimator is the
-        sensor's background task: a scheduler may skip frames when the link keeps the processor busy."""
+        catalogue, NaN rows for stars without one; None = no catalogue for this frame), unconditionally: which exposures
+        reach it is :meth:`process_frame`'s decision."""
         if self._estimator is None or self._est_state is None or r_ref is None or frame.n_stars == 0:
             return
         r = np.asarray(r_ref, dtype=np.float32).reshape(-1, 3)
@@ -280,6 +334,9 @@ class RecursiveEstimator:
         identified: np.ndarray,
     ) -> None:
         recursive.update(state, x_px, y_px, r_ref, identified)
+
+    def cost_flops(self, n_stars: int) -> int:
+        return recursive.update_cost_flops(n_stars, len(self.estimate_names), self.config)
 
     def estimate(self, state: recursive.RecursiveState) -> tuple[np.ndarray, np.ndarray, int, int]:
         values = recursive.current_params(state).vector(np.float32)

@@ -39,7 +39,7 @@ measurement b_i . b_j = r_i . r_j (seed 004 eq. 1, seed 000 eq. 3), and makes it
 Work per frame is bounded (stars are capped at ``max_stars`` = N, pairs P = 2N - 3, states K <= 10):
 camera Jacobians O(30 N), pair covariance O(P N), Cholesky O(P^3 / 3), whitening O(P^2 (K + 1)),
 updates O(6 P K^2); at most ``max_iterations`` linearisations and 2 misidentification passes, i.e. at most
-``(max_iterations + 2) * (P^3/3 + P^2 (K + 1) + 6 P K^2 + 40 N K)`` flops, about 1.6 Mflop for N = 32, K = 10.
+``(max_iterations + 2) * (P^3/3 + P^2 (K + 1) + 6 P K^2 + 40 N K)`` flops, about 1.0 Mflop for N = 32, K = 10.
 Buffers of the state are sized at :func:`create`; numpy temporaries inside a frame are bounded by N, P and K
 (stack buffers in a C port).
 """
@@ -183,6 +183,20 @@ def default_prior_sigma(nominal: CameraParams, distortion_px: float = 5.0) -> np
             dpx / r**2,
         ]
     )
+
+
+def update_cost_flops(n_stars: int, n_states: int, config: RecursiveConfig | None = None) -> int:
+    """Worst-case floating-point operations of one :func:`update` with ``n_stars`` stars (capped at
+    ``config.max_stars``) and ``n_states`` estimated parameters: the bound of the module docstring,
+    ``(max_iterations + 2) * (P^3/3 + P^2 (K + 1) + 6 P K^2 + 40 N K)`` with P = 2N - 3 independent pairs (about
+    1.0 Mflop for N = 32, K = 10). A sensor budgets its estimator with it (``onboard.firmware.EstimatorBudget``)."""
+    cfg = config or RecursiveConfig()
+    n = min(max(int(n_stars), 0), cfg.max_stars)
+    if n < 3:
+        return 0
+    p, k = 2 * n - 3, int(n_states)
+    per_linearisation = p**3 // 3 + p * p * (k + 1) + 6 * p * k * k + 40 * n * k
+    return (cfg.max_iterations + 2) * per_linearisation
 
 
 def parse_estimate_names(text: str | None) -> tuple[str, ...]:

@@ -121,7 +121,7 @@ def refraction_from_true_zenith(cos_zt, sin_zt, a_rad: float, b_rad: float, step
         s = sin_zt * cr - cos_zt * sr  # sin(z_t - r)
         tz = s / c
         g = r - (a + b * tz * tz) * tz  # f(r) = r - R(z_t - r) = 0 defines the refraction r
-        dg = 1 + (a + 3 * b * tz * tz) / (c * c)
+        dg = dt(1) + (a + dt(3) * b * tz * tz) / (c * c)
         r = r - g / dg
     return r
 

@@ -62,7 +62,9 @@ def test_calibrated_parameters_are_within_their_stated_uncertainty(bench_report)
 def test_onboard_estimator_tracks_the_focal_drift(bench_report):
     _, summary, _ = bench_report
     track = summary["drift_tracking"]
-    assert track["frames_streamed"] >= 1490  # the sensor may drop a stale frame when its stream restarts
+    assert track["frames_streamed"] == 1500  # the replay's spare frames cover what is in flight between the phases
+    # the sensor's budget gives every 1 s exposure to the estimator, however busy the host (issue 10: >= 90 %)
+    assert track["estimator_updates"] == track["sensor_exposures"] >= 1500
     # issue 4's bar is 1 um RMS after 3000 frames; over this shorter 1500-frame run the drift detector switches on
     # after ~400 frames, so allow 1.5 um, still well below the 4.2 um RMS of the drift itself
     assert track["focal_error_rms_um_converged"] < 1.5
@@ -84,3 +86,16 @@ def test_bad_bench_option_is_one_line_and_non_zero(tmp_path):
     )
     assert run.returncode == 2
     assert len(run.stderr.strip().splitlines()) == 1 and "--noise-px" in run.stderr
+
+
+def test_a_sensor_whose_estimator_never_updates_is_reported_as_such_not_as_nan(tmp_path):
+    from hostlink.bench import BenchConfig, run_bench, summary_table
+
+    cfg = BenchConfig(out_dir=tmp_path, cal_frames=60, drift_frames=30, emulator_args=("--no-estimator",))
+    summary = run_bench(cfg, say=lambda text: None, show_progress=False)
+    track = summary["drift_tracking"]
+    assert track["estimator_updates"] == 0 and track["sensor_exposures"] >= 29
+    assert track["focal_error_rms_um_converged"] is None
+    assert track["not_tracked_because"].startswith("the onboard estimator made no update in the drift phase")
+    printed = " ".join(" ".join(row) for row in summary_table(summary))
+    assert "nan" not in printed.lower() and "--drift-frames" not in printed

@@ -119,3 +119,61 @@ def test_estimate_to_params_replaces_only_estimated_parameters():
     p = estimate_to_params(NOMINAL, est)
     assert (p.focal_length_mm, p.principal_point_px) == (70.1, (500.0, 530.0))
     assert p.distortion == NOMINAL.distortion
+
+
+def _with_time(item, t_us):
+    from dataclasses import replace
+
+    return replace(item.frame, t_us=t_us), item.r_ref
+
+
+def test_default_budget_gives_every_exposure_of_a_1_hz_session_to_the_estimator(frames):
+    fw = Firmware(banks.factory_store(NOMINAL), RecursiveEstimator())
+    ran = [fw.process_frame(item.frame, item.r_ref) for item in frames]
+    # the simulator's frames are 1 s apart; the worst case of 32 stars and 10 parameters is 1.0 Mflop = 20 ms at the
+    # default 50 Mflop/s
+    assert all(ran) and fw.counters.estimator_runs == len(frames) and fw.counters.estimator_skipped == 0
+    assert fw.handle(m.ReadEstimate(tag=1)).n_updates == len(frames)
+
+
+class _FixedCost(RecursiveEstimator):
+    """The recursive estimator, declaring one fixed cost per update (1 Mflop) whatever the star count."""
+
+    def cost_flops(self, n_stars: int) -> int:
+        return 1_000_000
+
+
+def test_budget_skips_exactly_the_exposures_that_arrive_while_the_modelled_processor_is_busy(frames):
+    from onboard.firmware import EstimatorBudget
+
+    # 1 Mflop at 0.6 Mflop/s: an update lasts 1.67 s, so with exposures 1 s apart the processor is busy at the next
+    # one and idle at the one after
+    fw = Firmware(banks.factory_store(NOMINAL), _FixedCost(), EstimatorBudget(flops_per_s=0.6e6))
+    ran = [fw.process_frame(*_with_time(item, 1_000_000 * k)) for k, item in enumerate(frames)]
+    assert ran == [k % 2 == 0 for k in range(len(frames))]
+    assert fw.counters.estimator_skipped == len(frames) // 2 and fw.counters.frames_processed == len(frames)
+    assert fw.handle(m.ReadEstimate(tag=1)).last_frame == frames[-1 - (len(frames) - 1) % 2].frame.frame
+
+
+def test_exposures_whose_time_does_not_advance_are_spaced_by_the_fastest_frame_period(frames):
+    from onboard.firmware import EstimatorBudget
+
+    # an update lasts 0.25 s = 2.5 minimum frame periods: of exposures all stamped with one time, every third runs
+    fw = Firmware(banks.factory_store(NOMINAL), _FixedCost(), EstimatorBudget(flops_per_s=4e6, min_frame_period_s=0.1))
+    ran = [fw.process_frame(*_with_time(item, 5_000_000)) for item in frames[:9]]
+    assert ran == [k % 3 == 0 for k in range(9)]
+
+
+def test_recursive_estimator_declares_the_documented_worst_case_cost():
+    # (max_iterations + 2) (P^3/3 + P^2 (K + 1) + 6 P K^2 + 40 N K), P = 2N - 3: 32 stars, 10 states -> 1.0 Mflop
+    assert RecursiveEstimator().cost_flops(32) == 6 * (61**3 // 3 + 61 * 61 * 11 + 6 * 61 * 100 + 40 * 32 * 10)
+    assert RecursiveEstimator().cost_flops(40) == RecursiveEstimator().cost_flops(32)  # capped at max_stars
+    assert RecursiveEstimator().cost_flops(2) == 0  # fewer than 3 stars: the update returns at once
+
+
+def test_a_budget_without_a_positive_speed_is_refused():
+    from onboard.firmware import EstimatorBudget
+
+    for budget in (EstimatorBudget(flops_per_s=0.0), EstimatorBudget(min_frame_period_s=float("nan"))):
+        with pytest.raises(ValueError, match="budget"):
+            Firmware(banks.factory_store(NOMINAL), RecursiveEstimator(), budget)

@@ -10,11 +10,23 @@ from emulator_fixtures import _CLI, _env, running_emulator
 
 from hostlink.session import read_session
 
-#: Time the stream runs before the interruption [s]: long enough for some frames on a loaded 2-core machine.
-_RUN_S = 1.5
+#: How long to wait for the first frame to reach the stream's file [s]: only a bound for a machine that never
+#: delivers (the wait ends as soon as a frame is written; start-up on a loaded 2-core machine takes a few seconds).
+_FIRST_FRAME_WAIT_S = 120.0
 #: --timeout of the stream; the command must end within it after the sensor died, plus start-up and write time [s].
-_TIMEOUT_S = 1.0
+_TIMEOUT_S = 3.0
 _GRACE_S = 15.0
+
+
+def _wait_for_written_frames(out, proc: subprocess.Popen) -> None:
+    """Until the stream's partial file holds a data row (``hostlink stream`` writes each frame as it arrives)."""
+    partial = out.with_name(out.name + ".partial")
+    deadline = time.monotonic() + _FIRST_FRAME_WAIT_S
+    while time.monotonic() < deadline and proc.poll() is None:
+        if partial.exists() and partial.read_text().count("\n") >= 2:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"no frame reached {partial} ({proc.poll()=})")
 
 
 def _start_stream(link: str, out) -> subprocess.Popen:
@@ -44,7 +56,7 @@ def test_sensor_dying_mid_stream_is_one_line_exit_3_and_the_frames_received_are_
     out = tmp_path / "s.csv"
     with running_emulator(transport, "--sim-frames", "20") as info:
         proc = _start_stream(info["link"], out)
-        time.sleep(_RUN_S)
+        _wait_for_written_frames(out, proc)
         info["process"].kill()
         _, err = proc.communicate(timeout=_GRACE_S)
     assert proc.returncode == 3, err
@@ -57,7 +69,7 @@ def test_ctrl_c_during_stream_writes_the_frames_received_and_exits_130(tmp_path)
     out = tmp_path / "s.csv"
     with running_emulator("serial", "--sim-frames", "20") as info:
         proc = _start_stream(info["link"], out)
-        time.sleep(_RUN_S)
+        _wait_for_written_frames(out, proc)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=_GRACE_S)
     assert proc.returncode == 130, err

@@ -73,7 +73,7 @@ def test_bench_summary_without_drift_estimates_is_strict_json():
 
 def test_bench_runs_a_narrow_field_camera_with_its_own_magnitude_limit(tmp_path, capsys):
     """--maglim reaches the simulator (at Hp <= 6 a 4 deg field rarely holds 10 stars), a --camera without
-    --nominal gets its own design nominal, and a drift phase too short for an estimate still reports."""
+    --nominal gets its own design nominal, and a drift phase shorter than the polling interval still reports."""
     cam = tmp_path / "narrow.json"
     cam.write_text(
         json.dumps(
@@ -109,4 +109,9 @@ def test_bench_runs_a_narrow_field_camera_with_its_own_magnitude_limit(tmp_path,
     )  # strict: no NaN
     assert summary["config"]["maglim"] == 8.5
     assert summary["parameters"]["nominal"]["principal_point_px"] == [2047.5, 2047.5]  # design nominal: centre
-    assert "n/a" in capsys.readouterr().out
+    # the 5 drift frames end before the first periodic poll (every 25): the read at the end of the phase still gives
+    # a tracking figure, and the report prints no nan
+    printed = capsys.readouterr().out
+    assert summary["drift_tracking"]["focal_error_rms_um_converged"] is not None
+    assert summary["drift_tracking"]["estimator_updates"] == summary["drift_tracking"]["sensor_exposures"] > 0
+    assert "nan" not in printed.lower()

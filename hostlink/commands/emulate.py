@@ -47,6 +47,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-estimator", action="store_true", help="run without the onboard recursive estimator")
     parser.add_argument(
+        "--estimator-mflops",
+        type=float,
+        default=50.0,
+        metavar="MFLOPS",
+        help="the modelled sensor processor's sustained speed [Mflop/s] (default 50, a Cortex-M7-class FPU): the "
+        "estimator processes an exposure when its declared worst-case cost has finished before the exposure's time, "
+        "whatever the speed of this machine (frames it has no time for are skipped and counted)",
+    )
+    parser.add_argument(
         "--drop-every",
         type=int,
         default=0,
@@ -61,6 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import importlib
     import json
+    import math
     import signal
     import sys
     import threading
@@ -69,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from hostlink.emulator.sensor import EndpointOptions
     from hostlink.emulator.setup import build_sensor
     from hostlink.errors import UserError
+    from onboard.firmware import EstimatorBudget
 
     extra = {}
     for item in args.option:
@@ -83,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--port must be in 0..65535")
     if args.drop_every < 0:
         raise UserError("--drop-every must be >= 0")
+    if not (math.isfinite(args.estimator_mflops) and args.estimator_mflops > 0):
+        raise UserError(f"--estimator-mflops must be > 0, got {args.estimator_mflops}")
     sensor = build_sensor(
         replay=args.replay,
         nominal=args.nominal,
@@ -92,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         estimator=not args.no_estimator,
         estimate_names=args.estimate,
+        budget=EstimatorBudget(flops_per_s=args.estimator_mflops * 1e6),
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra

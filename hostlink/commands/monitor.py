@@ -8,9 +8,11 @@ from hostlink.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "watch the onboard estimate (values, 1-sigma, updates) while the sensor runs"
 DESCRIPTION = (
-    "Polls the sensor's onboard recursive estimate every --interval seconds and prints one line per poll: frame, "
-    "updates, and each estimated parameter with its 1-sigma (f in mm, x0/y0 in px). By default it keeps the "
-    "centroid stream on (an emulated sensor only takes exposures while streaming) and discards the frames."
+    "Polls the sensor's onboard recursive estimate every --interval seconds (or every --every-frames frames) and "
+    "prints one line per poll: frames received, the frame of the estimate's last update, updates, and each estimated "
+    "parameter with its 1-sigma (f in mm, x0/y0 in px); 'no estimate' until the estimator has processed a frame. "
+    "By default it keeps the centroid stream on (an emulated sensor only takes exposures while streaming) and "
+    "discards the frames."
 )
 
 
@@ -20,6 +22,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--count", type=int, default=10, metavar="N", help="polls before exiting (default 10; 0 = until interrupted)"
     )
     parser.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between polls (default 1)")
+    parser.add_argument(
+        "--every-frames",
+        type=int,
+        default=0,
+        metavar="K",
+        help="poll after every K frames received instead of every --interval seconds (a schedule that does not "
+        "depend on the speed of either machine)",
+    )
     parser.add_argument("--no-stream", action="store_true", help="do not switch the centroid stream on")
     parser.add_argument("--json", action="store_true", help="one JSON object per line instead of text")
 
@@ -30,57 +40,58 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from hostlink.errors import UserError
-    from hostlink.links import CommandRefused
-    from protocol.messages import ESTIMATE_FIELDS, NakCode
+    from hostlink.sensor_client import EstimatePoll, poll_estimate, stream_frames
+    from protocol.messages import ESTIMATE_FIELDS
 
-    if args.count < 0 or args.interval <= 0:
-        raise UserError("--count must be >= 0 and --interval > 0")
-    polls = 0
+    if args.count < 0 or args.interval <= 0 or args.every_frames < 0:
+        raise UserError("--count and --every-frames must be >= 0 and --interval > 0")
+    if args.no_stream and args.every_frames:
+        raise UserError("--every-frames needs the stream (drop --no-stream)")
+
+    def show(p: EstimatePoll) -> None:
+        est = p.estimate
+        if est is None:
+            print(
+                json.dumps({"frames_received": p.frames_received, "estimate": None, "reason": p.reason})
+                if args.json
+                else f"frames {p.frames_received} no estimate: {p.reason}",
+                flush=True,
+            )
+            return
+        names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
+        values = {n: est.values[ESTIMATE_FIELDS.index(n)] for n in names}
+        sigmas = {n: est.sigma[ESTIMATE_FIELDS.index(n)] for n in names}
+        if args.json:
+            record = {
+                "frames_received": p.frames_received,
+                "frame": est.last_frame,
+                "updates": est.n_updates,
+                "base_generation": est.base_generation,
+                "values": values,
+                "sigma": {k: (None if math.isnan(v) else v) for k, v in sigmas.items()},
+            }
+            print(json.dumps(record), flush=True)
+        else:
+            parts = " ".join(f"{n}={values[n]:.7g}\u00b1{sigmas[n]:.2g}" for n in names)
+            print(f"frames {p.frames_received} frame {est.last_frame} updates {est.n_updates} {parts}", flush=True)
+
+    max_polls = args.count or None
     with open_link_from_args(args) as link:
-        if not args.no_stream:
-            link.set_streaming(True)
-        try:
-            while args.count == 0 or polls < args.count:
-                deadline = time.monotonic() + args.interval
-                while time.monotonic() < deadline:  # drain frames so they do not pile up
-                    if args.no_stream:
-                        time.sleep(max(0.0, deadline - time.monotonic()))
-                    elif link.recv_frame(args.timeout) is None:
-                        time.sleep(max(0.0, deadline - time.monotonic()))
+        if args.no_stream:
+            polls = 0
+            while max_polls is None or polls < max_polls:
+                time.sleep(args.interval)
+                show(poll_estimate(link))
                 polls += 1
-                try:
-                    est = link.read_estimate()
-                except CommandRefused as exc:
-                    if exc.code != NakCode.NO_ESTIMATE:
-                        raise
-                    print(
-                        json.dumps({"estimate": None, "reason": exc.text}) if args.json else f"no estimate: {exc.text}",
-                        flush=True,
-                    )
-                    continue
-                names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
-                values = {n: est.values[ESTIMATE_FIELDS.index(n)] for n in names}
-                sigmas = {n: est.sigma[ESTIMATE_FIELDS.index(n)] for n in names}
-                if args.json:
-                    print(
-                        json.dumps(
-                            {
-                                "frame": est.last_frame,
-                                "updates": est.n_updates,
-                                "base_generation": est.base_generation,
-                                "values": values,
-                                "sigma": {k: (None if math.isnan(v) else v) for k, v in sigmas.items()},
-                            }
-                        ),
-                        flush=True,
-                    )
-                else:
-                    parts = " ".join(f"{n}={values[n]:.7g}\u00b1{sigmas[n]:.2g}" for n in names)
-                    print(f"frame {est.last_frame} updates {est.n_updates} {parts}", flush=True)
-        finally:
-            if not args.no_stream:
-                try:
-                    link.set_streaming(False)
-                except UserError:
-                    pass
+            return 0
+        stream_frames(
+            link,
+            None,
+            frame_timeout_s=args.timeout,
+            keep_frames=False,
+            poll_every_frames=args.every_frames,
+            poll_every_s=0.0 if args.every_frames else args.interval,
+            max_polls=max_polls,
+            on_poll=show,
+        )
     return 0

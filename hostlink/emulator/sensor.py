@@ -3,7 +3,8 @@
 Frame sources hold what a real sensor holds: the centroids it measures and, for each identified star, the reference
 direction its onboard catalogue gives (here from the session's ``ra_deg``/``dec_deg`` columns, simulated or replayed;
 stars without one are passed to the estimator as unidentified). The emulated camera takes an exposure only when
-the host drains one, i.e. while streaming, so ``--replay`` streams the file's rows from its first frame, exactly once,
+the host drains one, i.e. while streaming (the firmware then decides, by its modelled budget, whether the estimator
+processes it), so ``--replay`` streams the file's rows from its first frame, exactly once,
 then reports :class:`~protocol.messages.EndOfStream`. The simulated source cycles through its frames forever,
 continuing the frame counter and the clock.
 
@@ -87,34 +88,23 @@ def session_frames(session: Session, cycle: bool = False) -> Iterator[SourceFram
 
 
 class EmulatedSensor:
-    """Firmware + frame source behind a lock: endpoints call :meth:`handle`, :meth:`next_stream_message` and
-    :meth:`background` from any thread.
+    """Firmware + frame source behind a lock: endpoints call :meth:`handle` and :meth:`next_stream_message` from any
+    thread.
 
-    Scheduling, as on a real sensor: taking and streaming exposures has priority; the recursive estimator is a
-    background task that :meth:`background` runs on the latest exposure when the endpoint has slack before its line
-    is free again (a frame it has no time for is skipped and counted in ``estimator_skipped``). Without a deadline
-    every frame is estimated (in-process links, tests). An endpoint opts in with ``sensor.deferred_estimation =
-    True``; otherwise :meth:`next_stream_message` estimates each exposure before returning it.
+    Each exposure goes through :meth:`onboard.firmware.Firmware.process_frame` before it is streamed: the firmware's
+    modelled budget (:class:`~onboard.firmware.EstimatorBudget`) decides whether the recursive estimator runs on it,
+    so which frames are estimated depends only on the session and the options, never on how busy the host is. When
+    the host machine is slower than the modelled sensor, the stream is slower than the line allows; the estimates
+    are the same.
     """
 
-    #: Assumed cost of one estimator update until one was measured [s].
-    INITIAL_ESTIMATOR_COST_S = 2e-3
-
-    def __init__(
-        self, firmware: Firmware, source: Iterator[SourceFrame], clock: Callable[[], float] = time.monotonic
-    ) -> None:
+    def __init__(self, firmware: Firmware, source: Iterator[SourceFrame]) -> None:
         self.firmware = firmware
         self._source = source
         self._lock = threading.Lock()
-        self._clock = clock
         self._ended = False
         self._end_sent = False
-        self._pending: SourceFrame | None = None
-        self._cost_s = self.INITIAL_ESTIMATOR_COST_S
         self.frames_sent = 0
-        self.estimator_skipped = 0
-        #: True: the endpoint calls :meth:`background`; False: every exposure is estimated inline.
-        self.deferred_estimation = False
 
     @property
     def streaming(self) -> bool:
@@ -129,8 +119,9 @@ class EmulatedSensor:
             return reply
 
     def next_stream_message(self) -> CentroidFrame | EndOfStream | None:
-        """While streaming: the next exposure, or EndOfStream once when the source is exhausted; None when not
-        streaming (or after the end was reported). The exposure is queued for :meth:`background`."""
+        """While streaming: the next exposure (already seen by the firmware and, if its budget allowed, by the
+        estimator), or EndOfStream once when the source is exhausted; None when not streaming (or after the end was
+        reported)."""
         with self._lock:
             if not self.firmware.streaming:
                 return None
@@ -145,32 +136,9 @@ class EmulatedSensor:
                 self._ended = True
                 self._end_sent = True
                 return EndOfStream(frames_sent=self.frames_sent)
-            self.firmware.count_frame(item.frame)
-            if self._pending is not None:
-                self.estimator_skipped += 1
-            self._pending = item
+            self.firmware.process_frame(item.frame, item.r_ref)
             self.frames_sent += 1
-            if not self.deferred_estimation:
-                self._estimate_pending()
             return item.frame
-
-    def background(self, deadline: float | None = None) -> bool:
-        """Run the estimator on the latest exposure if one is waiting and it fits before ``deadline`` (a
-        ``time.monotonic`` value; None = no limit). Returns whether it ran."""
-        with self._lock:
-            item = self._pending
-            if item is None:
-                return False
-            if deadline is not None and self._clock() + self._cost_s > deadline:
-                return False
-            self._estimate_pending()
-            return True
-
-    def _estimate_pending(self) -> None:
-        item, self._pending = self._pending, None
-        t0 = self._clock()
-        self.firmware.estimate_frame(item.frame, item.r_ref)
-        self._cost_s = 0.8 * self._cost_s + 0.2 * (self._clock() - t0)  # moving average of the cost
 
 
 class Pacer:

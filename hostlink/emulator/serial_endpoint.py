@@ -75,7 +75,6 @@ def serve(
         tty.setraw(slave)
         os.set_blocking(master, False)
         line = _PtyLine(master, options.baud, stop, options.drop_every)
-        sensor.deferred_estimation = True  # this loop calls sensor.background() when the line leaves time
         ready({"link": f"serial:{os.ttyname(slave)}@{options.baud}", "transport": "serial", "baud": options.baud})
         while not stop.is_set():
             for cmd in line.commands(0.0 if sensor.streaming else _IDLE_WAIT_S):
@@ -90,15 +89,12 @@ def serve(
                             text=f"{cmd.TYPE.name} is not a command",
                         )
                     )
+            # the next exposure (the firmware estimates it while the line is still busy with the previous one)
             msg = sensor.next_stream_message()
             if msg is not None:
                 line.send(msg, stream=True)
-                # the estimator runs while the line is busy with this frame (plus half the FIFO credit)
-                sensor.background(deadline=line.pacer.free_at + 0.5 * line.pacer.credit_s)
-            else:
-                sensor.background()  # not streaming (or the source ended): estimate the last exposure
-                if sensor.streaming:
-                    stop.wait(_IDLE_WAIT_S)  # source exhausted: nothing to send until a command arrives
+            elif sensor.streaming:
+                stop.wait(_IDLE_WAIT_S)  # source exhausted: nothing to send until a command arrives
     finally:
         os.close(master)
         os.close(slave)

@@ -6,7 +6,7 @@ from hostlink.emulator.sensor import EmulatedSensor, session_frames
 from hostlink.errors import UserError
 from hostlink.params_io import load_params
 from onboard import banks
-from onboard.firmware import Firmware, RecursiveEstimator
+from onboard.firmware import EstimatorBudget, Firmware, RecursiveEstimator
 from onboard.recursive import RecursiveConfig, parse_estimate_names
 
 DEFAULT_NOMINAL = "seed004_nominal.json"
@@ -22,8 +22,10 @@ def build_sensor(
     seed: int = 0,
     estimator: bool = True,
     estimate_names: str | None = None,
+    budget: EstimatorBudget | None = None,
 ) -> EmulatedSensor:
-    """Firmware with the factory set ``nominal`` in bank A, fed by ``replay`` or by the simulator."""
+    """Firmware with the factory set ``nominal`` in bank A, fed by ``replay`` or by the simulator; ``budget`` models
+    the sensor's processor (which exposures its estimator processes; default :class:`EstimatorBudget`)."""
     from hostlink.sky.simulate import SimConfig, data_file, simulate
 
     nominal_params = load_params(nominal or data_file(DEFAULT_NOMINAL))
@@ -32,7 +34,7 @@ def build_sensor(
     except ValueError as exc:
         raise UserError(f"--estimate: {exc}") from None
     seam = RecursiveEstimator(names, RecursiveConfig(centroid_noise_px=noise_px)) if estimator else None
-    firmware = Firmware(banks.factory_store(nominal_params), seam)
+    firmware = Firmware(banks.factory_store(nominal_params), seam, budget)
     if replay:
         from hostlink.session import read_session
 
