@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import can  # noqa: E402
 from emulator_fixtures import running_emulator  # noqa: E402
 
+from hostlink.emulator.slcan_hub import HubFrame, format_slcan_frame  # noqa: E402
 from hostlink.links import open_link  # noqa: E402
 from hostlink.links.can_link import (  # noqa: E402
     StreamAssembler,
@@ -34,7 +35,6 @@ from hostlink.links.can_link import (  # noqa: E402
     can_frames_for,
     physical_limit_stars_per_s,
 )
-from hostlink.links.slcan_hub import HubFrame, format_slcan_frame  # noqa: E402
 from protocol import can_frames as cf  # noqa: E402
 
 FASTEST_CAN_BITRATE = 1_000_000

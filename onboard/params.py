@@ -1,7 +1,7 @@
 """Camera parameter set: the data class, its parameter vector, and its validation.
 
 The meaning of every field is fixed by ``shared/spec/CAMERA_MODEL.md``. This module holds no I/O: the host reads
-and writes JSON files (``hostlink.params_io``); the sensor receives the same fields over the link. Both validate with
+and writes JSON files (``hostlink.files.params``); the sensor receives the same fields over the link. Both validate with
 :func:`validate_params`, so a set means the same thing, and is accepted or refused for the same reason, on every side.
 """
 

@@ -104,7 +104,7 @@ def crb_information(camera: CameraParams, frames, noise_px: float, idx: np.ndarr
 
 def sky_frames(seed: int, n_frames: int, noise_px: float = 0.05):
     """(true camera, frames as (x, y, r, identified), information (10, 10) at the truth) of a simulated session."""
-    from hostlink.replay import reference_vectors  # the project's simulator, for the multi-seed acceptance
+    from hostlink.calibration.replay import reference_vectors  # the project's simulator, for the multi-seed acceptance
     from hostlink.sky.simulate import seed004_config, simulate
 
     result = simulate(seed004_config(n_frames, seed=seed))

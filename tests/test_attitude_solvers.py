@@ -10,8 +10,8 @@ import pytest
 
 from hostlink.cli import main
 from hostlink.commands.attitude import solve_session
-from hostlink.params_io import save_params
-from hostlink.session import write_session
+from hostlink.files.params import save_params
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard import attitude as att
 from onboard.camera import pixels_to_unit

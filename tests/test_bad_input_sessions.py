@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hostlink.cli import main
-from hostlink.session import write_session
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import data_file, seed004_config, simulate
 
 NOMINAL = str(data_file("seed004_nominal.json"))

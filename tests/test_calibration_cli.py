@@ -5,7 +5,7 @@ import json
 import pytest
 
 from hostlink.cli import main
-from hostlink.session import write_session
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import data_file, seed004_camera, seed004_config, simulate
 
 NOMINAL = str(data_file("seed004_nominal.json"))
@@ -77,7 +77,7 @@ def test_missing_session_is_one_line_error(tmp_path, capsys):
 
 
 def test_reference_directions_come_from_hipparcos_when_the_file_has_none(session_path, tmp_path):
-    from hostlink.session import read_session
+    from hostlink.files.session import read_session
 
     s = read_session(session_path)
     s.ra_deg = None

@@ -8,7 +8,7 @@ from hostlink.calibration.interstar_methods import _sine_terms, calibrate_inters
 from hostlink.calibration.references import calibration_data_from_session
 from hostlink.calibration.seed004 import calibrate_seed004
 from hostlink.calibration.synthetic import synthetic_session
-from hostlink.params_io import load_params
+from hostlink.files.params import load_params
 from hostlink.sky.simulate import data_file, seed004_camera, seed004_config, simulate
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import independent_pairs

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from hostlink.cli import main
-from hostlink.session import Session, read_session, write_session
+from hostlink.files.session import Session, read_session, write_session
 
 NOMINAL = {
     "focal_length_mm": 70.0,
@@ -80,7 +80,7 @@ def test_unknown_magnitudes_are_written_as_empty_fields_not_nan(tmp_path):
 
 def test_a_nominal_with_an_empty_distortion_object_is_accepted(tmp_path):
     # "distortion may be empty" / "Missing distortion keys are zero" (a regression guard for the audit's check).
-    from hostlink.params_io import load_params
+    from hostlink.files.params import load_params
 
     path = tmp_path / "nominal.json"
     path.write_text(json.dumps(NOMINAL))
@@ -91,7 +91,7 @@ def test_a_nominal_with_an_empty_distortion_object_is_accepted(tmp_path):
 def test_files_saved_with_a_utf8_byte_order_mark_read_as_without_it(tmp_path):
     # Spreadsheets save "CSV UTF-8" with a byte-order mark; the header's first name is still `frame` (and a JSON file
     # with a BOM is still the same parameter file). Users expect the same result as without the mark.
-    from hostlink.params_io import load_params, load_params_with_extras
+    from hostlink.files.params import load_params, load_params_with_extras
 
     plain = _tiny_session(tmp_path)
     bom = tmp_path / "bom.csv"

@@ -9,8 +9,8 @@ import pytest
 from emulator_fixtures import hostlink, running_emulator
 
 from hostlink.emulator.sensor import Pacer
+from hostlink.files.session import read_session, write_session
 from hostlink.links import open_link
-from hostlink.session import read_session, write_session
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from protocol.framing import framed_size
 from protocol.messages import CENTROID_LSB_PX, frame_message_bytes
@@ -97,7 +97,7 @@ def test_estimates_read_over_the_link_equal_the_in_process_firmware_whatever_the
     by measured host time: every estimate read over a real pty (whose timing varies from run to run and with the
     machine's load) equals, bit for bit, the estimate of the same firmware fed the same file in process."""
     from hostlink.emulator.setup import build_sensor
-    from hostlink.sensor_client import stream_frames
+    from hostlink.links.operations import stream_frames
     from protocol.messages import ReadEstimate, StreamControl
 
     with running_emulator("serial", "--replay", str(replay_file)) as info:

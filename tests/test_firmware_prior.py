@@ -5,9 +5,9 @@ prior where unknown, no burn-in when every estimated parameter has one); an acce
 import numpy as np
 import pytest
 
+from hostlink.emulator.loopback import LoopbackLink
 from hostlink.emulator.sensor import EmulatedSensor, session_frames
-from hostlink.links.loopback import LoopbackLink
-from hostlink.sensor_client import accept_estimate, read_active_params, safe_upload, stream_frames
+from hostlink.links.operations import accept_estimate, read_active_params, safe_upload, stream_frames
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard import banks, recursive
 from onboard.firmware import Firmware, RecursiveEstimator

@@ -9,10 +9,10 @@ import numpy as np
 from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, make_frames
 from test_replay_cli import NOMINAL, session_information
 
+from hostlink.calibration.replay import replay_session
 from hostlink.cli import main
-from hostlink.params_io import load_params
-from hostlink.replay import replay_session
-from hostlink.session import write_session
+from hostlink.files.params import load_params
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard import fixedpoint, recursive
 from onboard.camera import pixels_to_unit

@@ -9,9 +9,9 @@ import time
 import can
 import pytest
 
+from hostlink.emulator.slcan_hub import HubFrame, SlcanHub, format_slcan_frame, frame_bits_worst_case, parse_slcan_frame
 from hostlink.errors import UserError
 from hostlink.links.can_link import CanTarget, parse_target
-from hostlink.links.slcan_hub import HubFrame, SlcanHub, format_slcan_frame, frame_bits_worst_case, parse_slcan_frame
 
 
 @pytest.fixture()

@@ -9,12 +9,12 @@ import pytest
 from emulator_fixtures import hostlink, running_emulator
 
 from hostlink.errors import LinkError, UserError
+from hostlink.files.params import save_params
+from hostlink.files.session import read_session, write_session
 from hostlink.links import open_link
 from hostlink.links.base import CommandRefused
 from hostlink.links.modbus_link import parse_target
-from hostlink.params_io import save_params
-from hostlink.sensor_client import float32_equal, read_active_params
-from hostlink.session import read_session, write_session
+from hostlink.links.operations import float32_equal, read_active_params
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard.banks import params_to_table
 from protocol.crc import crc32

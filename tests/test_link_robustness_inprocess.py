@@ -4,10 +4,10 @@ warnings, reply tags of a fresh link."""
 import numpy as np
 import pytest
 
+from hostlink.emulator.loopback import LoopbackLink
 from hostlink.emulator.modbus_endpoint import RegisterSensor
 from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
 from hostlink.errors import LinkError
-from hostlink.links.loopback import LoopbackLink
 from hostlink.links.modbus_adapter import ModbusAdapterError
 from hostlink.links.modbus_link import ModbusLink
 from onboard import banks

@@ -8,7 +8,7 @@ import time
 import pytest
 from emulator_fixtures import _CLI, _env, running_emulator
 
-from hostlink.session import read_session
+from hostlink.files.session import read_session
 
 #: How long to wait for the first frame to reach the stream's file [s]: only a bound for a machine that never
 #: delivers (the wait ends as soon as a frame is written; start-up on a loaded 2-core machine takes a few seconds).

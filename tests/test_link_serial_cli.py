@@ -6,8 +6,8 @@ import json
 import pytest
 from emulator_fixtures import hostlink, running_emulator
 
-from hostlink.params_io import load_params
-from hostlink.session import read_session
+from hostlink.files.params import load_params
+from hostlink.files.session import read_session
 from hostlink.sky.simulate import data_file
 from onboard.banks import params_to_table
 

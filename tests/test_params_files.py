@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from hostlink.errors import UserError
-from hostlink.params_io import load_params, save_params
+from hostlink.files.params import load_params, save_params
 from onboard.params import (
     CameraParams,
     Distortion,

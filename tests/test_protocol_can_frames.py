@@ -8,7 +8,7 @@ import cantools
 import numpy as np
 import pytest
 
-from hostlink.links.slcan_hub import frame_bits_worst_case
+from hostlink.emulator.slcan_hub import frame_bits_worst_case
 from protocol import can_frames as cf
 from protocol.messages import (
     Ack,

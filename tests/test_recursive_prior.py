@@ -12,8 +12,8 @@ import pytest
 from recursive_synth import SEED004_TRUE, crb_information, make_frames
 
 from hostlink.cli import main
-from hostlink.params_io import save_params
-from hostlink.session import write_session
+from hostlink.files.params import save_params
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, ParameterError

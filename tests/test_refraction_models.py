@@ -7,7 +7,7 @@ import erfa
 import numpy as np
 import pytest
 
-from hostlink.observed_correction import correct_observed
+from hostlink.sky.observed_correction import correct_observed
 from onboard import refraction as rf
 from onboard.site import Weather
 

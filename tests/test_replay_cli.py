@@ -14,10 +14,10 @@ from hostlink.calibration.crb import (
     validation_jacobian,
     validation_residual_px,
 )
+from hostlink.calibration.replay import reference_vectors
 from hostlink.cli import main
-from hostlink.params_io import load_params
-from hostlink.replay import reference_vectors
-from hostlink.session import write_session
+from hostlink.files.params import load_params
+from hostlink.files.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.params import ESTIMATE_NAMES, CameraParams, params_from_dict
 from onboard.prior import sigma_from_dict

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hostlink.observed_correction import attitude_observed_correction, correct_observed
+from hostlink.sky.observed_correction import attitude_observed_correction, correct_observed
 from onboard import attitude as att
 from onboard import camera, earth
 from onboard import timescale as ts
@@ -207,8 +207,8 @@ def table_files(tmp_path_factory):
     aberration: see the module docstring), so the reference directions do not come from the code under test."""
     import erfa
 
-    from hostlink.params_io import save_params
-    from hostlink.session import Session, write_session
+    from hostlink.files.params import save_params
+    from hostlink.files.session import Session, write_session
 
     jd1, jd2 = erfa.dtf2d("UTC", 2014, 7, 9, 11, 48, 59.6)
     npb = erfa.pnm06a(jd1, jd2 + TT_MINUS_UTC_2014_S / 86400.0)

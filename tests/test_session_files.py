@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hostlink.errors import UserError
-from hostlink.session import Session, read_session, write_session
+from hostlink.files.session import Session, read_session, write_session
 
 HEADER = "frame,t_utc,star_id,x_px,y_px,mag,ra_deg,dec_deg\n"
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hostlink.cli import main
-from hostlink.session import read_session
+from hostlink.files.session import read_session
 from hostlink.sky.simulate import data_file, read_truth
 
 

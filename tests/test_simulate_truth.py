@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hostlink.errors import UserError
-from hostlink.session import read_session, write_session
+from hostlink.files.session import read_session, write_session
 from hostlink.sky.apparent import apparent_directions, hip_lookup
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.simulate import (

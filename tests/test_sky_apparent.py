@@ -14,9 +14,9 @@ import erfa
 import numpy as np
 import pytest
 
+from hostlink.files.times import parse_iso_utc_many, utc_to_tt
 from hostlink.sky.apparent import apparent_directions, apparent_radec_deg, hip_lookup
 from hostlink.sky.catalogue import HIPPARCOS_EPOCH_JD_TT, load_catalogue
-from hostlink.timeutil import parse_iso_utc_many, utc_to_tt
 from onboard.camera import radec_to_unit
 
 ARCSEC = np.pi / 648000.0

@@ -6,6 +6,7 @@ import erfa
 import numpy as np
 import pytest
 
+from hostlink.files.times import parse_iso_utc_many, utc_to_tt
 from hostlink.sky.site import (
     local_north_east,
     observed_directions_truth,
@@ -17,7 +18,6 @@ from hostlink.sky.site import (
     zenith_distance_rad,
     zenith_true_of_date,
 )
-from hostlink.timeutil import parse_iso_utc_many, utc_to_tt
 from onboard.camera import radec_to_unit
 from onboard.site import Site, Weather
 

@@ -5,7 +5,6 @@ import json
 
 import numpy as np
 
-from hostlink.bench import _nan_to_null, estimate_rows
 from hostlink.calibration.bundle import (
     BundleOptions,
     accumulate_normals,
@@ -18,6 +17,7 @@ from hostlink.calibration.frames import apply_attitude_increment
 from hostlink.calibration.synthetic import synthetic_session
 from hostlink.cli import main
 from hostlink.commands.bench import design_nominal
+from hostlink.mission.bench import _nan_to_null, estimate_rows
 from onboard.params import CameraParams, Distortion
 
 #: 1280 x 320 detector, principal point far from the centre (900, 100), 18 deg across, radial distortion 3 px at the

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from hostlink.emulator.loopback import LoopbackLink
 from hostlink.emulator.sensor import EmulatedSensor, session_frames
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import CommandRefused
-from hostlink.links.loopback import LoopbackLink
-from hostlink.sensor_client import (
+from hostlink.links.operations import (
     accept_estimate,
     float32_equal,
     params_float32_dict,

@@ -18,7 +18,7 @@ import numpy as np
 
 from hostlink.calibration.data import CalibrationData, build_data
 from hostlink.errors import UserError
-from hostlink.session import Session
+from hostlink.files.session import Session
 from onboard.camera import radec_to_unit
 from onboard.site import Site, Weather
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.linkopts import add_link_arguments, open_link_from_args
+from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "commit the onboard estimate as the active parameter set (same safe path as upload)"
 DESCRIPTION = (
@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.params_io import emit_param_file
-    from hostlink.sensor_client import accept_estimate, params_float32_dict
+    from hostlink.files.params import emit_param_file
+    from hostlink.links.operations import accept_estimate, params_float32_dict
 
     with open_link_from_args(args) as link:
         result, estimate = accept_estimate(link)

@@ -16,7 +16,7 @@ Refraction (ground and ship-borne sessions, needs --site and --weather; seed 001
   there, rotate back: C = C_g R_ig.
 - ``observed`` (seed 001 sec. 3, host-side comparison): the reference vectors aberrated by the site velocity (the
   same function, without weather); each measured vector turned away from the zenith by the refraction at its
-  apparent zenith distance (``hostlink.observed_correction``), then solve.
+  apparent zenith distance (``hostlink.sky.observed_correction``), then solve.
 - ``none``: no refraction correction (diurnal aberration still applied with --site).
 ``--precision float32`` runs every onboard step in float32, as the sensor does.
 
@@ -31,8 +31,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
-from hostlink.siteopts import add_site_arguments, site_and_weather
 
 HELP = "attitude per frame (b = C r) from a session, with refraction correction for ground sessions"
 DESCRIPTION = (
@@ -140,9 +140,9 @@ def reference_vectors(session):
         usable = identified & np.isfinite(ra) & np.isfinite(dec)
         r = radec_to_unit(np.radians(np.where(usable, ra, 0.0)), np.radians(np.where(usable, dec, 0.0)))
         return r, usable
+    from hostlink.files.times import parse_iso_utc_many
     from hostlink.sky.apparent import apparent_directions, hip_lookup
     from hostlink.sky.catalogue import load_catalogue
-    from hostlink.timeutil import parse_iso_utc_many
 
     r = np.zeros((len(session), 3))
     if np.any(identified):
@@ -182,8 +182,8 @@ def solve_session(
     it, such as seed 001, and for showing its size; the command always applies it with a site)."""
     import numpy as np
 
-    from hostlink.observed_correction import attitude_observed_correction, correct_observed
-    from hostlink.timeutil import fixed_time_from_iso
+    from hostlink.files.times import fixed_time_from_iso
+    from hostlink.sky.observed_correction import attitude_observed_correction, correct_observed
     from onboard import attitude as att
     from onboard.camera import pixels_to_unit
     from onboard.earth import local_frame_matrix, site_velocity_tod_m_s
@@ -297,8 +297,8 @@ def write_attitudes(path: str, cols: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hostlink.params_io import load_params
-    from hostlink.session import check_on_detector, read_session
+    from hostlink.files.params import load_params
+    from hostlink.files.session import check_on_detector, read_session
 
     site, weather = site_and_weather(args)
     mode = refraction_mode(args.refraction, weather)

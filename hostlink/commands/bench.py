@@ -1,10 +1,10 @@
-"""``hostlink bench``: the main job, end to end against an emulated sensor (see ``hostlink.bench``)."""
+"""``hostlink bench``: the main job, end to end against an emulated sensor (see ``hostlink.mission.bench``)."""
 
 from __future__ import annotations
 
 import argparse
 
-from hostlink.siteopts import add_site_arguments
+from hostlink.commands.siteopts import add_site_arguments
 
 HELP = "the main job: emulated sensor -> stream -> calibrate -> safe upload -> onboard drift tracking -> report"
 DESCRIPTION = (
@@ -106,10 +106,10 @@ def run(args: argparse.Namespace) -> int:
     import math
     from pathlib import Path
 
-    from hostlink.bench import BenchConfig, run_bench
+    from hostlink.commands.siteopts import site_and_weather
     from hostlink.errors import UserError
-    from hostlink.params_io import load_params
-    from hostlink.siteopts import site_and_weather
+    from hostlink.files.params import load_params
+    from hostlink.mission.bench import BenchConfig, run_bench
 
     if not (math.isfinite(args.noise_px) and 0 < args.noise_px <= 5):
         raise UserError(f"--noise-px must be in (0, 5] px, got {args.noise_px}")
@@ -169,7 +169,7 @@ def design_nominal(camera):
 
 
 def _print_table(summary: dict) -> None:
-    from hostlink.bench import summary_table
+    from hostlink.mission.bench import summary_table
 
     rows = summary_table(summary)
     try:

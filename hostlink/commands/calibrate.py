@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
-from hostlink.siteopts import add_site_arguments, site_and_weather
 
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
 DESCRIPTION = (
@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
 
     from hostlink.calibration.references import calibration_data_from_session
     from hostlink.calibration.run import calibrate, result_extras
-    from hostlink.params_io import load_params, save_params
-    from hostlink.session import check_on_detector, read_session
+    from hostlink.files.params import load_params, save_params
+    from hostlink.files.session import check_on_detector, read_session
     from onboard.params import ParameterError, validate_params
 
     estimate = _parse_estimate(args.estimate)

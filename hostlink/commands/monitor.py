@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.linkopts import add_link_arguments, open_link_from_args
+from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "watch the onboard estimate (values, 1-sigma, updates) while the sensor runs"
 DESCRIPTION = (
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from hostlink.errors import UserError
-    from hostlink.sensor_client import EstimatePoll, poll_estimate, stream_frames
+    from hostlink.links.operations import EstimatePoll, poll_estimate, stream_frames
     from protocol.messages import ESTIMATE_FIELDS
 
     if args.count < 0 or args.interval <= 0 or args.every_frames < 0:

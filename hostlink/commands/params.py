@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.linkopts import add_link_arguments, open_link_from_args
+from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "print the sensor's active parameters as a camera parameter file"
 DESCRIPTION = (
@@ -22,8 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.params_io import emit_param_file
-    from hostlink.sensor_client import params_float32_dict, read_active_params
+    from hostlink.files.params import emit_param_file
+    from hostlink.links.operations import params_float32_dict, read_active_params
 
     with open_link_from_args(args) as link:
         active = read_active_params(link)

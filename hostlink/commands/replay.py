@@ -55,10 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import math
 
+    from hostlink.calibration.replay import estimate_extras, precision_dtype, replay_session, write_trace
     from hostlink.errors import UserError
-    from hostlink.params_io import load_params_with_extras, save_params
-    from hostlink.replay import estimate_extras, precision_dtype, replay_session, write_trace
-    from hostlink.session import check_on_detector, read_session
+    from hostlink.files.params import load_params_with_extras, save_params
+    from hostlink.files.session import check_on_detector, read_session
     from onboard.params import ParameterError
     from onboard.prior import refined_mask, sigma_from_dict
     from onboard.recursive import RecursiveConfig, parse_estimate_names

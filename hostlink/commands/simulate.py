@@ -10,8 +10,8 @@ import argparse
 import math
 import sys
 
+from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
-from hostlink.siteopts import add_site_arguments, site_and_weather
 
 HELP = "simulate a session of real-sky (Hipparcos) observations through a camera, with its truth"
 DESCRIPTION = (
@@ -102,8 +102,8 @@ def _progress(total: int):
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hostlink.params_io import load_params
-    from hostlink.session import write_session
+    from hostlink.files.params import load_params
+    from hostlink.files.session import write_session
     from hostlink.sky.simulate import SimConfig, seed004_config, simulate, truth_path_for, write_truth
 
     site, weather = site_and_weather(args)

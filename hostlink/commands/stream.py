@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.linkopts import add_link_arguments, open_link_from_args
+from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "record N centroid frames from a sensor into a session CSV"
 DESCRIPTION = (
@@ -26,9 +26,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from hostlink.errors import UserError
+    from hostlink.files.session import SessionWriter
+    from hostlink.links.operations import StreamResult, frames_to_session, stream_frames
     from hostlink.progress import progress_bar
-    from hostlink.sensor_client import StreamResult, frames_to_session, stream_frames
-    from hostlink.session import SessionWriter
 
     if args.frames < 1:
         raise UserError("--frames must be >= 1")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.linkopts import add_link_arguments, open_link_from_args
+from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "validate, upload, verify and commit a parameter file on a sensor (A/B banks)"
 DESCRIPTION = (
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from hostlink.errors import UserError
-    from hostlink.sensor_client import float32_equal, safe_upload
+    from hostlink.links.operations import float32_equal, safe_upload
     from onboard.prior import refined_mask
 
     params, sigma = load_unchecked(args.params) if args.no_host_check else load_with_sigma(args.params)
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
 def load_with_sigma(path: str):
     """A validated parameter file and its ``sigma`` (10 values, NaN = unknown), one-line UserError otherwise."""
     from hostlink.errors import UserError
-    from hostlink.params_io import load_params_with_extras
+    from hostlink.files.params import load_params_with_extras
     from onboard.params import ParameterError
     from onboard.prior import sigma_from_dict
 

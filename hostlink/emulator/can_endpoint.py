@@ -5,7 +5,7 @@ sensor as one node on it.
 the host opens it with python-can's ``slcan`` interface like a USB SLCAN adapter. The sensor node speaks the frames
 of ``protocol.can_frames``: COMMAND / STAGE_FLOAT in, ACK out, ISO-TP both ways for long messages, and the stream as
 TIME_BASE + FRAME_HEADER + one STAR per star. Pacing is the bus's: a frame leaves only when the hub has bus time for
-it (``hostlink.links.slcan_hub``), so the stream runs at the bit rate, never faster.
+it (``hostlink.emulator.slcan_hub``), so the stream runs at the bit rate, never faster.
 
 Two threads: the command reader (decode, ``sensor.handle``, reply) and the streamer. A command and its reply are
 atomic with respect to the stream (one lock), so the ACK of STREAM_CONTROL precedes the first frame of the stream it
@@ -20,9 +20,9 @@ from collections.abc import Callable
 import can
 
 from hostlink.emulator.sensor import EmulatedSensor, EndpointOptions
+from hostlink.emulator.slcan_hub import SLCAN_BITRATES, HubBus, SlcanHub, frame_bits_worst_case
 from hostlink.errors import UserError
 from hostlink.links.can_link import IsoTpChannel
-from hostlink.links.slcan_hub import SLCAN_BITRATES, HubBus, SlcanHub, frame_bits_worst_case
 from protocol import can_frames as cf
 from protocol.messages import (
     CentroidFrame,

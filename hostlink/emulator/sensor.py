@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostlink.session import Session
-from hostlink.wiretime import iso_to_t_us
+from hostlink.files.session import Session
+from hostlink.files.wiretime import iso_to_t_us
 from onboard.camera import radec_to_unit
 from onboard.firmware import Firmware
 from protocol.messages import MAX_STARS, CentroidFrame, EndOfStream, Message, StreamControl

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from hostlink.emulator.sensor import EmulatedSensor, session_frames
 from hostlink.errors import UserError
-from hostlink.params_io import load_params
+from hostlink.files.params import load_params
 from onboard import banks
 from onboard.firmware import EstimatorBudget, Firmware, RecursiveEstimator
 from onboard.recursive import RecursiveConfig, parse_estimate_names
@@ -36,7 +36,7 @@ def build_sensor(
     seam = RecursiveEstimator(names, RecursiveConfig(centroid_noise_px=noise_px)) if estimator else None
     firmware = Firmware(banks.factory_store(nominal_params), seam, budget)
     if replay:
-        from hostlink.session import read_session
+        from hostlink.files.session import read_session
 
         session = read_session(replay)
         cycle = False

@@ -1,6 +1,6 @@
 """The one ``Link`` interface every transport implements (serial, CAN, Modbus), like python-can's ``BusABC``.
 
-The rest of the host (``hostlink.sensor_client`` and the commands) only ever holds a :class:`Link`. Its operations
+The rest of the host (``hostlink.links.operations`` and the commands) only ever holds a :class:`Link`. Its operations
 are the sensor's commands, one method each, so they can be carried by request/response messages (serial, CAN:
 subclass :class:`MessageLink` and implement only ``_send`` / ``_receive``) or by registers (Modbus: subclass
 :class:`Link` and implement each operation with register reads/writes). Whatever the transport, the sensor firmware

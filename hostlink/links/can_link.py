@@ -6,7 +6,7 @@ CAN bit rate in bit/s (default 500000; passed to python-can as ``bitrate``) and 
 interface (numbers are converted). Examples:
 
 * ``can:slcan:socket://127.0.0.1:PORT@500000`` -- what ``hostlink emulate --transport can`` prints (an SLCAN adapter
-  emulated over TCP by ``hostlink.links.slcan_hub``);
+  emulated over TCP by ``hostlink.emulator.slcan_hub``);
 * ``can:slcan:/dev/ttyACM0@500000,tty_baudrate=115200`` -- a real SLCAN (CANable, Lawicel) adapter;
 * ``can:socketcan:can0`` -- a Linux SocketCAN interface (the bit rate is set with ``ip link``, not here);
 * ``can:pcan:PCAN_USBBUS1@250000``, ``can:kvaser:0@500000``, ``can:virtual:test`` -- any other python-can interface.
@@ -434,7 +434,7 @@ def physical_limit_stars_per_s(frames: list[CentroidFrame], info: dict) -> float
     """Most stars per second a CAN bus at ``info["bitrate"]`` carries for these frames: every frame is a worst-case
     8-byte standard frame of 135 bits (``slcan_hub.frame_bits_worst_case``), so stars/s = bitrate / 135 / (CAN
     frames per star). Benchmark hook of benchmarks/bench_links.py (hostlink/links/INTERFACE.md)."""
-    from hostlink.links.slcan_hub import frame_bits_worst_case
+    from hostlink.emulator.slcan_hub import frame_bits_worst_case
 
     stars = sum(f.n_stars for f in frames)
     bits = frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False)

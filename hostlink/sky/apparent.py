@@ -10,8 +10,8 @@ The chain, all in pyerfa (IAU 2006/2000A):
 3. Equinox-based right ascension ``ra = ri - eo``, with ``eo = ERA - GST`` the equation of the origins returned by
    ``apci13`` (ERFA atci13 note 5): this moves CIRS onto the true equator and equinox of date.
 
-Times: the frame's UTC is converted to TT (``hostlink.timeutil.utc_to_tt``) and used where ERFA asks for TDB; TDB - TT
-is below 2 ms, whose effect on aberration is below 1e-9 arcsec. UT1 does not enter a geocentric apparent place.
+Times: the frame's UTC is converted to TT (``hostlink.files.times.utc_to_tt``) and used where ERFA asks for TDB;
+TDB - TT is below 2 ms, whose effect on aberration is below 1e-9 arcsec. UT1 does not enter a geocentric apparent place.
 Every frame gets its own ``apci13`` call (about 40 us each), so no interpolation of aberration or nutation is needed.
 """
 
@@ -24,8 +24,8 @@ import erfa
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.times import utc_to_tt
 from hostlink.sky.catalogue import HIPPARCOS_EPOCH_JD_TT, Catalogue
-from hostlink.timeutil import utc_to_tt
 from onboard.camera import radec_to_unit, unit_to_radec
 
 _MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
@@ -122,7 +122,7 @@ def hip_lookup(cat: Catalogue, hip_ids: np.ndarray) -> np.ndarray:
 
 
 def session_reference_directions(session, cat: Catalogue | None = None) -> np.ndarray:
-    """Reference direction r (N, 3) of every row of a ``hostlink.session.Session`` (INTERFACES.md): its
+    """Reference direction r (N, 3) of every row of a ``hostlink.files.session.Session`` (INTERFACES.md): its
     ra_deg/dec_deg when the file has them, else the apparent place of its star_id at the row's frame time from the
     full Hipparcos catalogue (``cat`` defaults to it). Unidentified rows (star_id 0) are NaN."""
     n = len(session)

@@ -45,7 +45,8 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.session import Session
+from hostlink.files.session import Session
+from hostlink.files.times import parse_iso_utc, parse_iso_utc_many
 from hostlink.sky.apparent import StarsJ2000, apparent_from_astrometry, frame_astrometry, stars_at_j2000
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.site import (
@@ -58,7 +59,6 @@ from hostlink.sky.site import (
     zenith_distance_rad,
     zenith_true_of_date,
 )
-from hostlink.timeutil import parse_iso_utc, parse_iso_utc_many
 from onboard.camera import distortion_px, pixels_to_unit, unit_to_pixels, unit_to_radec
 from onboard.params import CameraParams, distortion_from_seed004, params_from_dict, params_to_dict
 from onboard.site import Site, Weather
@@ -240,7 +240,7 @@ def _check_config(cfg: SimConfig) -> None:
 def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame time strings (object array, ISO 8601 with ms and Z) and their UTC two-part Julian dates.
 
-    t_k = t0 + round(k * interval in ms) (civil arithmetic as ``hostlink.timeutil.iso_plus_seconds``)."""
+    t_k = t0 + round(k * interval in ms) (civil arithmetic as ``hostlink.files.times.iso_plus_seconds``)."""
     y, mo, d, h, mi, s = parse_iso_utc(t0_iso)
     base = np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}", "us") + np.timedelta64(round(s * 1e6), "us")
     offsets_ms = np.round(np.arange(frames, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import erfa
 import numpy as np
 
-from hostlink.timeutil import utc_to_tt, utc_to_ut1
+from hostlink.files.times import utc_to_tt, utc_to_ut1
 from onboard.site import Site, Weather
 
 #: Largest zenith distance the refraction functions accept [deg]: ERFA's A tan z + B tan^3 z model is meant for

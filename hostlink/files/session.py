@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.timeutil import parse_iso_utc_many
+from hostlink.files.times import parse_iso_utc_many
 
 REQUIRED_COLUMNS = ("frame", "t_utc", "star_id", "x_px", "y_px")
 OPTIONAL_COLUMNS = ("mag", "ra_deg", "dec_deg")

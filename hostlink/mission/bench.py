@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import LinkError, UserError
-from hostlink.params_io import load_params, save_params
+from hostlink.files.params import load_params, save_params
 from onboard.params import CameraParams, Distortion
 from onboard.site import Site, Weather
 
@@ -81,8 +81,8 @@ class Phase:
 # ------------------------------------------------------------------------------------------------ the steps
 def simulate_phases(cfg: BenchConfig):
     """Calibration phase (static camera) + drift phase (sinusoidal focal drift), one continuous session."""
+    from hostlink.files.times import iso_plus_seconds
     from hostlink.sky.simulate import SimConfig, simulate
-    from hostlink.timeutil import iso_plus_seconds
 
     common = dict(
         camera=cfg.camera,
@@ -111,7 +111,7 @@ def simulate_phases(cfg: BenchConfig):
 
 def concatenate_sessions(first, second, frame_offset: int):
     """One session: ``second``'s frame numbers shifted by ``frame_offset`` and appended to ``first``."""
-    from hostlink.session import Session
+    from hostlink.files.session import Session
 
     def cat(a, b):
         return None if a is None or b is None else np.concatenate([a, b])
@@ -191,12 +191,12 @@ class Emulator:
 
 
 def stream_phase(link, n_frames: int, poll_every: int, progress: Callable[[int], None]):
-    """Stream ``n_frames`` frames through the one stream loop (``sensor_client.stream_frames``), reading the onboard
+    """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading the onboard
     estimate every ``poll_every`` frames and once more at the end of the phase.
 
     Returns (frames, estimates, estimator) where estimates are (frame counter of the estimate's last update, Estimate)
     and ``estimator`` counts the phase's work: exposures the sensor took and estimator updates (from its status)."""
-    from hostlink.sensor_client import poll_estimate, stream_frames
+    from hostlink.links.operations import poll_estimate, stream_frames
 
     before = link.status()
     result = stream_frames(link, n_frames, progress=progress, poll_every_frames=poll_every)
@@ -269,10 +269,10 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     """Run the whole bench; returns the summary (also written to ``out_dir/summary.json``)."""
     from hostlink.calibration.references import calibration_data_from_session
     from hostlink.calibration.run import calibrate
+    from hostlink.files.session import write_session
     from hostlink.links import open_link
+    from hostlink.links.operations import frames_to_session, read_active_params, safe_upload
     from hostlink.progress import progress_bar
-    from hostlink.sensor_client import frames_to_session, read_active_params, safe_upload
-    from hostlink.session import write_session
     from hostlink.sky.simulate import data_file
     from onboard.prior import sigma_from_dict
 
@@ -442,7 +442,7 @@ def summarise(
     steps,
     phases,
 ) -> dict:
-    from hostlink.sensor_client import float32_equal
+    from hostlink.links.operations import float32_equal
     from onboard.prior import sigma_from_dict
 
     # attitude against truth, for the frames the calibration used

@@ -8,7 +8,7 @@ import calendar
 import re
 from datetime import datetime, timedelta
 
-from hostlink.timeutil import parse_iso_utc
+from hostlink.files.times import parse_iso_utc
 
 _EPOCH = datetime(1970, 1, 1)
 _SECONDS = re.compile(r":(\d{2})(?:\.(\d+))?(?:Z|[+-]00:?00)?$")

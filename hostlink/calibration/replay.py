@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.session import Session
+from hostlink.files.session import Session
 from onboard import recursive
 from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.prior import prior_config, refined_mask, sigma_to_dict

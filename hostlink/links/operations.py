@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.errors import LinkError, UserError
+from hostlink.files.session import Session
+from hostlink.files.wiretime import t_us_to_iso
 from hostlink.links.base import CommandRefused, Link
-from hostlink.session import Session
-from hostlink.wiretime import t_us_to_iso
 from onboard.banks import params_to_table, table_to_params, table_to_sigma
 from onboard.firmware import estimate_to_params, estimate_to_sigma
 from onboard.params import CameraParams, ParameterError, validate_params
