@@ -191,8 +191,8 @@ class Emulator:
 
 
 def stream_phase(link, n_frames: int, poll_every: int, progress: Callable[[int], None]):
-    """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading the onboard
-    estimate every ``poll_every`` frames and once more at the end of the phase.
+    """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading
+    the onboard estimate every ``poll_every`` frames and once more at the end of the phase.
 
     Returns (frames, estimates, estimator) where estimates are (frame counter of the estimate's last update, Estimate)
     and ``estimator`` counts the phase's work: exposures the sensor took and estimator updates (from its status)."""
