@@ -29,6 +29,8 @@ COMMANDS: tuple[str, ...] = (
     "params",
     "monitor",
     "accept",
+    "example",
+    "import-can",
 )
 
 
@@ -43,18 +45,34 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
+#: The distribution that installs the ``hostlink`` console script (pyproject.toml ``[project] name``).
+DISTRIBUTION = "startracker-companion"
+
+
+def package_version() -> str:
+    """The installed distribution's version (``importlib.metadata``); ``unknown`` when run from an uninstalled tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(DISTRIBUTION)
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hostlink",
         description="Star-sensor companion: simulate, calibrate, replay the onboard estimator, and talk to "
         "sensors (real or emulated) over serial, CAN or Modbus.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
+        module_name = f"hostlink.commands.{name.replace('-', '_')}"
         try:
-            module = importlib.import_module(f"hostlink.commands.{name}")
+            module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
-            if exc.name != f"hostlink.commands.{name}":
+            if exc.name != module_name:
                 raise
             continue
         p = sub.add_parser(name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))

@@ -104,13 +104,13 @@ def crb_information(camera: CameraParams, frames, noise_px: float, idx: np.ndarr
 
 def sky_frames(seed: int, n_frames: int, noise_px: float = 0.05):
     """(true camera, frames as (x, y, r, identified), information (10, 10) at the truth) of a simulated session."""
-    from hostlink.calibration.replay import reference_vectors  # the project's simulator, for the multi-seed acceptance
-    from hostlink.sky.simulate import seed004_config, simulate
+    from hostlink.sky.references import session_references
+    from hostlink.sky.simulate import seed004_config, simulate  # the project's simulator: multi-seed acceptance
 
     result = simulate(seed004_config(n_frames, seed=seed))
     camera = params_from_dict(result.truth["camera"])
     s = result.session
-    r_all = reference_vectors(s)
+    r_all = session_references(s).r
     ident = (s.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
     bad = ~ident
     bad[np.array(result.truth["misidentified_rows"], dtype=int)] = True

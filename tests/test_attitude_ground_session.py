@@ -4,7 +4,7 @@ error from tens of arcseconds RMS uncorrected to under 0.7" RMS, and to the Cram
 The session is the real sky (Hipparcos, apparent place, diurnal aberration and refraction from ERFA in
 ``hostlink.sky.simulate``, checked against erfa.atco13 to 1e-4") through seed 004's camera
 (hostlink/data/seed004_camera.json, 8.4 deg field) with 0.05 px centroid noise; the attitude is
-``hostlink.commands.attitude.solve_session``, the code behind ``hostlink attitude`` (with --site it always applies
+``hostlink.sky.attitude.solve_attitudes``, the code behind ``hostlink attitude`` (with --site it always applies
 the diurnal aberration of the site's rotation to the reference directions, ``onboard.refraction.topocentric_observed``).
 
 Whether 0.7" is reachable is a matter of star count, not of the correction: the floor for 0.05 px is about
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hostlink.commands.attitude import solve_session
+from hostlink.sky.attitude import solve_attitudes
 from hostlink.sky.simulate import SimConfig, simulate
 from hostlink.sky.site import site_velocity_true_of_date
 from onboard import attitude as att
@@ -98,9 +98,9 @@ def _rms_by_mode(sim, cam, dtype):
     c_true = sim.attitude
     rms = {}
     for mode in ("none", "reference", "observed"):
-        cols = solve_session(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
-        assert np.all(cols["status"] == "ok")
-        rms[mode] = _boresight_rms_arcsec(cols["C"], c_true)
+        cols = solve_attitudes(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
+        assert np.all(cols.status == "ok")
+        rms[mode] = _boresight_rms_arcsec(cols.C, c_true)
     return rms
 
 
@@ -154,10 +154,10 @@ def test_without_the_diurnal_term_the_attitude_carries_the_site_aberration_and_w
     _, sims = sessions
     sim = sims["hp6.5"]
     for mode in ("reference", "observed"):
-        with_it = solve_session(sim.session, _camera(), SITE, WEATHER, 0.0, mode)
-        without = solve_session(sim.session, _camera(), SITE, WEATHER, 0.0, mode, diurnal_aberration=False)
-        slope_with, shift_with = _boresight_shift_along_diurnal(with_it["C"], sim)
-        slope_without, shift_without = _boresight_shift_along_diurnal(without["C"], sim)
+        with_it = solve_attitudes(sim.session, _camera(), SITE, WEATHER, 0.0, mode)
+        without = solve_attitudes(sim.session, _camera(), SITE, WEATHER, 0.0, mode, diurnal_aberration=False)
+        slope_with, shift_with = _boresight_shift_along_diurnal(with_it.C, sim)
+        slope_without, shift_without = _boresight_shift_along_diurnal(without.C, sim)
         # the noise of the slope: 0.6" / sqrt(2) per axis / sqrt(400 frames) over a 0.2" shift = 0.11; 0.4 is 3.7 sd
         # (measured: -0.94 / -0.95 without, +0.06 / +0.05 with, seed 0)
         assert abs(slope_without + 1.0) < 0.4
@@ -174,9 +174,9 @@ def test_reference_and_observed_methods_agree_within_0p1_arcsec_frame_by_frame(s
     # 0.013" about it, at most over 400 frames)
     cam, sims = sessions
     sim = sims["hp6.5"]
-    ref = solve_session(sim.session, cam, SITE, WEATHER, 0.0, "reference")
-    obs = solve_session(sim.session, cam, SITE, WEATHER, 0.0, "observed")
-    np.testing.assert_array_equal(ref["n_used"], obs["n_used"])
-    a, b = ref["C"], obs["C"]
+    ref = solve_attitudes(sim.session, cam, SITE, WEATHER, 0.0, "reference")
+    obs = solve_attitudes(sim.session, cam, SITE, WEATHER, 0.0, "observed")
+    np.testing.assert_array_equal(ref.n_used, obs.n_used)
+    a, b = ref.C, obs.C
     gap = np.linalg.norm(np.cross(a, b), axis=2) / ARCSEC  # each sensor axis, (frames, 3)
     assert gap.max() < 0.1

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from hostlink.cli import main
-from hostlink.commands.attitude import solve_session
 from hostlink.files.params import save_params
 from hostlink.files.session import write_session
+from hostlink.sky.attitude import solve_attitudes
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard import attitude as att
 from onboard.camera import pixels_to_unit
@@ -172,9 +172,9 @@ def test_refraction_correction_takes_a_ground_session_to_the_noise_floor(ground_
     floor = _crb_boresight_rms_arcsec(sim.session, cam, 0.05)
     rms = {}
     for mode in ("none", "reference", "observed"):
-        cols = solve_session(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
-        assert np.all(cols["status"] == "ok")
-        rms[mode] = float(np.sqrt(np.mean(_boresight_errors_arcsec(cols["C"], c_true) ** 2)))
+        cols = solve_attitudes(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
+        assert np.all(cols.status == "ok")
+        rms[mode] = float(np.sqrt(np.mean(_boresight_errors_arcsec(cols.C, c_true) ** 2)))
     assert rms["none"] > 60.0  # refraction at 5-75 deg: 95" RMS measured
     # corrected: at the Cramer-Rao floor of 0.05 px noise (0.85" here); 1.15 covers the 150-frame RMS scatter
     assert rms["reference"] < 1.15 * floor
@@ -187,8 +187,8 @@ def test_refraction_correction_leaves_no_systematic_error(ground_sessions, dtype
     sim = sims[0.0]
     c_true = np.array(sim.truth["attitude"]).reshape(-1, 3, 3)
     for mode in ("reference", "observed"):
-        cols = solve_session(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
-        err = _boresight_errors_arcsec(cols["C"], c_true)
+        cols = solve_attitudes(sim.session, cam, SITE, WEATHER, 0.0, mode, dtype=dtype)
+        err = _boresight_errors_arcsec(cols.C, c_true)
         # float64: ERFA's one-step inverse vs ours (0.003" at 75 deg) and nutation truncation in the zenith;
         # float32: plus rounding of unit vectors and of the local frame (measured 0.013" RMS)
         assert float(np.sqrt(np.mean(err**2))) < bound_arcsec
@@ -320,10 +320,10 @@ def test_ship_attitude_on_a_leap_second_day_follows_the_erfa_local_frame():
     )
     session = simulate(cfg).session
     # mounting (0, 0, -90) as in the test above: sensor x = bow, sensor y = -starboard, boresight z = mast
-    cols = solve_session(session, seed004_camera(), SITE, None, 0.0, "none", mounting_rad=(0.0, 0.0, -np.pi / 2))
-    assert np.all(cols["status"] == "ok")
-    yaw, pitch, roll = np.radians(cols["ship_ypr_deg"].T)
-    c = cols["C"]
+    cols = solve_attitudes(session, seed004_camera(), SITE, None, 0.0, "none", mounting_rad=(0.0, 0.0, -np.pi / 2))
+    assert np.all(cols.status == "ok")
+    yaw, pitch, roll = np.radians(cols.ship_ypr_deg.T)
+    c = cols.C
     jd1, jd2 = session.frame_times_jd()
     zen = zenith_true_of_date(jd1, jd2, SITE)
     north, east = local_north_east(zen)

@@ -58,7 +58,7 @@ def test_seed_methods_are_selectable(session_path, tmp_path, method):
 @pytest.mark.parametrize(
     "extra,needle",
     [
-        (["--estimate", "f,bogus"], "unknown name"),
+        (["--estimate", "f,bogus"], "unknown parameter 'bogus'"),
         (["--noise-px", "-1"], "--noise-px"),
         (["--weather", "10,1013"], "--weather needs --site"),
     ],

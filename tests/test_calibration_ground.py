@@ -14,8 +14,7 @@ import pytest
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
 from hostlink.calibration.crb import validation_residual_px
-from hostlink.calibration.data import build_data
-from hostlink.calibration.references import calibration_data_from_session
+from hostlink.calibration.data import build_data, calibration_data_from_session
 from hostlink.files.params import load_params
 from hostlink.sky.simulate import SimConfig, data_file, seed004_camera, simulate
 from hostlink.sky.site import zenith_true_of_date

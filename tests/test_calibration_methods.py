@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from hostlink.calibration.crb import validation_residual_px
+from hostlink.calibration.data import calibration_data_from_session
 from hostlink.calibration.interstar_methods import _sine_terms, calibrate_interstar
-from hostlink.calibration.references import calibration_data_from_session
 from hostlink.calibration.seed004 import calibrate_seed004
 from hostlink.calibration.synthetic import synthetic_session
 from hostlink.files.params import load_params

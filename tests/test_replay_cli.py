@@ -14,10 +14,10 @@ from hostlink.calibration.crb import (
     validation_jacobian,
     validation_residual_px,
 )
-from hostlink.calibration.replay import reference_vectors
 from hostlink.cli import main
 from hostlink.files.params import load_params
 from hostlink.files.session import write_session
+from hostlink.sky.references import session_references
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.params import ESTIMATE_NAMES, CameraParams, params_from_dict
 from onboard.prior import sigma_from_dict
@@ -37,7 +37,7 @@ def session_information(result, noise_px: float) -> tuple[CameraParams, np.ndarr
     camera = params_from_dict(truth["camera"])
     theta = camera.model_vector()
     s = result.session
-    r_all = reference_vectors(s)
+    r_all = session_references(s).r
     bad = np.zeros(len(s), bool)
     bad[np.array(truth["misidentified_rows"], dtype=int)] = True
     bad |= (s.star_id == 0) | ~np.all(np.isfinite(r_all), axis=1)

@@ -111,12 +111,12 @@ def test_apparent_place_differs_from_catalogue_by_precession_since_1991():
 def test_session_without_radec_gets_the_same_reference_directions_as_the_simulator_wrote():
     from dataclasses import replace
 
-    from hostlink.sky.apparent import session_reference_directions
+    from hostlink.sky.references import session_references
     from hostlink.sky.simulate import seed004_config, simulate
 
     s = simulate(replace(seed004_config(frames=5, seed=1), false_star_fraction=0.2)).session
-    with_radec = session_reference_directions(s)
-    without = session_reference_directions(replace(s, ra_deg=None, dec_deg=None))
+    with_radec = session_references(s).r
+    without = session_references(replace(s, ra_deg=None, dec_deg=None)).r
     ident = s.star_id != 0
     assert np.all(np.isnan(without[~ident])) and np.all(np.isnan(with_radec[~ident]))
     assert angle_rad(with_radec[ident], without[ident]).max() < 1e-12  # same ERFA route, float64 rounding

@@ -1,8 +1,8 @@
 """Batch ground calibration (ARCHITECTURE.md ``hostlink/calibration``): host side, float64, on the one camera model.
 
 Modules:
-- ``data``: the observations a calibration works on (centroids, reference directions, frame boundaries).
-- ``references``: reference directions from a session (file ra/dec or Hipparcos apparent place, plus refraction).
+- ``data``: the observations a calibration works on (centroids, reference directions, frame boundaries), built
+  from a session with the reference directions of ``hostlink.sky.references``.
 - ``frames``: per-frame helpers (SVD attitude fit, padding), vectorised over frames.
 - ``bundle``: the default method, a bundle adjustment over the camera and per-frame attitudes (Schur complement).
 - ``interstar_methods``: seed 000 cosine / sine interstar least squares and its improved two-step iteration.

@@ -7,8 +7,16 @@ Everything is float64 numpy columns, one row per identified star, rows grouped b
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.files.session import Session
+from onboard.site import Site, Weather
+
+if TYPE_CHECKING:
+    from hostlink.sky.references import SessionReferences
 
 #: A frame needs at least this many stars to say anything about the camera beyond its attitude (3 attitude
 #: parameters take 2 stars; a third star is the first that constrains the camera and lets an outlier show).
@@ -97,6 +105,28 @@ def build_data(
         frame_number=np.asarray(numbers, dtype=np.int64),
         star_id=np.zeros(n, dtype=np.int64) if star_id is None else np.asarray(star_id, dtype=np.int64),
     )
+
+
+def calibration_data_from_session(
+    session: Session, site: Site | None = None, weather: Weather | None = None, dut1_s: float = 0.0
+) -> tuple[CalibrationData, SessionReferences]:
+    """The identified rows of a session as :class:`CalibrationData` (frames with at least
+    :data:`MIN_STARS_PER_FRAME` identified stars), with their reference directions from the one service
+    (:func:`hostlink.sky.references.session_references`: file or Hipparcos; with ``site`` as observed there, with
+    ``weather`` also refracted; ``dut1_s`` = UT1 - UTC [s]) and its report of where they came from. Raises
+    :class:`UserError` when no star is identified or no frame has enough of them."""
+    from hostlink.sky.references import session_references
+
+    if not np.any(session.star_id != 0):
+        raise UserError("the session has no identified star (every star_id is 0)")
+    references = session_references(session, site, weather, dut1_s)
+    rows = np.flatnonzero(references.usable)
+    sub = session.select(rows)
+    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id)
+    data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
+    if data.n_frames == 0:
+        raise UserError(f"no frame has at least {MIN_STARS_PER_FRAME} identified stars")
+    return data, references
 
 
 def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]]:

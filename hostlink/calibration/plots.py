@@ -87,3 +87,28 @@ def convergence_png(path: Path, history: list[dict], title: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_calibration_plots(out_dir: Path, outcome, image_size_px: tuple[int, int]) -> tuple[Path, Path]:
+    """``residual_field.png`` and ``convergence.png`` of a :class:`hostlink.calibration.run.CalibrationOutcome`
+    into ``out_dir`` (created if missing); returns their paths. An unwritable folder is a one-line UserError."""
+    from hostlink.calibration.bundle import residuals
+    from hostlink.errors import UserError
+
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--plot {out_dir}: cannot create ({exc.strerror})") from None
+    field_png, convergence = out_dir / "residual_field.png", out_dir / "convergence.png"
+    e_px = residuals(outcome.data, outcome.theta, outcome.attitudes)
+    residual_field_png(
+        field_png,
+        outcome.data.x_px,
+        outcome.data.y_px,
+        e_px,
+        image_size_px,
+        f"{outcome.method}: mean residual per cell after calibration (RMS {outcome.after['rms_px']:.4f} px)",
+    )
+    convergence_png(convergence, outcome.history, f"{outcome.method}: convergence")
+    return field_png, convergence

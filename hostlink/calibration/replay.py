@@ -9,6 +9,7 @@ is shared by ``hostlink replay`` and the emulator.
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 
 from hostlink.errors import UserError
 from hostlink.files.session import Session
+from hostlink.sky.references import session_references
 from onboard import recursive
 from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.prior import prior_config, refined_mask, sigma_to_dict
@@ -92,13 +94,35 @@ def _fixed_inputs(session: Session, nominal: CameraParams, r_all: np.ndarray, id
     return _FixedInputs(x_steps, y_steps, r_q30, usable)
 
 
-def reference_vectors(session: Session) -> np.ndarray:
-    """Reference unit vectors (rows, 3), NaN for unidentified stars: the session's ra_deg/dec_deg, or when the file
-    has none, the apparent place of each star_id at its frame's time from Hipparcos (INTERFACES.md), as the sensor
-    itself computes it from its onboard catalogue."""
-    from hostlink.sky.apparent import session_reference_directions
+def replay_config(
+    noise_px: float = 0.05, focal_walk_um: float = 0.0, drift_detect: bool = True, max_stars: int = 32
+) -> recursive.RecursiveConfig:
+    """The onboard estimator's configuration: centroid noise per axis [px], focal-length random walk per frame
+    (1-sigma [um]; 0 = static, with automatic drift detection unless ``drift_detect`` is False) and the most stars
+    used per frame. Out-of-range values are one-line :class:`UserError` s."""
+    if not (math.isfinite(noise_px) and noise_px > 0):
+        raise UserError(f"--noise-px: must be a positive number, got {noise_px!r}")
+    if not (math.isfinite(focal_walk_um) and focal_walk_um >= 0):
+        raise UserError(f"--focal-walk-um: must be >= 0, got {focal_walk_um!r}")
+    if max_stars < 3:
+        raise UserError(f"--max-stars: must be >= 3, got {max_stars}")
+    walk = [0.0] * len(ESTIMATE_NAMES)
+    walk[0] = focal_walk_um / 1000.0
+    return recursive.RecursiveConfig(
+        max_stars=max_stars, centroid_noise_px=noise_px, process_noise=tuple(walk), drift_detect=drift_detect
+    )
 
-    return session_reference_directions(session)
+
+def replay_prior(
+    file_sigma: np.ndarray, prior: str | None = None, source: str = "the nominal file"
+) -> np.ndarray | None:
+    """The prior the estimator starts from: the nominal file's ``sigma`` (10 values, NaN = unknown) for ``"file"``
+    and by default, None (the cold-start prior) for ``"cold"``. ``"file"`` with no positive sigma is a UserError."""
+    if prior not in (None, "file", "cold"):
+        raise UserError(f"--prior {prior!r}: expected file or cold")
+    if prior == "file" and not refined_mask(file_sigma).any():
+        raise UserError(f"--prior file: {source} has no 'sigma' object with a positive 1-sigma")
+    return None if prior == "cold" else file_sigma
 
 
 def replay_session(
@@ -112,15 +136,18 @@ def replay_session(
 ) -> ReplayResult:
     """Run the onboard estimator over every frame of ``session`` and return the final estimate and the trace.
     ``prior_sigma`` (10 values, ESTIMATE_NAMES order, parameter units; NaN/0 = unknown) is the nominal's 1-sigma:
-    the estimator starts from it exactly as the sensor does after an upload (``onboard.prior.prior_config``)."""
+    the estimator starts from it exactly as the sensor does after an upload (``onboard.prior.prior_config``).
+    Reference directions: :func:`hostlink.sky.references.session_references` (the file's ra_deg/dec_deg, or the
+    Hipparcos apparent place as the sensor computes it from its onboard catalogue); unidentified stars are not
+    used."""
     dtype = precision_dtype(precision)
     try:
         config = prior_config(config, nominal, prior_sigma, estimate)
         state = recursive.create(nominal, estimate, config, dtype)
     except ValueError as exc:
         raise UserError(f"estimator configuration: {exc}") from None
-    r_all = reference_vectors(session)
-    identified_all = (session.star_id != 0) & np.all(np.isfinite(r_all), axis=1)
+    references = session_references(session)
+    r_all, identified_all = references.r, references.usable
     fixed = _fixed_inputs(session, nominal, r_all, identified_all) if precision == "fixed" else None
     trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
     for k, rows in enumerate(session.frame_slices()):
@@ -133,6 +160,8 @@ def replay_session(
             on_frame(k, res)
     refined = refined_mask(prior_sigma)[state.idx]
     prior = "file" if np.all(refined) else ("file+cold" if np.any(refined) else "cold")
+    if state.updates == 0:
+        raise UserError("no frame had 3 or more identified, consistent stars; nothing estimated")
     params = recursive.current_params(state)
     check_estimate(params, trace)
     return ReplayResult(params=params, state=state, trace=trace, prior=prior)

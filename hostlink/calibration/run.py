@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust, covariance_from_normal, residuals
-from hostlink.calibration.data import CalibrationData
+from hostlink.calibration.data import CalibrationData, calibration_data_from_session
 from hostlink.calibration.interstar_methods import calibrate_interstar
 from hostlink.calibration.report import (
     degeneracies,
@@ -19,8 +20,12 @@ from hostlink.calibration.report import (
 )
 from hostlink.calibration.robust import robust_sigma_2d, vote_consistent_stars
 from hostlink.calibration.seed004 import SEED004_ESTIMATE, calibrate_seed004
+from hostlink.errors import UserError
+from hostlink.files.session import Session, check_on_detector
+from hostlink.sky.references import SessionReferences
 from onboard.camera import pixels_to_unit
-from onboard.params import ESTIMATE_NAMES, CameraParams
+from onboard.params import ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
+from onboard.site import Site, Weather
 
 METHODS = ("bundle", "cosine", "sine", "improved-cosine", "improved-sine", "seed004")
 #: seed 000's methods: (observation equation, two-step improved iteration of sec. 2)
@@ -155,9 +160,63 @@ def calibrate(
     )
 
 
-def result_extras(outcome: CalibrationOutcome) -> dict:
-    """The extra keys of the result file (INTERFACES.md: the parameter file plus extras)."""
-    return {
+def calibrate_session(
+    session: Session,
+    nominal: CameraParams,
+    method: str = "bundle",
+    estimate: tuple[str, ...] | None = None,
+    noise_px: float | None = None,
+    max_iter: int = 100,
+    site: Site | None = None,
+    weather: Weather | None = None,
+    dut1_s: float = 0.0,
+    progress: Callable[[dict], None] | None = None,
+) -> tuple[CalibrationOutcome, SessionReferences]:
+    """Batch ground calibration of a session from the ``nominal`` camera: its identified stars against their
+    reference directions (:func:`hostlink.calibration.data.calibration_data_from_session`: file or Hipparcos; with
+    ``site`` observed there, with ``weather`` refracted; ``dut1_s`` = UT1 - UTC [s]), by ``method`` (:data:`METHODS`;
+    ``estimate`` as in :func:`calibrate`), ``noise_px`` the centroid noise per axis [px] for the reported sigma
+    (None: from the residuals), at most ``max_iter`` iterations; ``progress`` gets each iteration's record.
+
+    Returns the outcome and the references' report. Raises :class:`UserError` (one line) for bad options, a
+    centroid off the nominal's detector, a session without enough identified stars, a calibration that fails or a
+    result that is not a usable parameter set (never returned as if it had succeeded)."""
+    if method not in METHODS:
+        raise UserError(f"--method {method!r}: expected one of {', '.join(METHODS)}")
+    if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
+        raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
+    if max_iter < 1:
+        raise UserError(f"--max-iter {max_iter}: expected at least 1")
+    if len(session) == 0:
+        raise UserError("no star rows in the session")
+    check_on_detector(session, nominal.image_size_px, "the session", "the nominal parameters")
+    data, references = calibration_data_from_session(session, site, weather, dut1_s)
+    try:
+        outcome = calibrate(data, nominal, method, estimate, noise_px, max_iter, progress)
+    except ValueError as exc:
+        raise UserError(f"calibration failed: {exc}") from None
+    try:
+        validate_params(outcome.params)
+    except ParameterError as exc:
+        raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
+    return outcome, references
+
+
+def _json_safe(value):
+    """Non-finite floats -> None (JSON has no NaN or Infinity), through dicts and lists."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def result_extras(outcome: CalibrationOutcome, references: SessionReferences | None = None) -> dict:
+    """The extra keys of the result file (INTERFACES.md: the parameter file plus extras), with ``references``
+    (where the reference directions came from) when given; non-finite numbers as null."""
+    extras = {
         "method": outcome.method,
         "estimated": list(outcome.estimate),
         "sigma": outcome.sigma(),
@@ -170,3 +229,10 @@ def result_extras(outcome: CalibrationOutcome) -> dict:
         "iterations": len(outcome.history),
         "converged": bool(outcome.converged),
     }
+    if references is not None:
+        extras["references"] = {
+            "source": references.source,
+            "refraction": references.refraction,
+            "unidentified_rows": references.n_unidentified,
+        }
+    return _json_safe(extras)

@@ -72,13 +72,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--camera",
         metavar="CAMERA.json",
-        help="the sensor's true camera (default: built in, "
-        "seed 004's camera after a launch shock, with decentering and thin-prism terms)",
+        help="the sensor's true camera (default: built in: a 1024 x 1024 px, 12 um, 70 mm, 10 deg camera (seed 004's "
+        "design) after a launch shock: focal length and principal point moved, radial, decentering and thin-prism "
+        "distortion)",
     )
     parser.add_argument(
         "--nominal",
         metavar="NOMINAL.json",
-        help="the sensor's factory parameters (default: hostlink/data/seed004_nominal.json)",
+        help="the sensor's factory parameters (default: that camera's design values, shipped with the package: f 70 "
+        "mm, 12 um, 1024 x 1024 px, principal point at the image centre, no distortion; `hostlink example` writes "
+        "them as nominal.json)",
     )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
     parser.add_argument(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
@@ -50,100 +49,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_site_arguments(parser)
 
 
-def _parse_estimate(text: str | None) -> tuple[str, ...] | None:
-    from onboard.params import ESTIMATE_NAMES
-
-    if text is None:
-        return None
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    unknown = [n for n in names if n not in ESTIMATE_NAMES]
-    if unknown or not names:
-        raise UserError(
-            f"--estimate {text!r}: unknown name {unknown[0] if unknown else '(empty)'!r} "
-            f"(allowed: {','.join(ESTIMATE_NAMES)})"
-        )
-    return tuple(n for n in ESTIMATE_NAMES if n in names)
-
-
-def _json_safe(value):
-    """Replace non-finite floats by None (JSON has no NaN or Infinity)."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from hostlink.calibration.references import calibration_data_from_session
-    from hostlink.calibration.run import calibrate, result_extras
+    from hostlink.calibration.run import calibrate_session, result_extras
     from hostlink.files.params import load_params, save_params
     from hostlink.files.session import check_on_detector, read_session
-    from onboard.params import ParameterError, validate_params
+    from onboard.recursive import parse_estimate_names
 
-    estimate = _parse_estimate(args.estimate)
-    if args.noise_px is not None and not (math.isfinite(args.noise_px) and args.noise_px > 0):
-        raise UserError(f"--noise-px {args.noise_px}: expected a positive number of pixels")
-    if args.max_iter < 1:
-        raise UserError(f"--max-iter {args.max_iter}: expected at least 1")
+    try:
+        estimate = None if args.estimate is None else parse_estimate_names(args.estimate)
+    except ValueError as exc:
+        raise UserError(f"--estimate {args.estimate!r}: {exc}") from None
     site, weather = site_and_weather(args)
     nominal = load_params(args.nominal)
     session = read_session(args.session)
     if len(session) == 0:
         raise UserError(f"{args.session}: no star rows")
     check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
-    data, info = calibration_data_from_session(session, site, weather, args.dut1)
-    say = (lambda *a: None) if args.quiet else print
-    say(
-        f"calibrate: {data.n_obs} identified stars in {data.n_frames} frames ({info.n_unidentified} unidentified "
-        f"rows ignored); references from {info.source}; refraction: {info.refraction}"
-    )
+    large = len(session) > 200_000
 
     def progress(entry: dict) -> None:
-        if not args.quiet and data.n_obs > 200_000:
+        if not args.quiet and large:
             print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
 
-    try:
-        outcome = calibrate(data, nominal, args.method, estimate, args.noise_px, args.max_iter, progress)
-    except ValueError as exc:
-        raise UserError(f"calibration failed: {exc}") from None
-    try:
-        validate_params(outcome.params)
-    except ParameterError as exc:
-        raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
-    extras = result_extras(outcome)
-    extras["references"] = {
-        "source": info.source,
-        "refraction": info.refraction,
-        "unidentified_rows": info.n_unidentified,
-    }
-    save_params(args.out, outcome.params, _json_safe(extras))
+    outcome, references = calibrate_session(
+        session, nominal, args.method, estimate, args.noise_px, args.max_iter, site, weather, args.dut1, progress
+    )
+    save_params(args.out, outcome.params, result_extras(outcome, references))
     if not args.quiet:
+        print(
+            f"calibrate: {outcome.data.n_obs + outcome.rejected['total_stars']} identified stars, "
+            f"{outcome.data.n_obs} used in {outcome.data.n_frames} frames ({references.n_unidentified} unidentified "
+            f"rows ignored); references from {references.source}; "
+            f"refraction: {references.refraction}"
+        )
         _print_report(outcome, args.out)
     if args.plot:
-        from hostlink.calibration.bundle import residuals
-        from hostlink.calibration.plots import convergence_png, residual_field_png
+        from hostlink.calibration.plots import write_calibration_plots
 
-        out_dir = Path(args.plot)
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"--plot {out_dir}: cannot create ({exc.strerror})") from None
-        e = residuals(outcome.data, outcome.theta, outcome.attitudes)
-        residual_field_png(
-            out_dir / "residual_field.png",
-            outcome.data.x_px,
-            outcome.data.y_px,
-            e,
-            nominal.image_size_px,
-            f"{outcome.method}: mean residual per cell after calibration (RMS {outcome.after['rms_px']:.4f} px)",
-        )
-        convergence_png(out_dir / "convergence.png", outcome.history, f"{outcome.method}: convergence")
-        say(f"plots written to {out_dir}/residual_field.png and convergence.png")
+        write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px)
+        if not args.quiet:
+            print(f"plots written to {args.plot}/residual_field.png and convergence.png")
     return 0
 
 
@@ -177,19 +124,10 @@ def _print_report(outcome, out_path: str) -> None:
     def fmt_sigma(v):
         return "fixed" if v == 0.0 else ("unobservable" if v is None else f"{v:.3g}")
 
-    try:
-        from rich.console import Console
-        from rich.markup import escape
-        from rich.table import Table
-    except ImportError:  # plain text when rich is missing
-        print(f"method {outcome.method}")
-        for name, value, s in rows:
-            print(f"  {name:10s} {value: .8g}  +/- {fmt_sigma(s)}")
-        for name, before, after in stats:
-            print(f"  {name:24s} {before:.4g} -> {after:.4g}")
-        for line in lines_after:
-            print(line)
-        return
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
     console = Console()
     t = Table(title=f"hostlink calibrate: method {outcome.method}")
     t.add_column("parameter")

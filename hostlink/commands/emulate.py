@@ -22,10 +22,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nominal",
         metavar="PARAMS.json",
-        help="the factory parameter set in bank A, generation 1 "
-        "(default: the seed-004 nominal camera shipped in hostlink/data)",
+        help="the factory parameter set in bank A, generation 1 (default, shipped with the package: a 1024 x 1024 "
+        "px, 12 um, 70 mm, 10 deg camera (seed 004's design), principal point at the image centre, no distortion; "
+        "`hostlink example` writes it as nominal.json)",
     )
-    parser.add_argument("--camera", metavar="CAMERA.json", help="the simulator's true camera (default: seed 004's)")
+    parser.add_argument(
+        "--camera",
+        metavar="CAMERA.json",
+        help="the simulator's true camera (default: that camera as built: f 70.2262 mm, principal point (500, 530) px, "
+        "radial distortion (seed 004's simulated camera); `hostlink example` writes it as true-camera.json)",
+    )
     parser.add_argument(
         "--sim-frames", type=int, default=500, metavar="N", help="simulated frames, cycled forever (default 500)"
     )

@@ -7,7 +7,7 @@ import argparse
 from hostlink.errors import UserError
 
 LINK_HELP = (
-    "sensor link string (docs/interfaces.md), e.g. serial:/dev/ttyUSB0@921600, "
+    "sensor link string (docs/links.md), e.g. serial:/dev/ttyUSB0@921600, "
     "can:slcan:socket://127.0.0.1:5000@1000000, modbus-tcp:127.0.0.1:5020; `hostlink emulate` prints one"
 )
 

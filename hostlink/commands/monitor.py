@@ -36,62 +36,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
-    import math
-    import time
 
     from hostlink.errors import UserError
-    from hostlink.links.operations import EstimatePoll, poll_estimate, stream_frames
-    from protocol.messages import ESTIMATE_FIELDS
+    from hostlink.links.operations import EstimatePoll, estimate_record, poll_estimates, stream_frames
 
     if args.count < 0 or args.interval <= 0 or args.every_frames < 0:
         raise UserError("--count and --every-frames must be >= 0 and --interval > 0")
     if args.no_stream and args.every_frames:
         raise UserError("--every-frames needs the stream (drop --no-stream)")
 
-    def show(p: EstimatePoll) -> None:
-        est = p.estimate
-        if est is None:
-            print(
-                json.dumps({"frames_received": p.frames_received, "estimate": None, "reason": p.reason})
-                if args.json
-                else f"frames {p.frames_received} no estimate: {p.reason}",
-                flush=True,
-            )
-            return
-        names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
-        values = {n: est.values[ESTIMATE_FIELDS.index(n)] for n in names}
-        sigmas = {n: est.sigma[ESTIMATE_FIELDS.index(n)] for n in names}
+    def show(poll: EstimatePoll) -> None:
+        record = estimate_record(poll)
         if args.json:
-            record = {
-                "frames_received": p.frames_received,
-                "frame": est.last_frame,
-                "updates": est.n_updates,
-                "base_generation": est.base_generation,
-                "values": values,
-                "sigma": {k: (None if math.isnan(v) else v) for k, v in sigmas.items()},
-            }
             print(json.dumps(record), flush=True)
+        elif poll.estimate is None:
+            print(f"frames {poll.frames_received} no estimate: {poll.reason}", flush=True)
         else:
-            parts = " ".join(f"{n}={values[n]:.7g}\u00b1{sigmas[n]:.2g}" for n in names)
-            print(f"frames {p.frames_received} frame {est.last_frame} updates {est.n_updates} {parts}", flush=True)
+            values, sigmas = record["values"], record["sigma"]
+            parts = " ".join(f"{n}={values[n]:.7g}\u00b1{_sigma_text(sigmas[n])}" for n in values)
+            print(
+                f"frames {poll.frames_received} frame {record['frame']} updates {record['updates']} {parts}", flush=True
+            )
 
     max_polls = args.count or None
     with open_link_from_args(args) as link:
         if args.no_stream:
-            polls = 0
-            while max_polls is None or polls < max_polls:
-                time.sleep(args.interval)
-                show(poll_estimate(link))
-                polls += 1
-            return 0
-        stream_frames(
-            link,
-            None,
-            frame_timeout_s=args.timeout,
-            keep_frames=False,
-            poll_every_frames=args.every_frames,
-            poll_every_s=0.0 if args.every_frames else args.interval,
-            max_polls=max_polls,
-            on_poll=show,
-        )
+            poll_estimates(link, max_polls, args.interval, show)
+        else:
+            stream_frames(
+                link,
+                None,
+                frame_timeout_s=args.timeout,
+                keep_frames=False,
+                poll_every_frames=args.every_frames,
+                poll_every_s=0.0 if args.every_frames else args.interval,
+                max_polls=max_polls,
+                on_poll=show,
+            )
     return 0
+
+
+def _sigma_text(sigma: float | None) -> str:
+    return "nan" if sigma is None else f"{sigma:.2g}"

@@ -53,50 +53,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import math
-
-    from hostlink.calibration.replay import estimate_extras, precision_dtype, replay_session, write_trace
+    from hostlink.calibration.replay import (
+        estimate_extras,
+        precision_dtype,
+        replay_config,
+        replay_prior,
+        replay_session,
+        write_trace,
+    )
     from hostlink.errors import UserError
-    from hostlink.files.params import load_params_with_extras, save_params
+    from hostlink.files.params import load_params_with_sigma, save_params
     from hostlink.files.session import check_on_detector, read_session
-    from onboard.params import ParameterError
-    from onboard.prior import refined_mask, sigma_from_dict
-    from onboard.recursive import RecursiveConfig, parse_estimate_names
+    from onboard.recursive import parse_estimate_names
 
     precision_dtype(args.precision)  # refuse an unknown precision before reading files
     try:
         names = parse_estimate_names(args.estimate)
     except ValueError as exc:
         raise UserError(f"--estimate: {exc}") from None
-    if not (math.isfinite(args.noise_px) and args.noise_px > 0):
-        raise UserError(f"--noise-px: must be a positive number, got {args.noise_px!r}")
-    if not (math.isfinite(args.focal_walk_um) and args.focal_walk_um >= 0):
-        raise UserError(f"--focal-walk-um: must be >= 0, got {args.focal_walk_um!r}")
-    if args.max_stars < 3:
-        raise UserError(f"--max-stars: must be >= 3, got {args.max_stars}")
-    nominal, nominal_doc = load_params_with_extras(args.nominal)
-    try:
-        file_sigma = sigma_from_dict(nominal_doc.get("sigma"))
-    except ParameterError as exc:
-        raise UserError(f"{args.nominal}: {exc}") from None
-    if args.prior == "file" and not refined_mask(file_sigma).any():
-        raise UserError(f"--prior file: {args.nominal} has no 'sigma' object with a positive 1-sigma")
-    prior_sigma = None if args.prior == "cold" else file_sigma
+    config = replay_config(args.noise_px, args.focal_walk_um, not args.no_drift_detect, args.max_stars)
+    nominal, file_sigma = load_params_with_sigma(args.nominal)
+    prior_sigma = replay_prior(file_sigma, args.prior, args.nominal)
     session = read_session(args.session)
     check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
-    if session.n_frames == 0 or len(session) == 0:
+    if len(session) == 0:
         raise UserError(f"{args.session}: no frames")
-    walk = [0.0] * 10
-    walk[0] = args.focal_walk_um / 1000.0
-    config = RecursiveConfig(
-        max_stars=args.max_stars,
-        centroid_noise_px=args.noise_px,
-        process_noise=tuple(walk),
-        drift_detect=not args.no_drift_detect,
-    )
     result = replay_session(session, nominal, names, config, args.precision, prior_sigma=prior_sigma)
-    if result.state.updates == 0:
-        raise UserError(f"{args.session}: no frame had 3 or more identified, consistent stars; nothing estimated")
     save_params(args.out, result.params, estimate_extras(result, args.precision))
     if args.trace:
         write_trace(args.trace, result.trace)

@@ -21,7 +21,9 @@ DESCRIPTION = (
     "b = C r, per-frame focal length, misidentified and false rows). With --site the observed directions get the "
     "diurnal aberration of the site's rotation (up to 0.32\"), and with --weather also ERFA's refraction (the "
     "observed place of erfa.atco13), while ra_deg,dec_deg stay the geocentric apparent place. --preset seed004 "
-    "reproduces seed 004's simulation setup (its camera, Hp <= 6, >= 10 stars, 0.05 px, 1000 frames)."
+    "reproduces seed 004's simulation setup: a 1024 x 1024 px, 12 um, 10 deg camera with f 70.2262 mm, principal "
+    "point (500, 530) px and radial distortion (the true-camera.json of `hostlink example`), Hp <= 6, >= 10 stars, "
+    "0.05 px, 1000 frames."
 )
 
 PRESETS = ("seed004",)
@@ -31,7 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", metavar="CAMERA.json", help="true camera parameter file (optional with --preset)")
     parser.add_argument("--frames", type=int, metavar="N", help="number of frames (preset seed004: 1000)")
     parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
-    parser.add_argument("--preset", choices=PRESETS, help="a published setup; explicit options override it")
+    parser.add_argument(
+        "--preset",
+        choices=PRESETS,
+        help="a published setup (seed004: the simulation of Ye and Yang, Optics and Precision Engineering 25(9), "
+        "2017); explicit options override it",
+    )
     parser.add_argument("--noise-px", type=float, metavar="S", help="centroid noise, 1-sigma per axis (default 0.05)")
     parser.add_argument("--min-stars", type=int, metavar="K", help="fewest stars per frame (default 10)")
     parser.add_argument("--max-stars", type=int, metavar="K", help="most stars per frame, brightest kept (default 30)")

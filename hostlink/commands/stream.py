@@ -25,46 +25,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.errors import UserError
-    from hostlink.files.session import SessionWriter
-    from hostlink.links.operations import StreamResult, frames_to_session, stream_frames
+    from hostlink.links.operations import StreamResult, record_session
     from hostlink.progress import progress_bar
 
-    if args.frames < 1:
-        raise UserError("--frames must be >= 1")
     result = StreamResult()
-    # every frame is written as it arrives (SESSION.csv.partial until the end): an interrupted or killed stream
-    # loses nothing it had received
-    writer = SessionWriter(args.out, float_format="%.10f")
     try:
         with open_link_from_args(args) as link, progress_bar("frames", args.frames, enabled=not args.quiet) as advance:
-            stream_frames(
-                link,
-                args.frames,
-                progress=advance,
-                result=result,
-                keep_frames=False,
-                on_frame=lambda frame: writer.append(frames_to_session([frame])),
-            )
-    except (UserError, KeyboardInterrupt) as exc:
+            record_session(link, args.frames, args.out, progress=advance, result=result)
+    except KeyboardInterrupt:
         if not result.frames_received:
-            writer.close_partial()
-            writer.partial.unlink(missing_ok=True)
             raise
-        writer.commit()
-        saved = f"the {result.frames_received} frames received before were written to {args.out}"
-        if isinstance(exc, KeyboardInterrupt):
-            print(f"hostlink stream: interrupted; {saved}", file=sys.stderr)
-            return 130
-        err = UserError(f"{exc}; {saved}")
-        err.exit_code = exc.exit_code  # the same exit code as without the partial session
-        raise err from None
-    writer.commit()
-    lost = result.lost_messages
+        print(
+            f"hostlink stream: interrupted; the {result.frames_received} frames received before were written to "
+            f"{args.out}",
+            file=sys.stderr,
+        )
+        return 130
     note = f"; the sensor's stream ended after {result.frames_received} frames" if result.ended else ""
     print(
-        f"{args.out}: {result.frames_received} frames, {result.n_stars} stars; lost {lost} message(s) by sequence "
-        f"number, {result.corrupt_frames} corrupt{note}",
+        f"{args.out}: {result.frames_received} frames, {result.n_stars} stars; lost {result.lost_messages} "
+        f"message(s) by sequence number, {result.corrupt_frames} corrupt{note}",
         file=sys.stderr,
     )
     return 0

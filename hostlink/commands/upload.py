@@ -35,10 +35,11 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from hostlink.errors import UserError
+    from hostlink.files.params import load_params_with_sigma
     from hostlink.links.operations import float32_equal, safe_upload
     from onboard.prior import refined_mask
 
-    params, sigma = load_unchecked(args.params) if args.no_host_check else load_with_sigma(args.params)
+    params, sigma = load_params_with_sigma(args.params, validate=not args.no_host_check)
 
     def step(k: int, text: str) -> None:
         if args.verbose:
@@ -56,49 +57,3 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
-
-
-def load_with_sigma(path: str):
-    """A validated parameter file and its ``sigma`` (10 values, NaN = unknown), one-line UserError otherwise."""
-    from hostlink.errors import UserError
-    from hostlink.files.params import load_params_with_extras
-    from onboard.params import ParameterError
-    from onboard.prior import sigma_from_dict
-
-    params, data = load_params_with_extras(path)
-    try:
-        return params, sigma_from_dict(data.get("sigma"))
-    except ParameterError as exc:
-        raise UserError(f"{path}: {exc}") from None
-
-
-def load_unchecked(path: str):
-    """A parameter file and its sigma read without validation (for --no-host-check): the sensor decides."""
-    import json
-    import math
-    from pathlib import Path
-
-    from hostlink.errors import UserError
-    from onboard.params import CameraParams, Distortion, ParameterError
-    from onboard.prior import sigma_from_dict
-
-    try:
-        data = json.loads(
-            Path(path).read_text(encoding="utf-8"),
-            parse_constant=lambda c: {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}[c],
-        )
-        dist = data.get("distortion", {}) or {}
-        params = CameraParams(
-            focal_length_mm=float(data["focal_length_mm"]),
-            pixel_pitch_um=float(data["pixel_pitch_um"]),
-            principal_point_px=(float(data["principal_point_px"][0]), float(data["principal_point_px"][1])),
-            image_size_px=(int(data["image_size_px"][0]), int(data["image_size_px"][1])),
-            distortion=Distortion(**{k: float(dist.get(k, 0.0)) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")}),
-        )
-        return params, sigma_from_dict(data.get("sigma"), validate=False)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
-    except ParameterError as exc:
-        raise UserError(f"{path}: {exc}") from None
-    except (ValueError, KeyError, TypeError, IndexError) as exc:
-        raise UserError(f"{path}: not a camera parameter file ({type(exc).__name__}: {exc})") from None

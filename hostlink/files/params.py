@@ -9,12 +9,21 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
+
 from hostlink.errors import UserError
 from onboard.params import CameraParams, ParameterError, params_from_dict, params_to_dict
+from onboard.prior import sigma_from_dict
 
 
 def load_params(path: str | Path) -> CameraParams:
     """Read and validate a camera parameter file; any problem is a one-line :class:`UserError` naming the field."""
+    return load_params_with_extras(path)[0]
+
+
+def load_params_with_extras(path: str | Path, validate: bool = True) -> tuple[CameraParams, dict]:
+    """As :func:`load_params`, also returning the file's whole JSON object (for ``sigma`` and other extras).
+    ``validate=False`` checks the form only, not the ranges (``onboard.params.params_from_dict``)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -29,15 +38,20 @@ def load_params(path: str | Path) -> CameraParams:
     except json.JSONDecodeError as exc:
         raise UserError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
     try:
-        return params_from_dict(data)
+        return params_from_dict(data, validate), data
     except ParameterError as exc:
         raise UserError(f"{path}: {exc}") from None
 
 
-def load_params_with_extras(path: str | Path) -> tuple[CameraParams, dict]:
-    """As :func:`load_params`, also returning the file's whole JSON object (for ``sigma`` and other extras)."""
-    params = load_params(path)
-    return params, json.loads(Path(path).read_text(encoding="utf-8-sig"), parse_constant=_json_constant)
+def load_params_with_sigma(path: str | Path, validate: bool = True) -> tuple[CameraParams, np.ndarray]:
+    """A camera parameter file and its ``sigma`` object as 10 values in ESTIMATE_NAMES order (parameter units, NaN =
+    unknown; ``onboard.prior.sigma_from_dict``). ``validate=False`` reads both without the range checks (for
+    letting a sensor's own checks refuse them). Any problem is a one-line :class:`UserError`."""
+    params, data = load_params_with_extras(path, validate)
+    try:
+        return params, sigma_from_dict(data.get("sigma"), validate=validate)
+    except ParameterError as exc:
+        raise UserError(f"{path}: {exc}") from None
 
 
 def _json_constant(name: str) -> float:

@@ -55,6 +55,13 @@ def fixed_time_from_iso(text: str):
     return from_calendar(y, mo, d, h, mi, round(s * 1_000_000))
 
 
+def tai_minus_utc_s(jd_utc1: float, jd_utc2: float) -> int:
+    """Leap seconds TAI - UTC [s] at a UTC two-part Julian date (``erfa.dat``): the data a sensor is given with its
+    time."""
+    y, m, d, fd = erfa.jd2cal(jd_utc1, jd_utc2)
+    return int(round(float(erfa.dat(y, m, d, fd))))
+
+
 def utc_to_tt(jd1: np.ndarray, jd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """UTC -> TT two-part Julian dates (ERFA utctai, taitt)."""
     tai1, tai2 = erfa.utctai(jd1, jd2)

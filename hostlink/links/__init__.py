@@ -46,7 +46,9 @@ def split_link_string(link: str) -> tuple[str, str]:
 
 
 def open_link(link: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Link:
-    """Open the sensor link named by ``link`` (the ``--link`` option)."""
+    """Open the sensor link named by ``link`` (the ``--link`` option, e.g. ``serial:/dev/ttyUSB0@921600``), whose
+    replies are awaited at most ``timeout_s`` [s]. Raises UserError (one line) for a malformed string or a transport
+    missing from this build, LinkError when the port cannot be opened. Use as a context manager (closes it)."""
     scheme, target = split_link_string(link)
     try:
         module = importlib.import_module(TRANSPORTS[scheme])

@@ -224,12 +224,13 @@ class StreamAssembler:
         self._last_frame: int | None = None
         self.lost = 0
         self.corrupt = 0
+        self.incomplete = 0  # of ``lost``: frames whose header arrived but not all their stars
 
     def forget_sequence(self) -> None:
         """Start loss counting afresh (a new stream), keeping the time base."""
         with self._lock:
             self._frame, self._words, self._last_frame = None, [], None
-            self.lost = self.corrupt = 0
+            self.lost = self.corrupt = self.incomplete = 0
 
     def feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
         """One received stream frame; the completed message, if this frame completed one."""
@@ -256,9 +257,15 @@ class StreamAssembler:
             self.corrupt += 1
         return None
 
+    def finish(self) -> None:
+        """The input ended (the end of a capture): a frame still waiting for stars is dropped and counted."""
+        with self._lock:
+            self._abandon()
+
     def _abandon(self) -> None:
         if self._frame is not None:
             self.lost += 1  # its remaining stars never came
+            self.incomplete += 1
             self._frame, self._words = None, []
 
     def _header(self, frame: int, n_stars: int, t_offset_us: int) -> CentroidFrame | None:
@@ -293,7 +300,8 @@ class StreamAssembler:
         )
 
 
-_STREAM_IDS = frozenset(m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.TIME_BASE, cf.END_OF_STREAM))
+#: Identifiers of the stream frames (everything StreamAssembler decodes).
+STREAM_FRAME_IDS = frozenset(m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.TIME_BASE, cf.END_OF_STREAM))
 if cf.STAR.signal("frame_parity").start != 63:  # pragma: no cover - _star reads the parity as bit 63
     raise ImportError("STAR.frame_parity moved; update StreamAssembler._star")
 
@@ -343,7 +351,7 @@ class CanLink(MessageLink):
         fid = msg.arbitration_id
         data = bytes(msg.data)
         self.stats.rx_bytes += len(data)
-        if fid in _STREAM_IDS:
+        if fid in STREAM_FRAME_IDS:
             out = self._assembler.feed(fid, data)
             self.stats.lost_messages = self._assembler.lost
             self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors

@@ -20,9 +20,11 @@ are the same on serial, CAN and Modbus, and against real or emulated sensors.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -35,7 +37,7 @@ from onboard.firmware import estimate_to_params, estimate_to_sigma
 from onboard.params import CameraParams, ParameterError, validate_params
 from onboard.prior import sigma_to_dict, validate_sigma
 from protocol.crc import crc32
-from protocol.messages import CentroidFrame, Estimate, NakCode
+from protocol.messages import ESTIMATE_FIELDS, CentroidFrame, Estimate, NakCode
 from protocol.param_table import TABLE_BYTES, decode_table
 
 
@@ -164,6 +166,11 @@ def stream_frames(
     return result
 
 
+#: How received centroids are written to a session file: they arrive on the wire's 2**-10 px grid, and every value
+#: n / 1024 has at most 10 decimals, so 10 decimals write them exactly.
+WIRE_PX_FORMAT = "%.10f"
+
+
 def frames_to_session(frames: list[CentroidFrame]) -> Session:
     """Received frames -> a session (columns frame, t_utc, star_id, x_px, y_px, mag; no reference directions)."""
     counts = [f.n_stars for f in frames]
@@ -179,6 +186,90 @@ def frames_to_session(frames: list[CentroidFrame]) -> Session:
         y_px=cat([f.y_px for f in frames], np.float64),
         mag=cat([f.mag for f in frames], np.float64),
     )
+
+
+def record_session(
+    link: Link,
+    n_frames: int,
+    path: str | Path,
+    progress: Callable[[int], None] | None = None,
+    result: StreamResult | None = None,
+) -> StreamResult:
+    """Record ``n_frames`` centroid frames (:func:`stream_frames`) into the session file ``path``, each frame written
+    as it arrives (``PATH.partial``, renamed at the end: :class:`hostlink.files.session.SessionWriter`), centroids
+    exactly as on the wire (:data:`WIRE_PX_FORMAT`).
+
+    Interrupted after at least one frame (a :class:`UserError` such as a dropped link, or Ctrl-C), the frames
+    received are committed to ``path`` and the exception goes on: a UserError as the same class and exit code with
+    "the N frames received before were written to PATH" added, a KeyboardInterrupt as it is (``result``, passed in
+    by the caller, says how many were kept). Interrupted before any frame, nothing is left behind."""
+    from hostlink.files.session import SessionWriter
+
+    if n_frames < 1:
+        raise UserError("--frames must be >= 1")
+    result = StreamResult() if result is None else result
+    writer = SessionWriter(path, float_format=WIRE_PX_FORMAT)
+    try:
+        stream_frames(
+            link,
+            n_frames,
+            progress=progress,
+            result=result,
+            keep_frames=False,
+            on_frame=lambda frame: writer.append(frames_to_session([frame])),
+        )
+    except (UserError, KeyboardInterrupt) as exc:
+        if not result.frames_received:
+            writer.close_partial()
+            writer.partial.unlink(missing_ok=True)
+            raise
+        writer.commit()
+        if isinstance(exc, KeyboardInterrupt):
+            raise
+        err = type(exc)(f"{exc}; the {result.frames_received} frames received before were written to {path}")
+        err.exit_code = exc.exit_code
+        raise err from None
+    writer.commit()
+    return result
+
+
+def poll_estimates(
+    link: Link,
+    count: int | None,
+    interval_s: float,
+    on_poll: Callable[[EstimatePoll], None],
+    sleep: Callable[[float], None] = time.sleep,
+) -> int:
+    """Read the onboard estimate (:func:`poll_estimate`) every ``interval_s`` seconds, ``count`` times (None: until
+    interrupted), without starting the stream; each poll goes to ``on_poll``. Returns the number of polls made."""
+    polls = 0
+    while count is None or polls < count:
+        sleep(interval_s)
+        on_poll(poll_estimate(link))
+        polls += 1
+    return polls
+
+
+def estimate_record(poll: EstimatePoll) -> dict:
+    """One poll as a JSON-ready record: frames_received, and either estimate None with the sensor's reason, or the
+    estimate's frame, updates, base_generation and each ESTIMATED parameter's value and 1-sigma (None = unknown)
+    keyed by ``protocol.messages.ESTIMATE_FIELDS`` names (f in mm, x0/y0 in px)."""
+    est = poll.estimate
+    if est is None:
+        return {"frames_received": poll.frames_received, "estimate": None, "reason": poll.reason}
+    names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
+    return {
+        "frames_received": poll.frames_received,
+        "frame": est.last_frame,
+        "updates": est.n_updates,
+        "base_generation": est.base_generation,
+        "values": {n: est.values[ESTIMATE_FIELDS.index(n)] for n in names},
+        "sigma": {n: _none_if_nan(est.sigma[ESTIMATE_FIELDS.index(n)]) for n in names},
+    }
+
+
+def _none_if_nan(value: float) -> float | None:
+    return None if math.isnan(value) else value
 
 
 # ------------------------------------------------------------------------------------------------------- upload
@@ -273,7 +364,9 @@ class ActiveParams:
 
 
 def read_active_params(link: Link) -> ActiveParams:
-    """The sensor's active set, its generation and CRC (the CRC is checked against the table received)."""
+    """The sensor's active set, its generation and CRC (the CRC is checked against the table received), with its
+    1-sigma prior (10 float32 values, NaN = unknown). Raises LinkError when the bytes do not match their CRC or are
+    not a parameter set, or the link fails."""
     active = link.read_active()
     table = bytes(active.table)
     if len(table) != TABLE_BYTES or crc32(table) != active.crc32:
@@ -286,6 +379,9 @@ def read_active_params(link: Link) -> ActiveParams:
 
 
 def read_estimate(link: Link) -> Estimate:
+    """The sensor's onboard recursive estimate (values in parameter units: f [mm], x0/y0 [px], distortion; its
+    1-sigma; updates; last frame). Raises CommandRefused (NAK NO_ESTIMATE) while it has none: use
+    :func:`poll_estimate` to treat that as "not yet"; LinkError when the link fails."""
     return link.read_estimate()
 
 

@@ -134,18 +134,9 @@ def sensor_reference_session(session, site: Site | None, weather: Weather | None
     its recursive estimator sees corrected references."""
     if site is None:
         return session
-    from hostlink.calibration.references import refract_references
-    from onboard.camera import radec_to_unit, unit_to_radec
+    from hostlink.sky.references import session_references, session_with_references
 
-    ok = np.isfinite(session.ra_deg)
-    r = radec_to_unit(np.radians(np.where(ok, session.ra_deg, 0.0)), np.radians(np.where(ok, session.dec_deg, 0.0)))
-    jd1, jd2 = session.frame_times_jd()
-    r_obs = refract_references(r, session.frame_starts, jd1, jd2, site, weather, 0.0)
-    ra, dec = unit_to_radec(r_obs)
-    out = session.select(np.arange(len(session)))
-    out.ra_deg = np.where(ok, np.degrees(ra), np.nan)
-    out.dec_deg = np.where(ok, np.degrees(dec), np.nan)
-    return out
+    return session_with_references(session, session_references(session, site, weather))
 
 
 class Emulator:
@@ -267,7 +258,7 @@ def rms(a: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------------- the run
 def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progress: bool = True) -> dict:
     """Run the whole bench; returns the summary (also written to ``out_dir/summary.json``)."""
-    from hostlink.calibration.references import calibration_data_from_session
+    from hostlink.calibration.data import calibration_data_from_session
     from hostlink.calibration.run import calibrate
     from hostlink.files.session import write_session
     from hostlink.links import open_link

@@ -119,26 +119,3 @@ def hip_lookup(cat: Catalogue, hip_ids: np.ndarray) -> np.ndarray:
         bad = int(hip_ids[np.argmax(~found)])
         raise UserError(f"star_id {bad}: not in the Hipparcos catalogue (within its magnitude limit)")
     return pos_c.astype(np.int64)
-
-
-def session_reference_directions(session, cat: Catalogue | None = None) -> np.ndarray:
-    """Reference direction r (N, 3) of every row of a ``hostlink.files.session.Session`` (INTERFACES.md): its
-    ra_deg/dec_deg when the file has them, else the apparent place of its star_id at the row's frame time from the
-    full Hipparcos catalogue (``cat`` defaults to it). Unidentified rows (star_id 0) are NaN."""
-    n = len(session)
-    ident = session.star_id != 0
-    out = np.full((n, 3), np.nan)
-    if session.ra_deg is not None and session.dec_deg is not None:
-        out[ident] = radec_to_unit(np.radians(session.ra_deg[ident]), np.radians(session.dec_deg[ident]))
-        return out
-    if not np.any(ident):
-        return out
-    if cat is None:
-        from hostlink.sky.catalogue import load_catalogue
-
-        cat = load_catalogue()
-    jd1, jd2 = session.frame_times_jd()
-    per_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))
-    rows = hip_lookup(cat, session.star_id[ident])
-    out[ident] = apparent_directions(cat, rows, jd1[per_row[ident]], jd2[per_row[ident]])
-    return out

@@ -146,7 +146,8 @@ def seed004_config(frames: int = 1000, seed: int = 0) -> SimConfig:
 
 
 def data_file(name: str) -> Path:
-    """Path of a camera file shipped in ``hostlink/data``."""
+    """Path of a file shipped with the package in ``hostlink/data`` (``seed004_camera.json``: seed 004's simulated
+    camera; ``seed004_nominal.json``: its design nominal), wherever the package is installed."""
     return DATA_DIR / name
 
 
@@ -158,7 +159,7 @@ def truth_path_for(session_path: str | Path) -> Path:
 
 
 def write_truth(path: str | Path, truth: dict) -> None:
-    """Write the truth JSON atomically (floats at full precision)."""
+    """Write the truth JSON atomically (floats at full precision); an unwritable path is a one-line UserError."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     try:
@@ -171,7 +172,8 @@ def write_truth(path: str | Path, truth: dict) -> None:
 
 def read_truth(path: str | Path) -> dict:
     """Read a truth JSON; per-frame arrays become numpy arrays: ``attitude`` (F, 3, 3), ``focal_length_mm`` (F,),
-    row lists as int64; ``camera`` becomes ``camera_params`` (a validated CameraParams) as well."""
+    row lists as int64; ``camera`` becomes ``camera_params`` (a validated CameraParams) as well. A missing or
+    malformed file is a one-line UserError."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -517,7 +519,8 @@ def _misidentify(
 
 def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = None) -> SimResult:
     """Simulate a session and its truth (see the module docstring). ``progress(done_frames, total)`` is called
-    after each chunk of frames."""
+    after each chunk of frames. Raises UserError (one line) for an inconsistent configuration or a sky that cannot
+    give ``config.min_stars`` stars per frame."""
     cfg = config
     _check_config(cfg)
     rng = np.random.default_rng(cfg.seed)

@@ -1,0 +1,153 @@
+"""The public Python API of the host (ARCHITECTURE.md ``hostlink/api``): one import for the whole job.
+
+    from hostlink import api
+
+Everything a command does is one call here; the commands (``hostlink/commands``) only parse their options, call
+these functions and print. The names below are the documented surface: modules behind them may move, these names
+stay. docs/api.md walks through a whole session (simulate, calibrate, replay, attitude, emulator, upload, read back).
+
+Units: angles in degrees where a name ends in ``_deg``, radians in ``_rad``, arcseconds in ``_arcsec``; pixels
+``_px``; focal length in mm (``focal_length_mm``); times are ISO 8601 UTC strings or two-part Julian dates (UTC);
+``dut1_s`` = UT1 - UTC [s]. Vectors are float64 numpy arrays unless a ``dtype``/``precision`` says otherwise.
+
+Errors: every failure a user can cause raises :class:`UserError` with a one-line message (bad input, a result that
+would be wrong, e.g. not converged or a centroid off the detector); :class:`LinkError` (a subclass) when the link
+to a sensor fails; :class:`SensorRefused` / :class:`CommandRefused` when the sensor refuses a command and says why;
+:class:`UploadMismatch` when a read-back differs from what was uploaded.
+
+Files (INTERFACES.md formats; every write is atomic):
+    :func:`read_session`, :func:`write_session`, :class:`SessionWriter`, :func:`load_params`,
+    :func:`load_params_with_sigma`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
+    :func:`write_attitudes`, :func:`write_trace`, :func:`data_file` (the camera files shipped with the package).
+Sky:
+    :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
+    (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
+Calibration:
+    :func:`calibrate_session` (batch ground calibration), :func:`result_extras`, :func:`replay_session` (the
+    onboard recursive estimator over a session, as the sensor runs it), :func:`replay_config`, :func:`replay_prior`,
+    :func:`estimate_extras`.
+Sensor links (serial, CAN, Modbus; real or emulated, chosen by one link string):
+    :func:`open_link`, :func:`stream_frames`, :func:`record_session`, :func:`poll_estimate`, :func:`poll_estimates`,
+    :func:`estimate_record`, :func:`safe_upload`, :func:`read_active_params`, :func:`read_estimate`,
+    :func:`accept_estimate`, :func:`params_float32_dict`, :func:`float32_equal`.
+Emulated sensor and the bench:
+    :class:`Emulator` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its frame
+    source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end).
+"""
+
+from __future__ import annotations
+
+from hostlink.calibration.replay import (
+    ReplayResult,
+    estimate_extras,
+    replay_config,
+    replay_prior,
+    replay_session,
+    write_trace,
+)
+from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_session, result_extras
+from hostlink.emulator.setup import build_sensor
+from hostlink.errors import LinkError, SensorRefused, UserError
+from hostlink.files.attitude import write_attitudes
+from hostlink.files.params import load_params, load_params_with_sigma, save_params
+from hostlink.files.session import Session, SessionWriter, read_session, write_session
+from hostlink.links import Link, open_link
+from hostlink.links.base import CommandRefused
+from hostlink.links.operations import (
+    ActiveParams,
+    EstimatePoll,
+    StreamResult,
+    UploadMismatch,
+    UploadResult,
+    accept_estimate,
+    estimate_record,
+    float32_equal,
+    params_float32_dict,
+    poll_estimate,
+    poll_estimates,
+    read_active_params,
+    read_estimate,
+    record_session,
+    safe_upload,
+    stream_frames,
+)
+from hostlink.mission.bench import BenchConfig, Emulator, run_bench
+from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
+from hostlink.sky.references import SessionReferences, session_references
+from hostlink.sky.simulate import SimConfig, SimResult, data_file, read_truth, simulate, write_truth
+from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
+from onboard.recursive import RecursiveConfig
+from onboard.site import Site, Weather
+from protocol.messages import Estimate
+
+__all__ = [
+    # data
+    "ActiveParams",
+    "BenchConfig",
+    "CalibrationOutcome",
+    "CameraParams",
+    "Distortion",
+    "ESTIMATE_NAMES",
+    "Estimate",
+    "EstimatePoll",
+    "Link",
+    "METHODS",
+    "REFRACTION_MODES",
+    "RecursiveConfig",
+    "ReplayResult",
+    "Session",
+    "SessionAttitudes",
+    "SessionReferences",
+    "SimConfig",
+    "SimResult",
+    "Site",
+    "StreamResult",
+    "UploadResult",
+    "Weather",
+    # errors
+    "CommandRefused",
+    "LinkError",
+    "SensorRefused",
+    "UploadMismatch",
+    "UserError",
+    # files
+    "SessionWriter",
+    "data_file",
+    "load_params",
+    "load_params_with_sigma",
+    "read_session",
+    "read_truth",
+    "save_params",
+    "write_attitudes",
+    "write_session",
+    "write_trace",
+    "write_truth",
+    # sky
+    "session_references",
+    "simulate",
+    "solve_attitudes",
+    # calibration
+    "calibrate_session",
+    "estimate_extras",
+    "replay_config",
+    "replay_prior",
+    "replay_session",
+    "result_extras",
+    # links
+    "accept_estimate",
+    "estimate_record",
+    "float32_equal",
+    "open_link",
+    "params_float32_dict",
+    "poll_estimate",
+    "poll_estimates",
+    "read_active_params",
+    "read_estimate",
+    "record_session",
+    "safe_upload",
+    "stream_frames",
+    # emulator and bench
+    "Emulator",
+    "build_sensor",
+    "run_bench",
+]
