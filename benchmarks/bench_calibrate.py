@@ -24,28 +24,33 @@ Usage: .venv/bin/python benchmarks/bench_calibrate.py [--frames 1000] [--memory-
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import tracemalloc
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from hostlink.calibration.bundle import (
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers below live there
+
+from crb_bounds import validation_residual_px  # noqa: E402
+from synthetic_sessions import synthetic_session  # noqa: E402
+
+from hostlink.calibration.bundle import (  # noqa: E402
     BundleOptions,
     bundle_adjust,
     initial_attitudes,
     observation_terms,
     parameter_scales,
 )
-from hostlink.calibration.crb import validation_residual_px
-from hostlink.calibration.frames import apply_attitude_increment
-from hostlink.calibration.synthetic import synthetic_session
-from onboard.params import CameraParams, distortion_from_seed004
+from hostlink.calibration.frames import apply_attitude_increment  # noqa: E402
+from hostlink.files.params import load_params  # noqa: E402
 
-TRUTH = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), distortion_from_seed004(2e-10, -3.5e-15))
-NOMINAL = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
+TRUTH = load_params("builtin:seed004_camera")
+NOMINAL = load_params("builtin:seed004_nominal")
 
 
 def scipy_bundle(data, nominal, max_nfev: int = 100, tol: float | None = None):

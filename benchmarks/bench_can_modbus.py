@@ -22,20 +22,18 @@ import threading
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+import can
 
-import can  # noqa: E402
-from emulator_fixtures import running_emulator  # noqa: E402
-
-from hostlink.emulator.slcan_hub import HubFrame, format_slcan_frame  # noqa: E402
-from hostlink.links import open_link  # noqa: E402
-from hostlink.links.can_link import (  # noqa: E402
+from hostlink.emulator.process import EmulatorProcess
+from hostlink.emulator.slcan_hub import HubFrame, format_slcan_frame
+from hostlink.links import open_link
+from hostlink.links.can_link import (
     StreamAssembler,
     _buffered_socket_url,
     can_frames_for,
     physical_limit_stars_per_s,
 )
-from protocol import can_frames as cf  # noqa: E402
+from protocol import can_frames as cf
 
 FASTEST_CAN_BITRATE = 1_000_000
 
@@ -56,16 +54,10 @@ def stream(link_string: str, n_frames: int) -> tuple[list, float, int]:
 
 
 def can_wire(frames) -> list[tuple[int, bytes]]:
-    """(identifier, payload) of every CAN frame the sensor sends for ``frames`` (as hostlink.emulator.can_endpoint)."""
-    out, t_base = [], None
-    for f in frames:
-        if cf.needs_time_base(f.t_us, t_base):
-            t_base = f.t_us
-            out.append((cf.TIME_BASE.frame_id, cf.encode_time_base(t_base)))
-        out.append((cf.FRAME_HEADER.frame_id, cf.encode_header(f.frame, f.n_stars, f.t_us - t_base)))
-        stars = cf.word_bytes(cf.encode_stars(f))
-        out += [(cf.STAR.frame_id, stars[k : k + 8]) for k in range(0, len(stars), 8)]
-    return out
+    """(identifier, payload) of every CAN frame the sensor sends for ``frames`` (protocol.can_frames.StreamEncoder,
+    as hostlink.emulator.can_endpoint)."""
+    encoder = cf.StreamEncoder()
+    return [pair for f in frames for pair in encoder.encode(f)]
 
 
 def best_of(repeat: int, fn) -> float:
@@ -133,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"can": [], "modbus": []}
     sample = None
     for bitrate in [int(b) for b in args.bitrates.split(",") if b]:
-        with running_emulator("can", "--bitrate", str(bitrate)) as info:
+        with EmulatorProcess("can", ["--bitrate", str(bitrate)]) as emulator:
+            info = emulator.info
             frames, elapsed, lost = stream(info["link"], args.frames)
         stars = sum(f.n_stars for f in frames)
         limit = physical_limit_stars_per_s(frames, info)
@@ -151,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         sample = sample or frames
     for key in ("link", "link_rtu"):
-        with running_emulator("modbus") as info:
+        with EmulatorProcess("modbus") as emulator:
+            info = emulator.info
             frames, elapsed, lost = stream(info[key], args.modbus_frames)
             stars = sum(f.n_stars for f in frames)
             results["modbus"].append(

@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, make_frames  # noqa: E402
+from recursive_synth import SEED004_PAPER_START, SEED004_TRUE, make_frames  # noqa: E402
 
 from onboard import fixedpoint, recursive  # noqa: E402
 from onboard.camera import pixels_to_unit  # noqa: E402
@@ -39,7 +39,7 @@ def wire_frames(frames):
 
 
 def estimator_fps(frames, fixed: bool) -> float:
-    state = recursive.create(SEED004_NOMINAL, dtype=np.float32)
+    state = recursive.create(SEED004_PAPER_START, dtype=np.float32)
     for x, y, r, ok, front in frames[:50]:  # cold start excluded, as in bench_recursive.py
         recursive.update(state, x, y, r, ok, front_end=front if fixed else None)
     t0 = time.perf_counter()

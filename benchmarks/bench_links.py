@@ -24,13 +24,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from emulator_fixtures import running_emulator  # noqa: E402
-
-from hostlink.links import TRANSPORTS, open_link, split_link_string  # noqa: E402
-from protocol.framing import FrameSplitter, decode_frame, encode_frame  # noqa: E402
-from protocol.messages import decode, encode  # noqa: E402
+from hostlink.emulator.process import EmulatorProcess
+from hostlink.links import TRANSPORTS, open_link, split_link_string
+from protocol.framing import FrameSplitter, decode_frame, encode_frame
+from protocol.messages import decode, encode
 
 #: Worst-case bits of one classic CAN frame with 8 data bytes, bit stuffing included (issue 6).
 CAN_BITS_PER_FRAME = 135
@@ -83,7 +80,8 @@ def host_decode_stars_per_s(frames, repeats: int = 5) -> float:
 
 
 def bench_transport(transport: str, n_frames: int) -> dict:
-    with running_emulator(transport) as info:
+    with EmulatorProcess(transport) as emulator:
+        info = emulator.info
         scheme, _ = split_link_string(info["link"])
         with open_link(info["link"], timeout_s=5.0) as link:
             frames, elapsed = stream_rate(link, n_frames)

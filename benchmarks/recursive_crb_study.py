@@ -29,20 +29,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from recursive_synth import SEED004_NOMINAL, batch_ml, sky_frames, synth_frames  # noqa: E402
+from recursive_synth import SEED004_PAPER_START, batch_ml, sky_frames, synth_frames  # noqa: E402
 
 from onboard import recursive  # noqa: E402
 from onboard.params import ESTIMATE_NAMES  # noqa: E402
 
 
-def run_estimator(frames, config, dtype, nominal=SEED004_NOMINAL):
+def run_estimator(frames, config, dtype, nominal=SEED004_PAPER_START):
     st = recursive.create(nominal, ESTIMATE_NAMES, config, dtype)
     for x, y, r, ok in frames:
         recursive.update(st, x, y, r, ok)
     return st
 
 
-def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED004_NOMINAL, batch=False):
+def study(seeds, source, n_frames, config, compare64, verbose=True, nominal=SEED004_PAPER_START, batch=False):
     """Per-seed normalised errors (S, 10), sigma ratios (S, 10), f32-f64 differences (S, 10), Mahalanobis (S,),
     and (with ``batch``) the batch ML's normalised errors (S, 10)."""
     get = sky_frames if source == "sky" else synth_frames
@@ -96,7 +96,7 @@ def main() -> None:
     args = parser.parse_args()
     config = recursive.RecursiveConfig(**parse_set(args.set))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    nominal = SEED004_NOMINAL
+    nominal = SEED004_PAPER_START
     if args.nominal_pp:
         nominal = dataclasses.replace(nominal, principal_point_px=tuple(float(v) for v in args.nominal_pp.split(",")))
     if args.nominal_f:

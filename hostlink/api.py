@@ -18,7 +18,8 @@ to a sensor fails; :class:`SensorRefused` / :class:`CommandRefused` when the sen
 Files (INTERFACES.md formats; every write is atomic):
     :func:`read_session`, :func:`write_session`, :class:`SessionWriter`, :func:`load_params`,
     :func:`load_params_with_sigma`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
-    :func:`write_attitudes`, :func:`write_trace`, :func:`data_file` (the camera files shipped with the package).
+    :func:`write_attitudes`, :func:`write_trace`, :func:`read_trace`, :func:`data_file` (the camera files shipped with
+    the package; ``load_params("builtin:NAME")`` reads one by name).
 Sky:
     :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
     (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
@@ -31,8 +32,9 @@ Sensor links (serial, CAN, Modbus; real or emulated, chosen by one link string):
     :func:`estimate_record`, :func:`safe_upload`, :func:`read_active_params`, :func:`read_estimate`,
     :func:`accept_estimate`, :func:`params_float32_dict`, :func:`float32_equal`.
 Emulated sensor and the bench:
-    :class:`Emulator` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its frame
-    source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end).
+    :class:`EmulatorProcess` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its
+    frame source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end),
+    :func:`design_nominal` (a camera's design values: what is known of it before calibration).
 """
 
 from __future__ import annotations
@@ -43,14 +45,16 @@ from hostlink.calibration.replay import (
     replay_config,
     replay_prior,
     replay_session,
-    write_trace,
 )
 from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_session, result_extras
+from hostlink.emulator.process import EmulatorProcess
 from hostlink.emulator.setup import build_sensor
 from hostlink.errors import LinkError, SensorRefused, UserError
 from hostlink.files.attitude import write_attitudes
-from hostlink.files.params import load_params, load_params_with_sigma, save_params
+from hostlink.files.params import data_file, load_params, load_params_with_sigma, save_params
 from hostlink.files.session import Session, SessionWriter, read_session, write_session
+from hostlink.files.trace import read_trace, write_trace
+from hostlink.files.truth import read_truth, write_truth
 from hostlink.links import Link, open_link
 from hostlink.links.base import CommandRefused
 from hostlink.links.operations import (
@@ -71,10 +75,11 @@ from hostlink.links.operations import (
     safe_upload,
     stream_frames,
 )
-from hostlink.mission.bench import BenchConfig, Emulator, run_bench
+from hostlink.mission.config import BenchConfig, design_nominal
+from hostlink.mission.run import run_bench
 from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
 from hostlink.sky.references import SessionReferences, session_references
-from hostlink.sky.simulate import SimConfig, SimResult, data_file, read_truth, simulate, write_truth
+from hostlink.sky.simulate import SimConfig, SimResult, simulate
 from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
 from onboard.recursive import RecursiveConfig
 from onboard.site import Site, Weather
@@ -116,6 +121,7 @@ __all__ = [
     "load_params",
     "load_params_with_sigma",
     "read_session",
+    "read_trace",
     "read_truth",
     "save_params",
     "write_attitudes",
@@ -147,7 +153,8 @@ __all__ = [
     "safe_upload",
     "stream_frames",
     # emulator and bench
-    "Emulator",
+    "EmulatorProcess",
     "build_sensor",
+    "design_nominal",
     "run_bench",
 ]

@@ -17,3 +17,9 @@ class SensorRefused(UserError):
     """The sensor refused a command (NAK) and gave a reason."""
 
     exit_code = 4
+
+
+def one_line(exc: BaseException, max_chars: int = 200) -> str:
+    """A foreign exception's message as one line of at most ``max_chars`` characters (whitespace runs collapsed; the
+    exception's type name when it has no message), for the one-line errors of the CLI."""
+    return " ".join(str(exc).split())[:max_chars] or type(exc).__name__

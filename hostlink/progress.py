@@ -1,4 +1,5 @@
-"""A progress bar on stderr (rich) that commands use for long transfers; silent when disabled or not a terminal."""
+"""THE progress bar (rich, on stderr) of every long job: ``hostlink stream``, ``bench``, ``simulate`` and ``replay``.
+Silent when disabled or when stderr is not a terminal (a pipe or a log file gets no control characters)."""
 
 from __future__ import annotations
 

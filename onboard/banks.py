@@ -1,44 +1,213 @@
-"""Parameter banks of the sensor: a staging area and two non-volatile slots (A/B), switched atomically.
+"""Parameter banks of the sensor: a RAM staging area and two NOR-flash sectors (A/B), switched atomically, with a
+persisted staging-session counter that binds every commit to the session that staged it.
 
-Each slot holds one record (``RECORD_BYTES`` = 100 bytes, little-endian)::
+Flash model (:class:`RamFlash`; the emulator's file-backed image, ``hostlink.emulator.flash``, applies the same
+rules through :func:`nor_erase` / :func:`nor_program`): ``N_SECTORS`` = 2 sectors of ``SECTOR_BYTES`` = 4096 bytes
+(a common NOR sector). Erasing sets a sector to 0xFF; programming can only clear bits (``new = old & data``), in
+aligned units of ``WRITE_BYTES`` = 8 bytes (a double word, as on Cortex-M internal flash). A power cut may stop an
+erase or a program after any byte.
 
-    generation:u32 | table: 92 bytes (protocol.param_table: camera fields + 1-sigma prior) | crc32:u32 over both
+Records (little-endian, each a whole number of write units, each closed by a CRC-32 over the bytes before it)::
 
-A blank (erased) slot is all 0xFF and never has a valid CRC. At start-up :func:`boot` makes the valid slot with the
-highest generation active. A commit (safe upload step 5) programs the *inactive* slot with the next generation,
-reads it back and checks its CRC, and only then switches ``active`` (one integer store: the atomic switch). A power
-loss anywhere before the switch leaves the old slot active, since the half-written slot fails its CRC at boot; a
-power loss after it boots into the new slot, whose generation is higher. Staging lives in RAM and never touches
-the slots, so an interrupted upload (host killed, corrupt chunk, refused set) leaves the active set unchanged.
+    bank record  (BANK_RECORD_BYTES = 112, at offset 0 of a sector)
+        magic "BNK1":u32 | seq:u32 | generation:u32 | nonce_counter:u32 | table: 92 bytes | crc32:u32
+    stage record (STAGE_RECORD_BYTES = 16, appended after the bank record of the active sector)
+        magic "STG1":u32 | nonce:u32 | crc32:u32 over the 8 bytes before | pad 0xFFFFFFFF
 
-The checks a staged set must pass (step 3) are exactly :func:`onboard.params.validate_params` and
-:func:`onboard.prior.validate_sigma`, so host and sensor refuse a set for the same reason. Buffers are sized at
-start-up; every step does a bounded amount of work.
-Generations are uint32 and do not wrap: a commit past :data:`MAX_GENERATION` (4e9 commits) is refused.
+A record whose CRC fails (erased, half-written, half-erased) does not exist. At start-up :func:`boot` makes the
+valid bank record with the highest ``seq`` active, and sets the session counter to the largest value any valid
+record holds. A commit (safe upload step 5) erases the *inactive* sector, programs a bank record there with
+``seq + 1``, the next generation and the current counter, reads it back, and only then switches ``active`` (one
+integer store: the atomic switch). A power cut before the record's last byte leaves it without a valid CRC, so the
+old sector stays active; after it, the new record wins by its ``seq``. Either way the active set is the complete
+old or the complete new one. Staging lives in RAM, so an interrupted upload leaves the active set unchanged.
+
+Session binding (issue 15): STAGE_BEGIN takes the next counter value as the session's nonce, persists it (a stage
+record, programmed and read back before the nonce is returned), and answers with it. COMMIT must carry that nonce
+and the generation it expects to replace. Because the counter is persisted before a nonce is given out and only
+grows, a nonce is never issued twice, across power cycles too: recorded traffic (whole, in part, reordered) carries
+an old nonce, or an old generation, and commits nothing. No clock and no host randomness are involved. When the
+active sector has no room for another stage record, STAGE_BEGIN first rewrites the active set (same generation and
+table, ``seq + 1``) into the other sector, which then has room again: STAGE_SLOTS = 249 sessions per rewrite.
+
+The checks a staged set must pass (step 3) are :func:`onboard.params.check_plausible` with the sensor's declared
+:class:`~onboard.params.PlausibilityLimits`, and :func:`onboard.prior.validate_sigma`, so host and sensor refuse a
+set for the same reason. Buffers are sized at start-up; every step does a bounded amount of work.
+Generations, seqs and nonces are uint32 and do not wrap: past :data:`MAX_COUNTER` (4e9) a commit or session is
+refused.
 """
 
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from onboard.params import CameraParams, Distortion, ParameterError, validate_params
+from onboard.params import (
+    CameraParams,
+    ParameterError,
+    PlausibilityLimits,
+    check_plausible,
+    params_from_dict,
+    params_to_dict,
+)
 from onboard.prior import unknown_sigma, validate_sigma
 from protocol.crc import crc32
 from protocol.messages import NakCode, StageState
-from protocol.param_table import CAMERA_FIELDS, SIGMA_FIELDS, SIGMA_OFFSET, TABLE_BYTES, decode_table, encode_table
+from protocol.param_table import (
+    SIGMA_FIELDS,
+    SIGMA_OFFSET,
+    TABLE_BYTES,
+    camera_fields_from_file,
+    camera_file_from_fields,
+    decode_table,
+    table_from_mapping,
+    table_to_mapping,
+)
 
-_GEN = struct.Struct("<I")
-_CRC = struct.Struct("<I")
-RECORD_BYTES = _GEN.size + TABLE_BYTES + _CRC.size
+#: Precision of the sensor's checks (float32, as the rest of the sensor; the host runs them in float64: the verdicts
+#: agree except within a few float32 ulps of a bound, tests/test_params_plausibility.py).
+SENSOR_DTYPE = np.float32
+#: NOR geometry: sectors, bytes per sector, program granularity [bytes].
+N_SECTORS = 2
+SECTOR_BYTES = 4096
+WRITE_BYTES = 8
+FLASH_BYTES = N_SECTORS * SECTOR_BYTES
 ERASED_BYTE = 0xFF
 NO_SLOT = -1
-#: Largest generation a slot record holds (uint32); a commit past it is refused (4e9 commits: never in practice).
-MAX_GENERATION = (1 << (8 * _GEN.size)) - 1
+#: Largest generation / seq / nonce (uint32); nothing wraps.
+MAX_COUNTER = (1 << 32) - 1
+MAX_GENERATION = MAX_COUNTER
+
+_BANK_MAGIC = 0x314B4E42  # "BNK1"
+_STAGE_MAGIC = 0x31475453  # "STG1"
+_BANK_HEAD = struct.Struct("<IIII")  # magic, seq, generation, nonce_counter
+_STAGE_HEAD = struct.Struct("<II")  # magic, nonce
+_CRC = struct.Struct("<I")
+BANK_RECORD_BYTES = _BANK_HEAD.size + TABLE_BYTES + _CRC.size
+STAGE_RECORD_BYTES = 16
+#: Stage records that fit after the bank record of a sector.
+STAGE_SLOTS = (SECTOR_BYTES - BANK_RECORD_BYTES) // STAGE_RECORD_BYTES
+assert BANK_RECORD_BYTES % WRITE_BYTES == 0 and STAGE_RECORD_BYTES % WRITE_BYTES == 0
 
 
+# --------------------------------------------------------------------------------------------------- NOR flash
+class PowerCut(Exception):  # noqa: N818 - an event, not an error of the caller
+    """The modelled power failed during an erase or program: the operation stopped part-way."""
+
+
+def nor_erase(image: np.ndarray, sector: int, budget: int | None = None) -> int:
+    """Erase ``sector`` of ``image`` (uint8) to 0xFF, byte by byte in address order. ``budget``: bytes that can still
+    be changed before the power fails (None = no cut). Returns the bytes done; stops short when the budget runs out."""
+    start = sector * SECTOR_BYTES
+    n = SECTOR_BYTES if budget is None else max(0, min(SECTOR_BYTES, budget))
+    image[start : start + n] = ERASED_BYTE
+    return n
+
+
+def nor_program(image: np.ndarray, address: int, data: np.ndarray, budget: int | None = None) -> int:
+    """Program ``data`` at ``address``: bits can only be cleared (``old & data``); address and length are whole
+    write units (a programming error otherwise). ``budget`` as :func:`nor_erase`. Returns the bytes done."""
+    data = np.asarray(data, dtype=np.uint8)
+    if address % WRITE_BYTES or len(data) % WRITE_BYTES or address < 0 or address + len(data) > len(image):
+        raise ValueError(f"program of {len(data)} bytes at {address}: not whole {WRITE_BYTES}-byte units in flash")
+    n = len(data) if budget is None else max(0, min(len(data), budget))
+    image[address : address + n] &= data[:n]
+    return n
+
+
+class RamFlash:
+    """NOR flash held in memory (the sensor model's default). ``power_budget``: bytes that may still be erased or
+    programmed before a :class:`PowerCut` (None = power never fails), the in-process power-cut test's hook."""
+
+    def __init__(self, image: np.ndarray | None = None, power_budget: int | None = None) -> None:
+        self.image = (
+            np.full(FLASH_BYTES, ERASED_BYTE, dtype=np.uint8)
+            if image is None
+            else np.array(image, dtype=np.uint8).reshape(FLASH_BYTES)
+        )
+        self.power_budget = power_budget
+
+    def read(self, address: int, n: int) -> bytes:
+        return self.image[address : address + n].tobytes()
+
+    def _spend(self, done: int, wanted: int) -> None:
+        if self.power_budget is not None:
+            self.power_budget -= done
+            if done < wanted:
+                raise PowerCut(f"power cut after {done} of {wanted} bytes")
+
+    def erase(self, sector: int) -> None:
+        self._spend(nor_erase(self.image, sector, self.power_budget), SECTOR_BYTES)
+
+    def program(self, address: int, data: bytes) -> None:
+        arr = np.frombuffer(bytes(data), dtype=np.uint8)
+        self._spend(nor_program(self.image, address, arr, self.power_budget), len(arr))
+
+
+class FlashDevice(Protocol):
+    """What the banks need from a flash device (:class:`RamFlash`, ``hostlink.emulator.flash.FileFlash``): the NOR
+    rules of :func:`nor_erase` and :func:`nor_program`."""
+
+    def read(self, address: int, n: int) -> bytes:
+        """``n`` bytes from ``address``."""
+
+    def erase(self, sector: int) -> None:
+        """Erase ``sector`` to 0xFF."""
+
+    def program(self, address: int, data: bytes) -> None:
+        """Program whole write units at ``address`` (bits only cleared)."""
+
+
+# ----------------------------------------------------------------------------------------------------- records
+@dataclass(frozen=True)
+class BankRecord:
+    seq: int
+    generation: int
+    nonce_counter: int
+    table: bytes
+
+
+def encode_bank_record(record: BankRecord) -> bytes:
+    """The BANK_RECORD_BYTES of a bank record (module docstring)."""
+    body = _BANK_HEAD.pack(_BANK_MAGIC, record.seq, record.generation, record.nonce_counter) + bytes(record.table)
+    return body + _CRC.pack(crc32(body))
+
+
+def decode_bank_record(raw: bytes) -> BankRecord | None:
+    """A bank record from its bytes, or None if it is not one (erased, half-written: magic or CRC wrong)."""
+    raw = bytes(raw[:BANK_RECORD_BYTES])
+    if len(raw) != BANK_RECORD_BYTES:
+        return None
+    body = raw[: -_CRC.size]
+    magic, seq, generation, counter = _BANK_HEAD.unpack_from(body)
+    if magic != _BANK_MAGIC or crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
+        return None
+    return BankRecord(seq, generation, counter, body[_BANK_HEAD.size :])
+
+
+def encode_stage_record(nonce: int) -> bytes:
+    body = _STAGE_HEAD.pack(_STAGE_MAGIC, nonce)
+    return body + _CRC.pack(crc32(body)) + bytes([ERASED_BYTE] * (STAGE_RECORD_BYTES - len(body) - _CRC.size))
+
+
+def decode_stage_record(raw: bytes) -> int | None:
+    """The nonce of a stage record, or None if it is not one."""
+    raw = bytes(raw[:STAGE_RECORD_BYTES])
+    body = raw[: _STAGE_HEAD.size]
+    magic, nonce = _STAGE_HEAD.unpack_from(body)
+    if magic != _STAGE_MAGIC or crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
+        return None
+    return nonce
+
+
+def _stage_slot_address(sector: int, k: int) -> int:
+    return sector * SECTOR_BYTES + BANK_RECORD_BYTES + k * STAGE_RECORD_BYTES
+
+
+# ----------------------------------------------------------------------------------------------------- the store
 @dataclass(frozen=True)
 class Refusal:
     """Why a bank operation was refused: a protocol NAK code and a one-line reason."""
@@ -49,31 +218,116 @@ class Refusal:
 
 @dataclass
 class BankStore:
-    """The sensor's parameter memory. ``slots`` models the two flash slots; the rest is RAM."""
+    """The sensor's parameter memory: the flash device, what boot found in it, and the RAM staging area."""
 
-    slots: np.ndarray  # (2, RECORD_BYTES) uint8
-    active: int  # index of the active slot, NO_SLOT before the first commit
+    flash: FlashDevice
+    active: int  # sector of the active bank record, NO_SLOT before the first commit
+    active_record: BankRecord | None
+    nonce_counter: int  # largest nonce ever persisted (0: none)
+    stage_free: int  # next free stage slot in the stage sector (STAGE_SLOTS: full)
     staged: np.ndarray  # (TABLE_BYTES,) uint8
     received: np.ndarray  # (TABLE_BYTES,) bool: which staged bytes arrived since stage_begin
     stage_state: StageState
     verified_crc: int  # CRC of the staged set that passed stage_verify (valid only in state VERIFIED)
+    stage_nonce: int  # nonce of the current staging session (0: none)
+    limits: PlausibilityLimits | None  # the sensor's declared design (None: no focal-length rule)
 
 
-# ----------------------------------------------------------------------------------------------- table <-> params
+def _stage_sector(active: int) -> int:
+    """Stage records live in the sector the next commit does not erase: the active one (sector 1 while none is)."""
+    return 1 if active == NO_SLOT else active
+
+
+def boot(flash: FlashDevice, limits: PlausibilityLimits | None = None) -> BankStore:
+    """Start-up: the valid bank record with the highest seq becomes active (NO_SLOT if none); the session counter is
+    the largest value any valid record holds; staging is empty."""
+    best, record = NO_SLOT, None
+    counter = 0
+    for sector in range(N_SECTORS):
+        rec = decode_bank_record(flash.read(sector * SECTOR_BYTES, BANK_RECORD_BYTES))
+        if rec is not None:
+            counter = max(counter, rec.nonce_counter)
+            if record is None or rec.seq > record.seq:
+                best, record = sector, rec
+        for k in range(STAGE_SLOTS):
+            nonce = decode_stage_record(flash.read(_stage_slot_address(sector, k), STAGE_RECORD_BYTES))
+            if nonce is not None:
+                counter = max(counter, nonce)
+    return BankStore(
+        flash=flash,
+        active=best,
+        active_record=record,
+        nonce_counter=counter,
+        stage_free=_first_free_stage_slot(flash, _stage_sector(best)),
+        staged=np.zeros(TABLE_BYTES, dtype=np.uint8),
+        received=np.zeros(TABLE_BYTES, dtype=bool),
+        stage_state=StageState.EMPTY,
+        verified_crc=0,
+        stage_nonce=0,
+        limits=limits,
+    )
+
+
+def _first_free_stage_slot(flash: FlashDevice, sector: int) -> int:
+    """First stage slot after the last used one (a half-written slot is used: it cannot be programmed again)."""
+    free = 0
+    for k in range(STAGE_SLOTS):
+        if any(b != ERASED_BYTE for b in flash.read(_stage_slot_address(sector, k), STAGE_RECORD_BYTES)):
+            free = k + 1
+    return free
+
+
+def erased_store(limits: PlausibilityLimits | None = None) -> BankStore:
+    """A sensor with blank flash and nothing staged."""
+    return boot(RamFlash(), limits)
+
+
+def factory_store(
+    params: CameraParams, flash: FlashDevice | None = None, limits: PlausibilityLimits | None = None
+) -> BankStore:
+    """A sensor as delivered: ``flash`` (blank, in RAM by default) with ``params`` committed as generation 1 in
+    sector A (validated). The design the sensor declares is ``limits``, by default ``params``' focal length."""
+    limits = PlausibilityLimits(params.focal_length_mm) if limits is None else limits
+    check_plausible(params, limits)
+    flash = RamFlash() if flash is None else flash
+    flash.erase(0)
+    flash.program(0, encode_bank_record(BankRecord(1, 1, 0, params_to_table(params))))
+    return boot(flash, limits)
+
+
+def active_set(store: BankStore) -> tuple[int, bytes, int] | None:
+    """(generation, table, crc32) of the active set, or None before the first commit."""
+    rec = store.active_record
+    if rec is None:
+        return None
+    return rec.generation, rec.table, crc32(rec.table)
+
+
+def active_generation(store: BankStore) -> int:
+    """Generation of the active set (0 before the first commit)."""
+    return 0 if store.active_record is None else store.active_record.generation
+
+
+def _write_bank(store: BankStore, record: BankRecord) -> Refusal | None:
+    """Erase the inactive sector, program ``record`` there, read it back, switch. A PowerCut propagates."""
+    target = 0 if store.active == NO_SLOT else 1 - store.active
+    raw = encode_bank_record(record)
+    store.flash.erase(target)
+    store.flash.program(target * SECTOR_BYTES, raw)
+    if decode_bank_record(store.flash.read(target * SECTOR_BYTES, BANK_RECORD_BYTES)) != record:
+        return Refusal(NakCode.BANK_WRITE_FAILED, f"sector {'AB'[target]} did not read back intact; nothing switched")
+    store.active, store.active_record = target, record  # the atomic switch
+    store.stage_free = 0  # the new active sector was just erased: its stage area is empty
+    return None
+
+
+# ------------------------------------------------------------------------------------------------ table <-> params
 def params_to_table(params: CameraParams, sigma: np.ndarray | None = None) -> bytes:
     """Camera parameter set and its 1-sigma prior (10 values, ESTIMATE_NAMES order, parameter units; NaN or 0 =
     unknown; None = nothing known) -> the table bytes (each value rounded to float32)."""
-    values = {
-        "focal_length_mm": params.focal_length_mm,
-        "pixel_pitch_um": params.pixel_pitch_um,
-        "principal_point_x_px": params.principal_point_px[0],
-        "principal_point_y_px": params.principal_point_px[1],
-        "image_width_px": params.image_size_px[0],
-        "image_height_px": params.image_size_px[1],
-        **{k: getattr(params.distortion, k) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")},
-    }
     sig = unknown_sigma() if sigma is None else np.asarray(sigma, dtype=np.float64).reshape(len(SIGMA_FIELDS))
-    return encode_table([float(values[name]) for name in CAMERA_FIELDS] + [float(v) for v in sig])
+    sigma_fields = {name: float(v) for name, v in zip(SIGMA_FIELDS, sig, strict=True)}
+    return table_from_mapping({**camera_fields_from_file(params_to_dict(params)), **sigma_fields})
 
 
 def table_to_sigma(table: bytes) -> np.ndarray:
@@ -84,97 +338,57 @@ def table_to_sigma(table: bytes) -> np.ndarray:
 def table_to_params(table: bytes) -> CameraParams:
     """Table bytes -> camera parameter set (values are the exact float32 ones), NOT validated.
     Raises ParameterError if the image size is not a whole number (it cannot be represented otherwise)."""
-    v = [float(x) for x in decode_table(table)]
-    for i, n in enumerate(v[4:6]):
-        if not (np.isfinite(n) and n == int(n)):
-            raise ParameterError(f"image_size_px[{i}]", f"expected a whole number of pixels, got {n!r}")
-    return CameraParams(
-        focal_length_mm=v[0],
-        pixel_pitch_um=v[1],
-        principal_point_px=(v[2], v[3]),
-        image_size_px=(int(v[4]), int(v[5])),
-        distortion=Distortion(*v[6:13]),
-    )
+    return params_from_dict(camera_file_from_fields(table_to_mapping(table)), validate=False)
 
 
-def check_table(table: bytes) -> Refusal | None:
-    """Sensor-side range checks of a staged set (safe upload step 3): None if usable."""
+def check_table(table: bytes, limits: PlausibilityLimits | None = None) -> Refusal | None:
+    """Sensor-side checks of a staged set (safe upload step 3): None if usable, else the rule it breaks."""
     try:
         with np.errstate(all="ignore"):  # an absurd value must produce a refusal, not a warning
-            validate_params(table_to_params(table))
+            check_plausible(table_to_params(table), limits, SENSOR_DTYPE)
             validate_sigma(table_to_sigma(table))
     except ParameterError as exc:
         return Refusal(NakCode.INVALID_PARAMS, str(exc))
     return None
 
 
-# ---------------------------------------------------------------------------------------------------- records
-def make_record(generation: int, table: bytes) -> np.ndarray:
-    """The slot record (RECORD_BYTES) for ``table`` with ``generation`` (uint8 array)."""
-    body = _GEN.pack(generation) + bytes(table)
-    return np.frombuffer(body + _CRC.pack(crc32(body)), dtype=np.uint8).copy()
-
-
-def parse_record(record: np.ndarray) -> tuple[int, bytes] | None:
-    """(generation, table) of a slot record, or None if its CRC fails (erased or half-written)."""
-    raw = record.tobytes()
-    body = raw[: _GEN.size + TABLE_BYTES]
-    if crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
-        return None
-    return _GEN.unpack_from(raw)[0], body[_GEN.size :]
-
-
-def program_slot(store: BankStore, slot: int, record: np.ndarray, n_bytes: int = RECORD_BYTES) -> None:
-    """Write the first ``n_bytes`` of ``record`` into ``slot`` after erasing it (n_bytes < RECORD_BYTES models a
-    power loss during programming)."""
-    store.slots[slot, :] = ERASED_BYTE
-    store.slots[slot, :n_bytes] = record[:n_bytes]
-
-
-# ------------------------------------------------------------------------------------------------------- state
-def erased_store() -> BankStore:
-    """A sensor with blank flash and nothing staged."""
-    return boot(np.full((2, RECORD_BYTES), ERASED_BYTE, dtype=np.uint8))
-
-
-def boot(slots: np.ndarray) -> BankStore:
-    """Start-up: the valid slot with the highest generation becomes active (NO_SLOT if neither is valid)."""
-    slots = np.asarray(slots, dtype=np.uint8).reshape(2, RECORD_BYTES).copy()
-    best, best_gen = NO_SLOT, -1
-    for slot in range(2):
-        parsed = parse_record(slots[slot])
-        if parsed is not None and parsed[0] > best_gen:
-            best, best_gen = slot, parsed[0]
-    return BankStore(
-        slots=slots,
-        active=best,
-        staged=np.zeros(TABLE_BYTES, dtype=np.uint8),
-        received=np.zeros(TABLE_BYTES, dtype=bool),
-        stage_state=StageState.EMPTY,
-        verified_crc=0,
-    )
-
-
-def active_set(store: BankStore) -> tuple[int, bytes, int] | None:
-    """(generation, table, crc32) of the active set, or None before the first commit."""
-    if store.active == NO_SLOT:
-        return None
-    parsed = parse_record(store.slots[store.active])
-    if parsed is None:  # cannot happen: a slot only becomes active after its CRC was checked
-        return None
-    generation, table = parsed
-    return generation, table, crc32(table)
-
-
-def stage_begin(store: BankStore, length: int) -> Refusal | None:
-    """Safe upload step 2a: clear the staging area (RAM only)."""
+# ------------------------------------------------------------------------------------------------------ staging
+def stage_begin(store: BankStore, length: int) -> int | Refusal:
+    """Safe upload step 2a: a new staging session. Persists the next nonce (a stage record, read back) and returns
+    it; clears the staging area (RAM). Any earlier session's nonce is void from here on."""
     if length != TABLE_BYTES:
         return Refusal(NakCode.BAD_LENGTH, f"a parameter table is {TABLE_BYTES} bytes, not {length}")
+    _clear_staging(store)
+    if store.nonce_counter >= MAX_COUNTER:
+        return Refusal(NakCode.BANK_WRITE_FAILED, f"staging-session counter exhausted at {MAX_COUNTER}")
+    if store.stage_free >= STAGE_SLOTS and store.active_record is not None:
+        rec = store.active_record  # no room: rewrite the active set into the other sector (same generation)
+        if rec.seq >= MAX_COUNTER:
+            return Refusal(NakCode.BANK_WRITE_FAILED, f"bank sequence counter exhausted at {MAX_COUNTER}")
+        refusal = _write_bank(store, BankRecord(rec.seq + 1, rec.generation, store.nonce_counter, rec.table))
+        if refusal is not None:
+            return refusal
+    elif store.stage_free >= STAGE_SLOTS:  # blank flash, stage sector full: start it again
+        store.flash.erase(_stage_sector(store.active))
+        store.stage_free = 0
+    nonce = store.nonce_counter + 1
+    address = _stage_slot_address(_stage_sector(store.active), store.stage_free)
+    store.stage_free += 1  # a half-written slot stays used
+    store.flash.program(address, encode_stage_record(nonce))
+    if decode_stage_record(store.flash.read(address, STAGE_RECORD_BYTES)) != nonce:
+        return Refusal(NakCode.BANK_WRITE_FAILED, "the staging-session record did not read back; try again")
+    store.nonce_counter = nonce
+    store.stage_nonce = nonce
+    store.stage_state = StageState.RECEIVING
+    return nonce
+
+
+def _clear_staging(store: BankStore) -> None:
     store.staged[:] = 0
     store.received[:] = False
-    store.stage_state = StageState.RECEIVING
+    store.stage_state = StageState.EMPTY
     store.verified_crc = 0
-    return None
+    store.stage_nonce = 0
 
 
 def stage_chunk(store: BankStore, offset: int, data: bytes) -> Refusal | None:
@@ -197,7 +411,7 @@ def staged_complete(store: BankStore) -> bool:
 
 
 def stage_verify(store: BankStore, crc: int) -> Refusal | None:
-    """Safe upload step 3: the staged bytes must be complete, match ``crc`` and pass the range checks."""
+    """Safe upload step 3: the staged bytes must be complete, match ``crc`` and pass the plausibility checks."""
     if not staged_complete(store):
         missing = int(np.count_nonzero(~store.received)) if store.stage_state != StageState.EMPTY else TABLE_BYTES
         return Refusal(NakCode.NOT_STAGED, f"staged set incomplete ({missing} of {TABLE_BYTES} bytes missing)")
@@ -206,7 +420,7 @@ def stage_verify(store: BankStore, crc: int) -> Refusal | None:
     if actual != crc:
         store.stage_state = StageState.RECEIVING
         return Refusal(NakCode.BAD_CRC, f"staged set has CRC 0x{actual:08x}, host sent 0x{crc:08x}")
-    refusal = check_table(table)
+    refusal = check_table(table, store.limits)
     if refusal is not None:
         store.stage_state = StageState.RECEIVING
         return refusal
@@ -223,9 +437,18 @@ def staged_set(store: BankStore) -> tuple[bytes, int] | None:
     return table, crc32(table)
 
 
-def commit(store: BankStore, crc: int) -> int | Refusal:
-    """Safe upload step 5: program the inactive slot with the verified set and the next generation, check it,
-    switch. Returns the new generation, or a Refusal with the active set unchanged."""
+def commit(store: BankStore, crc: int, nonce: int, expected_generation: int) -> int | Refusal:
+    """Safe upload step 5: program the inactive sector with the verified set and the next generation, check it,
+    switch. ``nonce`` must be the current staging session's (STAGE_BEGIN's answer) and ``expected_generation`` the
+    active generation (0: none yet). Returns the new generation, or a Refusal with the active set unchanged."""
+    current = active_generation(store)
+    if store.stage_nonce == 0 or nonce != store.stage_nonce:
+        return Refusal(NakCode.STALE_SESSION, f"nonce {nonce} is not the current staging session's; nothing switched")
+    if expected_generation != current:
+        return Refusal(
+            NakCode.STALE_SESSION,
+            f"expected generation {expected_generation} but generation {current} is active; nothing switched",
+        )
     if store.stage_state != StageState.VERIFIED:
         return Refusal(NakCode.NOT_VERIFIED, "the staged set has not passed STAGE_VERIFY")
     table = store.staged.tobytes()
@@ -233,25 +456,12 @@ def commit(store: BankStore, crc: int) -> int | Refusal:
         return Refusal(
             NakCode.NOT_VERIFIED, f"CRC 0x{crc:08x} is not that of the verified staged set 0x{store.verified_crc:08x}"
         )
-    current = active_set(store)
-    generation = 1 if current is None else current[0] + 1
-    if generation > MAX_GENERATION:
+    generation = current + 1
+    seq = 1 if store.active_record is None else store.active_record.seq + 1
+    if generation > MAX_GENERATION or seq > MAX_COUNTER:
         return Refusal(NakCode.BANK_WRITE_FAILED, f"generation counter exhausted at {MAX_GENERATION}; nothing switched")
-    slot = 0 if store.active == NO_SLOT else 1 - store.active
-    record = make_record(generation, table)
-    program_slot(store, slot, record)
-    if parse_record(store.slots[slot]) != (generation, table):
-        return Refusal(NakCode.BANK_WRITE_FAILED, f"slot {'AB'[slot]} did not read back intact; nothing switched")
-    store.active = slot  # the atomic switch
-    store.stage_state = StageState.EMPTY
-    store.received[:] = False
-    store.verified_crc = 0
+    refusal = _write_bank(store, BankRecord(seq, generation, store.nonce_counter, table))
+    if refusal is not None:
+        return refusal
+    _clear_staging(store)  # the session is used up: its nonce commits nothing more
     return generation
-
-
-def factory_store(params: CameraParams) -> BankStore:
-    """A sensor as delivered: blank flash with ``params`` committed as generation 1 in slot A (validated)."""
-    validate_params(params)
-    store = erased_store()
-    program_slot(store, 0, make_record(1, params_to_table(params)))
-    return boot(store.slots)

@@ -6,7 +6,7 @@ arrays, the host with float64 ones. Nothing here promotes: constants are Python 
 dtype) and no float64 array is created unless the caller passed float64.
 
 Jacobians are with respect to the model vector (F in pixels). The focal length in millimetres is F p / 1000, so
-d/df_mm = (1000 / p) d/dF_px; :func:`focal_scale_mm_per_px` gives the factor.
+d/df_mm = (1000 / p) d/dF_px.
 
 Source: Weng, Cohen, Herniou (1992), as used in seed 000 eq. 7; pinhole direction as seed 004 eq. 2 / seed 000 eq. 2
 with the sign convention of CAMERA_MODEL.md (+x along increasing column, +y along increasing row, +z boresight).
@@ -18,11 +18,6 @@ import numpy as np
 
 #: Newton iterations for the simulator's inverse mapping; each roughly squares the error, 8 is far more than needed.
 _INVERSE_MAX_ITER = 8
-
-
-def focal_scale_mm_per_px(pixel_pitch_um: float) -> float:
-    """d f_mm / d F_px = p / 1000 (F = 1000 f / p)."""
-    return pixel_pitch_um / 1000.0
 
 
 def distortion_px(u: np.ndarray, v: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

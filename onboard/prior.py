@@ -46,7 +46,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, N_PARAMS, CameraParams, ParameterError
+from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, N_PARAMS, CameraParams, ParameterError
 from onboard.recursive import RecursiveConfig, default_prior_sigma
 
 #: Factor applied to a refined (marginal) sigma to make the diagonal prior conservative (module docstring).
@@ -57,7 +57,7 @@ SIGMA_FILE_FIELDS: tuple[str, ...] = (
     "sigma.focal_length_mm",
     "sigma.principal_point_px[0]",
     "sigma.principal_point_px[1]",
-    *(f"sigma.distortion.{k}" for k in DISTORTION_KEYS),
+    *(f"sigma.distortion.{k}" for k in DISTORTION_NAMES),
 )
 
 
@@ -111,8 +111,8 @@ def sigma_from_dict(data: Mapping | None, validate: bool = True) -> np.ndarray:
     dist = data.get("distortion")
     if dist is not None:
         if not isinstance(dist, Mapping):
-            raise ParameterError("sigma.distortion", f"expected an object with keys {' '.join(DISTORTION_KEYS)}")
-        for k, key in enumerate(DISTORTION_KEYS):
+            raise ParameterError("sigma.distortion", f"expected an object with keys {' '.join(DISTORTION_NAMES)}")
+        for k, key in enumerate(DISTORTION_NAMES):
             if key in dist:
                 out[3 + k] = number(SIGMA_FILE_FIELDS[3 + k], dist[key])
     for k, name in enumerate(ESTIMATE_NAMES):  # the flat layout (keyed f, x0, ...), also accepted on input
@@ -134,7 +134,7 @@ def sigma_to_dict(sigma: Sequence[float] | np.ndarray, number=float) -> dict | N
     return {
         "focal_length_mm": s[0],
         "principal_point_px": [s[1], s[2]],
-        "distortion": dict(zip(DISTORTION_KEYS, s[3:], strict=True)),
+        "distortion": dict(zip(DISTORTION_NAMES, s[3:], strict=True)),
     }
 
 

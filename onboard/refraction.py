@@ -81,13 +81,6 @@ def seed001_coefficient_rad(temp_c: float, pressure_hpa: float, lat_rad: float |
     return 60.2 * ARCSEC_TO_RAD * (1.0 + m + n)  # eq. 13, 17
 
 
-def seed001_refraction_rad(zenith_apparent_rad, temp_c: float, pressure_hpa: float, lat_rad: float | None = None):
-    """Seed 001 eq. 13-17: R [rad] at apparent zenith distance(s) [rad] (dtype of the input)."""
-    z = np.asarray(zenith_apparent_rad)
-    k = seed001_coefficient_rad(temp_c, pressure_hpa, lat_rad)
-    return z.dtype.type(k) * np.tan(z) if z.dtype.kind == "f" else k * np.tan(z)
-
-
 def model_coefficients(weather: Weather, model: str = "atan", lat_rad: float | None = None) -> tuple[float, float]:
     """(A, B) [rad] of either model in the common form A tan z_a + B tan^3 z_a."""
     if model == "atan":

@@ -11,7 +11,7 @@ Every routine works in place on caller-owned arrays and in their dtype (float32 
   U_j' = U_j + lambda_j b_{j-1}, b_j = b_{j-1} + v_j U_j) is written with cumulative sums over columns, which
   perform the same additions in the same order as the loop, so the arithmetic is Bierman's.
 - :func:`agee_turner_update`: P + c a a^T for c >= 0 (process noise), O(K^2) (Agee and Turner 1972).
-- :func:`ud_factor` / :func:`ud_covariance`: to and from a full matrix (start-up and reporting only).
+- :func:`ud_covariance`: back to a full matrix (reporting only).
 """
 
 from __future__ import annotations
@@ -94,19 +94,6 @@ def agee_turner_update(u: np.ndarray, d: np.ndarray, a: np.ndarray, c: float) ->
         a[:j] = tmp
         c = c * dj / dj_new
         d[j] = dj_new
-
-
-def ud_factor(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """P = U diag(d) U^T for a symmetric positive definite P (start-up only; O(K^3))."""
-    p = np.array(p, copy=True)
-    k = p.shape[0]
-    u = np.eye(k, dtype=p.dtype)
-    d = np.zeros(k, dtype=p.dtype)
-    for j in range(k - 1, -1, -1):
-        d[j] = p[j, j]
-        u[:j, j] = p[:j, j] / d[j]
-        p[:j, :j] -= d[j] * np.outer(u[:j, j], u[:j, j])
-    return u, d
 
 
 def ud_covariance(u: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -3,19 +3,28 @@
 
 How the messages of ``protocol.messages`` travel on CAN:
 
-* the centroid stream is plain CAN frames, one per star (:data:`STAR`) after one :data:`FRAME_HEADER` per exposure;
-  exposure times are 24-bit microsecond offsets from the last :data:`TIME_BASE` frame, which the sensor sends when a
-  stream starts and whenever an offset would not fit (at most every 16.7 s);
+* the centroid stream is plain CAN frames, one per star (:data:`STAR`) after one :data:`FRAME_HEADER` per exposure,
+  closed by one :data:`FRAME_END` carrying the frame counter and a CRC-32 (:func:`frame_check`) over the exposure
+  time, the header and every star payload in order: a receiver accepts a frame only when its FRAME_END matches, so
+  a flipped bit in any of its CAN frames (the bus CRC-15 aside, e.g. on an adapter's serial line), a missing or an
+  extra star, or a wrong time base is detected within the frame, and loss is counted from the gaps between the
+  counters of accepted frames. Exposure times are 24-bit microsecond offsets from the last :data:`TIME_BASE` frame,
+  which the sensor sends when a stream starts, whenever an offset would not fit (at most every 16.7 s), and every
+  :data:`TIME_BASE_EVERY_FRAMES` frames (so a lost or corrupted time base costs at most that many frames);
 * the short commands (every command except STAGE_CHUNK, each at most 7 bytes) travel as one :data:`COMMAND` frame,
   multiplexed by the message type byte, and the sensor's ACK as one :data:`ACK` frame; a parameter can also be staged
   one float per :data:`STAGE_FLOAT` frame (a STAGE_CHUNK of 4 bytes), so a plain DBC tool can drive an upload;
+* COMMIT is 15 bytes (its CRC, the staging nonce and the expected generation): the host sends it by ISO-TP; a plain
+  DBC tool sends a :data:`COMMIT_BIND` frame (nonce, expected generation) immediately before the COMMAND COMMIT
+  frame, and the sensor joins the two (a COMMAND COMMIT without a COMMIT_BIND just before it has nonce 0, which no
+  staging session has, and is refused);
 * everything longer (STAGE_CHUNK, NAK with its reason, TELEMETRY, PARAM_TABLE, ESTIMATE) is the message's bytes
   (``protocol.messages.encode``) in one ISO-TP message (ISO 15765-2, normal 11-bit addressing) on
   :data:`ISOTP_HOST_TO_SENSOR_ID` / :data:`ISOTP_SENSOR_TO_HOST_ID`; these are not single-frame messages and are not
   in the DBC.
 
 Identifiers are standard (11-bit): the worst-case 8-byte frame is then 135 bits on the bus
-(``hostlink.links.slcan_hub.frame_bits_worst_case``) against 160 for 29-bit identifiers. Lower identifiers win
+(:func:`frame_bits_worst_case`) against 160 for 29-bit identifiers. Lower identifiers win
 arbitration, so host commands (0x0A0-0x0A2) and ISO-TP (0x0C0, 0x0C1) go before the stream (0x100-0x103).
 
 Every signal is little-endian (Intel, ``@1`` in the DBC); a frame's 8 bytes are read as one little-endian uint64 and a
@@ -36,6 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from protocol.crc import crc16_ccitt, crc32
 from protocol.messages import (
     CENTROID_STEPS_PER_PX,
     MAX_STARS,
@@ -71,8 +81,25 @@ STAR_XY_BITS = 23
 STAR_ID_BITS = 17
 _XY_RAW_OFFSET = int(-STAR_XY_OFFSET_PX * CENTROID_STEPS_PER_PX)
 
+#: The sensor repeats TIME_BASE at least every this many frames (bounds the frames a lost time base invalidates).
+TIME_BASE_EVERY_FRAMES = 16
+
 HOST = "HOST"
 SENSOR = "SENSOR"
+
+
+def frame_bits_worst_case(dlc: int, is_extended_id: bool, is_remote_frame: bool = False) -> int:
+    """Bus time of one classic CAN frame with the worst-case number of stuff bits, in bits (ISO 11898-1).
+
+    Stuffed fields: SOF, arbitration (11-bit ID + RTR, or 11 + SRR + IDE + 18 + RTR), control, data, CRC15; that is
+    ``34 + 8 n`` bits (standard) or ``54 + 8 n`` (extended) for ``n`` data bytes. At most one stuff bit per 4 bits
+    after the first gives ``floor((stuffable - 1) / 4)``. Then 13 unstuffed bits: CRC delimiter, ACK slot and
+    delimiter, 7-bit EOF and the 3-bit intermission. Standard, 8 bytes: 98 + 24 + 13 = 135 bits; extended: 160
+    (Davis, Burns, Bril & Lukkien 2007, eq. 1).
+    """
+    n_data = 0 if is_remote_frame else int(dlc)
+    stuffable = (54 if is_extended_id else 34) + 8 * n_data
+    return stuffable + (stuffable - 1) // 4 + 13
 
 
 @dataclass(frozen=True)
@@ -272,19 +299,51 @@ STAR = CanMessageDef(
     ),
     "One star of the frame announced by the last FRAME_HEADER. No magnitude (see protocol/can_frames.py).",
 )
+COMMIT_BIND = CanMessageDef(
+    "COMMIT_BIND",
+    0x0A3,
+    8,
+    HOST,
+    (SENSOR,),
+    (
+        _u("nonce", 0, 32, comment="staging nonce: the ACK value of this upload's STAGE_BEGIN"),
+        _u("expected_generation", 32, 32, comment="active generation read before staging (0 = none)"),
+    ),
+    "Binds the COMMAND COMMIT frame that follows it to its staging session (protocol.messages.Commit fields).",
+)
+FRAME_END = CanMessageDef(
+    "FRAME_END",
+    0x104,
+    8,
+    SENSOR,
+    (HOST,),
+    (
+        _u("frame_crc32", 0, 32, comment="CRC-32 of t_us (int64 LE), the FRAME_HEADER and the STAR payloads in order"),
+        _u("frame", 32, 32, comment="frame counter (that of the FRAME_HEADER it closes)"),
+    ),
+    "End of one centroid frame: the receiver accepts the frame only if frame and frame_crc32 match what it received.",
+)
 END_OF_STREAM = CanMessageDef(
     "END_OF_STREAM",
     0x103,
     8,
     SENSOR,
     (HOST,),
-    (_u("frames_sent", 0, 32), _u("last_frame", 32, 32, comment="frame counter of the last frame produced")),
-    "The sensor's frame source is exhausted; a receiver counts the frames lost after its last one from last_frame.",
+    (
+        _u("frames_sent", 0, 16, comment="frames sent, modulo 65536"),
+        _u("check", 16, 16, comment="CRC-16/CCITT of payload bytes 0-1 and 4-7 (frames_sent, last_frame)"),
+        _u("last_frame", 32, 32, comment="frame counter of the last frame produced"),
+    ),
+    "The sensor's frame source is exhausted; a receiver counts the frames lost after its last one from last_frame. "
+    "A payload whose check does not match is refused (a corrupted frame must not end a stream).",
 )
 
 #: Every single-frame message, in identifier order (the DBC lists them so).
 CAN_MESSAGES: tuple[CanMessageDef, ...] = tuple(
-    sorted((COMMAND, ACK, STAGE_FLOAT, TIME_BASE, FRAME_HEADER, STAR, END_OF_STREAM), key=lambda m: m.frame_id)
+    sorted(
+        (COMMAND, ACK, STAGE_FLOAT, COMMIT_BIND, TIME_BASE, FRAME_HEADER, STAR, END_OF_STREAM, FRAME_END),
+        key=lambda m: m.frame_id,
+    )
 )
 MESSAGES_BY_ID: dict[int, CanMessageDef] = {m.frame_id: m for m in CAN_MESSAGES}
 
@@ -385,14 +444,79 @@ def decode_time_base(data: bytes | bytearray) -> int:
     return int.from_bytes(bytes(data), "little", signed=True)
 
 
+def _end_check(payload: bytes) -> int:
+    return crc16_ccitt(payload[0:2] + payload[4:8])
+
+
 def encode_end_of_stream(frames_sent: int, last_frame: int) -> bytes:
-    return word_bytes(pack(END_OF_STREAM, {"frames_sent": frames_sent, "last_frame": last_frame}))
+    """END_OF_STREAM payload (``frames_sent`` is sent modulo 65536)."""
+    raw = {"frames_sent": int(frames_sent) & 0xFFFF, "last_frame": last_frame}
+    payload = word_bytes(pack(END_OF_STREAM, raw))
+    return word_bytes(pack(END_OF_STREAM, {**raw, "check": _end_check(payload)}))
 
 
 def decode_end_of_stream(data: bytes | bytearray) -> tuple[int, int]:
-    """END_OF_STREAM payload -> (frames_sent, last_frame)."""
+    """END_OF_STREAM payload -> (frames_sent modulo 65536, last_frame); CanDecodeError if its check fails."""
     raw = unpack(END_OF_STREAM, np.uint64(_one_word(data, END_OF_STREAM)))
+    if int(raw["check"]) != _end_check(bytes(data)):
+        raise CanDecodeError("END_OF_STREAM check does not match")
     return int(raw["frames_sent"]), int(raw["last_frame"])
+
+
+def frame_check(t_us: int, header: bytes | bytearray, stars: bytes | bytearray) -> int:
+    """CRC-32 (``protocol.crc.crc32``) of the exposure time (int64 little-endian, us), the FRAME_HEADER payload and
+    the concatenated STAR payloads: the ``frame_crc32`` of FRAME_END."""
+    return crc32(int(t_us).to_bytes(8, "little", signed=True) + bytes(header) + bytes(stars))
+
+
+def encode_frame_end(frame: int, frame_crc32: int) -> bytes:
+    return word_bytes(pack(FRAME_END, {"frame_crc32": frame_crc32, "frame": frame}))
+
+
+def decode_frame_end(data: bytes | bytearray) -> tuple[int, int]:
+    """FRAME_END payload -> (frame, frame_crc32)."""
+    raw = unpack(FRAME_END, np.uint64(_one_word(data, FRAME_END)))
+    return int(raw["frame"]), int(raw["frame_crc32"])
+
+
+def encode_stream_frame(
+    frame: CentroidFrame, t_base_us: int | None, force_time_base: bool = False
+) -> tuple[list[tuple[int, bytes]], int]:
+    """The CAN frames (identifier, payload) of one centroid frame: [TIME_BASE,] FRAME_HEADER, STARs, FRAME_END; and
+    the time base in force after them. A TIME_BASE goes first when ``force_time_base`` or the exposure time cannot be
+    sent as an offset from ``t_base_us``. Raises EncodeError (before anything is produced) for a frame CAN cannot
+    carry."""
+    stars = word_bytes(encode_stars(frame))
+    out: list[tuple[int, bytes]] = []
+    if force_time_base or needs_time_base(frame.t_us, t_base_us):
+        out.append((TIME_BASE.frame_id, encode_time_base(frame.t_us)))
+        t_base_us = int(frame.t_us)
+    header = encode_header(frame.frame, frame.n_stars, int(frame.t_us) - int(t_base_us))
+    out.append((FRAME_HEADER.frame_id, header))
+    out += [(STAR.frame_id, stars[i : i + CAN_PAYLOAD_BYTES]) for i in range(0, len(stars), CAN_PAYLOAD_BYTES)]
+    out.append((FRAME_END.frame_id, encode_frame_end(frame.frame, frame_check(frame.t_us, header, stars))))
+    return out, int(t_base_us)
+
+
+class StreamEncoder:
+    """The sensor's side of the CAN stream, one centroid frame at a time (:func:`encode_stream_frame`), with the time
+    base policy: a TIME_BASE when the stream (re)starts (:meth:`restart`), when an offset would not fit, and after
+    every TIME_BASE_EVERY_FRAMES frames. Pure state, no I/O."""
+
+    def __init__(self) -> None:
+        self.restart()
+
+    def restart(self) -> None:
+        self.t_base_us: int | None = None
+        self._frames_since_base = 0
+
+    def encode(self, frame: CentroidFrame) -> list[tuple[int, bytes]]:
+        """CAN frames (identifier, payload) of ``frame``; EncodeError (and no state change) if CAN cannot carry it."""
+        refresh = self._frames_since_base >= TIME_BASE_EVERY_FRAMES
+        out, t_base = encode_stream_frame(frame, self.t_base_us, refresh)
+        self._frames_since_base = 1 if out[0][0] == TIME_BASE.frame_id else self._frames_since_base + 1
+        self.t_base_us = t_base
+        return out
 
 
 def needs_time_base(t_us: int, t_base_us: int | None) -> bool:
@@ -410,18 +534,21 @@ _ARG_ATTR = {StreamControl: "enable", StageBegin: "length", StageVerify: "crc32"
 
 
 def is_single_frame(msg: Message) -> bool:
-    """True for the messages that travel as one plain CAN frame (COMMAND, ACK)."""
+    """True for the messages that travel as one plain CAN frame (COMMAND, ACK). A COMMIT bound to a staging session
+    (nonce or expected generation set) does not fit: it travels by ISO-TP."""
+    if isinstance(msg, Commit) and (msg.nonce or msg.expected_generation):
+        return False
     return type(msg) in _COMMAND_CLASS.values() or isinstance(msg, Ack)
 
 
 def encode_single(msg: Message) -> tuple[int, bytes]:
-    """(identifier, 8 data bytes) of a short command or an ACK."""
+    """(identifier, 8 data bytes) of a short command or an ACK (see :func:`is_single_frame`)."""
     if isinstance(msg, Ack):
         return ACK.frame_id, word_bytes(
             pack(ACK, {"type": int(MsgType.ACK), "tag": msg.tag, "command": msg.command, "value": msg.value})
         )
     cls = type(msg)
-    if cls not in _COMMAND_CLASS.values():
+    if not is_single_frame(msg):
         raise EncodeError(f"{cls.__name__} is not a single-frame CAN message")
     raw = {"type": int(msg.TYPE), "tag": msg.tag}
     if cls in _COMMAND_ARG:
@@ -455,6 +582,25 @@ def decode_single(frame_id: int, data: bytes | bytearray) -> Message:
         value = int(raw[_COMMAND_ARG[cls]])
         kwargs[_ARG_ATTR[cls]] = bool(value) if cls is StreamControl else value
     return cls(**kwargs)
+
+
+def encode_commit_bind(nonce: int, expected_generation: int) -> bytes:
+    """COMMIT_BIND payload (sent immediately before a COMMAND COMMIT frame by a single-frame tool)."""
+    return word_bytes(pack(COMMIT_BIND, {"nonce": nonce, "expected_generation": expected_generation}))
+
+
+def bind_commit(commit: Commit, bind_payload: bytes | bytearray | None) -> Commit:
+    """The COMMIT of a COMMAND frame joined with the COMMIT_BIND payload received just before it (None: unbound,
+    nonce 0, which the sensor refuses)."""
+    if bind_payload is None:
+        return commit
+    raw = unpack(COMMIT_BIND, np.uint64(_one_word(bind_payload, COMMIT_BIND)))
+    return Commit(
+        tag=commit.tag,
+        crc32=commit.crc32,
+        nonce=int(raw["nonce"]),
+        expected_generation=int(raw["expected_generation"]),
+    )
 
 
 def encode_stage_float(tag: int, field_index: int, value: float) -> bytes:

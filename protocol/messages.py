@@ -1,9 +1,20 @@
 """Every message between host and sensor, defined once, with its byte codec (pure: bytes in, messages out).
 
-A message's bytes (``encode(msg)``) start with its type byte (:class:`MsgType`); all integers and floats are
-little-endian. These bytes are the payload of a serial frame (``protocol.framing``), of an ISO-TP message on CAN
-(``protocol.can_*``), and the meaning behind the Modbus registers (``protocol/modbus_map.json``): a transport may lay
-out the fields differently (a DBC signal, a register), but the message and its field values are these.
+Each message is ONE frozen dataclass whose fields carry their wire layout (:func:`wire`: struct format character,
+element count or length rule, unit); :data:`MESSAGES` is the table derived from those classes, and one generic
+:func:`encode` and one generic :func:`decode` walk it. Nothing else describes a message: a C exporter, a Modbus or CAN
+layout, or a fuzzer reads :data:`MESSAGES` (``MessageSpec.type_id``, ``.name``, ``.fields``: ordered
+:class:`WireField` with ``name``, ``fmt``, ``count``, ``length_of``, ``record``).
+
+A message's bytes (``encode(msg)``) start with its type byte (:class:`MsgType`, uint8), then its fields in order;
+all integers and floats are little-endian, with the sizes of Python's ``struct`` standard mode (``<``):
+``B`` uint8, ``?`` bool (one byte, 0/1), ``H`` uint16, ``h`` int16, ``I`` uint32, ``i`` int32, ``q`` int64,
+``f`` float32 (IEEE-754), ``s`` raw bytes. A field has a fixed ``count`` (an integer) or a variable one: then
+``count`` names the earlier length field (``length_of`` the variable field) that gives the number of elements. A
+``record`` field is an array of records whose members are the listed fields (a C array of packed structs).
+These bytes are the payload of a serial frame (``protocol.framing``), of an ISO-TP message on CAN
+(``protocol.can_frames``), and the meaning behind the Modbus registers (``protocol/modbus_map.json``): a transport may
+lay out the fields differently (a DBC signal, a register), but the message and its field values are these.
 
 Centroids travel in fixed point: ``x_px = n * CENTROID_LSB_PX`` with ``n`` an integer, ``CENTROID_LSB_PX = 2**-10``
 px (int32 on serial: range +-2 097 152 px). Rounding to the nearest step adds a uniform error of standard deviation
@@ -22,11 +33,12 @@ most ``NAK_TEXT_MAX`` bytes) such as ``principal_point_px[0]: 5000.0 is off the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -37,6 +49,7 @@ CENTROID_LSB_PX = 2.0**-10
 CENTROID_STEPS_PER_PX = 1024
 #: One step of a magnitude [mag]; int16 range is +-32.767 mag.
 MAG_LSB = 1e-3
+MAG_STEPS_PER_MAG = 1000
 MAG_ABSENT = -32768
 #: Longest NAK text [bytes of UTF-8]; longer texts are cut (at a character boundary).
 NAK_TEXT_MAX = 120
@@ -44,9 +57,8 @@ NAK_TEXT_MAX = 120
 MAX_STARS = 255
 #: Order of the estimable parameters in :class:`Estimate` (== onboard.params.ESTIMATE_NAMES; tests pin it).
 ESTIMATE_FIELDS: tuple[str, ...] = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "s1", "s2")
-
-#: Wire layout of one star in a :class:`CentroidFrame` (14 bytes).
-STAR_DTYPE = np.dtype([("star_id", "<u4"), ("x", "<i4"), ("y", "<i4"), ("mag", "<i2")])
+#: Struct format of the type byte that starts every message.
+TYPE_FORMAT = "B"
 
 
 class DecodeError(ValueError):
@@ -90,6 +102,9 @@ class NakCode(IntEnum):
     NO_ESTIMATE = 7  # the onboard estimator has no estimate yet
     BANK_WRITE_FAILED = 8  # the inactive bank did not read back with a valid CRC: nothing was switched
     BUSY = 9  # the command cannot run now (e.g. a transport-specific limit)
+    # COMMIT whose nonce is not the current staging session's, or whose expected_generation is not the active one:
+    # nothing was switched (a recorded, stale or reordered upload)
+    STALE_SESSION = 10
 
 
 class StageState(IntEnum):
@@ -110,13 +125,126 @@ class EstimateStatus(IntEnum):
     RUNNING = 1
 
 
+# ------------------------------------------------------------------------------------------ wire description
+@dataclass(frozen=True)
+class FixedPoint:
+    """A physical quantity sent as integer steps: ``value = steps / steps_per_unit``; ``absent`` (if set) is the
+    step value that stands for "no value" (NaN)."""
+
+    steps_per_unit: int
+    absent: int | None = None
+
+
+#: Centroid coordinates: 2**-10 px steps. Magnitudes: millimagnitudes, MAG_ABSENT = none.
+PX_FIXED = FixedPoint(CENTROID_STEPS_PER_PX)
+MAG_FIXED = FixedPoint(MAG_STEPS_PER_MAG, MAG_ABSENT)
+
+_FORMAT_BYTES = {"B": 1, "?": 1, "H": 2, "h": 2, "I": 4, "i": 4, "q": 8, "f": 4, "s": 1}
+_INT_RANGE = {"B": (0, 255), "H": (0, 65535), "h": (-32768, 32767), "I": (0, 2**32 - 1), "i": (-(2**31), 2**31 - 1)}
+_INT_RANGE["q"] = (-(2**63), 2**63 - 1)
+
+
+@dataclass(frozen=True)
+class WireField:
+    """One field of a message on the wire, in order after the type byte.
+
+    ``fmt``: struct format character (little-endian, see the module docstring), ``"record"`` for an array of records
+    (members in ``record``). ``count``: number of elements (1 = a scalar; for ``s`` the byte count), or the name of the
+    earlier length field holding it. ``length_of``: this (wire-only) field is the element count of the named field.
+    ``max_count``: most elements a variable field may hold (bytes of UTF-8 for a text). ``text``: bytes are UTF-8
+    text. ``fixed``: an integer field carrying a physical quantity in :class:`FixedPoint` steps. ``unit``: of the
+    physical value."""
+
+    name: str
+    fmt: str
+    count: int | str = 1
+    unit: str = ""
+    doc: str = ""
+    length_of: str | None = None
+    max_count: int | None = None
+    text: bool = False
+    fixed: FixedPoint | None = None
+    record: tuple[WireField, ...] = ()
+
+    @property
+    def variable(self) -> bool:
+        return isinstance(self.count, str)
+
+    @property
+    def element_bytes(self) -> int:
+        """Bytes of one element (one record for a record field)."""
+        if self.fmt == "record":
+            return sum(m.element_bytes for m in self.record)
+        return _FORMAT_BYTES[self.fmt]
+
+
+@dataclass(frozen=True)
+class MessageSpec:
+    """One message of the table: its type byte, name, class and ordered wire fields (after the type byte)."""
+
+    type_id: int
+    name: str
+    cls: type
+    fields: tuple[WireField, ...]
+    doc: str = ""
+
+    @property
+    def is_command(self) -> bool:
+        return self.type_id < 0x80
+
+    @property
+    def fixed_bytes(self) -> int:
+        """Bytes of the message with every variable field empty (type byte included)."""
+        return 1 + sum(f.element_bytes * f.count for f in self.fields if not f.variable)  # type: ignore[operator]
+
+
+_WIRE = "wire"
+
+
+def wire(
+    fmt: str,
+    default: Any = dataclasses.MISSING,
+    *,
+    count: int = 1,
+    unit: str = "",
+    doc: str = "",
+    length: tuple[str, str] | None = None,
+    max_count: int | None = None,
+    text: bool = False,
+    fixed: FixedPoint | None = None,
+    record: str | None = None,
+    factory: Any = dataclasses.MISSING,
+) -> Any:
+    """A dataclass field with its wire layout. ``length=(name, fmt)``: the field is variable, preceded on the wire by
+    a length field ``name`` of format ``fmt``; ``record``: consecutive fields with the same record name travel as
+    one array of records (the first member carries ``length``)."""
+    meta = {
+        _WIRE: {
+            "fmt": fmt,
+            "count": count,
+            "unit": unit,
+            "doc": doc,
+            "length": length,
+            "max_count": max_count,
+            "text": text,
+            "fixed": fixed,
+            "record": record,
+        }
+    }
+    return dataclasses.field(default=default, default_factory=factory, metadata=meta)
+
+
+def _tag() -> Any:
+    return wire("H", 0, doc="echoed by the reply")
+
+
 # ----------------------------------------------------------------------------------------------------- commands
 @dataclass(frozen=True)
 class GetStatus:
     """Ask for a :class:`Telemetry` reply."""
 
     TYPE: ClassVar[MsgType] = MsgType.GET_STATUS
-    tag: int = 0
+    tag: int = _tag()
 
 
 @dataclass(frozen=True)
@@ -124,17 +252,18 @@ class StreamControl:
     """Start (``enable``) or stop the centroid stream. Acked; the first frame after the Ack is a fresh one."""
 
     TYPE: ClassVar[MsgType] = MsgType.STREAM_CONTROL
-    tag: int = 0
-    enable: bool = True
+    tag: int = _tag()
+    enable: bool = wire("?", True, doc="1 = start the stream, 0 = stop it")
 
 
 @dataclass(frozen=True)
 class StageBegin:
-    """Safe upload step 2a: clear the staging area for a table of ``length`` bytes (== TABLE_BYTES)."""
+    """Safe upload step 2a: clear the staging area for a table of ``length`` bytes (== TABLE_BYTES). The Ack's
+    ``value`` is the staging nonce that this upload's COMMIT must carry."""
 
     TYPE: ClassVar[MsgType] = MsgType.STAGE_BEGIN
-    tag: int = 0
-    length: int = TABLE_BYTES
+    tag: int = _tag()
+    length: int = wire("H", TABLE_BYTES, unit="byte", doc="length of the table to stage")
 
 
 @dataclass(frozen=True)
@@ -142,9 +271,9 @@ class StageChunk:
     """Safe upload step 2b: bytes ``data`` of the table at byte ``offset``."""
 
     TYPE: ClassVar[MsgType] = MsgType.STAGE_CHUNK
-    tag: int = 0
-    offset: int = 0
-    data: bytes = b""
+    tag: int = _tag()
+    offset: int = wire("H", 0, unit="byte", doc="position of data in the table")
+    data: bytes = wire("s", b"", length=("n_bytes", "B"), max_count=255, doc="table bytes")
 
 
 @dataclass(frozen=True)
@@ -152,8 +281,8 @@ class StageVerify:
     """Safe upload step 3: the sensor checks the staged bytes against ``crc32`` and their ranges."""
 
     TYPE: ClassVar[MsgType] = MsgType.STAGE_VERIFY
-    tag: int = 0
-    crc32: int = 0
+    tag: int = _tag()
+    crc32: int = wire("I", 0, doc="CRC-32 of the staged table")
 
 
 @dataclass(frozen=True)
@@ -161,17 +290,20 @@ class ReadStaged:
     """Safe upload step 4: reply :class:`ParamTable` with ``bank = STAGED``."""
 
     TYPE: ClassVar[MsgType] = MsgType.READ_STAGED
-    tag: int = 0
+    tag: int = _tag()
 
 
 @dataclass(frozen=True)
 class Commit:
-    """Safe upload step 5: write the verified staged set (whose CRC is ``crc32``) to the inactive bank and switch.
-    The Ack's ``value`` is the new generation."""
+    """Safe upload step 5: write the verified staged set (whose CRC is ``crc32``) to the inactive bank and switch,
+    only if ``nonce`` is the current staging session's (the Ack.value of its STAGE_BEGIN) and the active generation
+    is still ``expected_generation`` (else Nak STALE_SESSION). The Ack's ``value`` is the new generation."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMIT
-    tag: int = 0
-    crc32: int = 0
+    tag: int = _tag()
+    crc32: int = wire("I", 0, doc="CRC-32 of the verified staged table")
+    nonce: int = wire("I", 0, doc="Ack.value of this upload's STAGE_BEGIN (the staging session)")
+    expected_generation: int = wire("I", 0, doc="active generation the host read before staging (0 = none)")
 
 
 @dataclass(frozen=True)
@@ -179,7 +311,7 @@ class ReadActive:
     """Safe upload step 6 (and ``hostlink params``): reply :class:`ParamTable` with ``bank = ACTIVE``."""
 
     TYPE: ClassVar[MsgType] = MsgType.READ_ACTIVE
-    tag: int = 0
+    tag: int = _tag()
 
 
 @dataclass(frozen=True)
@@ -187,18 +319,19 @@ class ReadEstimate:
     """Reply :class:`Estimate` (or Nak NO_ESTIMATE)."""
 
     TYPE: ClassVar[MsgType] = MsgType.READ_ESTIMATE
-    tag: int = 0
+    tag: int = _tag()
 
 
 # ------------------------------------------------------------------------------------------------------ replies
 @dataclass(frozen=True)
 class Ack:
-    """Command ``command`` (a MsgType value) done. ``value``: the new generation for COMMIT, else 0."""
+    """Command ``command`` (a MsgType value) done. ``value``: the new generation for COMMIT, the staging nonce for
+    STAGE_BEGIN (never 0), else 0."""
 
     TYPE: ClassVar[MsgType] = MsgType.ACK
-    tag: int = 0
-    command: int = 0
-    value: int = 0
+    tag: int = _tag()
+    command: int = wire("B", 0, doc="MsgType of the command")
+    value: int = wire("I", 0, doc="new generation (COMMIT), staging nonce (STAGE_BEGIN), else 0")
 
 
 @dataclass(frozen=True)
@@ -206,10 +339,10 @@ class Nak:
     """Command ``command`` refused with ``code`` (:class:`NakCode`) and a one-line reason ``text``."""
 
     TYPE: ClassVar[MsgType] = MsgType.NAK
-    tag: int = 0
-    command: int = 0
-    code: int = 0
-    text: str = ""
+    tag: int = _tag()
+    command: int = wire("B", 0, doc="MsgType of the command")
+    code: int = wire("B", 0, doc="NakCode")
+    text: str = wire("s", "", length=("text_bytes", "B"), max_count=NAK_TEXT_MAX, text=True, doc="reason, UTF-8")
 
 
 @dataclass(frozen=True)
@@ -217,14 +350,14 @@ class Telemetry:
     """Sensor status (reply to GET_STATUS)."""
 
     TYPE: ClassVar[MsgType] = MsgType.TELEMETRY
-    tag: int = 0
-    streaming: bool = False
-    stage_state: int = StageState.EMPTY
-    active_generation: int = 0
-    active_crc32: int = 0
-    frames_processed: int = 0
-    last_frame: int = 0
-    estimator_updates: int = 0
+    tag: int = _tag()
+    streaming: bool = wire("?", False)
+    stage_state: int = wire("B", StageState.EMPTY, doc="StageState")
+    active_generation: int = wire("I", 0)
+    active_crc32: int = wire("I", 0)
+    frames_processed: int = wire("I", 0)
+    last_frame: int = wire("I", 0)
+    estimator_updates: int = wire("I", 0)
 
 
 @dataclass(frozen=True)
@@ -233,11 +366,11 @@ class ParamTable:
     the CRC the sensor computed over ``table`` and the TABLE_BYTES (92) table bytes (``protocol.param_table``)."""
 
     TYPE: ClassVar[MsgType] = MsgType.PARAM_TABLE
-    tag: int = 0
-    bank: int = TableBank.ACTIVE
-    generation: int = 0
-    crc32: int = 0
-    table: bytes = bytes(TABLE_BYTES)
+    tag: int = _tag()
+    bank: int = wire("B", TableBank.ACTIVE, doc="TableBank")
+    generation: int = wire("I", 0)
+    crc32: int = wire("I", 0)
+    table: bytes = wire("s", bytes(TABLE_BYTES), count=TABLE_BYTES, doc="protocol.param_table bytes")
 
 
 @dataclass(frozen=True)
@@ -247,14 +380,14 @@ class Estimate:
     the generation of the active set the estimator started from, its number of updates and last frame."""
 
     TYPE: ClassVar[MsgType] = MsgType.ESTIMATE
-    tag: int = 0
-    status: int = EstimateStatus.NONE
-    estimated_mask: int = 0
-    base_generation: int = 0
-    n_updates: int = 0
-    last_frame: int = 0
-    values: tuple[float, ...] = (0.0,) * 10
-    sigma: tuple[float, ...] = (math.nan,) * 10
+    tag: int = _tag()
+    status: int = wire("B", EstimateStatus.NONE, doc="EstimateStatus")
+    estimated_mask: int = wire("H", 0, doc="bit i = ESTIMATE_FIELDS[i] is estimated")
+    base_generation: int = wire("I", 0)
+    n_updates: int = wire("I", 0)
+    last_frame: int = wire("I", 0)
+    values: tuple[float, ...] = wire("f", (0.0,) * 10, count=10, doc="ESTIMATE_FIELDS order, f in mm, x0/y0 in px")
+    sigma: tuple[float, ...] = wire("f", (math.nan,) * 10, count=10, doc="1-sigma, NaN = unknown")
 
 
 # ------------------------------------------------------------------------------------------------------- stream
@@ -262,15 +395,28 @@ class Estimate:
 class CentroidFrame:
     """One exposure: frame counter, exposure mid-time [us since 1970 UTC] and its stars (numpy arrays of equal
     length: ``star_id`` uint32 (0 = not identified), ``x_px``/``y_px`` float64 on the fixed-point grid after a
-    round trip, ``mag`` float64 (NaN = none))."""
+    round trip, ``mag`` float64 (NaN = none)). On the wire the stars are an array of 14-byte records."""
 
     TYPE: ClassVar[MsgType] = MsgType.CENTROID_FRAME
-    frame: int
-    t_us: int
-    star_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))
-    x_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    y_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    mag: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame: int = wire("I", doc="frame counter")
+    t_us: int = wire("q", unit="us", doc="exposure mid-time since 1970-01-01 UTC (POSIX)")
+    star_id: np.ndarray = wire(
+        "I",
+        record="stars",
+        length=("n_stars", "H"),
+        max_count=MAX_STARS,
+        doc="Hipparcos number, 0 = not identified",
+        factory=lambda: np.zeros(0, np.uint32),
+    )
+    x_px: np.ndarray = wire(
+        "i", record="stars", fixed=PX_FIXED, unit="px", doc="centroid column", factory=lambda: np.zeros(0)
+    )
+    y_px: np.ndarray = wire(
+        "i", record="stars", fixed=PX_FIXED, unit="px", doc="centroid row", factory=lambda: np.zeros(0)
+    )
+    mag: np.ndarray = wire(
+        "h", record="stars", fixed=MAG_FIXED, unit="mag", doc="magnitude, -32768 = none", factory=lambda: np.zeros(0)
+    )
 
     @property
     def n_stars(self) -> int:
@@ -293,7 +439,7 @@ class EndOfStream:
     """The sensor's frame source is exhausted (replay reached the end of its file) after ``frames_sent`` frames."""
 
     TYPE: ClassVar[MsgType] = MsgType.END_OF_STREAM
-    frames_sent: int = 0
+    frames_sent: int = wire("I", 0)
 
 
 Message = (
@@ -314,20 +460,103 @@ Message = (
     | CentroidFrame
     | EndOfStream
 )
-COMMAND_TYPES = (
-    GetStatus,
-    StreamControl,
-    StageBegin,
-    StageChunk,
-    StageVerify,
-    ReadStaged,
-    Commit,
-    ReadActive,
-    ReadEstimate,
-)
+MESSAGE_CLASSES: tuple[type, ...] = Message.__args__  # type: ignore[attr-defined]
+
+
+# ------------------------------------------------------------------------------------------------- the table
+def _wire_fields(cls: type) -> tuple[WireField, ...]:
+    """The ordered wire fields of a message class, from its dataclass field metadata."""
+    out: list[WireField] = []
+    members: list[WireField] = []
+    record_name: str | None = None
+    record_length: tuple[str, str, int | None] | None = None
+
+    def close_record() -> None:
+        nonlocal members, record_name, record_length
+        if record_name is not None:
+            assert record_length is not None, f"{cls.__name__}.{record_name}: first member needs length"
+            n_name, n_fmt, n_max = record_length
+            out.append(WireField(n_name, n_fmt, length_of=record_name))
+            out.append(WireField(record_name, "record", count=n_name, max_count=n_max, record=tuple(members)))
+        members, record_name, record_length = [], None, None
+
+    for f in dataclasses.fields(cls):
+        w = f.metadata.get(_WIRE)
+        if w is None:
+            raise TypeError(f"{cls.__name__}.{f.name} has no wire layout")  # pragma: no cover - table invariant
+        wf = WireField(
+            name=f.name,
+            fmt=w["fmt"],
+            count=w["count"],
+            unit=w["unit"],
+            doc=w["doc"],
+            max_count=None if w["record"] else w["max_count"],
+            text=w["text"],
+            fixed=w["fixed"],
+        )
+        if w["record"] is not None:
+            if w["record"] != record_name:
+                close_record()
+                record_name = w["record"]
+                record_length = (*w["length"], w["max_count"])
+            members.append(wf)
+            continue
+        close_record()
+        if w["length"] is not None:
+            n_name, n_fmt = w["length"]
+            out.append(WireField(n_name, n_fmt, length_of=f.name))
+            wf = dataclasses.replace(wf, count=n_name)
+        out.append(wf)
+    close_record()
+    return tuple(out)
+
+
+def _spec(cls: type) -> MessageSpec:
+    t = cls.TYPE  # type: ignore[attr-defined]
+    return MessageSpec(type_id=int(t), name=t.name, cls=cls, fields=_wire_fields(cls), doc=(cls.__doc__ or "").strip())
+
+
+#: THE message table, in type-byte order: every message's type byte, name, class and wire fields.
+MESSAGES: tuple[MessageSpec, ...] = tuple(sorted((_spec(c) for c in MESSAGE_CLASSES), key=lambda s: s.type_id))
+SPEC_BY_TYPE: dict[int, MessageSpec] = {s.type_id: s for s in MESSAGES}
+_SPEC_BY_CLASS: dict[type, MessageSpec] = {s.cls: s for s in MESSAGES}
+COMMAND_TYPES: tuple[type, ...] = tuple(s.cls for s in MESSAGES if s.is_command)
+
+
+def spec_of(msg_or_cls: Any) -> MessageSpec:
+    """The table entry of a message (instance or class)."""
+    cls = msg_or_cls if isinstance(msg_or_cls, type) else type(msg_or_cls)
+    return _SPEC_BY_CLASS[cls]
 
 
 # ------------------------------------------------------------------------------------------------ fixed point
+def _quantise(values: Any, fixed: FixedPoint, fmt: str, name: str) -> np.ndarray:
+    """Physical values -> int64 steps (round half to even), ``absent`` for NaN where allowed. EncodeError if a
+    value is not finite (and cannot be absent) or its steps do not fit ``fmt``."""
+    arr = np.asarray(values, dtype=np.float64)
+    finite = np.isfinite(arr)
+    if fixed.absent is None and not np.all(finite):
+        raise EncodeError(f"{name} is not finite")
+    steps = np.rint(np.where(finite, arr, 0.0) * fixed.steps_per_unit)
+    lo, hi = _INT_RANGE[fmt]
+    if fixed.absent is not None:
+        lo = max(lo, fixed.absent + 1) if fixed.absent <= lo else lo
+    if np.any((steps < lo) | (steps > hi)):
+        raise EncodeError(
+            f"{name} outside the fixed-point range of {fmt} ({lo / fixed.steps_per_unit:g} to "
+            f"{hi / fixed.steps_per_unit:g})"
+        )
+    steps = steps.astype(np.int64)
+    return steps if fixed.absent is None else np.where(finite, steps, fixed.absent)
+
+
+def _dequantise(steps: Any, fixed: FixedPoint) -> np.ndarray:
+    s = np.asarray(steps)
+    # divide (not multiply by the step) so that 5100 millimag -> 5.1 exactly as written in a file
+    values = s.astype(np.float64) / fixed.steps_per_unit
+    return values if fixed.absent is None else np.where(s == fixed.absent, np.nan, values)
+
+
 def quantise_px(values_px: np.ndarray) -> np.ndarray:
     """Pixels -> int64 fixed-point steps (round half to even). Raises :class:`EncodeError` if not finite."""
     arr = np.asarray(values_px, dtype=np.float64)
@@ -338,231 +567,179 @@ def quantise_px(values_px: np.ndarray) -> np.ndarray:
 
 def dequantise_px(steps: np.ndarray) -> np.ndarray:
     """Fixed-point steps -> pixels (float64, exact)."""
-    return np.asarray(steps, dtype=np.float64) * CENTROID_LSB_PX
+    return _dequantise(steps, PX_FIXED)
 
 
 def quantise_mag(mag: np.ndarray) -> np.ndarray:
     """Magnitudes -> int16 millimag; NaN -> MAG_ABSENT. Raises :class:`EncodeError` outside +-32.767."""
-    arr = np.asarray(mag, dtype=np.float64)
-    absent = ~np.isfinite(arr)
-    steps = np.rint(np.where(absent, 0.0, arr) / MAG_LSB)
-    if np.any(np.abs(steps) > 32767):
-        raise EncodeError("magnitude outside +-32.767")
-    return np.where(absent, MAG_ABSENT, steps).astype(np.int16)
+    return _quantise(mag, MAG_FIXED, "h", "magnitude").astype(np.int16)
 
 
 def dequantise_mag(steps: np.ndarray) -> np.ndarray:
-    s = np.asarray(steps)
-    # divide (not multiply by 1e-3) so that 5100 -> 5.1 exactly as written in a file
-    return np.where(s == MAG_ABSENT, np.nan, s.astype(np.float64) / 1000.0)
+    """int16 millimag -> magnitudes (float64); MAG_ABSENT -> NaN."""
+    return _dequantise(steps, MAG_FIXED)
 
 
-# ------------------------------------------------------------------------------------------------------ codecs
-_TAG = struct.Struct("<BH")  # type, tag
-_STREAM_CONTROL = struct.Struct("<BHB")
-_STAGE_BEGIN = struct.Struct("<BHH")
-_STAGE_CHUNK = struct.Struct("<BHHB")  # + data
-_WITH_CRC = struct.Struct("<BHI")
-_ACK = struct.Struct("<BHBI")
-_NAK = struct.Struct("<BHBBB")  # + text
-_TELEMETRY = struct.Struct("<BHBBIIIII")
-_PARAM_TABLE = struct.Struct(f"<BHBII{TABLE_BYTES}s")
-_ESTIMATE = struct.Struct("<BHBHIII10f10f")
-_FRAME_HEAD = struct.Struct("<BIqH")
-_END = struct.Struct("<BI")
-_TAG_ONLY = {
-    MsgType.GET_STATUS: GetStatus,
-    MsgType.READ_STAGED: ReadStaged,
-    MsgType.READ_ACTIVE: ReadActive,
-    MsgType.READ_ESTIMATE: ReadEstimate,
-}
-
-#: Bytes of a centroid frame message: FRAME_HEADER_BYTES + n * STAR_DTYPE.itemsize.
-FRAME_HEADER_BYTES = _FRAME_HEAD.size
-
-
-def _check_u(value: int, bits: int, name: str) -> int:
-    if not 0 <= int(value) < (1 << bits):
-        raise EncodeError(f"{name}={value} does not fit in uint{bits}")
-    return int(value)
-
-
+# ------------------------------------------------------------------------------------------------------ codec
 def nak_text_bytes(text: str) -> bytes:
     """UTF-8 of ``text`` cut to NAK_TEXT_MAX bytes without splitting a character."""
-    return text.encode("utf-8")[:NAK_TEXT_MAX].decode("utf-8", "ignore").encode("utf-8")
+    return _text_bytes(text, NAK_TEXT_MAX)
 
 
-def encode_frame_message(frame: CentroidFrame) -> bytes:
-    """Centroid frame -> bytes (header, then STAR_DTYPE records)."""
-    n = frame.n_stars
-    if n > MAX_STARS:
-        raise EncodeError(f"{n} stars exceed MAX_STARS={MAX_STARS}")
-    x, y = quantise_px(frame.x_px), quantise_px(frame.y_px)
-    if np.any(np.abs(x) >= 2**31) or np.any(np.abs(y) >= 2**31):
-        raise EncodeError("centroid outside the int32 fixed-point range")
-    stars = np.empty(n, dtype=STAR_DTYPE)
-    stars["star_id"] = frame.star_id
-    stars["x"], stars["y"] = x, y
-    stars["mag"] = quantise_mag(frame.mag)
-    return (
-        _FRAME_HEAD.pack(MsgType.CENTROID_FRAME, _check_u(frame.frame, 32, "frame"), int(frame.t_us), n)
-        + stars.tobytes()
-    )
+def _text_bytes(text: str, max_bytes: int) -> bytes:
+    return str(text).encode("utf-8")[:max_bytes].decode("utf-8", "ignore").encode("utf-8")
 
 
-def decode_frame_message(data: bytes) -> CentroidFrame:
-    if len(data) < _FRAME_HEAD.size:
-        raise DecodeError("centroid frame shorter than its header")
-    _, frame, t_us, n = _FRAME_HEAD.unpack_from(data)
-    if len(data) != _FRAME_HEAD.size + n * STAR_DTYPE.itemsize:
-        raise DecodeError(f"centroid frame of {n} stars has {len(data)} bytes")
-    stars = np.frombuffer(data, dtype=STAR_DTYPE, count=n, offset=_FRAME_HEAD.size)
-    return CentroidFrame(
-        frame=frame,
-        t_us=t_us,
-        star_id=stars["star_id"].astype(np.uint32),
-        x_px=dequantise_px(stars["x"]),
-        y_px=dequantise_px(stars["y"]),
-        mag=dequantise_mag(stars["mag"]),
-    )
+_NP_FORMAT = {"B": "u1", "?": "u1", "H": "<u2", "h": "<i2", "I": "<u4", "i": "<i4", "q": "<i8", "f": "<f4"}
+
+
+def _record_dtype(f: WireField) -> np.dtype:
+    """numpy dtype of one record of a record field (packed, little-endian)."""
+    return np.dtype([(m.name, _NP_FORMAT[m.fmt]) for m in f.record])
+
+
+def _encode_value(f: WireField, value: Any, spec: MessageSpec) -> bytes:
+    if f.fmt == "record":
+        columns = {m.name: value[m.name] for m in f.record}
+        n = len(next(iter(columns.values())))
+        out = np.empty(n, dtype=_record_dtype(f))
+        for m in f.record:
+            col = columns[m.name]
+            if np.shape(col) != (n,):
+                raise EncodeError(f"{spec.name}.{m.name} has {np.shape(col)} elements, {f.record[0].name} has {n}")
+            if m.fixed is not None:
+                out[m.name] = _quantise(col, m.fixed, m.fmt, f"{spec.name}.{m.name}")
+            else:
+                lo, hi = _INT_RANGE[m.fmt]
+                ints = np.asarray(col)
+                if ints.size and (not np.issubdtype(ints.dtype, np.integer) or ints.min() < lo or ints.max() > hi):
+                    raise EncodeError(f"{spec.name}.{m.name} does not fit {m.fmt}")
+                out[m.name] = ints
+        return out.tobytes()
+    if f.fmt == "s":
+        if not isinstance(value, (str if f.text else (bytes, bytearray, memoryview))):
+            raise EncodeError(
+                f"{spec.name}.{f.name} must be {'str' if f.text else 'bytes'}, got {type(value).__name__}"
+            )
+        data = _text_bytes(value, f.max_count or 255) if f.text else bytes(value)
+        if not f.variable and len(data) != f.count:
+            raise EncodeError(f"{spec.name}.{f.name} must be {f.count} bytes, got {len(data)}")
+        return data
+    values = tuple(value) if f.count != 1 else (value,)
+    if len(values) != f.count:
+        raise EncodeError(f"{spec.name}.{f.name} must have {f.count} elements, got {len(values)}")
+    try:
+        return struct.pack(f"<{f.count}{f.fmt}", *values)
+    except (struct.error, TypeError) as exc:
+        raise EncodeError(f"{spec.name}.{f.name}={value!r}: {exc}") from None
+
+
+def _value_of(spec: MessageSpec, f: WireField, msg: Any) -> Any:
+    if f.fmt == "record":
+        return {m.name: getattr(msg, m.name) for m in f.record}
+    return getattr(msg, f.name)
+
+
+def _length_of(spec: MessageSpec, target: str, msg: Any) -> int:
+    f = next(x for x in spec.fields if x.name == target)
+    value = _value_of(spec, f, msg)
+    if f.fmt == "record":
+        return len(np.atleast_1d(value[f.record[0].name]))
+    if f.text:
+        return len(_text_bytes(value, f.max_count or 255))
+    return len(value)
 
 
 def encode(msg: Message) -> bytes:
-    """Message -> bytes (type byte first). Raises :class:`EncodeError` for unrepresentable fields."""
-    t = msg.TYPE
-    try:
-        if isinstance(msg, CentroidFrame):
-            return encode_frame_message(msg)
-        if isinstance(msg, (GetStatus, ReadStaged, ReadActive, ReadEstimate)):
-            return _TAG.pack(t, msg.tag)
-        if isinstance(msg, StreamControl):
-            return _STREAM_CONTROL.pack(t, msg.tag, 1 if msg.enable else 0)
-        if isinstance(msg, StageBegin):
-            return _STAGE_BEGIN.pack(t, msg.tag, msg.length)
-        if isinstance(msg, StageChunk):
-            return _STAGE_CHUNK.pack(t, msg.tag, msg.offset, _check_u(len(msg.data), 8, "chunk length")) + bytes(
-                msg.data
-            )
-        if isinstance(msg, (StageVerify, Commit)):
-            return _WITH_CRC.pack(t, msg.tag, msg.crc32)
-        if isinstance(msg, Ack):
-            return _ACK.pack(t, msg.tag, msg.command, msg.value)
-        if isinstance(msg, Nak):
-            text = nak_text_bytes(msg.text)
-            return _NAK.pack(t, msg.tag, msg.command, msg.code, len(text)) + text
-        if isinstance(msg, Telemetry):
-            return _TELEMETRY.pack(
-                t,
-                msg.tag,
-                int(msg.streaming),
-                msg.stage_state,
-                msg.active_generation,
-                msg.active_crc32,
-                msg.frames_processed,
-                msg.last_frame,
-                msg.estimator_updates,
-            )
-        if isinstance(msg, ParamTable):
-            if len(msg.table) != TABLE_BYTES:
-                raise EncodeError(f"parameter table must be {TABLE_BYTES} bytes, got {len(msg.table)}")
-            return _PARAM_TABLE.pack(t, msg.tag, msg.bank, msg.generation, msg.crc32, bytes(msg.table))
-        if isinstance(msg, Estimate):
-            return _ESTIMATE.pack(
-                t,
-                msg.tag,
-                msg.status,
-                msg.estimated_mask,
-                msg.base_generation,
-                msg.n_updates,
-                msg.last_frame,
-                *msg.values,
-                *msg.sigma,
-            )
-        if isinstance(msg, EndOfStream):
-            return _END.pack(t, msg.frames_sent)
-    except struct.error as exc:
-        raise EncodeError(f"{type(msg).__name__}: {exc}") from None
-    raise EncodeError(f"not a message: {msg!r}")
+    """Message -> bytes (type byte first), driven by :data:`MESSAGES`. Raises :class:`EncodeError` for fields that
+    cannot be represented on the wire."""
+    spec = _SPEC_BY_CLASS.get(type(msg))
+    if spec is None:
+        raise EncodeError(f"not a message: {msg!r}")
+    parts = [bytes([spec.type_id])]
+    for f in spec.fields:
+        if f.length_of is not None:
+            n = _length_of(spec, f.length_of, msg)
+            target = next(x for x in spec.fields if x.name == f.length_of)
+            limit = min(target.max_count if target.max_count is not None else n, _INT_RANGE[f.fmt][1])
+            if n > limit:
+                raise EncodeError(f"{spec.name}.{f.length_of}: {n} elements exceed {limit}")
+            parts.append(struct.pack("<" + f.fmt, n))
+        else:
+            parts.append(_encode_value(f, _value_of(spec, f, msg), spec))
+    return b"".join(parts)
+
+
+def _decode_value(f: WireField, data: bytes, pos: int, n: int) -> tuple[Any, int]:
+    """The value of field ``f`` with ``n`` elements at ``data[pos:]`` and the position after it."""
+    end = pos + n * f.element_bytes
+    if end > len(data):
+        raise DecodeError(f"{f.name}: needs {end} bytes, message has {len(data)}")
+    if f.fmt == "record":
+        rec = np.frombuffer(data, dtype=_record_dtype(f), count=n, offset=pos)
+        out = {}
+        for m in f.record:
+            col = rec[m.name]
+            out[m.name] = _dequantise(col, m.fixed) if m.fixed is not None else col.astype(_NP_FORMAT[m.fmt][-2:])
+        return out, end
+    if f.fmt == "s":
+        raw = data[pos:end]
+        if not f.text:
+            return raw, end
+        try:
+            return raw.decode("utf-8"), end  # strict: bytes that are not UTF-8 are a corrupt message, not a text
+        except UnicodeDecodeError:
+            raise DecodeError(f"{f.name}: not UTF-8") from None
+    if f.fmt == "?":  # strict: only 0 and 1 are booleans (anything else is a corrupt byte)
+        raw = data[pos:end]
+        if any(b > 1 for b in raw):
+            raise DecodeError(f"{f.name}: boolean byte not 0 or 1")
+        values: tuple = tuple(bool(b) for b in raw)
+    else:
+        values = struct.unpack_from(f"<{n}{f.fmt}", data, pos)
+    return (values[0] if f.count == 1 else values), end
 
 
 def decode(data: bytes | bytearray | memoryview) -> Message:
-    """Bytes -> message. Raises :class:`DecodeError` for anything malformed (never another exception)."""
+    """Bytes -> message, driven by :data:`MESSAGES`. Raises :class:`DecodeError` for anything malformed (never
+    another exception)."""
     data = bytes(data)
     if not data:
         raise DecodeError("empty message")
-    try:
-        t = MsgType(data[0])
-    except ValueError:
-        raise DecodeError(f"unknown message type 0x{data[0]:02x}") from None
-    try:
-        if t == MsgType.CENTROID_FRAME:
-            return decode_frame_message(data)
-        if t in _TAG_ONLY:
-            return _TAG_ONLY[t](tag=_unpack_exact(_TAG, data)[1])
-        if t == MsgType.STREAM_CONTROL:
-            _, tag, enable = _unpack_exact(_STREAM_CONTROL, data)
-            return StreamControl(tag=tag, enable=bool(enable))
-        if t == MsgType.STAGE_BEGIN:
-            _, tag, length = _unpack_exact(_STAGE_BEGIN, data)
-            return StageBegin(tag=tag, length=length)
-        if t == MsgType.STAGE_CHUNK:
-            _, tag, offset, n = _STAGE_CHUNK.unpack_from(data)
-            if len(data) != _STAGE_CHUNK.size + n:
-                raise DecodeError(f"stage chunk says {n} bytes, carries {len(data) - _STAGE_CHUNK.size}")
-            return StageChunk(tag=tag, offset=offset, data=data[_STAGE_CHUNK.size :])
-        if t in (MsgType.STAGE_VERIFY, MsgType.COMMIT):
-            _, tag, crc = _unpack_exact(_WITH_CRC, data)
-            return (StageVerify if t == MsgType.STAGE_VERIFY else Commit)(tag=tag, crc32=crc)
-        if t == MsgType.ACK:
-            _, tag, command, value = _unpack_exact(_ACK, data)
-            return Ack(tag=tag, command=command, value=value)
-        if t == MsgType.NAK:
-            _, tag, command, code, n = _NAK.unpack_from(data)
-            if len(data) != _NAK.size + n:
-                raise DecodeError(f"NAK says {n} text bytes, carries {len(data) - _NAK.size}")
-            return Nak(tag=tag, command=command, code=code, text=data[_NAK.size :].decode("utf-8", "replace"))
-        if t == MsgType.TELEMETRY:
-            _, tag, streaming, stage, gen, crc, frames, last, updates = _unpack_exact(_TELEMETRY, data)
-            return Telemetry(
-                tag=tag,
-                streaming=bool(streaming),
-                stage_state=stage,
-                active_generation=gen,
-                active_crc32=crc,
-                frames_processed=frames,
-                last_frame=last,
-                estimator_updates=updates,
-            )
-        if t == MsgType.PARAM_TABLE:
-            _, tag, bank, gen, crc, table = _unpack_exact(_PARAM_TABLE, data)
-            return ParamTable(tag=tag, bank=bank, generation=gen, crc32=crc, table=table)
-        if t == MsgType.ESTIMATE:
-            v = _unpack_exact(_ESTIMATE, data)
-            return Estimate(
-                tag=v[1],
-                status=v[2],
-                estimated_mask=v[3],
-                base_generation=v[4],
-                n_updates=v[5],
-                last_frame=v[6],
-                values=tuple(v[7:17]),
-                sigma=tuple(v[17:27]),
-            )
-        if t == MsgType.END_OF_STREAM:
-            return EndOfStream(frames_sent=_unpack_exact(_END, data)[1])
-    except struct.error as exc:
-        raise DecodeError(f"{t.name}: {exc}") from None
-    raise DecodeError(f"message type {t.name} has no decoder")  # pragma: no cover - every MsgType is handled
-
-
-def _unpack_exact(st: struct.Struct, data: bytes) -> tuple:
-    if len(data) != st.size:
-        raise DecodeError(f"{MsgType(data[0]).name} must be {st.size} bytes, got {len(data)}")
-    return st.unpack(data)
+    spec = SPEC_BY_TYPE.get(data[0])
+    if spec is None:
+        raise DecodeError(f"unknown message type 0x{data[0]:02x}")
+    if len(data) < spec.fixed_bytes:
+        raise DecodeError(f"{spec.name} must be at least {spec.fixed_bytes} bytes, got {len(data)}")
+    pos, counts, kwargs = 1, {}, {}
+    for f in spec.fields:
+        if f.length_of is not None:
+            (n,) = struct.unpack_from("<" + f.fmt, data, pos)
+            pos += _FORMAT_BYTES[f.fmt]
+            target = next(x for x in spec.fields if x.name == f.length_of)
+            if target.max_count is not None and n > target.max_count:
+                raise DecodeError(f"{spec.name}.{target.name}: {n} elements exceed {target.max_count}")
+            counts[f.length_of] = n
+            continue
+        n = counts[f.name] if f.variable else int(f.count)  # type: ignore[arg-type]
+        value, pos = _decode_value(f, data, pos, n)
+        if f.fmt == "record":
+            kwargs.update(value)
+        else:
+            kwargs[f.name] = value
+    if pos != len(data):
+        raise DecodeError(f"{spec.name} must be {pos} bytes, got {len(data)}")
+    return spec.cls(**kwargs)
 
 
 def is_command(msg: Message) -> bool:
     return isinstance(msg, COMMAND_TYPES)
+
+
+#: Bytes of a centroid frame message: FRAME_HEADER_BYTES + n * STAR_DTYPE.itemsize.
+FRAME_HEADER_BYTES = SPEC_BY_TYPE[MsgType.CENTROID_FRAME].fixed_bytes
+#: Wire layout of one star in a :class:`CentroidFrame` (14 bytes).
+STAR_DTYPE = _record_dtype(next(f for f in SPEC_BY_TYPE[MsgType.CENTROID_FRAME].fields if f.fmt == "record"))
 
 
 def frame_message_bytes(n_stars: int) -> int:

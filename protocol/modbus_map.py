@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.crc import crc32
 from protocol.param_table import N_FIELDS, PARAM_FIELDS, SIGMA_FIELDS, TABLE_BYTES
 
 MAP_FILE = "modbus_map.json"
@@ -89,6 +90,26 @@ class Register:
 
 
 @dataclass(frozen=True)
+class CheckedBlock:
+    """An input-register block read as one snapshot and its check register (``block_check`` in the JSON): registers
+    ``first`` .. end of ``last``, then (the stream window) ``stars`` x stride registers from ``stars_from``."""
+
+    name: str
+    first: Register
+    last: Register
+    check: Register
+    stars: Register | None = None
+    stars_from: Register | None = None
+
+    def read_span(self, n_stars: int = 0) -> tuple[int, int]:
+        """(address, count) of the registers a host reads for this block with ``n_stars`` stars (check included)."""
+        end = self.check.address + self.check.width
+        if self.stars_from is not None and n_stars:
+            end = max(end, self.stars_from.address + n_stars * self.stars_from.stride)
+        return self.first.address, end - self.first.address
+
+
+@dataclass(frozen=True)
 class ModbusMap:
     """The whole map: registers by name plus the command and NAK code tables."""
 
@@ -100,6 +121,14 @@ class ModbusMap:
     registers: tuple[Register, ...]
     commands: tuple[dict[str, Any], ...]
     nak_codes: tuple[dict[str, Any], ...]
+    checked_blocks: tuple[CheckedBlock, ...] = ()
+    block_check: str = ""
+
+    def checked_block(self, name: str) -> CheckedBlock:
+        for b in self.checked_blocks:
+            if b.name == name:
+                return b
+        raise KeyError(f"no checked block {name!r} in the Modbus map")
 
     def __getitem__(self, name: str) -> Register:
         for reg in self.registers:
@@ -179,7 +208,28 @@ def parse_map(text: str) -> ModbusMap:
     names = [r.name for r in regs]
     if len(set(names)) != len(names):
         raise MapError("duplicate register names")
+    by_name = {r.name: r for r in regs}
+    blocks = []
+    for b in doc.get("checked_blocks", []):
+        try:
+            blk = CheckedBlock(
+                name=b["name"],
+                first=by_name[b["first"]],
+                last=by_name[b["last"]],
+                check=by_name[b["check"]],
+                stars=by_name[b["stars"]] if "stars" in b else None,
+                stars_from=by_name[b["stars_from"]] if "stars_from" in b else None,
+            )
+        except KeyError as exc:
+            raise MapError(f"checked block {b.get('name')!r}: no register {exc}") from None
+        if blk.check.type != "uint32" or blk.check.address != blk.last.address + blk.last.span:
+            raise MapError(f"checked block {blk.name}: its check must be a uint32 right after {blk.last.name}")
+        if len({blk.first.table, blk.last.table, blk.check.table}) != 1:
+            raise MapError(f"checked block {blk.name}: registers in two tables")
+        blocks.append(blk)
     return ModbusMap(
+        checked_blocks=tuple(blocks),
+        block_check=doc.get("block_check", ""),
         title=doc.get("title", "Modbus register map"),
         unit_id=int(doc.get("unit_id", 1)),
         word_order=doc.get("word_order", "big"),
@@ -258,6 +308,42 @@ def array_raw(words: np.ndarray, reg: Register, n: int, base: int) -> np.ndarray
     return acc
 
 
+def block_crc(block: CheckedBlock, words: list[int] | np.ndarray, base: int, n_stars: int = 0) -> int:
+    """The check of ``block`` over ``words`` (registers from address ``base``, the block read with its stars):
+    CRC-32 of the big-endian bytes of ``first`` .. end of ``last``, then of the ``n_stars`` star records."""
+    w = np.asarray(words, dtype=np.int64)
+    lo = block.first.address - base
+    parts = [w[lo : block.last.address + block.last.span - base]]
+    if block.stars_from is not None and n_stars:
+        s0 = block.stars_from.address - base
+        parts.append(w[s0 : s0 + n_stars * block.stars_from.stride])
+    return crc32(np.concatenate(parts).astype(">u2").tobytes())
+
+
+def block_n_stars(block: CheckedBlock, words: list[int] | np.ndarray, base: int) -> int:
+    """Stars the block says it holds (0 for a block without stars)."""
+    return 0 if block.stars is None else int(get(words, block.stars, base=base))
+
+
+def block_intact(block: CheckedBlock, words: list[int] | np.ndarray, base: int) -> bool:
+    """True when the block's check register matches its registers (``words`` from ``base``, stars included)."""
+    head = block.read_span(0)
+    if base > head[0] or base + len(words) < head[0] + head[1]:
+        return False  # not even the block's fixed registers were read
+    n = block_n_stars(block, words, base)
+    if block.stars_from is not None and n > block.stars_from.count:
+        return False
+    need = block.read_span(n)
+    if base > need[0] or base + len(words) < need[0] + need[1]:
+        return False
+    return int(get(words, block.check, base=base)) == block_crc(block, words, base, n)
+
+
+def seal_block(block: CheckedBlock, image: list[int]) -> None:
+    """Write the block's check into a table image (indexed by address) after its registers changed."""
+    put(image, block.check, block_crc(block, image, 0, block_n_stars(block, image, 0)))
+
+
 def table_from_registers(words: list[int] | np.ndarray) -> bytes:
     """Registers of consecutive float32 entries (high word first) -> the same values as little-endian float32 bytes
     (the parameter table of ``protocol.param_table``), bit for bit (NaN payloads included)."""
@@ -309,6 +395,12 @@ def render_markdown(m: ModbusMap) -> str:
         f"| {c['code']} | {c['name']} | {_md(c.get('uses', ''))} | {_md(c.get('description', ''))} |"
         for c in m.commands
     ]
+    if m.checked_blocks:
+        lines += ["", "## Block checks", "", m.block_check, "", "| block | first | last | stars | check |"]
+        lines += ["|---|---|---|---|---|"]
+        for b in m.checked_blocks:
+            stars = f"`{b.stars.name}` from `{b.stars_from.name}`" if b.stars and b.stars_from else ""
+            lines.append(f"| {b.name} | `{b.first.name}` | `{b.last.name}` | {stars} | `{b.check.name}` |")
     lines += ["", "## NAK codes", "", "| code | name |", "|---:|---|"]
     lines += [f"| {c['code']} | {c['name']} |" for c in m.nak_codes]
     for table in TABLES:

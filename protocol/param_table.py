@@ -2,7 +2,7 @@
 
 A table is 23 IEEE-754 float32 values, little-endian, in :data:`PARAM_FIELDS` order (92 bytes): the 13 camera
 fields (:data:`CAMERA_FIELDS`), then the 1-sigma prior of each estimable parameter (:data:`SIGMA_FIELDS`, in
-``onboard.params.ESTIMATE_NAMES`` order, parameter units: f in mm). The camera fields are the keys of a camera
+:data:`ESTIMATE_NAMES` order, parameter units: f in mm). The camera fields are the keys of a camera
 parameter file (shared/spec/CAMERA_MODEL.md), flattened; ``image_size_px`` travels as float32 too (exact for any
 size below 2**24). A sigma is a finite value >= 0, or NaN: NaN or 0 means "unknown", and the sensor's estimator then
 starts that parameter from its cold-start prior (``onboard.prior``). The CRC of a set is :func:`protocol.crc.crc32`
@@ -12,8 +12,10 @@ Modbus mailbox checks and the bank records all derive from it.
 "Equal to float32" (INTERFACES.md, ``hostlink upload``) means: every file value rounded to float32 (round to
 nearest even, as numpy does) equals the value the sensor reports, bit for bit.
 
-Pure: bytes in, values out. The mapping to ``onboard.params.CameraParams`` lives in ``onboard.banks`` (protocol
-imports nothing from onboard).
+Pure: bytes in, values out. The parameter names (:data:`DISTORTION_NAMES`, :data:`ESTIMATE_NAMES`) are defined here,
+at the bottom layer, so that the wire, the sensor and the host spell them once; :func:`camera_fields_from_file` and
+:func:`camera_file_from_fields` flatten a parameter-file object into the table's camera fields and back. The mapping
+to ``onboard.params.CameraParams`` lives in ``onboard.banks`` (protocol imports nothing from onboard).
 """
 
 from __future__ import annotations
@@ -25,6 +27,12 @@ import numpy as np
 
 from protocol.crc import crc32
 
+#: Distortion keys of a camera parameter file (CAMERA_MODEL.md: radial k1 k2 k3, decentering p1 p2, thin prism s1 s2),
+#: in the order of every parameter vector and table. THE list: every other module imports it.
+DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "s1", "s2")
+#: Names of the estimable parameters, in the order of every parameter vector in the project (``--estimate`` names,
+#: the sigma fields below, the onboard estimate's values): focal length, principal point, then the distortion.
+ESTIMATE_NAMES: tuple[str, ...] = ("f", "x0", "y0", *DISTORTION_NAMES)
 #: Camera fields of the table. Names are those of the parameter file (``principal_point_px``/``image_size_px`` split).
 CAMERA_FIELDS: tuple[str, ...] = (
     "focal_length_mm",
@@ -33,28 +41,18 @@ CAMERA_FIELDS: tuple[str, ...] = (
     "principal_point_y_px",
     "image_width_px",
     "image_height_px",
-    "k1",
-    "k2",
-    "k3",
-    "p1",
-    "p2",
-    "s1",
-    "s2",
+    *DISTORTION_NAMES,
 )
-#: 1-sigma prior of each estimable parameter, in ``onboard.params.ESTIMATE_NAMES`` order (f, x0, y0, k1..s2),
+#: The table field of each estimable parameter (f is the focal length in mm).
+ESTIMATE_FIELD: dict[str, str] = {
+    "f": "focal_length_mm",
+    "x0": "principal_point_x_px",
+    "y0": "principal_point_y_px",
+    **{k: k for k in DISTORTION_NAMES},
+}
+#: 1-sigma prior of each estimable parameter, in :data:`ESTIMATE_NAMES` order (f, x0, y0, k1..s2),
 #: parameter units; NaN or 0 = unknown (cold-start prior).
-SIGMA_FIELDS: tuple[str, ...] = (
-    "sigma_focal_length_mm",
-    "sigma_principal_point_x_px",
-    "sigma_principal_point_y_px",
-    "sigma_k1",
-    "sigma_k2",
-    "sigma_k3",
-    "sigma_p1",
-    "sigma_p2",
-    "sigma_s1",
-    "sigma_s2",
-)
+SIGMA_FIELDS: tuple[str, ...] = tuple(f"sigma_{ESTIMATE_FIELD[name]}" for name in ESTIMATE_NAMES)
 #: Field order of the table.
 PARAM_FIELDS: tuple[str, ...] = CAMERA_FIELDS + SIGMA_FIELDS
 N_FIELDS = len(PARAM_FIELDS)
@@ -101,3 +99,37 @@ def table_from_mapping(values: Mapping[str, float]) -> bytes:
 def table_to_mapping(data: bytes | bytearray | memoryview) -> dict[str, float]:
     """Field name -> value (Python float holding the exact float32 value)."""
     return {name: float(v) for name, v in zip(PARAM_FIELDS, decode_table(data), strict=True)}
+
+
+def camera_fields_from_file(data: Mapping) -> dict[str, float]:
+    """A camera parameter-file object (``focal_length_mm``, ``pixel_pitch_um``, ``principal_point_px`` [x, y],
+    ``image_size_px`` [w, h], ``distortion`` {k1..s2}) -> its :data:`CAMERA_FIELDS` values (missing distortion
+    keys are 0)."""
+    (x0, y0), (width, height) = data["principal_point_px"], data["image_size_px"]
+    distortion = data.get("distortion") or {}
+    return {
+        "focal_length_mm": float(data["focal_length_mm"]),
+        "pixel_pitch_um": float(data["pixel_pitch_um"]),
+        "principal_point_x_px": float(x0),
+        "principal_point_y_px": float(y0),
+        "image_width_px": float(width),
+        "image_height_px": float(height),
+        **{k: float(distortion.get(k, 0.0)) for k in DISTORTION_NAMES},
+    }
+
+
+def camera_file_from_fields(values: Mapping[str, float]) -> dict:
+    """:data:`CAMERA_FIELDS` values -> the camera parameter-file object (inverse of :func:`camera_fields_from_file`).
+    An image size that is a whole number becomes an int; any other value is kept as it is, for the reader's
+    validation to name."""
+
+    def size(v: float) -> int | float:
+        return int(v) if math.isfinite(v) and v == int(v) else v
+
+    return {
+        "focal_length_mm": values["focal_length_mm"],
+        "pixel_pitch_um": values["pixel_pitch_um"],
+        "principal_point_px": [values["principal_point_x_px"], values["principal_point_y_px"]],
+        "image_size_px": [size(values["image_width_px"]), size(values["image_height_px"])],
+        "distortion": {k: values[k] for k in DISTORTION_NAMES},
+    }

@@ -7,11 +7,12 @@ the project's simulator.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from crb_bounds import interstar_frame_information
 
-from hostlink.calibration.crb import interstar_frame_information
+from hostlink.files.params import load_params
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
 from onboard.interstar import (
     difference_jacobian,
@@ -20,12 +21,15 @@ from onboard.interstar import (
     order_for_pairs,
     pair_covariance,
 )
-from onboard.params import CameraParams, Distortion, params_from_dict
+from onboard.params import CameraParams, params_from_dict
 
-#: Seed 004 sec. 3, Table 1 (k signs converted to CAMERA_MODEL.md: k = -k_seed004).
-SEED004_TRUE = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), Distortion(k1=-2.0e-10, k2=3.5e-15))
-#: What a user knows before calibrating (seed 004 sec. 3: f 72 mm, principal point (512, 512), no distortion).
-SEED004_NOMINAL = CameraParams(72.0, 12.0, (512.0, 512.0), (1024, 1024))
+#: Seed 004 sec. 3, Table 1 (k signs converted to CAMERA_MODEL.md: k = -k_seed004): the package's seed004_camera.
+SEED004_TRUE = load_params("builtin:seed004_camera")
+#: The starting values of seed 004's experiments (sec. 3: f 72 mm, principal point (512, 512), no distortion): the
+#: package's design nominal (builtin:seed004_nominal, f 70 mm at (511.5, 511.5)) moved further from the truth.
+SEED004_PAPER_START = replace(
+    load_params("builtin:seed004_nominal"), focal_length_mm=72.0, principal_point_px=(512.0, 512.0)
+)
 
 
 @dataclass

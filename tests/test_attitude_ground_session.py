@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from attitude_bounds import attitude_covariance
 
 from hostlink.sky.attitude import solve_attitudes
 from hostlink.sky.simulate import SimConfig, simulate
 from hostlink.sky.site import site_velocity_true_of_date
-from onboard import attitude as att
 from onboard.camera import pixels_to_unit
 from onboard.params import params_from_dict
 from onboard.site import Site, Weather
@@ -49,7 +49,7 @@ ACCEPTANCE_ARCSEC = 0.7
 def _camera():
     import json
 
-    from hostlink.sky.simulate import data_file
+    from hostlink.files.params import data_file
 
     return params_from_dict(json.loads(data_file("seed004_camera.json").read_text()))
 
@@ -88,7 +88,7 @@ def _boresight_floor_arcsec(session, cam) -> float:
     theta = cam.model_vector(np.float64)
     sigma_rad = NOISE_PX / cam.focal_length_px
     var = [
-        np.trace(att.attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta), sigma_rad)[:2, :2])
+        np.trace(attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta), sigma_rad)[:2, :2])
         for sl in session.frame_slices()
     ]
     return float(np.sqrt(np.mean(var))) / ARCSEC

@@ -7,6 +7,7 @@ import csv
 
 import numpy as np
 import pytest
+from attitude_bounds import attitude_covariance, rotation_angle_rad
 
 from hostlink.cli import main
 from hostlink.files.params import save_params
@@ -62,7 +63,7 @@ def test_noise_free_vectors_give_the_exact_attitude(n_stars):
         c_true = _random_rotation(rng)
         b = _field(rng, n_stars)
         c = att.attitude_from_vectors(b, b @ c_true)  # b = C r
-        assert att.rotation_angle_rad(c, c_true) < 1e-7 * ARCSEC  # float64 round-off only
+        assert rotation_angle_rad(c, c_true) < 1e-7 * ARCSEC  # float64 round-off only
         assert np.linalg.det(c) == pytest.approx(1.0, abs=1e-12)  # a proper rotation, never a reflection
 
 
@@ -76,10 +77,10 @@ def test_float32_solution_stays_at_the_float32_floor_of_its_inputs(n_stars):
         c32 = att.attitude_from_vectors(b, r)
         assert c32.dtype == np.float32
         c64 = att.attitude_from_vectors(b.astype(np.float64), r.astype(np.float64))
-        floor = np.sqrt(np.trace(att.attitude_covariance(b.astype(np.float64), FLOAT32_ULP_RAD)))
+        floor = np.sqrt(np.trace(attitude_covariance(b.astype(np.float64), FLOAT32_ULP_RAD)))
         # the float32 run differs from the float64 run of the same inputs by less than the attitude error one ulp
         # of direction noise would cause (measured 0.74x at worst; the bare float32 SVD, without the refinement, 3.3x)
-        assert att.rotation_angle_rad(c32, c64) < 1.0 * floor
+        assert rotation_angle_rad(c32, c64) < 1.0 * floor
 
 
 def test_fewer_than_two_or_parallel_stars_are_refused():
@@ -104,7 +105,7 @@ def test_attitude_error_covariance_meets_the_cramer_rao_bound(n_stars):
         errs.append([d[1, 2] - d[2, 1], d[2, 0] - d[0, 2], d[0, 1] - d[1, 0]])
     errs = np.array(errs) / 2
     observed = errs.T @ errs / errs.shape[0]
-    bound = att.attitude_covariance(b_true, sigma)
+    bound = attitude_covariance(b_true, sigma)
     ratio = np.diag(observed) / np.diag(bound)
     # efficient estimator: each variance within 3000-sample scatter (+-2.6 sigma of a chi2 with 3000 dof: 7%)
     assert np.all(np.abs(ratio - 1) < 0.08)
@@ -118,7 +119,7 @@ def test_a_misidentified_star_is_rejected():
     r[3] = _field(rng, 1)[0] @ c_true  # a wrong identity: another star in the field
     c, keep = att.attitude_with_rejection(b, r, threshold_rad=60 * ARCSEC)
     assert not keep[3] and keep.sum() == 7
-    assert att.rotation_angle_rad(c, c_true) < 10 * ARCSEC  # noise-level again (2" per star, 7 stars)
+    assert rotation_angle_rad(c, c_true) < 10 * ARCSEC  # noise-level again (2" per star, 7 stars)
 
 
 # ------------------------------------------------------------------------------------------- ground session
@@ -159,7 +160,7 @@ def _crb_boresight_rms_arcsec(session, cam, noise_px):
     sigma = noise_px / cam.focal_length_px  # small field: one pixel subtends 1/F rad
     var = []
     for sl in session.frame_slices():
-        p = att.attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta), sigma)
+        p = attitude_covariance(pixels_to_unit(session.x_px[sl], session.y_px[sl], theta), sigma)
         var.append(p[0, 0] + p[1, 1])  # rotations about x and y move the boresight
     return float(np.sqrt(np.mean(var))) / ARCSEC
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from hostlink.cli import main
+from hostlink.files.params import data_file
 from hostlink.files.session import write_session
-from hostlink.sky.simulate import data_file, seed004_config, simulate
+from hostlink.sky.simulate import seed004_config, simulate
 
 NOMINAL = str(data_file("seed004_nominal.json"))
 

@@ -89,7 +89,8 @@ def test_bad_bench_option_is_one_line_and_non_zero(tmp_path):
 
 
 def test_a_sensor_whose_estimator_never_updates_is_reported_as_such_not_as_nan(tmp_path):
-    from hostlink.mission.bench import BenchConfig, run_bench, summary_table
+    from hostlink.api import BenchConfig, run_bench
+    from hostlink.mission.summary import summary_table
 
     cfg = BenchConfig(out_dir=tmp_path, cal_frames=60, drift_frames=30, emulator_args=("--no-estimator",))
     summary = run_bench(cfg, say=lambda text: None, show_progress=False)

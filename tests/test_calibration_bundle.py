@@ -1,9 +1,10 @@
 """Bundle adjustment (the default calibration): derivatives, the Cramer-Rao bound, efficiency and robustness."""
 
+import crb_bounds as crb
 import numpy as np
 import pytest
+from synthetic_sessions import synthetic_session
 
-from hostlink.calibration import crb
 from hostlink.calibration.bundle import (
     BundleOptions,
     accumulate_normals,
@@ -15,12 +16,12 @@ from hostlink.calibration.bundle import (
 from hostlink.calibration.data import build_data
 from hostlink.calibration.frames import apply_attitude_increment
 from hostlink.calibration.report import degeneracies
-from hostlink.calibration.synthetic import synthetic_session
+from hostlink.files.params import load_params
 from onboard.camera import unit_to_pixels
-from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion, distortion_from_seed004
+from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
 
-SEED004 = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), distortion_from_seed004(2e-10, -3.5e-15))
-SEED004_NOMINAL = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
+SEED004 = load_params("builtin:seed004_camera")
+SEED004_NOMINAL = load_params("builtin:seed004_nominal")
 # every Weng term on, a few tenths of a pixel each at the corner (as in test_camera_model.py)
 FULL_WENG = CameraParams(
     50.0,

@@ -5,8 +5,9 @@ import json
 import pytest
 
 from hostlink.cli import main
+from hostlink.files.params import data_file
 from hostlink.files.session import write_session
-from hostlink.sky.simulate import data_file, seed004_camera, seed004_config, simulate
+from hostlink.sky.simulate import seed004_camera, seed004_config, simulate
 
 NOMINAL = str(data_file("seed004_nominal.json"))
 

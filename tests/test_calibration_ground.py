@@ -11,12 +11,12 @@ differential across the field is 0.25" x 0.07 rad = 0.02", 6e-4 px), so the came
 
 import numpy as np
 import pytest
+from crb_bounds import validation_residual_px
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
-from hostlink.calibration.crb import validation_residual_px
 from hostlink.calibration.data import build_data, calibration_data_from_session
-from hostlink.files.params import load_params
-from hostlink.sky.simulate import SimConfig, data_file, seed004_camera, simulate
+from hostlink.files.params import data_file, load_params
+from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from hostlink.sky.site import zenith_true_of_date
 from onboard.refraction import refract_toward_zenith
 from onboard.site import Site, Weather

@@ -8,6 +8,7 @@ terms in a different order, and its batched solves factorise the same matrices.
 
 import numpy as np
 import pytest
+from synthetic_sessions import synthetic_session
 
 from hostlink.calibration import interstar_methods
 from hostlink.calibration.bundle import parameter_columns, parameter_scales
@@ -19,7 +20,6 @@ from hostlink.calibration.interstar_methods import (
     interstar_normals,
 )
 from hostlink.calibration.seed004 import calibrate_seed004
-from hostlink.calibration.synthetic import synthetic_session
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import (
     difference_jacobian,

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from hostlink.files.params import load_params
 from onboard.camera import (
     distortion_px,
     ideal_offset_jacobians,
@@ -23,7 +24,8 @@ FULL_WENG = CameraParams(
     image_size_px=(2048, 2048),
     distortion=Distortion(k1=-3.0e-9, k2=2.0e-15, k3=-4.0e-22, p1=1.5e-7, p2=-2.0e-7, s1=8.0e-8, s2=-6.0e-8),
 )
-SEED004 = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), Distortion(k1=-2.0e-10, k2=3.5e-15))
+#: Seed 004's simulated camera (package data): radial k1, k2 only.
+SEED004 = load_params("builtin:seed004_camera")
 
 
 def _grid(params, n=15):

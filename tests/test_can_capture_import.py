@@ -90,24 +90,20 @@ def test_a_blf_and_an_asc_capture_of_a_live_stream_import_to_the_session_hostlin
 
 
 def _stream_messages(frames: list[CentroidFrame], t0_s: float = 100.0, channel=0) -> list[can.Message]:
-    """The CAN frames a sensor sends for these centroid frames (TIME_BASE first, then header + stars)."""
-    out, t_base = [], None
-
-    def add(fid: int, data: bytes) -> None:
-        out.append(
-            can.Message(
-                timestamp=t0_s + 1e-3 * len(out), arbitration_id=fid, data=data, is_extended_id=False, channel=channel
-            )
-        )
-
+    """The CAN frames a sensor sends for these centroid frames (protocol.can_frames.StreamEncoder)."""
+    out = []
+    encoder = cf.StreamEncoder()
     for f in frames:
-        if cf.needs_time_base(f.t_us, t_base):
-            t_base = f.t_us
-            add(cf.TIME_BASE.frame_id, cf.encode_time_base(t_base))
-        add(cf.FRAME_HEADER.frame_id, cf.encode_header(f.frame, f.n_stars, f.t_us - t_base))
-        stars = cf.word_bytes(cf.encode_stars(f))
-        for k in range(0, len(stars), 8):
-            add(cf.STAR.frame_id, stars[k : k + 8])
+        for fid, data in encoder.encode(f):
+            out.append(
+                can.Message(
+                    timestamp=t0_s + 1e-3 * len(out),
+                    arbitration_id=fid,
+                    data=data,
+                    is_extended_id=False,
+                    channel=channel,
+                )
+            )
     return out
 
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from hostlink.cli import main
 from hostlink.files.session import Session, read_session, write_session
+from hostlink.files.truth import read_truth
 
 NOMINAL = {
     "focal_length_mm": 70.0,
@@ -129,7 +130,7 @@ def test_scripted_attitudes_saved_with_a_byte_order_mark_are_read(tmp_path, caps
         ]
     )
     assert code == 0, capsys.readouterr().err
-    truth = json.loads((tmp_path / "s.truth.json").read_text())
+    truth = read_truth(tmp_path / "s.truth.json")
     assert np.allclose(np.reshape(truth["attitude"][0], (3, 3)), np.eye(3))
 
 
@@ -157,6 +158,6 @@ def test_southern_western_sites_and_frost_weather_parse_with_a_space_after_the_o
         ]
     )
     assert code == 0, capsys.readouterr().err
-    truth = json.loads((tmp_path / "s.truth.json").read_text())
+    truth = read_truth(tmp_path / "s.truth.json")
     assert (truth["site"]["lat_deg"], truth["site"]["lon_deg"], truth["site"]["height_m"]) == (-33.9, -70.7, 2400)
     assert (truth["weather"]["temp_c"], truth["weather"]["rel_humidity"], truth["dut1_s"]) == (-5, 0.3, -0.2)

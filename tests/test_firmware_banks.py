@@ -1,6 +1,9 @@
-"""Parameter banks: staging never touches the A/B slots, commit switches atomically with a generation and CRC, and a
-power loss or an interrupted upload at any point leaves a valid set active."""
+"""Parameter banks in NOR flash: staging never touches the flash but for its session record, a commit switches
+atomically with a generation and CRC, a power cut at any byte of any erase or program leaves the complete old or the
+complete new set active, a commit only counts inside its staging session, and an implausible set is refused with the
+rule it breaks."""
 
+import copy
 import dataclasses
 import math
 
@@ -18,23 +21,35 @@ CAMERA = seed004_camera()
 NOMINAL = CameraParams(
     focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
 )
+STALE = NakCode.STALE_SESSION
 
 
 def stage(store, params_or_table, chunk=16):
     table = params_or_table if isinstance(params_or_table, bytes) else banks.params_to_table(params_or_table)
-    assert banks.stage_begin(store, TABLE_BYTES) is None
+    nonce = banks.stage_begin(store, TABLE_BYTES)
+    assert isinstance(nonce, int) and nonce > 0
     for off in range(0, TABLE_BYTES, chunk):
         assert banks.stage_chunk(store, off, table[off : off + chunk]) is None
     return table, crc32(table)
 
 
+def commit(store, crc):
+    """A COMMIT bound to the current session and the active generation (what a correct host sends)."""
+    return banks.commit(store, crc, store.stage_nonce, banks.active_generation(store))
+
+
 def upload(store, params):
     table, crc = stage(store, params)
     assert banks.stage_verify(store, crc) is None
-    return banks.commit(store, crc)
+    return commit(store, crc)
 
 
-def test_factory_store_boots_generation_one_in_slot_a():
+def reboot(store):
+    """Power cycle: a fresh boot from a copy of the flash contents (RAM lost)."""
+    return banks.boot(banks.RamFlash(store.flash.image.copy()), store.limits)
+
+
+def test_factory_store_boots_generation_one_in_sector_a():
     store = banks.factory_store(NOMINAL)
     gen, table, crc = banks.active_set(store)
     assert (store.active, gen) == (0, 1)
@@ -48,51 +63,127 @@ def test_table_round_trip_gives_the_float32_values():
     assert back.image_size_px == (1024, 1024)
 
 
-def test_commits_alternate_slots_and_count_generations():
+def test_commits_alternate_sectors_and_count_generations():
     store = banks.factory_store(NOMINAL)
     assert upload(store, CAMERA) == 2 and store.active == 1
     assert upload(store, NOMINAL) == 3 and store.active == 0
     assert banks.active_set(store)[1] == banks.params_to_table(NOMINAL)
-    assert banks.boot(store.slots).active == 0  # a reboot finds the same active set
+    again = reboot(store)  # a reboot finds the same active set
+    assert again.active == 0 and banks.active_set(again) == banks.active_set(store)
 
 
-def test_staging_changes_no_slot_until_commit():
+def test_staging_writes_only_its_session_record_until_commit():
     store = banks.factory_store(NOMINAL)
-    before = store.slots.copy()
+    before = store.flash.image.copy()
     table, crc = stage(store, CAMERA)
     assert banks.stage_verify(store, crc) is None
-    assert np.array_equal(store.slots, before)
-    assert banks.boot(store.slots).active == 0  # host killed here: a reboot keeps the old set
+    changed = np.flatnonzero(store.flash.image != before)
+    start = banks.BANK_RECORD_BYTES  # the session record, right after sector A's bank record
+    assert changed.min() >= start and changed.max() < start + banks.STAGE_RECORD_BYTES
+    assert banks.active_set(reboot(store))[0] == 1  # host killed here: a reboot keeps the old set
 
 
-@pytest.mark.parametrize("n_bytes", range(0, banks.RECORD_BYTES))
-def test_power_loss_while_programming_keeps_the_old_set(n_bytes):
+def test_nor_programming_only_clears_bits_in_whole_write_units():
+    image = np.full(banks.FLASH_BYTES, 0xFF, dtype=np.uint8)
+    banks.nor_program(image, 0, np.array([0x0F] * 8, dtype=np.uint8))
+    banks.nor_program(image, 0, np.array([0xF3] * 8, dtype=np.uint8))
+    assert np.all(image[:8] == 0x03) and np.all(image[8:] == 0xFF)  # 0x0F & 0xF3: bits only cleared
+    with pytest.raises(ValueError, match="units"):
+        banks.nor_program(image, 4, np.zeros(8, dtype=np.uint8))
+    banks.nor_erase(image, 0)
+    assert np.all(image == 0xFF)
+
+
+def _store_ready_to_commit(params):
     store = banks.factory_store(NOMINAL)
-    upload(store, CAMERA)  # generation 2 in slot B; slot A (generation 1) is the inactive one now
-    record = banks.make_record(3, banks.params_to_table(NOMINAL))
-    banks.program_slot(store, 0, record, n_bytes=n_bytes)  # power lost after n_bytes of the next commit
-    rebooted = banks.boot(store.slots)
-    gen, table, _ = banks.active_set(rebooted)
-    assert (rebooted.active, gen, table) == (1, 2, banks.params_to_table(CAMERA))
+    assert upload(store, CAMERA) == 2  # sector A (generation 1) is now the inactive one, B holds generation 2
+    table, crc = stage(store, params)
+    assert banks.stage_verify(store, crc) is None
+    return store, crc
 
 
-def test_power_loss_after_programming_boots_the_new_set():
+def test_a_power_cut_at_every_byte_of_a_commit_leaves_the_complete_old_or_new_set():
+    """The commit erases sector A (4096 bytes, byte by byte) then programs the 112-byte record: one cut after each of
+    those 4208 bytes, each followed by a reboot from the flash as it was left."""
+    ready, crc = _store_ready_to_commit(NOMINAL)
+    old = (2, banks.params_to_table(CAMERA), crc32(banks.params_to_table(CAMERA)))
+    new = (3, banks.params_to_table(NOMINAL), crc)
+    total = banks.SECTOR_BYTES + banks.BANK_RECORD_BYTES
+    outcomes = {"old": 0, "new": 0}
+    for budget in range(total):
+        store = copy.deepcopy(ready)
+        store.flash.power_budget = budget
+        with pytest.raises(banks.PowerCut):
+            commit(store, crc)
+        active = banks.active_set(reboot(store))
+        assert active in (old, new), budget
+        outcomes["old" if active == old else "new"] += 1
+    assert outcomes == {"old": total, "new": 0}  # the new record is valid only once its last byte (the CRC) is in
+    store = copy.deepcopy(ready)
+    store.flash.power_budget = total  # exactly enough: the commit completes
+    assert commit(store, crc) == 3 and banks.active_set(reboot(store)) == new
+
+
+def test_a_power_cut_at_every_byte_of_a_session_record_keeps_the_set_and_never_reissues_an_acked_nonce():
+    ready = banks.factory_store(NOMINAL)
+    first = banks.stage_begin(ready, TABLE_BYTES)
+    for budget in range(banks.STAGE_RECORD_BYTES):
+        store = copy.deepcopy(ready)
+        store.flash.power_budget = budget
+        with pytest.raises(banks.PowerCut):
+            banks.stage_begin(store, TABLE_BYTES)
+        again = reboot(store)
+        assert banks.active_set(again)[0] == 1
+        assert banks.stage_begin(again, TABLE_BYTES) > first  # the acknowledged nonce is never given out again
+
+
+def test_a_full_session_area_rewrites_the_active_set_and_keeps_its_generation():
     store = banks.factory_store(NOMINAL)
-    banks.program_slot(store, 1, banks.make_record(2, banks.params_to_table(CAMERA)))
-    rebooted = banks.boot(store.slots)
-    assert rebooted.active == 1 and banks.active_set(rebooted)[0] == 2
+    nonces = [banks.stage_begin(store, TABLE_BYTES) for _ in range(3 * banks.STAGE_SLOTS + 5)]
+    assert nonces == list(range(1, len(nonces) + 1))  # strictly increasing, no repeat across rewrites
+    gen, table, _ = banks.active_set(store)
+    assert (gen, table) == (1, banks.params_to_table(NOMINAL))
+    again = reboot(store)
+    assert banks.active_set(again)[:2] == (1, table) and banks.stage_begin(again, TABLE_BYTES) == nonces[-1] + 1
+    _, crc = stage(again, CAMERA)
+    assert banks.stage_verify(again, crc) is None and commit(again, crc) == 2
 
 
 def test_commit_needs_a_verified_set_with_the_same_crc():
     store = banks.factory_store(NOMINAL)
     table, crc = stage(store, CAMERA)
-    assert banks.commit(store, crc).code == NakCode.NOT_VERIFIED
+    assert commit(store, crc).code == NakCode.NOT_VERIFIED
     assert banks.stage_verify(store, crc) is None
-    assert banks.commit(store, crc ^ 1).code == NakCode.NOT_VERIFIED
+    assert commit(store, crc ^ 1).code == NakCode.NOT_VERIFIED
     assert banks.stage_chunk(store, 0, table[:4]) is None  # any chunk after verify un-verifies
     assert store.stage_state == StageState.RECEIVING
-    assert banks.commit(store, crc).code == NakCode.NOT_VERIFIED
+    assert commit(store, crc).code == NakCode.NOT_VERIFIED
     assert banks.active_set(store)[0] == 1
+
+
+def test_commit_needs_the_current_session_nonce_and_the_active_generation():
+    store = banks.factory_store(NOMINAL)
+    _, crc = stage(store, CAMERA)
+    nonce = store.stage_nonce
+    assert banks.stage_verify(store, crc) is None
+    for wrong_nonce, expected in ((0, 1), (nonce - 1, 1), (nonce + 1, 1), (nonce, 0), (nonce, 2)):
+        refusal = banks.commit(store, crc, wrong_nonce, expected)
+        assert isinstance(refusal, banks.Refusal) and refusal.code == STALE, (wrong_nonce, expected)
+    assert banks.commit(store, crc, nonce, 1) == 2
+    assert banks.commit(store, crc, nonce, 1).code == STALE  # a session commits once
+    assert banks.commit(store, crc, nonce, 2).code == STALE
+    assert banks.active_set(store)[0] == 2
+
+
+def test_a_new_session_voids_the_previous_nonce():
+    store = banks.factory_store(NOMINAL)
+    _, crc = stage(store, CAMERA)
+    old_nonce = store.stage_nonce
+    assert banks.stage_verify(store, crc) is None
+    _, crc = stage(store, CAMERA)
+    assert banks.stage_verify(store, crc) is None
+    assert banks.commit(store, crc, old_nonce, 1).code == STALE
+    assert banks.commit(store, crc, store.stage_nonce, 1) == 2
 
 
 def test_a_corrupt_chunk_fails_the_crc_and_commits_nothing():
@@ -103,7 +194,7 @@ def test_a_corrupt_chunk_fails_the_crc_and_commits_nothing():
     stage(store, bytes(table))
     refusal = banks.stage_verify(store, crc)
     assert refusal.code == NakCode.BAD_CRC and "CRC" in refusal.text
-    assert banks.commit(store, crc).code == NakCode.NOT_VERIFIED
+    assert commit(store, crc).code == NakCode.NOT_VERIFIED
     assert banks.active_set(store)[0] == 1
 
 
@@ -111,7 +202,7 @@ def test_incomplete_and_out_of_bounds_staging_is_refused():
     store = banks.factory_store(NOMINAL)
     assert banks.stage_chunk(store, 0, b"x").code == NakCode.NOT_STAGED
     assert banks.stage_begin(store, TABLE_BYTES - 1).code == NakCode.BAD_LENGTH
-    assert banks.stage_begin(store, TABLE_BYTES) is None
+    assert isinstance(banks.stage_begin(store, TABLE_BYTES), int)
     assert banks.stage_chunk(store, TABLE_BYTES - 2, b"abc").code == NakCode.BAD_LENGTH
     assert banks.stage_chunk(store, 0, bytes(16)) is None
     refusal = banks.stage_verify(store, 0)
@@ -156,14 +247,32 @@ def test_erased_flash_has_no_active_set():
 
 
 def test_a_commit_past_the_last_generation_is_refused_and_keeps_the_active_set():
-    # generations are uint32 in the slot record: the commit after 2**32 - 1 used to raise struct.error out of
-    # Firmware.handle (which must answer every command) instead of a NAK
-    store = banks.factory_store(NOMINAL)
-    store.slots[0] = banks.make_record(2**32 - 1, banks.params_to_table(NOMINAL))
-    store = banks.boot(store.slots)
-    before = store.slots.copy()
+    # generations are uint32 in the bank record: the commit after 2**32 - 1 must be a NAK, not an exception
+    flash = banks.RamFlash()
+    flash.program(0, banks.encode_bank_record(banks.BankRecord(5, 2**32 - 1, 0, banks.params_to_table(NOMINAL))))
+    store = banks.boot(flash)
     _, crc = stage(store, CAMERA)
     assert banks.stage_verify(store, crc) is None
-    refusal = banks.commit(store, crc)
+    before = store.flash.image.copy()
+    refusal = commit(store, crc)
     assert isinstance(refusal, banks.Refusal) and refusal.code == NakCode.BANK_WRITE_FAILED
-    assert np.array_equal(store.slots, before) and banks.active_set(store)[0] == 2**32 - 1
+    assert np.array_equal(store.flash.image, before) and banks.active_set(store)[0] == 2**32 - 1
+
+
+def test_a_power_cut_at_every_byte_of_a_session_area_rewrite_keeps_the_set_and_the_counter():
+    """STAGE_BEGIN on a full session area rewrites the active set into the other sector (erase + bank record), then
+    writes its session record: a cut after each of those 4224 bytes, each followed by a reboot."""
+    ready = banks.factory_store(NOMINAL)
+    for _ in range(banks.STAGE_SLOTS):
+        banks.stage_begin(ready, TABLE_BYTES)
+    issued = ready.nonce_counter
+    factory = banks.active_set(ready)
+    total = banks.SECTOR_BYTES + banks.BANK_RECORD_BYTES + banks.STAGE_RECORD_BYTES
+    for budget in range(total):
+        store = copy.deepcopy(ready)
+        store.flash.power_budget = budget
+        with pytest.raises(banks.PowerCut):
+            banks.stage_begin(store, TABLE_BYTES)
+        again = reboot(store)
+        assert banks.active_set(again) == factory, budget
+        assert banks.stage_begin(again, TABLE_BYTES) > issued, budget

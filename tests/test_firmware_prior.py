@@ -24,17 +24,22 @@ SIGMA = np.array([7e-4, 1.3, 1.29, 1.4e-10, 5.8e-16, 7.4e-22, 2.2e-8, 2.1e-8, 2e
 
 
 def stage(store, table):
-    assert banks.stage_begin(store, len(table)) is None
+    assert isinstance(banks.stage_begin(store, len(table)), int)
     assert banks.stage_chunk(store, 0, table) is None
     return crc32(table)
+
+
+def commit(store, crc):
+    """COMMIT bound to the current staging session and the active generation."""
+    return banks.commit(store, crc, store.stage_nonce, banks.active_generation(store))
 
 
 def test_the_sigma_is_committed_with_the_set_and_survives_a_reboot():
     store = banks.factory_store(NOMINAL)
     table = banks.params_to_table(CAMERA, SIGMA)
     crc = stage(store, table)
-    assert banks.stage_verify(store, crc) is None and banks.commit(store, crc) == 2
-    rebooted = banks.boot(store.slots)
+    assert banks.stage_verify(store, crc) is None and commit(store, crc) == 2
+    rebooted = banks.boot(store.flash)
     generation, active, active_crc = banks.active_set(rebooted)
     assert (generation, active_crc) == (2, crc)
     np.testing.assert_array_equal(banks.table_to_sigma(active), SIGMA.astype(np.float32))  # float32, bit for bit
@@ -54,7 +59,7 @@ def test_a_bad_sigma_is_refused_with_its_field_and_nothing_commits(index, value,
     crc = stage(store, table)
     refusal = banks.stage_verify(store, crc)
     assert refusal.code == NakCode.INVALID_PARAMS and refusal.text.startswith(field + ":")
-    assert banks.commit(store, crc).code == NakCode.NOT_VERIFIED and banks.active_set(store)[0] == 1
+    assert commit(store, crc).code == NakCode.NOT_VERIFIED and banks.active_set(store)[0] == 1
 
 
 def test_nan_and_zero_sigmas_are_accepted_as_unknown():
@@ -89,7 +94,7 @@ def test_accept_sends_the_estimate_sigma_and_the_estimator_restarts_from_it():
     s = EmulatedSensor(Firmware(banks.factory_store(NOMINAL), RecursiveEstimator()), iter(session_frames(sim.session)))
     link = LoopbackLink(s)
     assert len(stream_frames(link, 15).frames) == 15
-    result, estimate = accept_estimate(link)
+    result, estimate = accept_estimate(link, force=True)  # 15 updates: not converged
     np.testing.assert_array_equal(result.sigma, np.asarray(estimate.sigma, dtype=np.float32))
     np.testing.assert_array_equal(read_active_params(link).sigma, result.sigma)
     got = recursive.sigma(s.firmware._est_state)

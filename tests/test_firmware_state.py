@@ -30,7 +30,9 @@ def upload(fw, params, tag=1):
     replies += [fw.handle(m.StageChunk(tag=tag, offset=o, data=table[o : o + 20])) for o in range(0, len(table), 20)]
     replies.append(fw.handle(m.StageVerify(tag=tag, crc32=crc)))
     staged = fw.handle(m.ReadStaged(tag=tag))
-    commit = fw.handle(m.Commit(tag=tag, crc32=crc))
+    nonce = replies[0].value  # the staging session's nonce
+    generation = fw.handle(m.GetStatus(tag=tag)).active_generation
+    commit = fw.handle(m.Commit(tag=tag, crc32=crc, nonce=nonce, expected_generation=generation))
     return replies, staged, commit
 
 

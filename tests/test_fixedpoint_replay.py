@@ -6,7 +6,7 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, make_frames
+from recursive_synth import SEED004_PAPER_START, SEED004_TRUE, make_frames
 from test_replay_cli import NOMINAL, session_information
 
 from hostlink.calibration.replay import replay_session
@@ -79,8 +79,8 @@ class _FloatFrontEnd:
 def test_the_front_end_seam_takes_the_same_stars_in_the_same_pair_order():
     # misidentified and unidentified rows make the selection and the pair ordering non-trivial
     frames = make_frames(SEED004_TRUE, 60, 0.05, misid_fraction=0.05, seed=7)
-    plain = recursive.create(SEED004_NOMINAL, dtype=np.float64)
-    seam = recursive.create(SEED004_NOMINAL, dtype=np.float64)
+    plain = recursive.create(SEED004_PAPER_START, dtype=np.float64)
+    seam = recursive.create(SEED004_PAPER_START, dtype=np.float64)
     for k, fr in enumerate(frames):
         ident = fr.identified.copy()
         ident[k % fr.x_px.size] = False

@@ -164,13 +164,19 @@ def test_a_plain_dbc_tool_uploads_with_single_frames(can_sensor):
                     return ack
         raise AssertionError(f"no ACK for {name} (a NAK comes by ISO-TP)")
 
+    with open_link(can_sensor["link"]) as link:
+        generation = link.status().active_generation
     try:
         time.sleep(0.05)
-        send_and_ack("COMMAND", {"type": int(MsgType.STAGE_BEGIN), "length": len(table)}, 1)
+        nonce = send_and_ack("COMMAND", {"type": int(MsgType.STAGE_BEGIN), "length": len(table)}, 1)["value"]
         for i, _ in enumerate(PARAM_FIELDS):
             send_and_ack("STAGE_FLOAT", {"field": i, "reserved": 0, "value": float(values[i])}, 10 + i)
         crc = crc32(table)
         send_and_ack("COMMAND", {"type": int(MsgType.STAGE_VERIFY), "verify_crc32": crc}, 30)
+        bind = db.encode_message("COMMIT_BIND", {"nonce": nonce, "expected_generation": generation})
+        bus.send(
+            can.Message(arbitration_id=db.get_message_by_name("COMMIT_BIND").frame_id, is_extended_id=False, data=bind)
+        )
         ack = send_and_ack("COMMAND", {"type": int(MsgType.COMMIT), "commit_crc32": crc}, 31)
     finally:
         bus.shutdown()

@@ -9,9 +9,10 @@ import time
 import can
 import pytest
 
-from hostlink.emulator.slcan_hub import HubFrame, SlcanHub, format_slcan_frame, frame_bits_worst_case, parse_slcan_frame
+from hostlink.emulator.slcan_hub import HubFrame, SlcanHub, format_slcan_frame, parse_slcan_frame
 from hostlink.errors import UserError
 from hostlink.links.can_link import CanTarget, parse_target
+from protocol.can_frames import frame_bits_worst_case
 
 
 @pytest.fixture()

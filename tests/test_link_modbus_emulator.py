@@ -89,12 +89,12 @@ def test_a_bad_set_is_refused_by_the_sensor_with_its_reason(modbus_sensor, which
     table[8:12] = np.float32(1e6).tobytes()  # principal_point_x_px far off the detector
     with open_link(modbus_sensor[which]) as link:
         before = link.read_active()
-        link.stage_begin(len(table))
+        nonce = link.stage_begin(len(table))
         link.stage_chunk(0, bytes(table))
         with pytest.raises(CommandRefused) as refused:
             link.stage_verify(crc32(bytes(table)))
-        with pytest.raises(CommandRefused) as not_verified:
-            link.commit(crc32(bytes(table)))
+        with pytest.raises(CommandRefused) as not_verified:  # in its session, but never verified
+            link.commit(crc32(bytes(table)), nonce=nonce, expected_generation=before.generation)
         after = link.read_active()
     assert refused.value.code == NakCode.INVALID_PARAMS and "principal_point_px[0]" in refused.value.text
     assert not_verified.value.code == NakCode.NOT_VERIFIED

@@ -87,6 +87,16 @@ def run_command(client, unit, name, arg=0, length=0, crc=0):
     return res[status_at], words_u32(res[value_at : value_at + 2]), text
 
 
+def write_session(client, unit, nonce, expected_generation):
+    """COMMIT's session registers (outside the command block): STAGE_BEGIN's nonce and the generation it replaces."""
+    base = REG["command_nonce"]["address"]
+    words = [0] * (REG["command_expected_generation"]["address"] + 2 - base)
+    words[0:2] = u32_words(nonce)
+    at = REG["command_expected_generation"]["address"] - base
+    words[at : at + 2] = u32_words(expected_generation)
+    assert not client.write_registers(base, words, device_id=unit).isError()
+
+
 @pytest.mark.parametrize("framing", ["tcp", "rtu"])
 def test_plain_pymodbus_client_uploads_and_reads_back_by_the_map(framing):
     with running_emulator("modbus", "--sim-frames", "20") as info:
@@ -105,9 +115,13 @@ def test_plain_pymodbus_client_uploads_and_reads_back_by_the_map(framing):
 
             table = struct.pack(f"<{len(FIELDS)}f", *(CAMERA[f] for f in FIELDS))
             crc = zlib.crc32(table)
-            assert run_command(client, unit, "STAGE_BEGIN", arg=len(table))[0] == 1
+            status, nonce, _ = run_command(client, unit, "STAGE_BEGIN", arg=len(table))
+            assert status == 1 and nonce > 0  # the staging session's nonce
             assert run_command(client, unit, "STAGE_CHUNK", arg=0, length=len(table))[0] == 1
             assert run_command(client, unit, "STAGE_VERIFY", crc=crc)[0] == 1
+            write_session(client, unit, nonce - 1, 1)  # not this session: refused, nothing switched
+            assert run_command(client, unit, "COMMIT", crc=crc)[0] == 2
+            write_session(client, unit, nonce, 1)
             status, generation, _ = run_command(client, unit, "COMMIT", crc=crc)
             assert status == 1 and generation == 2
 
@@ -135,7 +149,8 @@ def test_plain_client_sees_a_refusal_with_its_reason():
             words = [w for f in FIELDS for w in f32_words(bad[f])]
             client.write_registers(REG[f"stage_{FIELDS[0]}"]["address"], words, device_id=unit)
             table = struct.pack(f"<{len(FIELDS)}f", *(bad[f] for f in FIELDS))
-            run_command(client, unit, "STAGE_BEGIN", arg=len(table))
+            _, nonce, _ = run_command(client, unit, "STAGE_BEGIN", arg=len(table))
+            write_session(client, unit, nonce, 1)  # the right session: the refusal below is the set's own
             run_command(client, unit, "STAGE_CHUNK", arg=0, length=len(table))
             status, _, text = run_command(client, unit, "STAGE_VERIFY", crc=zlib.crc32(table))
             code = client.read_input_registers(REG["result_code"]["address"], count=1, device_id=unit).registers[0]

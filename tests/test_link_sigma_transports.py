@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from emulator_fixtures import hostlink, running_emulator
 
-from hostlink.sky.simulate import data_file
+from hostlink.files.params import data_file
 from onboard.prior import sigma_from_dict
 
 SIGMA = {
@@ -73,7 +73,8 @@ def test_accept_commits_the_estimate_with_its_own_sigma(sensor_link, tmp_path):
     monitor = hostlink("monitor", "--link", sensor_link, "--count", "1", "--interval", "0.3", "--json")
     assert monitor.returncode == 0, monitor.stderr
     out = tmp_path / "accepted.json"
-    run = hostlink("accept", "--link", sensor_link, "--out", str(out))
+    # forced: a few updates are far from converged; this test is about the sigma travelling, not about convergence
+    run = hostlink("accept", "--link", sensor_link, "--out", str(out), "--force")
     assert run.returncode == 0, run.stderr
     accepted = json.loads(out.read_text())
     shown = json.loads(hostlink("params", "--link", sensor_link).stdout)

@@ -109,7 +109,11 @@ def test_seed004_conversion_flips_the_radial_signs_and_inverts():
 
 
 def test_vector_round_trip_keeps_every_field():
-    params = CameraParams(50.0, 5.5, (1000.0, 990.0), (2048, 2048), Distortion(*[1e-9 * (k + 1) for k in range(7)]))
+    # every field distinct, distortion of a real lens (k2, k3 scaled by px^-2 per power: one-to-one over the detector)
+    scale = [1.0, 1e-7, 1e-14, 1.0, 1.0, 1.0, 1.0]
+    params = CameraParams(
+        50.0, 5.5, (1000.0, 990.0), (2048, 2048), Distortion(*[1e-9 * (k + 1) * scale[k] for k in range(7)])
+    )
     again = params.with_vector(params.vector())
     assert again == params
     assert params_from_dict(params_to_dict(params)) == params

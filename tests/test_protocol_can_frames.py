@@ -8,8 +8,8 @@ import cantools
 import numpy as np
 import pytest
 
-from hostlink.emulator.slcan_hub import frame_bits_worst_case
 from protocol import can_frames as cf
+from protocol.crc import crc16_ccitt, crc32
 from protocol.messages import (
     Ack,
     CentroidFrame,
@@ -110,7 +110,9 @@ def test_cantools_decodes_header_time_base_and_end_of_stream(db):
     assert db.decode_message(cf.TIME_BASE.frame_id, cf.encode_time_base(t_us))["t_base_us"] == t_us
     assert cf.decode_time_base(cf.encode_time_base(-5)) == -5
     end = db.decode_message(cf.END_OF_STREAM.frame_id, cf.encode_end_of_stream(99, 7))
-    assert end == {"frames_sent": 99, "last_frame": 7}
+    payload = cf.encode_end_of_stream(99, 7)
+    assert end == {"frames_sent": 99, "last_frame": 7, "check": crc16_ccitt(payload[0:2] + payload[4:8])}
+    assert cf.decode_end_of_stream(payload) == (99, 7)
     assert cf.decode_header(cf.encode_header(5, 0, 1234)) == (5, 0, 1234)
 
 
@@ -184,5 +186,42 @@ def test_worst_case_frame_lengths_match_the_published_values():
     # Davis, Burns, Bril & Lukkien (2007), "CAN schedulability analysis: refuted, revisited and revised", eq. 1:
     # C = (g + 8s + 13 + floor((g + 8s - 1) / 4)) bit times, g = 34 (11-bit id) or 54 (29-bit id);
     # the paper quotes 135 bits for 8 data bytes with 11-bit ids and 160 with 29-bit ids; 0 bytes give 55 / 80.
-    assert frame_bits_worst_case(8, False) == 135 and frame_bits_worst_case(8, True) == 160
-    assert frame_bits_worst_case(0, False) == 55 and frame_bits_worst_case(0, True) == 80
+    assert cf.frame_bits_worst_case(8, False) == 135 and cf.frame_bits_worst_case(8, True) == 160
+    assert cf.frame_bits_worst_case(0, False) == 55 and cf.frame_bits_worst_case(0, True) == 80
+
+
+def _stream_frame(n_stars: int = 5, frame: int = 41) -> CentroidFrame:
+    rng = np.random.default_rng(frame)
+    return CentroidFrame(
+        frame=frame,
+        t_us=1_773_454_299_000_000 + frame * 100_000,
+        star_id=rng.integers(1, 100_000, n_stars).astype(np.uint32),
+        x_px=np.round(rng.uniform(0, 2048, n_stars) * 1024) / 1024,
+        y_px=np.round(rng.uniform(0, 2048, n_stars) * 1024) / 1024,
+        mag=np.full(n_stars, np.nan),
+    )
+
+
+def test_a_stream_frame_is_closed_by_a_frame_end_whose_crc_covers_time_header_and_stars(db):
+    frames, t_base = cf.encode_stream_frame(_stream_frame(), None)
+    ids = [fid for fid, _ in frames]
+    assert ids == [cf.TIME_BASE.frame_id, cf.FRAME_HEADER.frame_id] + [cf.STAR.frame_id] * 5 + [cf.FRAME_END.frame_id]
+    frame, crc = cf.decode_frame_end(frames[-1][1])
+    stars = b"".join(d for fid, d in frames if fid == cf.STAR.frame_id)
+    assert frame == 41 and crc == crc32(t_base.to_bytes(8, "little", signed=True) + frames[1][1] + stars)
+    assert db.decode_message(cf.FRAME_END.frame_id, frames[-1][1]) == {"frame_crc32": crc, "frame": 41}
+
+
+def test_end_of_stream_with_a_flipped_bit_is_refused():
+    payload = bytearray(cf.encode_end_of_stream(1234, 99))
+    for bit in range(64):
+        bad = bytearray(payload)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        with pytest.raises(cf.CanDecodeError):
+            cf.decode_end_of_stream(bytes(bad))
+
+
+def test_the_sensor_repeats_the_time_base_every_sixteen_frames():
+    enc = cf.StreamEncoder()
+    with_base = [k for k in range(40) if enc.encode(_stream_frame(2, k))[0][0] == cf.TIME_BASE.frame_id]
+    assert with_base == [0, cf.TIME_BASE_EVERY_FRAMES, 2 * cf.TIME_BASE_EVERY_FRAMES]

@@ -86,11 +86,12 @@ def test_parameter_table_survives_registers_bit_for_bit():
     assert mm.table_from_registers(mm.registers_from_table(nan_payload * 13)) == nan_payload * 13
 
 
-def test_stream_window_header_and_sixteen_stars_fit_one_read():
+def test_stream_window_header_its_check_and_fifteen_stars_fit_one_read():
     m = mm.load_map()
     head = m["window_star_x_px"].address - m["window_state"].address
     stride = m["window_star_x_px"].stride
-    assert head + 16 * stride <= mm.MAX_READ_REGISTERS
+    assert m["window_crc32"].address == m["window_state"].address + head - 2  # the check ends the header
+    assert head + 15 * stride <= mm.MAX_READ_REGISTERS
     x = m["window_star_x_px"]
     assert x.scale == 2.0**-10 and x.count == 255  # protocol.messages.CENTROID_LSB_PX, MAX_STARS
 

@@ -3,7 +3,7 @@ bound, float32 against float64, misidentification gating, focal drift tracking, 
 
 import numpy as np
 import pytest
-from recursive_synth import SEED004_NOMINAL, SEED004_TRUE, batch_ml, crb_information, make_frames, sky_frames
+from recursive_synth import SEED004_PAPER_START, SEED004_TRUE, batch_ml, crb_information, make_frames, sky_frames
 
 from onboard import recursive as rc
 from onboard.params import ESTIMATE_NAMES
@@ -11,7 +11,7 @@ from onboard.params import ESTIMATE_NAMES
 NOISE_PX = 0.05
 
 
-def _run(frames, nominal=SEED004_NOMINAL, names=ESTIMATE_NAMES, dtype=np.float32, config=None):
+def _run(frames, nominal=SEED004_PAPER_START, names=ESTIMATE_NAMES, dtype=np.float32, config=None):
     st = rc.create(nominal, names, config, dtype)
     results = [rc.update(st, f.x_px, f.y_px, f.r, f.identified) for f in frames]
     return st, results
@@ -53,7 +53,7 @@ def seed004_sessions():
     for seed in range(N_SEEDS):
         camera, frames, info = sky_frames(seed, 1000, NOISE_PX)
         crb = np.sqrt(np.diag(np.linalg.inv(info)))
-        st = rc.create(SEED004_NOMINAL, ESTIMATE_NAMES, None, np.float32)
+        st = rc.create(SEED004_PAPER_START, ESTIMATE_NAMES, None, np.float32)
         for x, y, r, ok in frames:
             rc.update(st, x, y, r, ok)
         rec.append((rc.state_vector(st) - camera.model_vector()) / crb)
@@ -111,7 +111,7 @@ def test_a_sinusoidal_focal_drift_of_6_um_is_tracked_to_under_1_um_rms():
     n = 3000
     f_mm = SEED004_TRUE.focal_length_mm + 6e-3 * np.sin(2 * np.pi * np.arange(n) / n)
     frames = make_frames(SEED004_TRUE, n, NOISE_PX, seed=5, focal_mm=f_mm)
-    st = rc.create(SEED004_NOMINAL, ESTIMATE_NAMES, None, np.float32)
+    st = rc.create(SEED004_PAPER_START, ESTIMATE_NAMES, None, np.float32)
     est = np.empty(n)
     for k, fr in enumerate(frames):
         rc.update(st, fr.x_px, fr.y_px, fr.r, fr.identified)
@@ -134,7 +134,7 @@ def test_save_and_restore_continue_bit_for_bit():
     frames = make_frames(SEED004_TRUE, 160, NOISE_PX, seed=4)
     st, _ = _run(frames[:100])
     blob = rc.save_state(st)
-    clone = rc.restore_state(blob, SEED004_NOMINAL)
+    clone = rc.restore_state(blob, SEED004_PAPER_START)
     for fr in frames[100:]:
         rc.update(st, fr.x_px, fr.y_px, fr.r, fr.identified)
         rc.update(clone, fr.x_px, fr.y_px, fr.r, fr.identified)
@@ -142,14 +142,14 @@ def test_save_and_restore_continue_bit_for_bit():
     with pytest.raises(ValueError, match="different nominal"):
         rc.restore_state(blob, SEED004_TRUE)
     with pytest.raises(ValueError, match="bad magic"):
-        rc.restore_state(b"\0" * len(blob), SEED004_NOMINAL)
+        rc.restore_state(b"\0" * len(blob), SEED004_PAPER_START)
     with pytest.raises(ValueError, match="data bytes"):
-        rc.restore_state(blob[:-4], SEED004_NOMINAL)
+        rc.restore_state(blob[:-4], SEED004_PAPER_START)
 
 
 def test_state_buffers_are_allocated_once_and_keep_their_dtype():
     frames = make_frames(SEED004_TRUE, 20, NOISE_PX, seed=6, min_stars=40, max_stars=45)
-    st = rc.create(SEED004_NOMINAL, ESTIMATE_NAMES, None, np.float32)
+    st = rc.create(SEED004_PAPER_START, ESTIMATE_NAMES, None, np.float32)
     buffers = {n: getattr(st, n) for n in ("x_hi", "x_lo", "u", "d", "q", "ring_g", "ring_v", "u0", "d0", "xi")}
     results = [rc.update(st, f.x_px, f.y_px, f.r, f.identified) for f in frames]
     for name, arr in buffers.items():
@@ -159,11 +159,13 @@ def test_state_buffers_are_allocated_once_and_keep_their_dtype():
 
 
 def test_frames_with_too_few_stars_are_skipped_without_changing_the_state():
-    st = rc.create(SEED004_NOMINAL, ESTIMATE_NAMES, None, np.float32)
+    st = rc.create(SEED004_PAPER_START, ESTIMATE_NAMES, None, np.float32)
     fr = make_frames(SEED004_TRUE, 1, NOISE_PX, seed=1, min_stars=2, max_stars=2)[0]
     before = rc.save_state(st)
     res = rc.update(st, fr.x_px, fr.y_px, fr.r, fr.identified)
-    assert res.skipped and rc.state_vector(st).tolist() == rc.create(SEED004_NOMINAL).theta_nom.astype(float).tolist()
+    assert (
+        res.skipped and rc.state_vector(st).tolist() == rc.create(SEED004_PAPER_START).theta_nom.astype(float).tolist()
+    )
     assert rc.save_state(st) != before  # the frame counter advanced
 
 
@@ -171,9 +173,9 @@ def test_bad_configuration_is_refused_with_a_message():
     with pytest.raises(ValueError, match="unknown parameter"):
         rc.parse_estimate_names("f,q9")
     with pytest.raises(ValueError, match="dtype"):
-        rc.create(SEED004_NOMINAL, dtype=np.float16)
+        rc.create(SEED004_PAPER_START, dtype=np.float16)
     with pytest.raises(ValueError, match="prior_sigma"):
-        rc.create(SEED004_NOMINAL, config=rc.RecursiveConfig(prior_sigma=(1.0,) * 3))
+        rc.create(SEED004_PAPER_START, config=rc.RecursiveConfig(prior_sigma=(1.0,) * 3))
     assert rc.parse_estimate_names("y0, f") == ("f", "y0")
 
 
@@ -185,11 +187,11 @@ def test_a_star_reported_twice_in_a_frame_is_used_once(dtype):
     frames = make_frames(SEED004_TRUE, 31, NOISE_PX, seed=21, min_stars=10, max_stars=12)
     st, _ = _run(frames[:30], dtype=dtype)
     fr = frames[30]
-    plain = rc.restore_state(rc.save_state(st), SEED004_NOMINAL)
+    plain = rc.restore_state(rc.save_state(st), SEED004_PAPER_START)
     rc.update(plain, fr.x_px, fr.y_px, fr.r, fr.identified)
     used = np.flatnonzero(fr.identified)
     for j in (used[0], used[3]):
-        twice = rc.restore_state(rc.save_state(st), SEED004_NOMINAL)
+        twice = rc.restore_state(rc.save_state(st), SEED004_PAPER_START)
         res = rc.update(
             twice,
             np.append(fr.x_px, fr.x_px[j]),

@@ -14,6 +14,7 @@ from recursive_synth import SEED004_TRUE, crb_information, make_frames
 from hostlink.cli import main
 from hostlink.files.params import save_params
 from hostlink.files.session import write_session
+from hostlink.files.trace import read_trace
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, ParameterError
@@ -200,9 +201,7 @@ def calibrated_files(tmp_path_factory):
 
 
 def _trace_first_row(path):
-    lines = path.read_text().splitlines()
-    header = lines[0].split(",")
-    return dict(zip(header, lines[1].split(","), strict=True))
+    return {name: values[0] for name, values in read_trace(path).items()}
 
 
 def test_replay_starts_from_the_file_sigma_by_default_and_from_cold_on_request(calibrated_files, capsys):

@@ -5,7 +5,21 @@ run whose weak directions the plain float32 covariance update cannot hold."""
 import numpy as np
 import pytest
 
-from onboard.ud import agee_turner_update, bierman_update, bierman_work, ud_covariance, ud_factor
+from onboard.ud import agee_turner_update, bierman_update, bierman_work, ud_covariance
+
+
+def ud_factor(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """P = U diag(d) U^T for a symmetric positive definite P (the test's start states; the estimator builds its
+    U-D factors from a diagonal prior and never factors a full matrix)."""
+    p = np.array(p, copy=True)
+    k = p.shape[0]
+    u = np.eye(k, dtype=p.dtype)
+    d = np.zeros(k, dtype=p.dtype)
+    for j in range(k - 1, -1, -1):
+        d[j] = p[j, j]
+        u[:j, j] = p[:j, j] / d[j]
+        p[:j, :j] -= d[j] * np.outer(u[:j, j], u[:j, j])
+    return u, d
 
 
 def _random_spd(rng, k, decades):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from attitude_bounds import attitude_covariance
 
 from hostlink.sky.observed_correction import attitude_observed_correction, correct_observed
 from onboard import attitude as att
@@ -291,7 +292,7 @@ def test_table8_ship_attitude_in_float32_stays_at_the_float32_floor_of_five_star
         _ship_from_cli(table_files, "reference")
     )
     b = camera.pixels_to_unit(REFRACTED_XY[0], REFRACTED_XY[1], scene["theta"])
-    floor_arcsec = np.sqrt(np.trace(att.attitude_covariance(b, FLOAT32_ULP_RAD))) / ARCSEC
+    floor_arcsec = np.sqrt(np.trace(attitude_covariance(b, FLOAT32_ULP_RAD))) / ARCSEC
     # float32 acts as 6e-8 rad of direction noise; five stars nearly in a line (x spans 66 px) leave the roll about
     # the boresight weak, so the attitude's floor is 0.27"; each ship angle moves by at most the attitude error
     # (measured 0.059" in yaw)

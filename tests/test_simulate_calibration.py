@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from hostlink.sky.simulate import data_file, seed004_config, simulate
+from hostlink.files.params import data_file
+from hostlink.sky.simulate import seed004_config, simulate
 
 N_CAM = 5  # F_px, x0, y0, k1, k2
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from hostlink.cli import main
+from hostlink.files.params import data_file
 from hostlink.files.session import read_session
-from hostlink.sky.simulate import data_file, read_truth
+from hostlink.files.truth import read_truth
 
 
 def test_preset_seed004_writes_session_and_truth(tmp_path, capsys):

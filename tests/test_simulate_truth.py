@@ -10,16 +10,10 @@ import pytest
 
 from hostlink.errors import UserError
 from hostlink.files.session import read_session, write_session
+from hostlink.files.truth import read_truth, truth_path_for, write_truth
 from hostlink.sky.apparent import apparent_directions, hip_lookup
 from hostlink.sky.catalogue import load_catalogue
-from hostlink.sky.simulate import (
-    SimConfig,
-    read_truth,
-    seed004_config,
-    simulate,
-    truth_path_for,
-    write_truth,
-)
+from hostlink.sky.simulate import SimConfig, seed004_config, simulate
 from hostlink.sky.site import (
     observed_directions_truth,
     refract_directions_truth,

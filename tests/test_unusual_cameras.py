@@ -4,7 +4,9 @@ distortion, through the bundle adjustment and ``hostlink bench``."""
 import json
 
 import numpy as np
+from synthetic_sessions import synthetic_session
 
+from hostlink.api import design_nominal
 from hostlink.calibration.bundle import (
     BundleOptions,
     accumulate_normals,
@@ -14,10 +16,8 @@ from hostlink.calibration.bundle import (
     residuals,
 )
 from hostlink.calibration.frames import apply_attitude_increment
-from hostlink.calibration.synthetic import synthetic_session
 from hostlink.cli import main
-from hostlink.commands.bench import design_nominal
-from hostlink.mission.bench import _nan_to_null, estimate_rows
+from hostlink.mission.summary import estimate_rows, nan_to_null
 from onboard.params import CameraParams, Distortion
 
 #: 1280 x 320 detector, principal point far from the centre (900, 100), 18 deg across, radial distortion 3 px at the
@@ -67,7 +67,7 @@ def test_design_nominal_keeps_the_detector_and_centres_the_principal_point():
 def test_bench_summary_without_drift_estimates_is_strict_json():
     rows = estimate_rows([])
     assert rows["frame"].dtype == np.int64 and rows["n_updates"].dtype == np.int64
-    doc = _nan_to_null({"a": float("nan"), "b": [1.0, np.float64(np.inf)], "c": np.array([np.nan, 2.0])})
+    doc = nan_to_null({"a": float("nan"), "b": [1.0, np.float64(np.inf)], "c": np.array([np.nan, 2.0])})
     assert doc == {"a": None, "b": [1.0, None], "c": [None, 2.0]}
 
 

@@ -21,7 +21,13 @@ from hostlink.links.operations import (
 )
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard import banks
-from onboard.firmware import Firmware, RecursiveEstimator, estimate_to_params
+from onboard.firmware import (
+    ACCEPT_MIN_UPDATES,
+    Firmware,
+    RecursiveEstimator,
+    estimate_convergence,
+    estimate_to_params,
+)
 from onboard.params import CameraParams, params_from_dict
 from protocol import messages as m
 
@@ -55,8 +61,8 @@ def test_upload_interrupted_while_staging_leaves_the_old_set_active(lost_chunk):
     def drop(data):
         if data[0] == m.MsgType.STAGE_CHUNK:
             seen["chunks"] += 1
-            if seen["chunks"] == lost_chunk + 1:
-                return None  # the line dies here
+        if seen["chunks"] > lost_chunk:
+            return None  # the line dies here: this chunk and everything after it (repeats too) are lost
         return data
 
     with pytest.raises(LinkError, match="no reply to STAGE_CHUNK"):
@@ -128,8 +134,49 @@ def test_accept_commits_the_onboard_estimate_through_the_safe_path():
     got = stream_frames(link, 15)
     assert len(got.frames) == 15
     estimate = link.read_estimate()
-    result, used = accept_estimate(link)
+    result, used = accept_estimate(link, force=True)  # 15 updates: forced past the convergence test
     assert dataclasses.replace(used, tag=0) == dataclasses.replace(estimate, tag=0) and result.generation == 2
     expected = estimate_to_params(NOMINAL, estimate)
     assert float32_equal(read_active_params(link).params, expected)
     assert read_active_params(link).params.focal_length_mm == float(np.float32(estimate.values[0]))
+
+
+def test_accept_refuses_an_unconverged_estimate_unless_forced():
+    sim = simulate(SimConfig(camera=CAMERA, frames=20, noise_px=0.05, seed=9))
+    s = sensor(RecursiveEstimator(), session_frames(sim.session))
+    link = LoopbackLink(s)
+    assert len(stream_frames(link, 15).frames) == 15
+    with pytest.raises(UserError, match="not converged: only 15 updates") as info:
+        accept_estimate(link)
+    assert "\n" not in str(info.value) and read_active_params(link).generation == 1
+    assert accept_estimate(link, force=True)[0].generation == 2
+
+
+def test_accept_commits_an_estimate_that_passes_the_convergence_test():
+    """ACCEPT_MIN_UPDATES (300) updates of the seed-004 simulation: every sigma is under a quarter of its prior."""
+    sim = simulate(SimConfig(camera=CAMERA, frames=ACCEPT_MIN_UPDATES + 10, noise_px=0.05, seed=9))
+    s = sensor(RecursiveEstimator(), session_frames(sim.session))
+    link = LoopbackLink(s)
+    stream_frames(link, ACCEPT_MIN_UPDATES + 10, keep_frames=False)
+    estimate = link.read_estimate()
+    assert estimate.n_updates >= ACCEPT_MIN_UPDATES
+    assert estimate_convergence(NOMINAL, estimate) is None
+    result, _ = accept_estimate(link)
+    assert result.generation == 2
+
+
+def test_the_convergence_test_names_a_parameter_whose_sigma_is_too_large():
+    estimate = m.Estimate(
+        estimated_mask=0b111,
+        n_updates=ACCEPT_MIN_UPDATES,
+        values=(70.0, 511.5, 511.5, *[0.0] * 7),
+        sigma=(0.01, 20.0, 0.5, *[math.nan] * 7),
+    )
+    why = estimate_convergence(NOMINAL, estimate)
+    assert why.startswith("sigma of x0 is 20") and "0.25 of its prior (12.8)" in why  # prior: 5 % of 1024 px
+
+
+def test_the_first_upload_to_a_sensor_with_blank_flash_commits_generation_one():
+    blank = EmulatedSensor(Firmware(banks.erased_store()), iter(()))
+    assert safe_upload(LoopbackLink(blank), CAMERA).generation == 1
+    assert read_active_params(LoopbackLink(blank)).generation == 1

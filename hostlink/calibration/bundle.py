@@ -61,6 +61,8 @@ class BundleResult:
     attitudes: np.ndarray  # (M_fit, 3, 3) for the frames of ``data``
     data: CalibrationData  # the rows and frames that were fitted (inliers)
     rows_used: np.ndarray  # (N_input,) bool: input rows kept
+    rows_gated: np.ndarray  # (N_input,) bool: input rows dropped by residual gating (the rest of the drops: voting,
+    # or a frame left with fewer than three stars)
     n_rejected_voting: int
     n_rejected_gating: int
     n_frames_dropped: int
@@ -309,6 +311,7 @@ def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleO
         fit, kept_rows, _ = data.select(np.ones(n_input, dtype=bool))
         rows_used = kept_rows
     input_index = np.flatnonzero(rows_used)  # fit row -> input row
+    rows_gated = np.zeros(n_input, dtype=bool)
     if fit.n_frames == 0:
         raise ValueError("no frame with at least 3 consistent identified stars")
     att = initial_attitudes(fit, theta)
@@ -371,6 +374,7 @@ def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleO
         if not np.any(bad) or _round == opt.max_gate_rounds:
             break
         n_gated += int(bad.sum())
+        rows_gated[input_index[bad]] = True
         fit_new, kept, frame_kept = fit.select(~bad)
         input_index = input_index[kept]
         att = att[frame_kept]
@@ -395,6 +399,7 @@ def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleO
         attitudes=att,
         data=fit,
         rows_used=rows_used,
+        rows_gated=rows_gated,
         n_rejected_voting=n_voted,
         n_rejected_gating=n_gated,
         n_frames_dropped=int(m_in - fit.n_frames),

@@ -32,6 +32,7 @@ class CalibrationData:
     frame_starts: (M + 1,) row index where each frame starts, last entry N.
     frame_number: (M,) session frame counter of each frame.
     star_id: (N,) Hipparcos numbers (0 if unknown).
+    row: (N,) the row of each star in the session it came from (for reports of rejected stars); default 0..N-1.
     """
 
     x_px: np.ndarray
@@ -40,6 +41,7 @@ class CalibrationData:
     frame_starts: np.ndarray
     frame_number: np.ndarray
     star_id: np.ndarray
+    row: np.ndarray | None = None
 
     @property
     def n_obs(self) -> int:
@@ -52,6 +54,10 @@ class CalibrationData:
     @property
     def counts(self) -> np.ndarray:
         return np.diff(self.frame_starts)
+
+    def source_rows(self) -> np.ndarray:
+        """(N,) session row of each star (:attr:`row`, or 0..N-1 when the data did not come from a session)."""
+        return np.arange(self.n_obs, dtype=np.int64) if self.row is None else self.row
 
     def frame_index(self) -> np.ndarray:
         """(N,) internal frame index of each row."""
@@ -70,7 +76,13 @@ class CalibrationData:
         frame_kept = per_frame >= min_stars
         keep &= frame_kept[fidx]
         new = build_data(
-            self.x_px[keep], self.y_px[keep], self.r[keep], fidx[keep], self.frame_number, self.star_id[keep]
+            self.x_px[keep],
+            self.y_px[keep],
+            self.r[keep],
+            fidx[keep],
+            self.frame_number,
+            self.star_id[keep],
+            self.source_rows()[keep],
         )
         return new, keep, frame_kept
 
@@ -82,10 +94,12 @@ def build_data(
     frame_key: np.ndarray,
     frame_number: np.ndarray | None = None,
     star_id: np.ndarray | None = None,
+    row: np.ndarray | None = None,
 ) -> CalibrationData:
     """Group rows (already in frame order) into frames by consecutive equal ``frame_key``.
 
-    ``frame_number`` (indexed by frame_key) gives the session frame counter; default the key itself.
+    ``frame_number`` (indexed by frame_key) gives the session frame counter; default the key itself. ``row``: the
+    session row of each star (default 0..N-1).
     """
     frame_key = np.asarray(frame_key, dtype=np.int64)
     n = frame_key.shape[0]
@@ -104,6 +118,7 @@ def build_data(
         frame_starts=starts,
         frame_number=np.asarray(numbers, dtype=np.int64),
         star_id=np.zeros(n, dtype=np.int64) if star_id is None else np.asarray(star_id, dtype=np.int64),
+        row=np.arange(n, dtype=np.int64) if row is None else np.asarray(row, dtype=np.int64),
     )
 
 
@@ -113,16 +128,23 @@ def calibration_data_from_session(
     """The identified rows of a session as :class:`CalibrationData` (frames with at least
     :data:`MIN_STARS_PER_FRAME` identified stars), with their reference directions from the one service
     (:func:`hostlink.sky.references.session_references`: file or Hipparcos; with ``site`` as observed there, with
-    ``weather`` also refracted; ``dut1_s`` = UT1 - UTC [s]) and its report of where they came from. Raises
+    ``weather`` also refracted; ``dut1_s`` = UT1 - UTC [s]; star ids Hipparcos does not have are skipped and
+    listed in the report) and its report of where they came from. Raises
     :class:`UserError` when no star is identified or no frame has enough of them."""
     from hostlink.sky.references import session_references
 
     if not np.any(session.star_id != 0):
         raise UserError("the session has no identified star (every star_id is 0)")
-    references = session_references(session, site, weather, dut1_s)
+    references = session_references(session, site, weather, dut1_s, skip_unknown_ids=True)
     rows = np.flatnonzero(references.usable)
+    unknown = references.unknown_rows
+    if rows.size == 0 and unknown.size:
+        raise UserError(
+            f"no identified star is in the Hipparcos catalogue ({unknown.size} unknown star_id, first "
+            f"{int(session.star_id[unknown[0]])} on line {int(unknown[0]) + 2})"
+        )
     sub = session.select(rows)
-    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id)
+    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id, rows)
     data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
     if data.n_frames == 0:
         raise UserError(f"no frame has at least {MIN_STARS_PER_FRAME} identified stars")

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hostlink.files.atomic import save_figure
+
 #: Cells per detector side of the binned residual field (each arrow is the mean residual of one cell).
 FIELD_CELLS = 16
 
@@ -67,7 +69,7 @@ def residual_field_png(
     ax.set_ylabel("y (row) [px]")
     ax.set_title(title, fontsize=10, pad=24)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(path, fig)
     plt.close(fig)
 
 
@@ -85,7 +87,7 @@ def convergence_png(path: Path, history: list[dict], title: str) -> None:
     a2.set_xlabel("iteration")
     a2.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(path, fig)
     plt.close(fig)
 
 

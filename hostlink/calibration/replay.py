@@ -8,43 +8,21 @@ is shared by ``hostlink replay`` and the emulator.
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from hostlink.errors import UserError
 from hostlink.files.session import Session
+from hostlink.files.trace import TRACE_COLUMNS
 from hostlink.sky.references import session_references
 from onboard import recursive
-from onboard.params import DISTORTION_KEYS, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
+from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.prior import prior_config, refined_mask, sigma_to_dict
 
 PRECISIONS = ("float32", "float64", "fixed")
-
-#: Trace columns (INTERFACES.md requires frame, focal_length_mm, x0_px, y0_px).
-TRACE_COLUMNS = (
-    "frame",
-    "t_utc",
-    "focal_length_mm",
-    "x0_px",
-    "y0_px",
-    *DISTORTION_KEYS,
-    "sigma_f_mm",
-    "sigma_x0_px",
-    "sigma_y0_px",
-    "n_stars",
-    "n_used",
-    "n_rejected_stars",
-    "n_pairs",
-    "iterations",
-    "nis",
-    "drift_on",
-    "skipped",
-)
 
 
 @dataclass
@@ -214,7 +192,7 @@ def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, fra
     trace["focal_length_mm"].append(theta[0] * pitch / 1000.0)
     trace["x0_px"].append(theta[1])
     trace["y0_px"].append(theta[2])
-    for k, name in enumerate(DISTORTION_KEYS):
+    for k, name in enumerate(DISTORTION_NAMES):
         trace[name].append(theta[3 + k])
     trace["sigma_f_mm"].append(sig["f"] * pitch / 1000.0)
     trace["sigma_x0_px"].append(sig["x0"])
@@ -258,30 +236,3 @@ def estimate_sigma_json(state) -> dict:
     out = sigma_to_dict(values) or {}
     out["fixed"] = [n for n in ESTIMATE_NAMES if n not in state.names]
     return out
-
-
-def write_trace(path: str | Path, trace: dict[str, list]) -> None:
-    """Write the per-frame trace CSV (atomically)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    n = len(trace["frame"])
-
-    def fmt(name: str, v) -> str:
-        if name in ("frame", "n_stars", "n_used", "n_rejected_stars", "n_pairs", "iterations", "drift_on"):
-            return str(int(v))
-        if name in ("t_utc", "skipped"):
-            return str(v)
-        if name == "focal_length_mm" or name == "sigma_f_mm":
-            return "%.9f" % v
-        return "%.9g" % v
-
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("w", newline="", encoding="utf-8") as handle:
-            writer = csv.writer(handle, lineterminator="\n")
-            writer.writerow(TRACE_COLUMNS)
-            for k in range(n):
-                writer.writerow([fmt(c, trace[c][k]) for c in TRACE_COLUMNS])
-        tmp.replace(path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write ({exc.strerror})") from None

@@ -10,6 +10,7 @@ between the measured and the catalogue interstar angle [rad].
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,13 +32,19 @@ def fitted_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
     return wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta), data.r, data.frame_starts)
 
 
+def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle [arcsec] between unit vectors a and b (N, 3), from the chord: 2 arcsin(|a - b| / 2) (accurate at any
+    angle, unlike arccos near 0)."""
+    return 2.0 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=1) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
+
+
 def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray) -> dict:
     """RMS and maximum residual in measured px and in arcsec (see module docstring)."""
     e = residuals(data, theta, attitudes)
     e_len = np.linalg.norm(e, axis=1)
     b = pixels_to_unit(data.x_px, data.y_px, theta)
     s = np.einsum("nij,nj->ni", np.repeat(attitudes, data.counts, axis=0), data.r)
-    ang = 2.0 * np.arcsin(np.clip(np.linalg.norm(b - s, axis=1) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
+    ang = angle_arcsec(b, s)
     return {
         "rms_px": float(np.sqrt(np.mean(e_len**2))),
         "max_px": float(np.max(e_len)),
@@ -138,3 +145,223 @@ def degeneracies(normal: np.ndarray, estimate: tuple[str, ...], u_diag: np.ndarr
         "attitude_tradeoff": tradeoff,
         "messages": messages,
     }
+
+
+#: Auto-hold (:func:`undetermined_parameters`): the principal point is held at nominal when its 1-sigma exceeds this
+#: fraction of the detector half-diagonal (7 px on a 1024 x 1024 detector): the data then say less about it than a
+#: nominal at the detector centre does (a detector mounted to ~0.1 mm).
+HOLD_PRINCIPAL_POINT_FRACTION = 0.01
+#: Auto-hold: a distortion coefficient is held at nominal when a 1-sigma change of it moves a star at the detector
+#: half-diagonal by more than this [px]: the data cannot tell the distortion from no distortion at that level.
+HOLD_DISTORTION_PX = 1.0
+#: Auto-hold: a held parameter (pair) is released when freeing it lowers the cost by more than this: chi-square with 1
+#: and 2 degrees of freedom at the 5-sigma tail probability 5.7e-7 (scipy.stats.chi2.isf(2 * norm.sf(5), k)). So
+#: strict because a few frames of a narrow field put the free principal point 3 of its sigmas from the truth more
+#: often than a Gaussian would (a flat, curved valley of the cost): 99 % (9.2) released it in 2 of 8 five-frame trials.
+RELEASE_LIMIT = {1: 25.0, 2: 28.74}
+
+
+def _hold_limits_px(params: CameraParams) -> dict[str, float]:
+    half_diag = 0.5 * float(np.hypot(*params.image_size_px))
+    limits = {n: HOLD_DISTORTION_PX for n in ESTIMATE_NAMES[3:]}
+    limits.update({"f": math.inf, "x0": HOLD_PRINCIPAL_POINT_FRACTION * half_diag})
+    limits["y0"] = limits["x0"]
+    return limits
+
+
+def _held_cost(normal: np.ndarray, offset: np.ndarray, hold: np.ndarray) -> float:
+    """Rise of the quadratic model of the fit's cost (unit noise) when the parameters ``hold`` (bool mask) are moved
+    by ``offset`` (nominal - estimate, model-vector units) and the others re-fitted: d_h^T (S_hh - S_hk S_kk^-1 S_kh)
+    d_h (the Schur complement of the kept block)."""
+    from hostlink.calibration.bundle import covariance_from_normal
+
+    if not np.any(hold):
+        return 0.0
+    keep = ~hold
+    s_hh = normal[np.ix_(hold, hold)]
+    if np.any(keep):
+        s_hk = normal[np.ix_(hold, keep)]
+        s_hh = s_hh - s_hk @ covariance_from_normal(normal[np.ix_(keep, keep)], 1.0) @ s_hk.T
+    d = offset[hold]
+    return float(d @ s_hh @ d)
+
+
+def undetermined_parameters(
+    normal: np.ndarray,
+    estimate: tuple[str, ...],
+    sigma_px: float,
+    params: CameraParams,
+    theta_fit: np.ndarray,
+) -> tuple[tuple[str, ...], list[dict]]:
+    """The parameters the data determine, and those to hold at nominal with the reason, from the information.
+
+    ``normal``: the camera block S of the information (attitudes eliminated, unit noise, model-vector units) of a
+    fit of ``estimate`` whose result is ``theta_fit`` (full model vector); ``sigma_px``: centroid noise per axis;
+    ``params``: the nominal (the values held).
+
+    1. Not determined: a parameter's 1-sigma with every other remaining parameter free (sigma^2 S^-1), expressed as
+       its effect [px] at the detector half-diagonal (``bundle.parameter_scales``), above its limit
+       (:data:`HOLD_PRINCIPAL_POINT_FRACTION`, :data:`HOLD_DISTORTION_PX`; the focal length is never held). The
+       worst against its limit is held (the principal point as a pair), the rest are taken again without it, until
+       every remaining one is within its limit. A direction with no information at all is held first.
+    2. Unless the data contradict the nominal: a held group is released (estimated) when freeing it, with the other
+       held parameters at nominal, lowers the cost by more than 5-sigma evidence allows (:data:`RELEASE_LIMIT`;
+       the likelihood-ratio test, from the quadratic model of the fit: :func:`_held_cost`). A parameter that the data
+       place far from its nominal, however loosely, is estimated (an off-centre detector)."""
+    from hostlink.calibration.bundle import covariance_from_normal, parameter_scales
+
+    limits = _hold_limits_px(params)
+    scales = dict(zip(ESTIMATE_NAMES, parameter_scales(params), strict=True))
+    cols = [ESTIMATE_NAMES.index(n) for n in estimate]
+    offset = params.model_vector(np.float64)[cols] - np.asarray(theta_fit, dtype=np.float64)[cols]
+    keep = list(estimate)
+    groups: list[tuple[list[str], dict[str, float]]] = []
+    while True:
+        idx = [estimate.index(n) for n in keep]
+        cov = covariance_from_normal(normal[np.ix_(idx, idx)], sigma_px)
+        sd = np.sqrt(np.abs(np.diag(cov)))
+        effect = {n: float(sd[k] / scales[n]) for k, n in enumerate(keep)}
+        worst = max(keep, key=lambda n: effect[n] / limits[n]) if keep else None
+        if worst is None or not effect[worst] > limits[worst]:
+            break
+        group = [n for n in ("x0", "y0") if n in keep] if worst in ("x0", "y0") else [worst]
+        groups.append((group, {n: effect[n] for n in group}))
+        keep = [n for n in keep if n not in group]
+    hold = np.array([n not in keep for n in estimate])
+    lr_of = {}
+    released = True
+    while released:
+        released = False
+        for group, _ in groups:
+            g = np.array([n in group for n in estimate])
+            if not np.any(hold & g):
+                continue
+            lr = (_held_cost(normal, offset, hold) - _held_cost(normal, offset, hold & ~g)) / sigma_px**2
+            lr_of[group[0]] = lr
+            if lr > RELEASE_LIMIT[len(group)]:
+                hold &= ~g
+                released = True
+    held = []
+    for group, effect in groups:
+        if not hold[estimate.index(group[0])]:
+            continue
+        lr = lr_of[group[0]]
+        for n in group:
+            what = "px" if n in ("x0", "y0") else "px at the detector half-diagonal"
+            reason = (
+                "not determined by the data (no information)"
+                if not math.isfinite(effect[n])
+                else f"1-sigma {effect[n]:.3g} {what} > limit {limits[n]:.3g} px; the data do not contradict the "
+                f"nominal (likelihood ratio {lr:.2g} < {RELEASE_LIMIT[len(group)]:.3g})"
+            )
+            held.append({"parameter": n, "sigma_effect_px": effect[n], "limit_px": limits[n], "reason": reason})
+    return tuple(n for n, h in zip(estimate, hold, strict=True) if not h), held
+
+
+def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = 20_000) -> float:
+    """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
+    best = 0.0
+    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
+        pf = padded_frames(data, data.r, f0, f1)
+        pair_ok = pf.valid[:, :, None] & pf.valid[:, None, :]
+        best = max(best, float(np.max(np.where(pair_ok, pair_angles_rad(pf.r), 0.0), initial=0.0)))
+    return best
+
+
+#: Reasons of :class:`RejectedStars`, in the order a star meets them.
+REASON_UNKNOWN_ID = "unknown star_id (not in the Hipparcos catalogue)"
+REASON_FEW_IN_FRAME = "frame has fewer than 3 identified stars with a reference direction"
+REASON_VOTING = "interstar voting (its angles to most stars of its frame disagree with the catalogue)"
+REASON_GATING = "residual gating (beyond 5 robust sigmas after the fit)"
+REASON_FRAME_LEFT = "frame left with fewer than 3 stars after the rejections"
+
+
+@dataclass(frozen=True)
+class RejectedStars:
+    """Every identified star of a session that the calibration did not use, one entry per star, in row order.
+
+    row: (n,) session row (0 = first data row; the file line is row + 2); frame, star_id: from the session;
+    reason: one of the ``REASON_*`` texts; residual_arcsec: angle between the star's measured direction through the
+    calibrated camera and its reference rotated by its frame's attitude (NaN where there is none)."""
+
+    row: np.ndarray
+    frame: np.ndarray
+    star_id: np.ndarray
+    reason: np.ndarray
+    residual_arcsec: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.row.shape[0])
+
+    def counts(self) -> dict[str, int]:
+        """Number of rejected stars per reason."""
+        names, n = np.unique(self.reason.astype(str), return_counts=True)
+        return {str(a): int(b) for a, b in zip(names, n, strict=True)}
+
+
+def rejected_residuals_arcsec(data: CalibrationData, theta: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """(N,) angle [arcsec] of every star of ``data`` from its reference rotated by its frame's attitude, the
+    attitude fitted (SVD) to the ``used`` stars of the frame through the camera ``theta``, or to all its stars when
+    none was used."""
+    b = pixels_to_unit(data.x_px, data.y_px, theta)
+    fidx = data.frame_index()
+    any_used = np.bincount(fidx, weights=used, minlength=data.n_frames) > 0
+    weights = np.where(any_used[fidx], used.astype(float), 1.0)
+    att = wahba_svd(b, data.r, data.frame_starts, weights)
+    return angle_arcsec(b, np.einsum("nij,nj->ni", att[fidx], data.r))
+
+
+def rejected_stars(session, references, data_in: CalibrationData, outcome) -> RejectedStars:
+    """Every identified row of ``session`` the calibration ``outcome`` did not use, with its reason
+    (``REASON_*``) and residual: unknown star ids (``references``), stars of frames with fewer than three usable,
+    and of the calibration's input ``data_in`` those rejected by voting, by gating or with their frame."""
+    n = len(session)
+    reason = np.full(n, "", dtype=object)
+    residual = np.full(n, np.nan)
+    reason[references.unknown_rows] = REASON_UNKNOWN_ID
+    usable = np.flatnonzero(references.usable)
+    reason[np.setdiff1d(usable, data_in.source_rows())] = REASON_FEW_IN_FRAME
+    rows_in = data_in.source_rows()
+    used = np.isin(rows_in, outcome.data.source_rows())
+    residual[rows_in] = rejected_residuals_arcsec(data_in, outcome.theta, used)
+    left = ~used
+    if outcome.voted_out is not None:
+        reason[rows_in[outcome.voted_out]] = REASON_VOTING
+        left &= ~outcome.voted_out
+    if outcome.gated is not None:
+        reason[rows_in[outcome.gated]] = REASON_GATING
+        left &= ~outcome.gated
+    reason[rows_in[left]] = REASON_FRAME_LEFT
+    rows = np.flatnonzero(reason != "")
+    return RejectedStars(
+        row=rows,
+        frame=session.frame[rows],
+        star_id=session.star_id[rows],
+        reason=reason[rows],
+        residual_arcsec=residual[rows],
+    )
+
+
+def write_rejected(path, rejected: RejectedStars) -> None:
+    """The ``--rejected`` CSV (docs/file-formats.md): row, line, frame, star_id, reason, residual_arcsec (empty
+    where there is none), through the one atomic writer (``hostlink.files.atomic``)."""
+    import csv
+
+    from hostlink.files.atomic import atomic_open
+
+    with atomic_open(path, newline="") as handle:
+        w = csv.writer(handle)
+        w.writerow(["row", "line", "frame", "star_id", "reason", "residual_arcsec"])
+        for k in range(len(rejected)):
+            res = rejected.residual_arcsec[k]
+            row = int(rejected.row[k])
+            w.writerow(
+                [
+                    row,
+                    row + 2,
+                    int(rejected.frame[k]),
+                    int(rejected.star_id[k]),
+                    rejected.reason[k],
+                    f"{res:.3f}" if math.isfinite(res) else "",
+                ]
+            )

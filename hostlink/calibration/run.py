@@ -12,17 +12,22 @@ from hostlink.calibration.bundle import BundleOptions, bundle_adjust, covariance
 from hostlink.calibration.data import CalibrationData, calibration_data_from_session
 from hostlink.calibration.interstar_methods import calibrate_interstar
 from hostlink.calibration.report import (
+    ARCSEC_PER_RAD,
+    RejectedStars,
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
+    max_pair_angle_rad,
+    rejected_stars,
     residual_stats,
     sigma_dict,
+    undetermined_parameters,
 )
-from hostlink.calibration.robust import robust_sigma_2d, vote_consistent_stars
+from hostlink.calibration.robust import ScaleParity, estimate_scale_and_parity, robust_sigma_2d, vote_consistent_stars
 from hostlink.calibration.seed004 import SEED004_ESTIMATE, calibrate_seed004
 from hostlink.errors import UserError
 from hostlink.files.session import Session, check_on_detector
-from hostlink.sky.references import SessionReferences
+from hostlink.sky.references import ABERRATION_MAX_RAD, SessionReferences
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.site import Site, Weather
@@ -37,6 +42,10 @@ INTERSTAR_METHODS = {
 }
 #: Gate for the interstar methods' post-fit outlier check, in robust sigmas (as the bundle's).
 GATE_SIGMAS = 5.0
+#: A calibration that rejects more than this fraction of the identified stars it was given (interstar voting,
+#: residual gating, and the stars of frames left with fewer than three) has failed: most of its input disagrees
+#: with the camera it found, so the camera describes a minority (a wrong nominal or wrong identifications).
+MAX_REJECTED_FRACTION = 0.5
 
 
 @dataclass
@@ -59,24 +68,85 @@ class CalibrationOutcome:
     history: list[dict] = field(default_factory=list)
     converged: bool = True
     stages: list[dict] = field(default_factory=list)
+    #: the pre-pass before voting (:func:`hostlink.calibration.robust.estimate_scale_and_parity`), as reported
+    prepass: dict = field(default_factory=dict)
+    #: parameters held at nominal because the data cannot determine them (:func:`report.undetermined_parameters`)
+    held: list[dict] = field(default_factory=list)
+    #: the rows of the input data: rejected by interstar voting, and by residual gating (bool, input rows)
+    voted_out: np.ndarray | None = None
+    gated: np.ndarray | None = None
+    #: set by :func:`calibrate_session`: every identified star of the session not used, and the note on the loss
+    #: of a session without time (None when the time is known)
+    rejected_stars: RejectedStars | None = None
+    time_note: str | None = None
 
     def sigma(self) -> dict:
         return sigma_dict(self.estimate, self.covariance, self.params)
 
+    def failure(self) -> str | None:
+        """Why this result must not be used as a calibration (one line), or None: the fit did not converge, or
+        more than :data:`MAX_REJECTED_FRACTION` of the identified stars were rejected."""
+        if not self.converged:
+            return (
+                f"the fit did not converge in {len(self.history)} iterations (raise --max-iter, or check the "
+                "nominal and the identifications)"
+            )
+        rej = self.rejected
+        n_in = self.data.n_obs + rej["total_stars"]
+        if n_in and rej["total_stars"] > MAX_REJECTED_FRACTION * n_in:
+            return (
+                f"{rej['total_stars']} of {n_in} identified stars ({100 * rej['total_stars'] / n_in:.0f} %, more "
+                f"than {100 * MAX_REJECTED_FRACTION:.0f} %) were rejected ({rej['voting']} by interstar voting, "
+                f"{rej['gating']} by residual gating, the rest with their frames): the identifications or the "
+                "nominal are wrong"
+            )
+        return None
 
-def _interstar_with_gating(data, nominal, method, estimate, progress):
-    theta0 = nominal.model_vector(np.float64)
-    consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, theta0))
+
+def mirrored_message(prepass: ScaleParity, image_size_px: tuple[int, int]) -> str:
+    """The one-line explanation of a mirrored detector (odd parity) and how to fix it."""
+    return (
+        f"the image is mirrored: odd parity (in {100 * prepass.mirrored_fraction:.0f} % of {prepass.n_triples} "
+        "star triples the handedness in the camera frame is opposite to the sky's, which no rotation can do); flip "
+        f"x (x_px -> {image_size_px[0] - 1} - x_px) in the session or in the sensor's readout, then calibrate again"
+    )
+
+
+def prepass_start(data: CalibrationData, nominal: CameraParams, scale_focal: bool) -> tuple[CameraParams, ScaleParity]:
+    """The camera the fit starts from: the nominal with its focal length scaled by what the identified stars say
+    (when ``scale_focal``), after checking the parity. Raises ValueError for a mirrored image."""
+    prepass = estimate_scale_and_parity(data, nominal.model_vector(np.float64))
+    if prepass.mirrored:
+        raise ValueError(mirrored_message(prepass, nominal.image_size_px))
+    if not scale_focal or prepass.n_pairs == 0:
+        return nominal, prepass
+    return nominal.with_focal_length_mm(nominal.focal_length_mm * prepass.scale), prepass
+
+
+def prepass_report(prepass: ScaleParity, nominal: CameraParams, start: CameraParams) -> dict:
+    """The pre-pass as the result file reports it."""
+    return {
+        "focal_scale": prepass.scale,
+        "scale_pairs": prepass.n_pairs,
+        "nominal_focal_length_mm": nominal.focal_length_mm,
+        "start_focal_length_mm": start.focal_length_mm,
+        "mirrored_fraction": prepass.mirrored_fraction,
+        "parity_triples": prepass.n_triples,
+    }
+
+
+def _interstar_with_gating(data, start, method, estimate, progress, consistent):
     fit_data, _, _ = data.select(consistent)
     if fit_data.n_frames == 0:
         raise ValueError("no frame with at least 3 consistent identified stars")
-    n_gated = 0
+    gated = np.zeros(data.n_obs, dtype=bool)
+    index = np.searchsorted(data.source_rows(), fit_data.source_rows())  # input row of each fit row (increasing)
 
     def fit(d):
         if method == "seed004":
-            return calibrate_seed004(d, nominal, estimate or SEED004_ESTIMATE, progress=progress)
+            return calibrate_seed004(d, start, estimate or SEED004_ESTIMATE, progress=progress)
         form, improved = INTERSTAR_METHODS[method]
-        return calibrate_interstar(d, nominal, form, improved, estimate or ESTIMATE_NAMES, progress=progress)
+        return calibrate_interstar(d, start, form, improved, estimate or ESTIMATE_NAMES, progress=progress)
 
     result = fit(fit_data)
     for _ in range(2):  # gate once, refit, and confirm
@@ -85,10 +155,16 @@ def _interstar_with_gating(data, nominal, method, estimate, progress):
         bad = norm > GATE_SIGMAS * robust_sigma_2d(norm)
         if not np.any(bad):
             break
-        n_gated += int(bad.sum())
-        fit_data = fit_data.select(~bad)[0]
+        gated[index[bad]] = True
+        fit_data, kept, _ = fit_data.select(~bad)
+        index = index[kept]
         result = fit(fit_data)
-    return result, fit_data, int(np.sum(~consistent)), n_gated
+    return result, fit_data, gated
+
+
+def _bundle(data, start, estimate, noise_px, max_iter, progress):
+    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress, screen=False)
+    return bundle_adjust(data, start, options)
 
 
 def calibrate(
@@ -100,40 +176,60 @@ def calibrate(
     max_iter: int = 100,
     progress: Callable[[dict], None] | None = None,
 ) -> CalibrationOutcome:
-    """Calibrate with one of :data:`METHODS`. Raises ValueError on a problem the data cannot support.
+    """Calibrate with one of :data:`METHODS`. Raises ValueError on a problem the data cannot support (among them
+    a mirrored image, :func:`mirrored_message`).
 
-    ``estimate`` None means the method's own set: all ten for ``bundle`` and the improved methods, (f, x0, y0) for
-    ``cosine``/``sine`` (their papers' scope), (f, x0, y0, k1, k2) for ``seed004``."""
+    1. Pre-pass (:func:`prepass_start`): the focal length from the identified stars' interstar angles (when f is
+       estimated) and the parity, so a nominal focal length far off (0.1 to 10 tested) starts where a good one would.
+    2. Interstar voting (``robust.vote_consistent_stars``) at that camera.
+    3. The fit. ``estimate`` None means the method's own set: for ``bundle`` every parameter the data determine
+       (all ten, less those :func:`hostlink.calibration.report.undetermined_parameters` holds at nominal, which
+       ``held`` lists with the reason); all ten for the improved methods, (f, x0, y0) for ``cosine``/``sine``
+       (their papers' scope), (f, x0, y0, k1, k2) for ``seed004``. An explicit ``estimate`` is used as given."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     theta0 = nominal.model_vector(np.float64)
-    stages: list[dict] = []
-    if method == "bundle":
-        options = BundleOptions(
-            estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
+    start, prepass = prepass_start(data, nominal, estimate is None or "f" in estimate)
+    consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, start.model_vector(np.float64)))
+    voted_out = ~consistent
+    if start is nominal and prepass.n_pairs and abs(prepass.scale - 1.0) > 0.03 and not np.any(consistent):
+        raise ValueError(
+            f"no star agrees with the catalogue at the nominal focal length, which the stars say is "
+            f"{100 * (1 / prepass.scale - 1):+.1f} % off: estimate f"
         )
-        res = bundle_adjust(data, nominal, options)
+    stages: list[dict] = []
+    held: list[dict] = []
+    if method == "bundle":
+        voted, kept_rows, _ = data.select(consistent)
+        if voted.n_frames == 0:
+            raise ValueError("no frame with at least 3 consistent identified stars")
+        res = _bundle(voted, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress)
+        if estimate is None:
+            sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
+            chosen, held = undetermined_parameters(res.normal, res.estimate, sigma_full, nominal, res.theta)
+            if held:
+                theta_start = res.theta.copy()
+                fixed = [ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n not in chosen]
+                theta_start[fixed] = theta0[fixed]
+                res = _bundle(voted, nominal.with_model_vector(theta_start), chosen, noise_px, max_iter, progress)
         theta, fit_data, att = res.theta, res.data, res.attitudes
         normal, est, sigma_est = res.normal, res.estimate, res.sigma_estimated_px
         u_diag = res.normal_u_diag
-        rejected = {
-            "voting": res.n_rejected_voting,
-            "gating": res.n_rejected_gating,
-            "frames_dropped": res.n_frames_dropped,
-        }
+        gated = np.zeros(data.n_obs, dtype=bool)
+        gated[np.flatnonzero(kept_rows)[res.rows_gated]] = True
         history, converged = res.history, res.converged
     else:
-        fit, fit_data, n_voted, n_gated = _interstar_with_gating(data, nominal, method, estimate, progress)
+        fit, fit_data, gated = _interstar_with_gating(data, start, method, estimate, progress, consistent)
         theta, normal, est, sigma_est = fit.theta, fit.normal, fit.estimate, fit.sigma_estimated_px
         att = fitted_attitudes(fit_data, theta)
         u_diag = None
-        rejected = {
-            "voting": n_voted,
-            "gating": n_gated,
-            "frames_dropped": int(data.select(np.ones(data.n_obs, bool))[0].n_frames - fit_data.n_frames),
-        }
         history, converged, stages = fit.history, fit.converged, fit.stages
-    rejected["total_stars"] = int(data.n_obs - fit_data.n_obs)
+    rejected = {
+        "voting": int(np.sum(voted_out)),
+        "gating": int(np.sum(gated)),
+        "frames_dropped": int(data.n_frames - fit_data.n_frames),
+        "total_stars": int(data.n_obs - fit_data.n_obs),
+    }
     sigma = float(noise_px) if noise_px else sigma_est
     cov = covariance_from_normal(normal, sigma)
     params = nominal.with_model_vector(theta)
@@ -157,6 +253,10 @@ def calibrate(
         history=history,
         converged=converged,
         stages=stages,
+        prepass=prepass_report(prepass, nominal, start),
+        held=held,
+        voted_out=voted_out,
+        gated=gated,
     )
 
 
@@ -171,16 +271,20 @@ def calibrate_session(
     weather: Weather | None = None,
     dut1_s: float = 0.0,
     progress: Callable[[dict], None] | None = None,
+    keep_failed: bool = False,
 ) -> tuple[CalibrationOutcome, SessionReferences]:
     """Batch ground calibration of a session from the ``nominal`` camera: its identified stars against their
     reference directions (:func:`hostlink.calibration.data.calibration_data_from_session`: file or Hipparcos; with
-    ``site`` observed there, with ``weather`` refracted; ``dut1_s`` = UT1 - UTC [s]), by ``method`` (:data:`METHODS`;
-    ``estimate`` as in :func:`calibrate`), ``noise_px`` the centroid noise per axis [px] for the reported sigma
-    (None: from the residuals), at most ``max_iter`` iterations; ``progress`` gets each iteration's record.
+    ``site`` observed there, with ``weather`` refracted; ``dut1_s`` = UT1 - UTC [s]; with the time unknown J2000
+    directions, :func:`time_unknown_note`), by ``method`` (:data:`METHODS`; ``estimate`` as in :func:`calibrate`),
+    ``noise_px`` the centroid noise per axis [px] for the reported sigma (None: from the residuals), at most
+    ``max_iter`` iterations; ``progress`` gets each iteration's record.
 
-    Returns the outcome and the references' report. Raises :class:`UserError` (one line) for bad options, a
-    centroid off the nominal's detector, a session without enough identified stars, a calibration that fails or a
-    result that is not a usable parameter set (never returned as if it had succeeded)."""
+    Returns the outcome (with its ``rejected_stars`` and ``time_note``) and the references' report. A result that
+    did not converge or rejected most stars (:meth:`CalibrationOutcome.failure`) raises :class:`UserError`, unless
+    ``keep_failed``: then it is returned, and the caller must check ``outcome.failure()`` before using it. Also raises
+    :class:`UserError` (one line) for bad options, a centroid off the nominal's detector, a session without enough
+    identified stars, a mirrored image, a calibration that fails or a result that is not a usable parameter set."""
     if method not in METHODS:
         raise UserError(f"--method {method!r}: expected one of {', '.join(METHODS)}")
     if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
@@ -195,11 +299,34 @@ def calibrate_session(
         outcome = calibrate(data, nominal, method, estimate, noise_px, max_iter, progress)
     except ValueError as exc:
         raise UserError(f"calibration failed: {exc}") from None
-    try:
-        validate_params(outcome.params)
-    except ParameterError as exc:
-        raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
+    failure = outcome.failure()
+    if failure is not None and not keep_failed:
+        raise UserError(f"calibration failed: {failure}")
+    if failure is None:
+        try:
+            validate_params(outcome.params)
+        except ParameterError as exc:
+            raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
+    outcome.rejected_stars = rejected_stars(session, references, data, outcome)
+    outcome.time_note = None if references.time_known else time_unknown_note(outcome)
     return outcome, references
+
+
+def time_unknown_note(outcome: CalibrationOutcome) -> str:
+    """The stated loss of a calibration against J2000 directions (the session gave no time): annual aberration
+    (up to :data:`hostlink.sky.references.ABERRATION_MAX_RAD`) is left in the references. Its differential part over
+    the field changes interstar angles by up to 20.5" x the angle [rad]: a scale error of up to 1.0e-4 in the focal
+    length, and up to 20.5" x the field's largest pair angle in the directions."""
+    field_rad = max_pair_angle_rad(outcome.data)
+    focal_px = float(outcome.theta[0])
+    return (
+        "time unknown: reference directions are J2000 catalogue places; precession and nutation are absorbed by "
+        f"the per-frame attitudes, annual aberration is not: interstar angles may be off by up to "
+        f'{ABERRATION_MAX_RAD * ARCSEC_PER_RAD * field_rad:.2g}" over this field ({math.degrees(field_rad):.3g} deg), '
+        f"the focal length by up to {ABERRATION_MAX_RAD:.1e} relative ({ABERRATION_MAX_RAD * focal_px:.2g} px); "
+        "proper motion since the directions' epoch (Hipparcos: J2000.0) is not applied either. If the date is "
+        'known, give it as t_utc (any time that day: the aberration then errs by at most 0.18")'
+    )
 
 
 def _json_safe(value):
@@ -215,7 +342,9 @@ def _json_safe(value):
 
 def result_extras(outcome: CalibrationOutcome, references: SessionReferences | None = None) -> dict:
     """The extra keys of the result file (INTERFACES.md: the parameter file plus extras), with ``references``
-    (where the reference directions came from) when given; non-finite numbers as null."""
+    (where the reference directions came from) when given; non-finite numbers as null. Also the rejected stars by
+    reason and the time note when :func:`calibrate_session` set them, and ``failed`` (the reason) for a failed
+    result kept on request."""
     extras = {
         "method": outcome.method,
         "estimated": list(outcome.estimate),
@@ -228,11 +357,22 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         "degeneracies": outcome.degeneracies,
         "iterations": len(outcome.history),
         "converged": bool(outcome.converged),
+        "held": outcome.held,
+        "prepass": outcome.prepass,
     }
     if references is not None:
         extras["references"] = {
             "source": references.source,
             "refraction": references.refraction,
             "unidentified_rows": references.n_unidentified,
+            "unknown_star_ids": int(references.unknown_rows.size),  # rows: in the --rejected file
+            "time_known": references.time_known,
         }
+    if outcome.rejected_stars is not None:
+        extras["rejected_by_reason"] = outcome.rejected_stars.counts()
+    if outcome.time_note:
+        extras["time_unknown"] = outcome.time_note
+    failure = outcome.failure()
+    if failure:
+        extras["failed"] = failure
     return _json_safe(extras)

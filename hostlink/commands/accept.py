@@ -12,13 +12,18 @@ DESCRIPTION = (
     "estimated parameters replaced), and commits it through the six-step safe upload (validate, stage, verify, read "
     "back, commit to the inactive A/B bank, read back). The estimate's own 1-sigma travels with it as the new set's "
     "prior, so the estimator restarts from what it had learnt. Prints the committed set as a camera parameter file "
-    "(with its 'sigma')."
+    "(with its 'sigma'). Only a converged estimate is committed: at least 300 updates (the estimator's burn-in) and "
+    "every estimated parameter's 1-sigma at most a quarter of its cold-start prior (the data carry at least 15 times "
+    "the prior's information); --force skips that test."
 )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_link_arguments(parser)
     parser.add_argument("--out", metavar="PARAMS.json", help="also write the committed set here")
+    parser.add_argument(
+        "--force", action="store_true", help="commit the estimate even if it has not converged (testing, commissioning)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from hostlink.links.operations import accept_estimate, params_float32_dict
 
     with open_link_from_args(args) as link:
-        result, estimate = accept_estimate(link)
+        result, estimate = accept_estimate(link, force=args.force)
     emit_param_file(params_float32_dict(result.active, result.sigma), args.out)
     print(
         f"accepted the estimate after {estimate.n_updates} updates (frame {estimate.last_frame}): generation "

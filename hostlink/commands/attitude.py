@@ -31,7 +31,13 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
-    parser.add_argument("--params", required=True, metavar="PARAMS.json", help="camera parameter file")
+    parser.add_argument(
+        "--params",
+        required=True,
+        metavar="PARAMS.json",
+        help="camera parameter file"
+        " (a path, or builtin:NAME for one shipped with the package, e.g. builtin:seed004_camera)",
+    )
     parser.add_argument("--out", required=True, metavar="ATTITUDE.csv", help="attitude file to write")
     add_site_arguments(parser)
     parser.add_argument(

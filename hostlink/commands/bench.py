@@ -1,4 +1,4 @@
-"""``hostlink bench``: the main job, end to end against an emulated sensor (see ``hostlink.mission.bench``)."""
+"""``hostlink bench``: the main job, end to end against an emulated sensor (see ``hostlink.mission.run``)."""
 
 from __future__ import annotations
 
@@ -79,8 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nominal",
         metavar="NOMINAL.json",
-        help="the sensor's factory parameters (default: that camera's design values, shipped with the package: f 70 "
-        "mm, 12 um, 1024 x 1024 px, principal point at the image centre, no distortion; `hostlink example` writes "
+        help="the sensor's factory parameters, a path or builtin:NAME (default builtin:seed004_nominal: that "
+        "camera's design values, shipped with the package: f 70 mm, 12 um, 1024 x 1024 px, principal point at the "
+        "image centre, no distortion; `hostlink example` writes "
         "them as nominal.json)",
     )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
@@ -109,10 +110,9 @@ def run(args: argparse.Namespace) -> int:
     import math
     from pathlib import Path
 
+    from hostlink.api import BenchConfig, load_params, run_bench
     from hostlink.commands.siteopts import site_and_weather
     from hostlink.errors import UserError
-    from hostlink.files.params import load_params
-    from hostlink.mission.bench import BenchConfig, run_bench
 
     if not (math.isfinite(args.noise_px) and 0 < args.noise_px <= 5):
         raise UserError(f"--noise-px must be in (0, 5] px, got {args.noise_px}")
@@ -143,12 +143,6 @@ def run(args: argparse.Namespace) -> int:
         cfg.camera = load_params(args.camera)
     if args.nominal:
         cfg.nominal = load_params(args.nominal)
-    elif args.camera:
-        cfg.nominal = design_nominal(cfg.camera)
-    if cfg.nominal is not None and (
-        cfg.nominal.image_size_px != cfg.camera.image_size_px or cfg.nominal.pixel_pitch_um != cfg.camera.pixel_pitch_um
-    ):
-        raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
     try:
         Path(args.out).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -159,32 +153,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def design_nominal(camera):
-    """What a user knows of a camera before calibrating it (INTERFACES.md, nominal file): its design focal length,
-    pitch and image size, the principal point at the image centre and no distortion. The bench's nominal when
-    --camera is given without --nominal (the built-in seed 004 nominal fits only the built-in camera)."""
-    from dataclasses import replace
-
-    from onboard.params import Distortion
-
-    width, height = camera.image_size_px
-    return replace(camera, principal_point_px=((width - 1) / 2.0, (height - 1) / 2.0), distortion=Distortion())
-
-
 def _print_table(summary: dict) -> None:
-    from hostlink.mission.bench import summary_table
+    from rich.console import Console
+    from rich.table import Table
 
-    rows = summary_table(summary)
-    try:
-        from rich.console import Console
-        from rich.table import Table
+    from hostlink.mission.summary import summary_table
 
-        table = Table(title=f"hostlink bench ({summary['transport']})")
-        for col in ("quantity", "before (nominal)", "after"):
-            table.add_column(col)
-        for row in rows:
-            table.add_row(*row)
-        Console().print(table)
-    except ImportError:  # rich is a dependency; plain text keeps the report readable without it
-        for row in rows:
-            print(" | ".join(row))
+    table = Table(title=f"hostlink bench ({summary['transport']})")
+    for col in ("quantity", "before (nominal)", "after"):
+        table.add_column(col)
+    for row in summary_table(summary):
+        table.add_row(*row)
+    Console().print(table)

@@ -14,8 +14,14 @@ DESCRIPTION = (
     "point), improved-cosine and improved-sine (seed 000 two-step iteration with Weng distortion), seed004 (seed 004 "
     "three-step Levenberg-Marquardt). Misidentified stars are found and dropped. With --site the reference "
     "directions get the diurnal aberration of the site's rotation (up to 0.32\"), and with --weather they are "
-    "also refracted, before the fit. The result is a camera parameter file plus sigma, "
-    "residual statistics, degeneracies and rejected-star counts."
+    "also refracted, before the fit. Before voting, the focal length (a nominal off by a factor 0.1 to 10 was "
+    "tested) and the parity (a mirrored image is an error that says so) are found from the identified stars' "
+    "interstar angles. "
+    "Parameters the data cannot determine are held at nominal (the report says which and why; --estimate "
+    "overrides). Star ids Hipparcos does not have are skipped. A session without time (t_utc empty) is calibrated "
+    "against J2000 directions with the stated loss from annual aberration. A fit that does not converge or rejects "
+    "more than half of the identified stars fails (exit 2) and writes nothing unless --keep-failed. The result is a "
+    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts."
 )
 
 
@@ -23,7 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from onboard.params import ESTIMATE_NAMES
 
     parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
-    parser.add_argument("--nominal", required=True, metavar="NOMINAL.json", help="nominal camera parameter file")
+    parser.add_argument(
+        "--nominal",
+        required=True,
+        metavar="NOMINAL.json",
+        help="nominal camera parameter file (a path, or builtin:NAME for one shipped with the package, e.g. "
+        "builtin:seed004_nominal)",
+    )
     parser.add_argument("--out", required=True, metavar="RESULT.json", help="result parameter file to write")
     parser.add_argument(
         "--method",
@@ -34,8 +46,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--estimate",
         metavar="NAMES",
-        help=f"comma-separated parameters to estimate (default: the method's own set; all = "
-        f"{','.join(ESTIMATE_NAMES)})",
+        help=f"comma-separated parameters to estimate, as given (default: the method's own set; for bundle every "
+        f"parameter the data determine; all = {','.join(ESTIMATE_NAMES)})",
+    )
+    parser.add_argument(
+        "--rejected",
+        metavar="FILE.csv",
+        help="write every rejected star (row, line, frame, star_id, reason, residual_arcsec) to this CSV",
+    )
+    parser.add_argument(
+        "--keep-failed",
+        action="store_true",
+        help="write the result file even when the calibration failed (marked 'failed'; the exit code stays 2)",
     )
     parser.add_argument(
         "--noise-px",
@@ -74,27 +96,54 @@ def run(args: argparse.Namespace) -> int:
             print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
 
     outcome, references = calibrate_session(
-        session, nominal, args.method, estimate, args.noise_px, args.max_iter, site, weather, args.dut1, progress
+        session,
+        nominal,
+        args.method,
+        estimate,
+        args.noise_px,
+        args.max_iter,
+        site,
+        weather,
+        args.dut1,
+        progress,
+        keep_failed=True,  # decided here: the --rejected list is written either way
     )
+    failure = outcome.failure()
+    if args.rejected:
+        from hostlink.calibration.report import write_rejected
+
+        write_rejected(args.rejected, outcome.rejected_stars)
+    if failure and not args.keep_failed:
+        raise UserError(f"calibration failed: {failure}; nothing written (--keep-failed writes it anyway)")
     save_params(args.out, outcome.params, result_extras(outcome, references))
     if not args.quiet:
+        unknown = references.unknown_rows
         print(
             f"calibrate: {outcome.data.n_obs + outcome.rejected['total_stars']} identified stars, "
-            f"{outcome.data.n_obs} used in {outcome.data.n_frames} frames ({references.n_unidentified} unidentified "
-            f"rows ignored); references from {references.source}; "
+            f"{outcome.data.n_obs} used in {outcome.data.n_frames} frames ({references.n_unidentified - unknown.size} "
+            f"unidentified rows ignored); references from {references.source}; "
             f"refraction: {references.refraction}"
         )
-        _print_report(outcome, args.out)
+        if unknown.size:
+            lines = ", ".join(str(int(k) + 2) for k in unknown[:10]) + (", ..." if unknown.size > 10 else "")
+            print(f"skipped {unknown.size} star_id(s) not in the Hipparcos catalogue on line(s) {lines}")
+        _print_report(outcome, args.out, outcome.time_note)
     if args.plot:
         from hostlink.calibration.plots import write_calibration_plots
 
         write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px)
         if not args.quiet:
             print(f"plots written to {args.plot}/residual_field.png and convergence.png")
+    if failure:
+        raise UserError(f"calibration failed: {failure}; kept in {args.out} as asked (--keep-failed)")
     return 0
 
 
-def _print_report(outcome, out_path: str) -> None:
+def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
+    import math
+
+    from onboard.params import DISTORTION_NAMES
+
     sig = outcome.sigma()
     p = outcome.params
     rows = [
@@ -102,7 +151,7 @@ def _print_report(outcome, out_path: str) -> None:
         ("x0 [px]", p.principal_point_px[0], sig["principal_point_px"][0]),
         ("y0 [px]", p.principal_point_px[1], sig["principal_point_px"][1]),
     ]
-    rows += [(k, getattr(p.distortion, k), sig["distortion"][k]) for k in ("k1", "k2", "k3", "p1", "p2", "s1", "s2")]
+    rows += [(k, getattr(p.distortion, k), sig["distortion"][k]) for k in DISTORTION_NAMES]
     b, a = outcome.before, outcome.after
     stats = [
         ("residual RMS [px]", b["rms_px"], a["rms_px"]),
@@ -118,10 +167,26 @@ def _print_report(outcome, out_path: str) -> None:
         f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma; "
         f"{len(outcome.history)} iterations{'' if outcome.converged else ' (NOT converged)'}",
     ]
+    pre = outcome.prepass
+    if pre and abs(pre["focal_scale"] - 1.0) > 0.01:
+        ratio = pre["focal_scale"]
+        binning = " (a factor near 2: check the pixel pitch for binning)" if abs(math.log(ratio)) > 0.5 else ""
+        lines_after.insert(
+            0,
+            f"focal length from the stars: {pre['start_focal_length_mm']:.6g} mm, where the fit started (the nominal "
+            f"{pre['nominal_focal_length_mm']:.6g} mm is off by {100 * (1 / ratio - 1):+.1f} %){binning}",
+        )
+    lines_after += [f"held at nominal: {h['parameter']} ({h['reason']})" for h in outcome.held]
+    if time_note:
+        lines_after.append(time_note)
     lines_after += [f"degeneracy: {m}" for m in outcome.degeneracies["messages"]]
     lines_after.append(f"written: {out_path}")
 
-    def fmt_sigma(v):
+    held = {h["parameter"] for h in outcome.held}
+
+    def fmt_sigma(name, v):
+        if name.split()[0] in held:
+            return "held (nominal)"
         return "fixed" if v == 0.0 else ("unobservable" if v is None else f"{v:.3g}")
 
     from rich.console import Console
@@ -134,7 +199,7 @@ def _print_report(outcome, out_path: str) -> None:
     t.add_column("value", justify="right")
     t.add_column("1 sigma", justify="right")
     for name, value, s in rows:
-        t.add_row(escape(name), f"{value:.8g}", fmt_sigma(s))
+        t.add_row(escape(name), f"{value:.8g}", fmt_sigma(name, s))
     console.print(t)
     t2 = Table()
     t2.add_column("statistic")

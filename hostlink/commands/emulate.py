@@ -22,15 +22,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nominal",
         metavar="PARAMS.json",
-        help="the factory parameter set in bank A, generation 1 (default, shipped with the package: a 1024 x 1024 "
-        "px, 12 um, 70 mm, 10 deg camera (seed 004's design), principal point at the image centre, no distortion; "
+        help="the factory parameter set in bank A, generation 1 (default builtin:seed004_nominal, shipped with the "
+        "package: a 1024 x 1024 px, 12 um, 70 mm, 10 deg camera (seed 004's design), principal point at the image "
+        "centre, no distortion; "
         "`hostlink example` writes it as nominal.json)",
     )
     parser.add_argument(
         "--camera",
         metavar="CAMERA.json",
-        help="the simulator's true camera (default: that camera as built: f 70.2262 mm, principal point (500, 530) px, "
-        "radial distortion (seed 004's simulated camera); `hostlink example` writes it as true-camera.json)",
+        help="the simulator's true camera (default builtin:seed004_camera: that camera as built: f 70.2262 mm, "
+        "principal point (500, 530) px, radial distortion (seed 004's simulated camera); `hostlink example` writes "
+        "it as true-camera.json)",
     )
     parser.add_argument(
         "--sim-frames", type=int, default=500, metavar="N", help="simulated frames, cycled forever (default 500)"
@@ -52,6 +54,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="parameters the onboard estimator estimates (comma-separated, default all: f,x0,y0,k1,k2,k3,p1,p2,s1,s2)",
     )
     parser.add_argument("--no-estimator", action="store_true", help="run without the onboard recursive estimator")
+    parser.add_argument(
+        "--flash",
+        metavar="FILE",
+        help="keep the sensor's parameter banks, generation and staging-session counters in this NOR-flash image "
+        "(created blank, then given the --nominal set, if new); a restart on the same file boots the last committed "
+        "set, and killing the emulator at any moment leaves the complete old or new set (default: banks in RAM)",
+    )
+    parser.add_argument(
+        "--power-cut-after",
+        type=int,
+        metavar="UNITS",
+        help="testing, with --flash: the emulator kills itself (SIGKILL) after writing this many 8-byte flash units "
+        "from its start, a power cut at an exact byte of an erase or program",
+    )
     parser.add_argument(
         "--estimator-mflops",
         type=float,
@@ -98,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--{name.replace('_', '-')} must be > 0")
     if not 0 <= args.port < 65536:
         raise UserError("--port must be in 0..65535")
+    if args.power_cut_after is not None and (args.flash is None or args.power_cut_after < 0):
+        raise UserError("--power-cut-after needs --flash and a count >= 0")
     if args.drop_every < 0:
         raise UserError("--drop-every must be >= 0")
     if not (math.isfinite(args.estimator_mflops) and args.estimator_mflops > 0):
@@ -112,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
         estimator=not args.no_estimator,
         estimate_names=args.estimate,
         budget=EstimatorBudget(flops_per_s=args.estimator_mflops * 1e6),
+        flash=args.flash,
+        power_cut_after_units=args.power_cut_after,
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra
@@ -124,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         raise
     stop = threading.Event()
 
-    def on_signal(signum, frame):  # noqa: ARG001 - signal handler signature
+    def on_signal(_signum, _frame):  # the signal handler signature
         stop.set()
 
     signal.signal(signal.SIGINT, on_signal)

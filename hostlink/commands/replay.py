@@ -21,7 +21,13 @@ DESCRIPTION = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("session", metavar="SESSION.csv", help="session file with ra_deg/dec_deg columns")
-    p.add_argument("--nominal", required=True, metavar="NOMINAL.json", help="starting camera parameters")
+    p.add_argument(
+        "--nominal",
+        required=True,
+        metavar="NOMINAL.json",
+        help="starting camera parameters (a path, or builtin:NAME for one shipped with the package, e.g. "
+        "builtin:seed004_nominal)",
+    )
     p.add_argument("--out", required=True, metavar="ESTIMATE.json", help="where to write the estimate")
     p.add_argument("--trace", metavar="TRACE.csv", help="per-frame trace (frame, focal_length_mm, x0_px, y0_px, ...)")
     p.add_argument(
@@ -59,11 +65,12 @@ def run(args: argparse.Namespace) -> int:
         replay_config,
         replay_prior,
         replay_session,
-        write_trace,
     )
     from hostlink.errors import UserError
     from hostlink.files.params import load_params_with_sigma, save_params
     from hostlink.files.session import check_on_detector, read_session
+    from hostlink.files.trace import write_trace
+    from hostlink.progress import progress_bar
     from onboard.recursive import parse_estimate_names
 
     precision_dtype(args.precision)  # refuse an unknown precision before reading files
@@ -78,7 +85,16 @@ def run(args: argparse.Namespace) -> int:
     check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
     if len(session) == 0:
         raise UserError(f"{args.session}: no frames")
-    result = replay_session(session, nominal, names, config, args.precision, prior_sigma=prior_sigma)
+    with progress_bar("replaying frames", session.n_frames) as advance:
+        result = replay_session(
+            session,
+            nominal,
+            names,
+            config,
+            args.precision,
+            on_frame=lambda k, _res: advance(k + 1),
+            prior_sigma=prior_sigma,
+        )
     save_params(args.out, result.params, estimate_extras(result, args.precision))
     if args.trace:
         write_trace(args.trace, result.trace)

@@ -30,7 +30,12 @@ PRESETS = ("seed004",)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--camera", metavar="CAMERA.json", help="true camera parameter file (optional with --preset)")
+    parser.add_argument(
+        "--camera",
+        metavar="CAMERA.json",
+        help="true camera parameter file, optional with --preset (a path, or builtin:NAME for one shipped with "
+        "the package, e.g. builtin:seed004_camera)",
+    )
     parser.add_argument("--frames", type=int, metavar="N", help="number of frames (preset seed004: 1000)")
     parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
     parser.add_argument(
@@ -93,25 +98,14 @@ def _read_attitudes(path: str):
     return np.asarray(rows, dtype=np.float64).reshape(-1, 3, 3)
 
 
-def _progress(total: int):
-    """A rich progress bar on stderr when it is a terminal, else nothing."""
-    if total < 2000 or not sys.stderr.isatty():
-        return None, None
-    from rich.console import Console
-    from rich.progress import Progress
-
-    bar = Progress(console=Console(stderr=True), transient=True)
-    task = bar.add_task("simulating", total=total)
-    bar.start()
-    return bar, (lambda done, _total: bar.update(task, completed=done))
-
-
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from hostlink.files.params import load_params
     from hostlink.files.session import write_session
-    from hostlink.sky.simulate import SimConfig, seed004_config, simulate, truth_path_for, write_truth
+    from hostlink.files.truth import truth_path_for, write_truth
+    from hostlink.progress import progress_bar
+    from hostlink.sky.simulate import SimConfig, seed004_config, simulate
 
     site, weather = site_and_weather(args)
     attitudes = _read_attitudes(args.attitudes) if args.attitudes else None
@@ -151,12 +145,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if cfg.min_stars > cfg.max_stars and args.max_stars is None:
         cfg = replace(cfg, max_stars=cfg.min_stars)
-    bar, callback = _progress(int(cfg.frames))
-    try:
-        result = simulate(cfg, progress=callback)
-    finally:
-        if bar is not None:
-            bar.stop()
+    # a bar only where simulating takes long enough to watch (a few thousand frames and up)
+    with progress_bar("simulating", int(cfg.frames), enabled=cfg.frames >= 2000) as advance:
+        result = simulate(cfg, progress=lambda done, _total: advance(done))
     truth_path = truth_path_for(args.out)
     write_session(args.out, result.session)
     write_truth(truth_path, result.truth)

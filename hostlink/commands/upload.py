@@ -8,9 +8,13 @@ from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
 HELP = "validate, upload, verify and commit a parameter file on a sensor (A/B banks)"
 DESCRIPTION = (
-    "Safe upload: 1. validate the set on the host; 2. stage it on the sensor in chunks; 3. the sensor checks its "
-    "CRC and ranges; 4. read the staged set back; 5. the sensor commits it to its inactive A/B bank with a new "
-    "generation and switches atomically; 6. read the active set back. Exit 0 only when the active parameters read "
+    "Safe upload: 1. check the set's plausibility on the host (finite values, principal point on the detector, a "
+    "one-to-one distortion whose displacement stays within 5% of the half-diagonal, focal length within 5% of the "
+    "active set's); 2. open a staging session (the sensor answers with a nonce) and stage the set in chunks; 3. the "
+    "sensor checks its CRC and the same rules against its own design; 4. read the staged set back; 5. the sensor "
+    "commits it to its inactive A/B bank with a new generation and switches atomically, only for this session's "
+    "nonce and the generation read in step 1 (replayed traffic commits nothing); 6. read the active set back. A "
+    "refusal names the rule on one line. Exit 0 only when the active parameters read "
     "back equal to the file (to float32). A refusal prints the sensor's reason on one line; an interrupted upload "
     "leaves the old set active. The file's 'sigma' object (1-sigma of each estimated parameter, as written by "
     "'hostlink calibrate' or 'hostlink replay') travels with the set: the sensor's onboard estimator restarts from "
@@ -19,7 +23,11 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("params", metavar="PARAMS.json", help="camera parameter file")
+    parser.add_argument(
+        "params",
+        metavar="PARAMS.json",
+        help="camera parameter file (a path, or builtin:NAME for one shipped with the package)",
+    )
     add_link_arguments(parser)
     parser.add_argument(
         "--no-host-check",

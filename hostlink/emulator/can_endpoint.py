@@ -15,17 +15,19 @@ started. Everything the sensor decides, the firmware decides; this module only c
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import can
 
 from hostlink.emulator.sensor import EmulatedSensor, EndpointOptions
-from hostlink.emulator.slcan_hub import SLCAN_BITRATES, HubBus, SlcanHub, frame_bits_worst_case
+from hostlink.emulator.slcan_hub import SLCAN_BITRATES, HubBus, SlcanHub
 from hostlink.errors import UserError
 from hostlink.links.can_link import IsoTpChannel
 from protocol import can_frames as cf
 from protocol.messages import (
     CentroidFrame,
+    Commit,
     DecodeError,
     EncodeError,
     EndOfStream,
@@ -38,6 +40,8 @@ from protocol.messages import (
     is_command,
 )
 
+#: After its source ended, the sensor repeats END_OF_STREAM this often while the stream is on [s].
+END_REPEAT_S = 0.25
 #: Longest the sensor waits for bus time for one frame before it gives up on the stream [s].
 _SEND_TIMEOUT_S = 2.0
 _IDLE_WAIT_S = 0.02
@@ -57,12 +61,15 @@ class SensorNode:
         self.stop = stop
         self.drop_every = int(drop_every)
         self.stream_count = 0
-        self.t_base_us: int | None = None
+        self.stream_encoder = cf.StreamEncoder()
+        self._end: EndOfStream | None = None  # the last END_OF_STREAM sent, repeated while the stream stays on
+        self._next_end_s = 0.0
         self.last_frame = 0  # frame counter of the last frame produced (sent or dropped)
         self.undecodable = 0
         self._order = threading.Lock()  # a command + its reply vs. one stream message
         self._command_waiting = threading.Event()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_SENSOR_TO_HOST_ID, cf.ISOTP_HOST_TO_SENSOR_ID)
+        self._commit_bind: bytes | None = None  # payload of the last COMMIT_BIND frame, until the next command frame
         self._threads = [
             threading.Thread(target=self._command_loop, name="can-sensor-commands", daemon=True),
             threading.Thread(target=self._stream_loop, name="can-sensor-stream", daemon=True),
@@ -94,9 +101,13 @@ class SensorNode:
                 fid = msg.arbitration_id
                 if fid == cf.ISOTP_HOST_TO_SENSOR_ID:
                     self._isotp.feed(msg)
+                elif fid == cf.COMMIT_BIND.frame_id:
+                    self._commit_bind = bytes(msg.data)  # joins the COMMAND COMMIT frame that follows
                 elif fid in (cf.COMMAND.frame_id, cf.STAGE_FLOAT.frame_id):
+                    bind, self._commit_bind = self._commit_bind, None
                     try:
-                        self._answer(cf.decode_single(fid, bytes(msg.data)))
+                        cmd = cf.decode_single(fid, bytes(msg.data))
+                        self._answer(cf.bind_commit(cmd, bind) if isinstance(cmd, Commit) else cmd)
                     except cf.CanDecodeError:
                         self.undecodable += 1  # a corrupt command is never answered: the host times out
             for payload in self._isotp.poll():
@@ -119,7 +130,8 @@ class SensorNode:
             if is_command(cmd):
                 reply = self.sensor.handle(cmd)
                 if isinstance(cmd, StreamControl) and cmd.enable:
-                    self.t_base_us = None  # a (re)started stream begins with a TIME_BASE
+                    self.stream_encoder.restart()  # a (re)started stream begins with a TIME_BASE
+                    self._end = None
             else:
                 reply = Nak(
                     tag=getattr(cmd, "tag", 0),
@@ -156,19 +168,22 @@ class SensorNode:
                     except EncodeError:
                         continue  # a centroid the CAN layout cannot carry: the frame is dropped (counted as lost)
             if msg is None:
+                if self._end is not None and self.sensor.streaming and time.monotonic() >= self._next_end_s:
+                    self._next_end_s = time.monotonic() + END_REPEAT_S
+                    try:  # repeated: a lost END_OF_STREAM must not leave the host waiting
+                        self._send_stream_message(self._end)
+                    except can.CanError:
+                        return
                 self.stop.wait(_IDLE_WAIT_S)
+            elif isinstance(msg, EndOfStream):
+                self._end, self._next_end_s = msg, time.monotonic() + END_REPEAT_S
 
     def _send_stream_message(self, msg: CentroidFrame | EndOfStream) -> None:
         if isinstance(msg, EndOfStream):
             self._send_data(cf.END_OF_STREAM.frame_id, cf.encode_end_of_stream(msg.frames_sent, self.last_frame))
             return
-        stars = cf.word_bytes(cf.encode_stars(msg))  # raises EncodeError before anything is sent
-        if cf.needs_time_base(msg.t_us, self.t_base_us):
-            self._send_data(cf.TIME_BASE.frame_id, cf.encode_time_base(msg.t_us))
-            self.t_base_us = msg.t_us
-        self._send_data(cf.FRAME_HEADER.frame_id, cf.encode_header(msg.frame, msg.n_stars, msg.t_us - self.t_base_us))
-        for k in range(0, len(stars), cf.CAN_PAYLOAD_BYTES):
-            self._send_data(cf.STAR.frame_id, stars[k : k + cf.CAN_PAYLOAD_BYTES])
+        for frame_id, data in self.stream_encoder.encode(msg):  # EncodeError before anything is sent
+            self._send_data(frame_id, data)
 
 
 def check_bitrate(bitrate: int) -> int:
@@ -192,7 +207,7 @@ def serve(
                 "transport": "can",
                 "bitrate": bitrate,
                 "port": hub.port,
-                "bits_per_frame": frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False),
+                "bits_per_frame": cf.frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False),
             }
         )
         stop.wait()

@@ -1,5 +1,5 @@
 """Modbus endpoint of the emulated sensor: the register map (``protocol/modbus_map.json``) served on 127.0.0.1, over
-Modbus TCP and over RTU framing on TCP (two ports, one register image), through ``hostlink.links.modbus_adapter``.
+Modbus TCP and over RTU framing on TCP (two ports, one register image), through ``hostlink.emulator.modbus_server``.
 
 ``hostlink emulate --transport modbus`` prints ``{"link": "modbus-tcp:127.0.0.1:PORT", "link_rtu":
 "modbus-rtu:tcp://127.0.0.1:PORT2", ...}``. The layout comes from the map file alone:
@@ -23,12 +23,14 @@ from collections.abc import Callable
 
 import numpy as np
 
+from hostlink.emulator.modbus_server import RegisterServer
 from hostlink.emulator.sensor import EmulatedSensor, EndpointOptions
 from hostlink.errors import UserError
-from hostlink.links.modbus_adapter import ILLEGAL_ADDRESS, ILLEGAL_VALUE, ModbusAdapterError, RegisterServer
+from hostlink.links.modbus_adapter import ILLEGAL_ADDRESS, ILLEGAL_VALUE, ModbusAdapterError
 from protocol import modbus_map as mm
 from protocol.messages import (
     ESTIMATE_FIELDS,
+    MAX_STARS,
     Ack,
     CentroidFrame,
     Commit,
@@ -62,6 +64,10 @@ def _group(m: mm.ModbusMap, table: str, prefixes: tuple[str, ...]) -> tuple[int,
     return min(r.address for r in regs), max(r.address + r.span for r in regs)
 
 
+def _address_range(address: int, count: int) -> tuple[int, int]:
+    return address, address + count
+
+
 class RegisterSensor:
     """The register image of the sensor and its translation to and from protocol messages."""
 
@@ -88,6 +94,8 @@ class RegisterSensor:
             (_group(m, "input", ("window_",)), self._refresh_window),
         ]
         self._window_span = _group(m, "input", ("window_",))
+        #: each checked block with the widest address range it can span (all MAX_STARS stars)
+        self._checked = [(b, _address_range(*b.read_span(MAX_STARS))) for b in m.checked_blocks]
         self.commands = {c["code"]: c["name"] for c in m.commands}
 
     # ------------------------------------------------------------------------------------ server hooks
@@ -98,6 +106,9 @@ class RegisterSensor:
             for (lo, hi), refresh in self._refreshers:
                 if address < hi and address + count > lo:
                     refresh()
+            for block, (lo, hi) in self._checked:
+                if address < hi and address + count > lo:
+                    mm.seal_block(block, self.inputs)  # the check of what is in the image now
             return self.inputs[address : address + count]
 
     def on_write(self, address: int, values: list[int]) -> None:
@@ -131,7 +142,11 @@ class RegisterSensor:
         elif code == MsgType.STAGE_VERIFY:
             cmd = StageVerify(crc32=crc)
         elif code == MsgType.COMMIT:
-            cmd = Commit(crc32=crc)
+            cmd = Commit(
+                crc32=crc,
+                nonce=mm.get(h, m["command_nonce"]),
+                expected_generation=mm.get(h, m["command_expected_generation"]),
+            )
         else:
             raise ModbusAdapterError(f"command code {code} is not in the register map", ILLEGAL_VALUE)
         reply = self.sensor.handle(cmd)

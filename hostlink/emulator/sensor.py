@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.files.session import Session
-from hostlink.files.wiretime import iso_to_t_us
+from hostlink.files.times import iso_to_t_us
 from onboard.camera import radec_to_unit
 from onboard.firmware import Firmware
 from protocol.messages import MAX_STARS, CentroidFrame, EndOfStream, Message, StreamControl

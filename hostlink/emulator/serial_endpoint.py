@@ -12,14 +12,19 @@ from __future__ import annotations
 import os
 import select
 import threading
+import time
 import tty
 from collections.abc import Callable
 
 from hostlink.emulator.sensor import EmulatedSensor, EndpointOptions, Pacer
 from protocol.framing import FrameSplitter, FramingError, decode_frame, encode_frame
-from protocol.messages import DecodeError, Message, Nak, NakCode, decode, encode, is_command
+from protocol.messages import DecodeError, EndOfStream, Message, Nak, NakCode, decode, encode, is_command
 
 BITS_PER_BYTE = 10
+#: After its source ended, the sensor repeats END_OF_STREAM this often while the stream is on [s] (a host that lost
+#: it on a noisy line still learns that the stream ended; each copy is a message of its own, with its own sequence
+#: number).
+END_REPEAT_S = 0.25
 #: How long the loop waits for a command when it has nothing to send [s] (also the stop latency).
 _IDLE_WAIT_S = 0.05
 
@@ -76,6 +81,8 @@ def serve(
         os.set_blocking(master, False)
         line = _PtyLine(master, options.baud, stop, options.drop_every)
         ready({"link": f"serial:{os.ttyname(slave)}@{options.baud}", "transport": "serial", "baud": options.baud})
+        end: EndOfStream | None = None  # the last END_OF_STREAM sent, repeated while the stream stays on
+        next_end_s = 0.0
         while not stop.is_set():
             for cmd in line.commands(0.0 if sensor.streaming else _IDLE_WAIT_S):
                 if is_command(cmd):
@@ -93,7 +100,12 @@ def serve(
             msg = sensor.next_stream_message()
             if msg is not None:
                 line.send(msg, stream=True)
+                end = msg if isinstance(msg, EndOfStream) else None
+                next_end_s = time.monotonic() + END_REPEAT_S
             elif sensor.streaming:
+                if end is not None and time.monotonic() >= next_end_s:
+                    line.send(end, stream=True)  # repeated: a lost END_OF_STREAM must not leave the host waiting
+                    next_end_s += END_REPEAT_S
                 stop.wait(_IDLE_WAIT_S)  # source exhausted: nothing to send until a command arrives
     finally:
         os.close(master)

@@ -5,9 +5,9 @@ The emulated sensor has no CAN hardware to sit on, so this hub *is* the bus: eve
 emulated sensor) attach through :class:`HubBus`, a python-can bus. A frame sent by one node reaches every other open
 node, and the bus is paced to its bit rate:
 
-* every frame occupies the bus for its worst-case length (:func:`frame_bits_worst_case`; 135 bits for a standard
-  11-bit-ID frame with 8 data bytes, 160 bits for a 29-bit-ID one), so stars/s on the hub equal the physical limit of a
-  real bus at the same bit rate, never more;
+* every frame occupies the bus for its worst-case length (``protocol.can_frames.frame_bits_worst_case``; 135 bits
+  for a standard 11-bit-ID frame with 8 data bytes, 160 bits for a 29-bit-ID one), so stars/s on the hub equal the
+  physical limit of a real bus at the same bit rate, never more;
 * when several nodes have a frame pending, the lowest identifier wins arbitration (ISO 11898-1); each node transmits
   its own frames in FIFO order (one TX mailbox chain, as firmware that streams must);
 * the bus clock is virtual: a frame starts when the bus became free *and* the frame was pending, not when this thread
@@ -33,6 +33,8 @@ import time
 from dataclasses import dataclass
 
 import can
+
+from protocol.can_frames import frame_bits_worst_case
 
 #: SLCAN bit-rate codes (Lawicel ``Sn``), bit/s.
 SLCAN_BITRATES: dict[str, int] = {
@@ -64,19 +66,6 @@ class HubFrame:
     is_remote_frame: bool
     dlc: int
     data: bytes
-
-
-def frame_bits_worst_case(dlc: int, is_extended_id: bool, is_remote_frame: bool = False) -> int:
-    """Bus time of one classic CAN frame with the worst-case number of stuff bits, in bits (ISO 11898-1).
-
-    Stuffed fields: SOF, arbitration (11-bit ID + RTR, or 11 + SRR + IDE + 18 + RTR), control, data, CRC15; that is
-    ``34 + 8 n`` bits (standard) or ``54 + 8 n`` (extended) for ``n`` data bytes. At most one stuff bit per 4 bits
-    after the first gives ``floor((stuffable - 1) / 4)``. Then 13 unstuffed bits: CRC delimiter, ACK slot and
-    delimiter, 7-bit EOF and the 3-bit intermission. Standard, 8 bytes: 98 + 24 + 13 = 135 bits; extended: 160.
-    """
-    n_data = 0 if is_remote_frame else int(dlc)
-    stuffable = (54 if is_extended_id else 34) + 8 * n_data
-    return stuffable + (stuffable - 1) // 4 + 13
 
 
 def parse_slcan_frame(line: bytes) -> HubFrame | None:

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from pathlib import Path
 
-from hostlink.errors import UserError
+from hostlink.files.atomic import atomic_open
 
 #: Columns of every attitude file; C's elements row by row (b = C r).
 ATTITUDE_COLUMNS = (
@@ -27,26 +26,20 @@ def write_attitudes(path: str | Path, attitudes) -> None:
     """Write ATTITUDE.csv atomically from a :class:`hostlink.sky.attitude.SessionAttitudes`: frame, t_utc, n_stars,
     n_used, c11..c33, residual_rms_arcsec [arcsec, 4 decimals], status, then ship_yaw_deg, ship_pitch_deg,
     ship_roll_deg [deg] when it has a ship attitude. Unsolved values are empty cells."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
     ship = attitudes.ship_ypr_deg
-    try:
-        with tmp.open("w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(ATTITUDE_COLUMNS + (SHIP_COLUMNS if ship is not None else ()))
-            for k in range(attitudes.n_frames):
-                rms = float(attitudes.residual_rms_arcsec[k])
-                w.writerow(
-                    [
-                        int(attitudes.frame[k]),
-                        attitudes.t_utc[k],
-                        int(attitudes.n_stars[k]),
-                        int(attitudes.n_used[k]),
-                    ]
-                    + [_cell(v) for v in attitudes.C[k].reshape(9)]
-                    + ["" if not math.isfinite(rms) else f"{rms:.4f}", attitudes.status[k]]
-                    + ([] if ship is None else [_cell(v) for v in ship[k]])
-                )
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+    with atomic_open(path, newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(ATTITUDE_COLUMNS + (SHIP_COLUMNS if ship is not None else ()))
+        for k in range(attitudes.n_frames):
+            rms = float(attitudes.residual_rms_arcsec[k])
+            w.writerow(
+                [
+                    int(attitudes.frame[k]),
+                    attitudes.t_utc[k],
+                    int(attitudes.n_stars[k]),
+                    int(attitudes.n_used[k]),
+                ]
+                + [_cell(v) for v in attitudes.C[k].reshape(9)]
+                + ["" if not math.isfinite(rms) else f"{rms:.4f}", attitudes.status[k]]
+                + ([] if ship is None else [_cell(v) for v in ship[k]])
+            )

@@ -1,4 +1,5 @@
-"""Camera parameter files (INTERFACES.md): load, validate, save.
+"""Camera parameter files (INTERFACES.md): load, validate, save; the parameter files shipped with the package are
+read by name (``builtin:seed004_nominal``, ``builtin:seed004_camera``).
 
 Validation itself lives in ``onboard.params`` so that the host and the sensor refuse a set for the same reason.
 """
@@ -12,19 +13,50 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import json_text, write_json, write_text
 from onboard.params import CameraParams, ParameterError, params_from_dict, params_to_dict
 from onboard.prior import sigma_from_dict
 
+#: Parameter files shipped with the package (``hostlink/data``), wherever it is installed.
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+#: ``builtin:NAME`` names the package's parameter file ``NAME.json`` wherever a parameter file is read.
+BUILTIN_PREFIX = "builtin:"
+
+
+def data_file(name: str) -> Path:
+    """Path of a file shipped with the package in ``hostlink/data`` (``seed004_camera.json``: seed 004's simulated
+    camera; ``seed004_nominal.json``: its design nominal), wherever the package is installed."""
+    return DATA_DIR / name
+
+
+def builtin_names() -> tuple[str, ...]:
+    """The names ``builtin:NAME`` accepts: the parameter files shipped with the package."""
+    return tuple(sorted(p.stem for p in DATA_DIR.glob("*.json")))
+
+
+def params_path(path: str | Path) -> Path:
+    """Where a parameter file is: ``builtin:NAME`` is the package's ``NAME.json`` (an unknown name is a one-line
+    :class:`UserError` listing the known ones); anything else is a path."""
+    text = str(path)
+    if not text.startswith(BUILTIN_PREFIX):
+        return Path(path)
+    name = text[len(BUILTIN_PREFIX) :].removesuffix(".json")
+    if name not in builtin_names():
+        known = ", ".join(BUILTIN_PREFIX + n for n in builtin_names())
+        raise UserError(f"{text}: no such built-in parameter file (known: {known})")
+    return data_file(name + ".json")
+
 
 def load_params(path: str | Path) -> CameraParams:
-    """Read and validate a camera parameter file; any problem is a one-line :class:`UserError` naming the field."""
+    """Read and validate a camera parameter file (a path, or ``builtin:NAME`` for one shipped with the package);
+    any problem is a one-line :class:`UserError` naming the field."""
     return load_params_with_extras(path)[0]
 
 
 def load_params_with_extras(path: str | Path, validate: bool = True) -> tuple[CameraParams, dict]:
     """As :func:`load_params`, also returning the file's whole JSON object (for ``sigma`` and other extras).
     ``validate=False`` checks the form only, not the ranges (``onboard.params.params_from_dict``)."""
-    path = Path(path)
+    path = params_path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
@@ -71,30 +103,16 @@ def params_json(params: CameraParams, extras: dict | None = None) -> dict:
 
 
 def save_params(path: str | Path, params: CameraParams, extras: dict | None = None) -> None:
-    """Write a parameter file atomically (temporary file, then rename), so a crash never leaves half a file."""
-    path = Path(path)
-    data = params_json(params, extras)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        if path.parent and not path.parent.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        tmp.replace(path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+    """Write a parameter file atomically (:func:`hostlink.files.atomic.write_json`), so a crash never leaves half
+    a file."""
+    write_json(path, params_json(params, extras))
 
 
 def emit_param_file(data: dict, out: str | Path | None = None) -> None:
     """Print a parameter-file object as JSON on stdout and, with ``out``, also write it there (atomically)."""
     import sys
 
-    text = json.dumps(data, indent=2) + "\n"
+    text = json_text(data)
     sys.stdout.write(text)
     if out:
-        path = Path(out)
-        tmp = path.with_name(path.name + ".tmp")
-        try:
-            tmp.write_text(text, encoding="utf-8")
-            tmp.replace(path)
-        except OSError as exc:
-            raise UserError(f"{path}: cannot write ({exc.strerror})") from None
+        write_text(out, text)

@@ -14,9 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import AtomicFile, cannot_write
 from hostlink.files.times import parse_iso_utc_many
 
 REQUIRED_COLUMNS = ("frame", "t_utc", "star_id", "x_px", "y_px")
+#: Required columns a file may leave out: without ``t_utc`` the session's time is unknown (every t_utc empty).
+MAY_BE_ABSENT = ("t_utc",)
 OPTIONAL_COLUMNS = ("mag", "ra_deg", "dec_deg")
 
 
@@ -55,8 +58,17 @@ class Session:
         for a, b in zip(starts[:-1], starts[1:], strict=True):
             yield slice(int(a), int(b))
 
+    @property
+    def time_known(self) -> bool:
+        """False when the file gives no time (every ``t_utc`` empty or the column absent): only a job that needs
+        no time (calibration against J2000 directions) can use it."""
+        return not (len(self) and all(str(t).strip() == "" for t in self.t_utc))
+
     def frame_times_jd(self) -> tuple[np.ndarray, np.ndarray]:
-        """UTC two-part Julian dates (jd1, jd2) of each frame (from its first row)."""
+        """UTC two-part Julian dates (jd1, jd2) of each frame (from its first row). A session without time is a
+        one-line :class:`UserError`."""
+        if not self.time_known:
+            raise UserError("the session gives no time (t_utc empty): this needs the UTC time of every frame")
         first = self.frame_starts[:-1]
         return parse_iso_utc_many(self.t_utc[first])
 
@@ -118,7 +130,7 @@ def read_session(path: str | Path) -> Session:
             raise UserError(f"{path}: empty file (expected a header row)") from None
         except (csv.Error, UnicodeDecodeError) as exc:
             raise UserError(f"{path}: not a CSV file ({exc})") from None
-        missing = [c for c in REQUIRED_COLUMNS if c not in header]
+        missing = [c for c in REQUIRED_COLUMNS if c not in MAY_BE_ABSENT and c not in header]
         if missing:
             raise UserError(f"{path}: missing required column(s) {', '.join(missing)}")
         if ("ra_deg" in header) != ("dec_deg" in header):
@@ -163,7 +175,7 @@ def read_session(path: str | Path) -> Session:
     if frame.size and np.any(np.diff(frame) < 0):
         k = int(np.argmax(np.diff(frame) < 0)) + 1
         raise UserError(f"{path}: line {k + 2}: frames are not in time order (frame {frame[k]} after {frame[k - 1]})")
-    t_utc = np.array(by_name["t_utc"], dtype=object)
+    t_utc = np.array(by_name["t_utc"] if "t_utc" in by_name else [""] * len(frame), dtype=object)
     session = Session(
         frame=frame,
         t_utc=t_utc,
@@ -187,7 +199,7 @@ def read_session(path: str | Path) -> Session:
     if np.any(session.star_id < 0):
         k = int(np.argmax(session.star_id < 0))
         raise UserError(f"{path}: line {k + 2}, column star_id: negative Hipparcos number")
-    if len(session):
+    if len(session) and session.time_known:
         starts = session.frame_starts[:-1]
         try:
             session.frame_times_jd()
@@ -214,6 +226,7 @@ class SessionWriter:
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.float_format = float_format
         self.rows = 0
+        self._file = AtomicFile(self.path, temporary=self.partial, newline="")
         self._handle = None
         self._writer = None
         self._header: list[str] | None = None
@@ -225,11 +238,7 @@ class SessionWriter:
         if session.ra_deg is not None and session.dec_deg is not None:
             header += ["ra_deg", "dec_deg"]
         header += list(session.extra)
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._handle = self.partial.open("w", newline="", encoding="utf-8")
-        except OSError as exc:
-            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+        self._handle = self._file.open()
         self._writer = csv.writer(self._handle, lineterminator="\n")
         self._header = header
         self._write([header])
@@ -239,7 +248,7 @@ class SessionWriter:
             self._writer.writerows(rows)
             self._handle.flush()
         except OSError as exc:
-            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+            raise cannot_write(self.path, exc) from None
 
     def append(self, session: Session) -> None:
         """Append the rows of ``session`` (whole frames, in time order, with the columns of the first chunk)."""
@@ -265,24 +274,20 @@ class SessionWriter:
         self.rows += len(session)
 
     def commit(self) -> None:
-        """Close and rename the partial file to ``path`` (an empty session is written as its header)."""
+        """Rename the partial file to ``path`` (fsync-ed: :class:`hostlink.files.atomic.AtomicFile`; an empty
+        session is written as its header)."""
         if self._header is None:
             self._open(Session(*(np.zeros(0, dtype=t) for t in (np.int64, object, np.int64, float, float))))
-        self._handle.close()
-        try:
-            self.partial.replace(self.path)
-        except OSError as exc:
-            raise UserError(f"{self.path}: cannot write ({exc.strerror})") from None
+        self._file.commit()
 
     def close_partial(self) -> None:
         """Close without renaming: the rows written so far stay in :attr:`partial`."""
-        if self._handle is not None and not self._handle.closed:
-            self._handle.close()
+        self._file.abandon(keep=True)
 
     def __enter__(self) -> SessionWriter:
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type, exc, _tb) -> None:
         if exc_type is None:
             self.commit()
         else:

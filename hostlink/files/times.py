@@ -1,29 +1,45 @@
-"""UTC time stamps of session files: ISO 8601 strings <-> two-part Julian dates, and UTC -> TT / UT1 (pyerfa).
+"""THE time module of the host (ARCHITECTURE.md: hostlink/files): every ISO 8601 time stamp is parsed and written
+here, and UTC is converted to TT / UT1 here (pyerfa).
 
-Two-part Julian dates keep sub-microsecond resolution; ERFA handles leap seconds (``dtf2d`` with scale "UTC").
+Three forms of a UTC time:
+- the session file's ISO 8601 string, ``2026-03-14T02:10:00.125Z`` (docs/file-formats.md: ``T`` or a space; ``Z``,
+  ``+00:00`` or nothing after it; any number of decimals);
+- two-part Julian dates (jd1, jd2) as ERFA takes them (``dtf2d`` with scale "UTC": leap seconds handled), which keep
+  sub-microsecond resolution, for astrometry;
+- the wire's int64 microseconds since 1970-01-01T00:00:00 UTC, leap seconds not counted (POSIX time,
+  ``protocol.messages``), in integer arithmetic, so a time with up to 6 decimals of a second survives the round trip
+  exactly. A leap second (second 60.x) maps onto the next minute.
 """
 
 from __future__ import annotations
 
+import calendar
 import re
-from datetime import datetime, timedelta, timezone
+from collections.abc import Iterable
 
 import erfa
 import numpy as np
 
-_ISO = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2}):(\d{2}(?:\.\d+)?)(Z|[+-]00:?00)?$")
+_ISO = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2}):(\d{2})(?:\.(\d+))?(Z|[+-]00:?00)?$")
+_US_PER_S = 1_000_000
 
 
-def parse_iso_utc(text: str) -> tuple[int, int, int, int, int, float]:
-    """Parse ``YYYY-MM-DDThh:mm:ss[.fff][Z]`` (UTC) into fields; raises ValueError with the offending text."""
+def _iso_match(text: str) -> re.Match:
     m = _ISO.match(str(text).strip())
     if not m:
         raise ValueError(f"not an ISO 8601 UTC time: {text!r} (expected e.g. 2026-03-14T02:10:00.000Z)")
+    return m
+
+
+def parse_iso_utc(text: str) -> tuple[int, int, int, int, int, float]:
+    """Parse ``YYYY-MM-DDThh:mm:ss[.fff][Z]`` (UTC) into (year, month, day, hour, minute, seconds); raises
+    ValueError with the offending text."""
+    m = _iso_match(text)
     y, mo, d, h, mi = (int(m.group(k)) for k in range(1, 6))
-    return y, mo, d, h, mi, float(m.group(6))
+    return y, mo, d, h, mi, float(f"{m.group(6)}.{m.group(7) or '0'}")
 
 
-def parse_iso_utc_many(texts) -> tuple[np.ndarray, np.ndarray]:
+def parse_iso_utc_many(texts: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
     """ISO strings -> UTC quasi Julian dates (jd1, jd2) as ERFA expects them (dtf2d, scale "UTC")."""
     fields = [parse_iso_utc(t) for t in texts]
     if not fields:
@@ -52,7 +68,7 @@ def fixed_time_from_iso(text: str):
     from onboard.timescale import from_calendar
 
     y, mo, d, h, mi, s = parse_iso_utc(text)
-    return from_calendar(y, mo, d, h, mi, round(s * 1_000_000))
+    return from_calendar(y, mo, d, h, mi, round(s * _US_PER_S))
 
 
 def tai_minus_utc_s(jd_utc1: float, jd_utc2: float) -> int:
@@ -73,15 +89,45 @@ def utc_to_ut1(jd1: np.ndarray, jd2: np.ndarray, dut1_s: float = 0.0) -> tuple[n
     return erfa.utcut1(jd1, jd2, dut1_s)
 
 
-def format_iso_utc(when: datetime) -> str:
-    """A datetime (naive = UTC) as the session file's ISO string with milliseconds and a Z."""
-    if when.tzinfo is not None:
-        when = when.astimezone(timezone.utc).replace(tzinfo=None)
-    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
+# ------------------------------------------------------------------------------ wire time (POSIX microseconds)
+def iso_to_t_us(text: str) -> int:
+    """``2026-03-14T02:10:00.125Z`` -> microseconds since 1970 UTC, exact (decimals beyond the 6th are dropped; a
+    leap second 60.x maps onto the next minute)."""
+    m = _iso_match(text)
+    y, mo, d, h, mi = (int(m.group(k)) for k in range(1, 6))
+    frac_us = int(((m.group(7) or "") + "000000")[:6])
+    return (calendar.timegm((y, mo, d, h, mi, 0)) + int(m.group(6))) * _US_PER_S + frac_us
+
+
+def t_us_to_iso(t_us: int) -> str:
+    """Microseconds since 1970 UTC -> ISO 8601 with a Z: milliseconds when the time is on the millisecond grid
+    (the session files' usual form), microseconds otherwise."""
+    t_us = int(t_us)
+    if t_us % 1000 == 0:
+        return _iso_ms(np.array([t_us // 1000]))[0]
+    return str(np.datetime_as_string(np.datetime64(t_us, "us"), unit="us")) + "Z"
+
+
+def _iso_ms(t_ms: np.ndarray) -> np.ndarray:
+    """Milliseconds since 1970 UTC -> ISO strings with milliseconds and a Z (object array)."""
+    stamps = np.asarray(t_ms, dtype=np.int64).astype("datetime64[ms]")
+    return np.char.add(np.datetime_as_string(stamps, unit="ms"), "Z").astype(object)
+
+
+# ------------------------------------------------------------------------------------------------- time series
+def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame time strings (object array, ISO 8601 with ms and Z) and their UTC two-part Julian dates.
+
+    t_k = t0 (to the millisecond below) + round(k * interval in ms), civil time arithmetic (leap seconds are not
+    inserted), as :func:`iso_plus_seconds`."""
+    offsets_ms = np.round(np.arange(frames, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)
+    text = _iso_ms(iso_to_t_us(t0_iso) // 1000 + offsets_ms)
+    jd1, jd2 = parse_iso_utc_many(text)
+    return text, jd1, jd2
 
 
 def iso_plus_seconds(start_iso: str, seconds: float) -> str:
-    """``start_iso`` + ``seconds`` as an ISO string (civil time arithmetic; leap seconds are not inserted)."""
-    y, mo, d, h, mi, s = parse_iso_utc(start_iso)
-    base = datetime(y, mo, d, h, mi) + timedelta(seconds=s)
-    return format_iso_utc(base + timedelta(seconds=seconds))
+    """``start_iso`` + ``seconds`` as an ISO string with milliseconds (civil time arithmetic; leap seconds are not
+    inserted; the sum is rounded to the microsecond, then cut to the millisecond below)."""
+    t_us = iso_to_t_us(start_iso) + round(seconds * _US_PER_S)
+    return _iso_ms(np.array([t_us // 1000]))[0]

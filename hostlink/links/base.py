@@ -50,6 +50,11 @@ from protocol.messages import (
 
 #: Default time to wait for the sensor's answer to one command [s].
 DEFAULT_TIMEOUT_S = 2.0
+#: Commands that may be sent again (same tag) when their reply is lost on a noisy line: doing them twice is doing
+#: them once. Never COMMIT or STAGE_BEGIN (a second one would be refused as stale, or open a new staging session).
+IDEMPOTENT_COMMANDS = (GetStatus, StreamControl, StageChunk, StageVerify, ReadStaged, ReadActive, ReadEstimate)
+#: Sends of an idempotent command within one timeout (the first and the repeats, evenly spaced).
+COMMAND_SENDS = 2
 
 
 class CommandRefused(SensorRefused):
@@ -108,8 +113,9 @@ class Link(ABC):
         :attr:`stats` start from zero."""
 
     @abstractmethod
-    def stage_begin(self, length: int) -> None:
-        """Safe upload step 2a: clear the staging area for a table of ``length`` bytes."""
+    def stage_begin(self, length: int) -> int:
+        """Safe upload step 2a: clear the staging area for a table of ``length`` bytes; returns the new staging
+        session's nonce, which :meth:`commit` must carry."""
 
     @abstractmethod
     def stage_chunk(self, offset: int, data: bytes) -> None:
@@ -125,9 +131,11 @@ class Link(ABC):
         """Safe upload step 4: the staged set as the sensor holds it (``bank = STAGED``)."""
 
     @abstractmethod
-    def commit(self, crc32: int) -> int:
+    def commit(self, crc32: int, nonce: int = 0, expected_generation: int = 0) -> int:
         """Safe upload step 5: the sensor writes the verified staged set (CRC ``crc32``) into its inactive bank with
-        the next generation number and switches atomically. Returns the new generation."""
+        the next generation number and switches atomically, only if ``nonce`` is the current staging session's
+        (:meth:`stage_begin`'s answer) and ``expected_generation`` the active one (else NAK STALE_SESSION). Returns
+        the new generation."""
 
     @abstractmethod
     def read_active(self) -> ParamTable:
@@ -196,12 +204,19 @@ class MessageLink(Link):
         tag = next(self._tags)
         command = type(command)(**{**command.__dict__, "tag": tag})
         self._send(command)
-        deadline = time.monotonic() + self.timeout_s
+        start = time.monotonic()
+        deadline = start + self.timeout_s
+        sends = COMMAND_SENDS if isinstance(command, IDEMPOTENT_COMMANDS) else 1
+        next_send = start + self.timeout_s / sends
         while True:
-            remaining = deadline - time.monotonic()
+            now = time.monotonic()
+            remaining = deadline - now
             if remaining <= 0:
                 raise LinkError(f"{self.name}: no reply to {command.TYPE.name} within {self.timeout_s:g} s")
-            msg = self._receive(remaining)
+            if sends > 1 and now >= next_send:  # the command or its reply was lost: send it again
+                self._send(command)
+                next_send += self.timeout_s / sends
+            msg = self._receive(min(remaining, max(0.0, next_send - now)) if sends > 1 else remaining)
             if msg is None:
                 continue
             if isinstance(msg, (CentroidFrame, EndOfStream)):
@@ -230,8 +245,8 @@ class MessageLink(Link):
             self.stats.lost_messages = 0
             self.stats.corrupt_frames = 0
 
-    def stage_begin(self, length: int) -> None:
-        self.request(StageBegin(length=length), Ack)
+    def stage_begin(self, length: int) -> int:
+        return int(self.request(StageBegin(length=length), Ack).value)
 
     def stage_chunk(self, offset: int, data: bytes) -> None:
         self.request(StageChunk(offset=offset, data=bytes(data)), Ack)
@@ -242,8 +257,8 @@ class MessageLink(Link):
     def read_staged(self) -> ParamTable:
         return self.request(ReadStaged(), ParamTable)
 
-    def commit(self, crc32: int) -> int:
-        return int(self.request(Commit(crc32=crc32), Ack).value)
+    def commit(self, crc32: int, nonce: int = 0, expected_generation: int = 0) -> int:
+        return int(self.request(Commit(crc32=crc32, nonce=nonce, expected_generation=expected_generation), Ack).value)
 
     def read_active(self) -> ParamTable:
         return self.request(ReadActive(), ParamTable)

@@ -2,16 +2,18 @@
 
 Any log python-can reads (``can.LogReader``: Vector BLF ``.blf`` and ASC ``.asc``, python-can ``.csv``, PEAK ``.trc``,
 candump ``.log``, SQLite ``.db``...) of a bus with a star sensor on it: its stream frames (TIME_BASE, FRAME_HEADER,
-STAR, END_OF_STREAM; ``protocol.can_frames``) are decoded by the same :class:`~hostlink.links.can_link.StreamAssembler`
-as a live :class:`~hostlink.links.can_link.CanLink`, so an imported capture gives exactly the frames ``hostlink stream``
-would have recorded from the same bus. Everything else on the bus (commands, ACKs, ISO-TP, other nodes' identifiers,
-extended, remote and error frames) is skipped.
+STAR, FRAME_END, END_OF_STREAM; ``protocol.can_frames``) are decoded by the same
+:class:`~hostlink.links.can_link.StreamAssembler` as a live :class:`~hostlink.links.can_link.CanLink`, so an imported
+capture gives exactly the frames ``hostlink stream`` would have recorded from the same bus. Everything else on the bus
+(commands, ACKs, ISO-TP, other nodes' identifiers, extended, remote and error frames) is skipped.
 
-A frame whose header arrived but not all of its stars is dropped and counted (``incomplete``), as are frames missing
-from the frame counter (``counter_gaps``: lost on the bus, or exposures made while the stream was off) and frames that
-are not valid instances of their message (``corrupt``). Times come from the TIME_BASE frames, never from the log's
-timestamps. A capture whose frame counter goes backwards (the sensor restarted) or that holds stream frames on more
-than one channel cannot be one session: refused with a one-line :class:`UserError`.
+A frame is taken only when its FRAME_END matches (frame counter and CRC-32 over time, header and stars). A frame
+whose header arrived but not all of its stars or not its FRAME_END is dropped and counted (``incomplete``), as are
+frames missing from the frame counter without a trace (``counter_gaps``: lost on the bus, or exposures made while
+the stream was off) and CAN frames or whole frames that fail their checks (``corrupt``). Times come from the
+TIME_BASE frames, never from the log's timestamps. A capture whose frame counter goes backwards (the sensor
+restarted) or that holds stream frames on more than one channel cannot be one session: refused with a one-line
+:class:`UserError`.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from pathlib import Path
 
 import can
 
-from hostlink.errors import UserError
-from hostlink.links.can_link import STREAM_FRAME_IDS, StreamAssembler, _one_line
+from hostlink.errors import UserError, one_line
+from hostlink.links.can_link import STREAM_FRAME_IDS, StreamAssembler
 from protocol.messages import CentroidFrame, EndOfStream
 
 
@@ -65,7 +67,7 @@ def _messages(path: Path) -> Iterator[can.Message]:
     except Exception as exc:  # noqa: BLE001 - a third-party parser on a user's file: one line, never a traceback
         raise UserError(
             f"{path}: not a CAN log python-can reads (.blf, .asc, .csv, .trc, .log, .db ...): "
-            f"{_one_line(exc)} after {count} frames"
+            f"{one_line(exc)} after {count} frames"
         ) from None
 
 
@@ -102,7 +104,7 @@ def read_can_capture(path: str | Path, channel: str | None = None) -> CaptureImp
             result.ends += 1
     assembler.finish()
     result.incomplete = assembler.incomplete
-    result.counter_gaps = assembler.lost - assembler.incomplete
+    result.counter_gaps = assembler.lost - assembler.refused_between
     result.corrupt = assembler.corrupt
     if not result.frames:
         where = f" on channel {channel}" if channel is not None else ""

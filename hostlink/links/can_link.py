@@ -38,7 +38,7 @@ import can
 import isotp
 import numpy as np
 
-from hostlink.errors import LinkError, UserError
+from hostlink.errors import LinkError, UserError, one_line
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
 from protocol import can_frames as cf
 from protocol.messages import CentroidFrame, DecodeError, EncodeError, EndOfStream, Message, decode, encode
@@ -129,7 +129,7 @@ def open_bus(t: CanTarget) -> can.BusABC:
     try:
         return can.Bus(interface=t.interface, channel=channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
-        raise LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {_one_line(exc)}") from None
+        raise LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {one_line(exc)}") from None
 
 
 def _buffered_socket_url(url: str) -> str:
@@ -140,11 +140,6 @@ def _buffered_socket_url(url: str) -> str:
     if "hostlink.links.urlhandler" not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append("hostlink.links.urlhandler")
     return "bufsocket://" + url.split("://", 1)[1]
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text[:200]
 
 
 def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CanLink:
@@ -207,10 +202,17 @@ class IsoTpChannel:
 
 # --------------------------------------------------------------------------------------- stream decoding
 class StreamAssembler:
-    """Host-side decoding of the CAN centroid stream: TIME_BASE, FRAME_HEADER and STAR frames -> CentroidFrame.
+    """Host-side decoding of the CAN centroid stream: TIME_BASE, FRAME_HEADER, STAR and FRAME_END frames ->
+    CentroidFrame.
 
-    Counts ``lost`` frames (gaps in the frame counter, frames whose stars did not all arrive) and ``corrupt`` CAN
-    frames (a star without a header, a star of the wrong frame parity, a header before any time base).
+    A frame is delivered only when its FRAME_END arrives with the frame counter of its header and the CRC-32 of what
+    was received (``protocol.can_frames.frame_check``: exposure time, header, stars). ``lost`` counts the frames the
+    sensor sent that were not delivered, from the gaps between the counters of delivered frames (and, at
+    END_OF_STREAM, after the last one): a rejected frame is a lost frame, counted once. ``corrupt`` counts the CAN
+    frames and assembled frames that were refused (bad length, a star without a header, a FRAME_END that does not
+    match its frame); ``incomplete``: frames refused because stars were missing or extra or their FRAME_END never
+    came; ``refused_between``: frames refused (incomplete or corrupt) between two delivered frames, so
+    ``lost - refused_between`` frames left no trace at all.
     """
 
     def __init__(self) -> None:
@@ -219,18 +221,20 @@ class StreamAssembler:
 
     def reset(self) -> None:
         self.t_base_us: int | None = None
-        self._frame: tuple[int, int, int] | None = None  # frame, n_stars, t_us
-        self._words: list[int] = []
+        self._frame: tuple[int, int, int, bytes] | None = None  # frame, n_stars, t_us, header payload
+        self._stars = bytearray()
         self._last_frame: int | None = None
         self.lost = 0
         self.corrupt = 0
-        self.incomplete = 0  # of ``lost``: frames whose header arrived but not all their stars
+        self.incomplete = 0
+        self.refused_between = 0
+        self._refused_pending = 0  # refused since the last delivered frame
 
     def forget_sequence(self) -> None:
         """Start loss counting afresh (a new stream), keeping the time base."""
         with self._lock:
-            self._frame, self._words, self._last_frame = None, [], None
-            self.lost = self.corrupt = self.incomplete = 0
+            self._frame, self._stars, self._last_frame = None, bytearray(), None
+            self.lost = self.corrupt = self.incomplete = self.refused_between = self._refused_pending = 0
 
     def feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
         """One received stream frame; the completed message, if this frame completed one."""
@@ -240,16 +244,17 @@ class StreamAssembler:
     def _feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
         try:
             if frame_id == cf.STAR.frame_id:
-                return self._star(data)
-            if frame_id == cf.FRAME_HEADER.frame_id:
-                return self._header(*cf.decode_header(data))
-            if frame_id == cf.TIME_BASE.frame_id:
+                self._star(data)
+            elif frame_id == cf.FRAME_HEADER.frame_id:
+                self._header(bytes(data))
+            elif frame_id == cf.FRAME_END.frame_id:
+                return self._end(*cf.decode_frame_end(data))
+            elif frame_id == cf.TIME_BASE.frame_id:
                 self.t_base_us = cf.decode_time_base(data)
-                return None
-            if frame_id == cf.END_OF_STREAM.frame_id:
-                self._abandon()
+            elif frame_id == cf.END_OF_STREAM.frame_id:
                 frames_sent, last_frame = cf.decode_end_of_stream(data)
-                if frames_sent and self._last_frame is not None:
+                self._abandon()
+                if self._last_frame is not None:
                     self.lost += (last_frame - self._last_frame) % (1 << 32)  # frames lost after the last received
                     self._last_frame = last_frame
                 return EndOfStream(frames_sent=frames_sent)
@@ -258,52 +263,71 @@ class StreamAssembler:
         return None
 
     def finish(self) -> None:
-        """The input ended (the end of a capture): a frame still waiting for stars is dropped and counted."""
+        """The input ended (the end of a capture): a frame still waiting for its end is dropped."""
         with self._lock:
             self._abandon()
 
     def _abandon(self) -> None:
         if self._frame is not None:
-            self.lost += 1  # its remaining stars never came
-            self.incomplete += 1
-            self._frame, self._words = None, []
+            self.incomplete += 1  # its FRAME_END never came (counted as lost at the next delivered frame)
+            self._refused_pending += 1
+            self._frame, self._stars = None, bytearray()
 
-    def _header(self, frame: int, n_stars: int, t_offset_us: int) -> CentroidFrame | None:
+    def _header(self, header: bytes) -> None:
         self._abandon()
-        if self._last_frame is not None:
-            self.lost += (frame - self._last_frame - 1) % (1 << 32)
-        self._last_frame = frame
+        frame, n_stars, t_offset_us = cf.decode_header(header)
         if self.t_base_us is None:
             self.corrupt += 1  # joined mid-stream before a time base: the exposure time is unknown
-            return None
-        self._frame = (frame, n_stars, self.t_base_us + t_offset_us)
-        return self._complete() if n_stars == 0 else None
+            return
+        self._frame = (frame, n_stars, self.t_base_us + t_offset_us, header)
 
-    def _star(self, data: bytes) -> CentroidFrame | None:
+    def _star(self, data: bytes) -> None:
         if len(data) != cf.CAN_PAYLOAD_BYTES or self._frame is None:
             self.corrupt += 1
-            return None
-        word = int.from_bytes(data, "little")
-        if (word >> 63) != (self._frame[0] & 1):  # frame_parity is the top bit (protocol.can_frames.STAR)
-            self.corrupt += 1
-            self._abandon()
-            return None
-        self._words.append(word)
-        return self._complete() if len(self._words) == self._frame[1] else None
+            return
+        self._stars += data
 
-    def _complete(self) -> CentroidFrame:
-        frame, _, t_us = self._frame
-        star_id, x, y, _ = cf.decode_stars(np.array(self._words, dtype=np.uint64))
-        self._frame, self._words = None, []
+    def _end(self, frame: int, frame_crc32: int) -> CentroidFrame | None:
+        pending, stars = self._frame, bytes(self._stars)
+        self._frame, self._stars = None, bytearray()
+        if pending is None:
+            self.corrupt += 1  # an end without its header
+            return None
+        number, n_stars, t_us, header = pending
+        if len(stars) != n_stars * cf.CAN_PAYLOAD_BYTES:
+            self.incomplete += 1
+            self._refused_pending += 1
+            return None
+        if number != frame or cf.frame_check(t_us, header, stars) != frame_crc32:
+            self.corrupt += 1
+            self._refused_pending += 1
+            return None
+        if self._last_frame is not None:
+            self.lost += (number - self._last_frame - 1) % (1 << 32)
+            self.refused_between += self._refused_pending
+        self._refused_pending = 0
+        self._last_frame = number
+        star_id, x, y, _ = cf.decode_stars(cf.payload_words(stars))
         return CentroidFrame(
-            frame=frame, t_us=t_us, star_id=star_id, x_px=x, y_px=y, mag=np.full(star_id.shape[0], math.nan)
+            frame=number, t_us=t_us, star_id=star_id, x_px=x, y_px=y, mag=np.full(star_id.shape[0], math.nan)
         )
 
 
+#: What python-can's serial-line adapters (slcan) raise for a garbled line (bad hex, bad digit, non-UTF-8, short
+#: line): the line is skipped, the link goes on. A closed port raises CanOperationError and ends the link.
+_ADAPTER_LINE_ERRORS = (ValueError, IndexError, KeyError)
+
+
+def _garbled_line(exc: BaseException) -> bool:
+    """True for a garbled adapter line (python-can wraps the slcan reader's UnicodeDecodeError in a
+    CanOperationError); False for a port that is gone (its cause is an OSError / SerialException)."""
+    return isinstance(exc, _ADAPTER_LINE_ERRORS) or isinstance(exc.__cause__, _ADAPTER_LINE_ERRORS)
+
+
 #: Identifiers of the stream frames (everything StreamAssembler decodes).
-STREAM_FRAME_IDS = frozenset(m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.TIME_BASE, cf.END_OF_STREAM))
-if cf.STAR.signal("frame_parity").start != 63:  # pragma: no cover - _star reads the parity as bit 63
-    raise ImportError("STAR.frame_parity moved; update StreamAssembler._star")
+STREAM_FRAME_IDS = frozenset(
+    m.frame_id for m in (cf.STAR, cf.FRAME_HEADER, cf.FRAME_END, cf.TIME_BASE, cf.END_OF_STREAM)
+)
 
 
 # ---------------------------------------------------------------------------------------------- the link
@@ -322,6 +346,7 @@ class CanLink(MessageLink):
         self._assembler = StreamAssembler()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_HOST_TO_SENSOR_ID, cf.ISOTP_SENSOR_TO_HOST_ID)
         self._failure: str | None = None
+        self._adapter_errors = 0  # garbled adapter lines skipped (see _resynchronise)
         self._closing = threading.Event()
         self._reader = threading.Thread(target=self._read_loop, name="can-link-reader", daemon=True)
         self._reader.start()
@@ -335,15 +360,31 @@ class CanLink(MessageLink):
     def _read_loop(self) -> None:
         try:
             while not self._closing.is_set():
-                msg = self._bus.recv(_POLL_BUSY_S if self._isotp.busy else _POLL_IDLE_S)
+                try:
+                    msg = self._bus.recv(_POLL_BUSY_S if self._isotp.busy else _POLL_IDLE_S)
+                except (*_ADAPTER_LINE_ERRORS, can.CanOperationError) as exc:
+                    if not _garbled_line(exc):
+                        raise
+                    self._resynchronise()
+                    continue
                 if msg is not None:
                     self._dispatch(msg)
                 for payload in self._isotp.poll():
                     self._deliver_payload(payload)
         except Exception as exc:  # noqa: BLE001 - any bus failure ends the link with one line
             if not self._closing.is_set():
-                self._failure = _one_line(exc)
+                self._failure = one_line(exc)
                 self._inbox.put(None)  # wake a waiting _receive
+
+    def _resynchronise(self) -> None:
+        """A garbled line from a serial CAN adapter (SLCAN: a bad hex digit, a non-ASCII byte, a lost carriage
+        return): count it and go on at the next line. python-can's slcan parser keeps an undecodable (non-UTF-8) line
+        in its buffer; ``flush`` drops it (and bytes not yet read, whose frames are then counted as lost)."""
+        self.stats.corrupt_frames += 1
+        self._adapter_errors += 1
+        flush = getattr(self._bus, "flush", None)
+        if flush is not None:
+            flush()
 
     def _dispatch(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
@@ -354,7 +395,7 @@ class CanLink(MessageLink):
         if fid in STREAM_FRAME_IDS:
             out = self._assembler.feed(fid, data)
             self.stats.lost_messages = self._assembler.lost
-            self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors
+            self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors + self._adapter_errors
             if out is not None:
                 self.stats.rx_messages += 1
                 self._inbox.put(out)
@@ -392,7 +433,7 @@ class CanLink(MessageLink):
         except EncodeError as exc:
             raise LinkError(f"{self.name}: cannot encode {type(msg).__name__}: {exc}") from None
         except (can.CanError, OSError) as exc:
-            raise LinkError(f"{self.name}: CAN send failed ({_one_line(exc)})") from None
+            raise LinkError(f"{self.name}: CAN send failed ({one_line(exc)})") from None
 
     def _receive(self, timeout_s: float) -> Message | None:
         self._check_alive()
@@ -426,24 +467,16 @@ class CanLink(MessageLink):
 
 
 def can_frames_for(frames: list[CentroidFrame]) -> int:
-    """CAN frames the sensor puts on the bus for these centroid frames: one FRAME_HEADER per frame, one STAR per
-    star, and a TIME_BASE wherever the sensor needs one (the first frame, and when an offset would not fit)."""
-    t_base: int | None = None
-    n = 0
-    for f in frames:
-        if cf.needs_time_base(f.t_us, t_base):
-            t_base = f.t_us
-            n += 1
-        n += 1 + f.n_stars
-    return n
+    """CAN frames the sensor puts on the bus for these centroid frames (``protocol.can_frames.StreamEncoder``: per
+    frame a FRAME_HEADER, one STAR per star and a FRAME_END, plus the TIME_BASEs of its policy)."""
+    encoder = cf.StreamEncoder()
+    return sum(len(encoder.encode(f)) for f in frames)
 
 
 def physical_limit_stars_per_s(frames: list[CentroidFrame], info: dict) -> float:
     """Most stars per second a CAN bus at ``info["bitrate"]`` carries for these frames: every frame is a worst-case
-    8-byte standard frame of 135 bits (``slcan_hub.frame_bits_worst_case``), so stars/s = bitrate / 135 / (CAN
-    frames per star). Benchmark hook of benchmarks/bench_links.py (hostlink/links/INTERFACE.md)."""
-    from hostlink.emulator.slcan_hub import frame_bits_worst_case
-
+    8-byte standard frame of 135 bits (``protocol.can_frames.frame_bits_worst_case``), so stars/s = bitrate / 135 /
+    (CAN frames per star). Benchmark hook of benchmarks/bench_links.py (hostlink/links/INTERFACE.md)."""
     stars = sum(f.n_stars for f in frames)
-    bits = frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False)
+    bits = cf.frame_bits_worst_case(cf.CAN_PAYLOAD_BYTES, False)
     return float(info["bitrate"]) / bits * stars / can_frames_for(frames)

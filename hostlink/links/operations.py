@@ -3,17 +3,20 @@ are the same on serial, CAN and Modbus, and against real or emulated sensors.
 
 * :func:`stream_frames`: record N centroid frames, counting lost messages from sequence numbers;
 * :func:`safe_upload`: the six-step safe upload (issue 6):
-  1. the host validates the set (``onboard.params.validate_params`` and ``onboard.prior.validate_sigma``, the
-     sensor's own checks);
-  2. the host stages its float32 table (``protocol.param_table``: the camera parameters and their 1-sigma prior,
-     which the sensor's estimator restarts from) on the sensor in chunks;
-  3. the sensor verifies the staged bytes against the CRC-32 and their ranges (NAK with a reason otherwise);
+  1. the host reads the active set (its generation) and checks the new set's plausibility
+     (``onboard.params.check_plausible``, the sensor's own rules, and ``onboard.prior.validate_sigma``);
+  2. the host opens a staging session (the sensor answers with a fresh nonce) and stages its float32 table
+     (``protocol.param_table``: the camera parameters and their 1-sigma prior, which the sensor's estimator restarts
+     from) on the sensor in chunks;
+  3. the sensor verifies the staged bytes against the CRC-32 and its plausibility rules (NAK naming the rule);
   4. the host reads the staged set back and compares it byte for byte;
-  5. the sensor commits it to its inactive A/B bank with the next generation and CRC, and switches atomically;
+  5. the sensor commits it to its inactive A/B bank with the next generation and CRC, and switches atomically, only
+     if the COMMIT carries the session's nonce and the generation read in step 1 (recorded, stale or reordered
+     traffic commits nothing);
   6. the host reads the active set back: success only if it equals the uploaded table (float32, bit for bit) under
      the new generation.
-  Until step 5 nothing on the sensor but its RAM staging area changes, so an interrupted upload leaves the old set
-  active; the firmware (``onboard.firmware``) enforces that order whatever the host does.
+  Until step 5 nothing on the sensor but its staging area and its session counter changes, so an interrupted upload
+  leaves the old set active; the firmware (``onboard.firmware``) enforces that order whatever the host does.
 * :func:`read_active_params`, :func:`read_estimate`, :func:`accept_estimate` (the onboard estimate committed through
   the same safe upload).
 """
@@ -30,15 +33,14 @@ import numpy as np
 
 from hostlink.errors import LinkError, UserError
 from hostlink.files.session import Session
-from hostlink.files.wiretime import t_us_to_iso
+from hostlink.files.times import t_us_to_iso
 from hostlink.links.base import CommandRefused, Link
 from onboard.banks import params_to_table, table_to_params, table_to_sigma
-from onboard.firmware import estimate_to_params, estimate_to_sigma
-from onboard.params import CameraParams, ParameterError, validate_params
+from onboard.firmware import estimate_convergence, estimate_to_params, estimate_to_sigma
+from onboard.params import CameraParams, ParameterError, PlausibilityLimits, check_plausible
 from onboard.prior import sigma_to_dict, validate_sigma
-from protocol.crc import crc32
 from protocol.messages import ESTIMATE_FIELDS, CentroidFrame, Estimate, NakCode
-from protocol.param_table import TABLE_BYTES, decode_table
+from protocol.param_table import TABLE_BYTES, camera_file_from_fields, table_crc, table_to_mapping
 
 
 class UploadMismatch(UserError):
@@ -305,17 +307,30 @@ def safe_upload(
         if step is not None:
             step(k, text)
 
-    if host_check:
+    def host_refusal(limits: PlausibilityLimits | None) -> None:
         try:
-            validate_params(params)
+            check_plausible(params, limits)
             if sigma is not None:
                 validate_sigma(sigma)
         except ParameterError as exc:
             raise UserError(f"parameter set refused by the host check: {exc}") from None
-    report(1, "validated on the host")
+
+    if host_check:
+        host_refusal(None)  # everything but the focal-length rule, before a byte is sent
+    try:  # the generation this upload replaces (COMMIT carries it)
+        current = read_active_params(link)
+    except CommandRefused as exc:
+        if exc.code != NakCode.NOT_STAGED:
+            raise
+        current = None  # blank flash: nothing committed yet, generation 0
+    if host_check and current is not None:
+        # the sensor's design focal length is known to the sensor only: the host holds the set to the same
+        # tolerance around the active set's (which the sensor held to its design)
+        host_refusal(PlausibilityLimits(current.params.focal_length_mm, design_name="active set's"))
+    report(1, "validated on the host (plausibility)")
     table = params_to_table(params, sigma)
-    crc = crc32(table)
-    link.stage_begin(len(table))
+    crc = table_crc(table)
+    nonce = link.stage_begin(len(table))
     for offset, piece in chunks(table, link.max_chunk_bytes):
         link.stage_chunk(offset, piece)
     report(2, f"staged {len(table)} bytes in {-(-len(table) // link.max_chunk_bytes)} chunks")
@@ -328,7 +343,7 @@ def safe_upload(
             f"0x{crc:08x}); nothing was committed"
         )
     report(4, "staged set read back equal")
-    generation = link.commit(crc)
+    generation = link.commit(crc, nonce=nonce, expected_generation=0 if current is None else current.generation)
     report(5, f"committed as generation {generation}")
     active = link.read_active()
     if bytes(active.table) != table or active.crc32 != crc or active.generation != generation:
@@ -369,7 +384,7 @@ def read_active_params(link: Link) -> ActiveParams:
     not a parameter set, or the link fails."""
     active = link.read_active()
     table = bytes(active.table)
-    if len(table) != TABLE_BYTES or crc32(table) != active.crc32:
+    if len(table) != TABLE_BYTES or table_crc(table) != active.crc32:
         raise LinkError(f"{link.name}: active set arrived with a CRC that does not match its bytes")
     try:
         params = table_to_params(table)
@@ -385,10 +400,14 @@ def read_estimate(link: Link) -> Estimate:
     return link.read_estimate()
 
 
-def accept_estimate(link: Link, step: Callable[[int, str], None] | None = None) -> tuple[UploadResult, Estimate]:
+def accept_estimate(
+    link: Link, step: Callable[[int, str], None] | None = None, force: bool = False
+) -> tuple[UploadResult, Estimate]:
     """Commit the sensor's current onboard estimate, with its own 1-sigma as the new set's prior (the active set's
     sigma for parameters it does not estimate), through the safe upload. Refused (UserError) if the estimate started
-    from another set than the active one (it was read across a commit) or fails validation."""
+    from another set than the active one (it was read across a commit), is not converged
+    (:func:`onboard.firmware.estimate_convergence`; ``force`` skips that test only) or fails the plausibility
+    check."""
     active = read_active_params(link)
     estimate = link.read_estimate()
     if estimate.base_generation != active.generation:
@@ -396,6 +415,9 @@ def accept_estimate(link: Link, step: Callable[[int, str], None] | None = None) 
             f"the onboard estimate started from generation {estimate.base_generation} but generation "
             f"{active.generation} is active; read it again"
         )
+    why = None if force else estimate_convergence(active.params, estimate)
+    if why is not None:
+        raise UserError(f"the onboard estimate has not converged: {why} (--force commits it anyway)")
     params = estimate_to_params(active.params, estimate)
     sigma = estimate_to_sigma(active.sigma, estimate)
     return safe_upload(link, params, step=step, sigma=sigma), estimate
@@ -410,15 +432,7 @@ def params_float32_dict(params: CameraParams, sigma: np.ndarray | None = None) -
     """A camera parameter file object with every value written as its shortest float32 decimal, plus a ``sigma``
     object (the set's 1-sigma prior, null = unknown) when any sigma is known."""
     table = params_to_table(params, sigma)
-    v = decode_table(table)
-    s = [shortest_float32(x) for x in v]
-    out = {
-        "focal_length_mm": s[0],
-        "pixel_pitch_um": s[1],
-        "principal_point_px": [s[2], s[3]],
-        "image_size_px": [int(v[4]), int(v[5])],
-        "distortion": dict(zip(("k1", "k2", "k3", "p1", "p2", "s1", "s2"), s[6:13], strict=True)),
-    }
+    out = camera_file_from_fields({name: shortest_float32(v) for name, v in table_to_mapping(table).items()})
     sig = sigma_to_dict(table_to_sigma(table), shortest_float32)
     if sig is not None:
         out["sigma"] = sig

@@ -19,6 +19,11 @@ from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
 from protocol.framing import FrameSplitter, FramingError, decode_frame, encode_frame, seq_gap
 from protocol.messages import DecodeError, Message, decode, encode
 
+try:  # pyserial's POSIX flush() raises termios.error (not an OSError) when the other end of a pty is gone
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - not POSIX
+    _TermiosError = OSError
+
 DEFAULT_BAUD = 921_600
 #: Bytes per STAGE_CHUNK on serial (a table goes in two chunks, so chunking is always exercised).
 SERIAL_CHUNK_BYTES = 32
@@ -56,7 +61,7 @@ class SerialLink(MessageLink):
         try:
             self._port.write(data)
             self._port.flush()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, _TermiosError) as exc:
             raise LinkError(f"{self.name}: write failed ({_reason(exc)})") from None
         self.stats.tx_bytes += len(data)
 

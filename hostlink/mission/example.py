@@ -14,13 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import write_text
 from hostlink.files.params import load_params, save_params
-from hostlink.sky.simulate import data_file
 
-#: Files written by :func:`write_example`: name in the example directory -> package data file (``hostlink/data``).
+#: Files written by :func:`write_example`: name in the example directory -> the package data it copies.
 EXAMPLE_FILES: dict[str, str] = {
-    "nominal.json": "seed004_nominal.json",
-    "true-camera.json": "seed004_camera.json",
+    "nominal.json": "builtin:seed004_nominal",
+    "true-camera.json": "builtin:seed004_camera",
 }
 
 #: The worked session, run from the example directory (the README shows the same commands).
@@ -83,12 +83,6 @@ def write_example(directory: str | Path, overwrite: bool = False) -> ExampleFile
     if directory.exists() and not directory.is_dir():
         raise UserError(f"{directory}: not a directory")
     for name, source in EXAMPLE_FILES.items():
-        save_params(directory / name, load_params(data_file(source)))
-    readme = directory / "README.txt"
-    tmp = readme.with_name(readme.name + ".tmp")
-    try:
-        tmp.write_text(readme_text(), encoding="utf-8")
-        tmp.replace(readme)
-    except OSError as exc:
-        raise UserError(f"{readme}: cannot write ({exc.strerror})") from None
+        save_params(directory / name, load_params(source))
+    write_text(directory / "README.txt", readme_text())
     return ExampleFiles(directory, tuple(targets))

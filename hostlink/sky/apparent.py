@@ -109,12 +109,19 @@ def apparent_radec_deg(
     return np.degrees(ra), np.degrees(dec)
 
 
-def hip_lookup(cat: Catalogue, hip_ids: np.ndarray) -> np.ndarray:
-    """Catalogue row of each Hipparcos number (int64 array). Raises :class:`UserError` naming the first unknown."""
+def hip_find(cat: Catalogue, hip_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(catalogue row (int64; meaningless where not found), found (bool)) of each Hipparcos number."""
     hip_ids = np.atleast_1d(np.asarray(hip_ids, dtype=np.int64))
     pos = np.searchsorted(cat.hip, hip_ids)
     pos_c = np.minimum(pos, max(len(cat) - 1, 0))
     found = (pos < len(cat)) & (cat.hip[pos_c] == hip_ids) if len(cat) else np.zeros(hip_ids.shape, dtype=bool)
+    return pos_c.astype(np.int64), found
+
+
+def hip_lookup(cat: Catalogue, hip_ids: np.ndarray) -> np.ndarray:
+    """Catalogue row of each Hipparcos number (int64 array). Raises :class:`UserError` naming the first unknown."""
+    hip_ids = np.atleast_1d(np.asarray(hip_ids, dtype=np.int64))
+    pos_c, found = hip_find(cat, hip_ids)
     if not np.all(found):
         bad = int(hip_ids[np.argmax(~found)])
         raise UserError(f"star_id {bad}: not in the Hipparcos catalogue (within its magnitude limit)")

@@ -10,13 +10,13 @@ catalogue file's size and modification time; a cached load takes a few milliseco
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import atomic_open
 
 #: Epoch of the Hipparcos astrometry: J1991.25 as a TT Julian date (ESA 1997, vol. 1, sec. 1.2.3).
 HIPPARCOS_EPOCH_JD_TT = 2448349.0625
@@ -92,12 +92,9 @@ def _cache_path(source: Path) -> Path:
 def _write_cache(path: Path, cat: Catalogue) -> None:
     # a cache that cannot be written is not an error: the next run parses again
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-        with os.fdopen(fd, "wb") as handle:
+        with atomic_open(path, binary=True) as handle:
             np.savez_compressed(handle, **{f.name: getattr(cat, f.name) for f in fields(cat)})
-        os.replace(tmp, path)
-    except OSError:
+    except UserError:
         pass
 
 

@@ -14,6 +14,14 @@ the bench's replay file for a ground sensor) asks :func:`session_references`; no
    formula, one place), per frame, with that frame's zenith and site velocity from ERFA
    (:mod:`hostlink.sky.site`: gst06a and pvtob). A calibration or replay against these references is not biased
    by the atmosphere, however far from the zenith the session looked.
+3. Time unknown (every ``t_utc`` empty): the file's ``ra_deg, dec_deg`` are taken as J2000 catalogue (ICRS)
+   directions, or without them the Hipparcos place at J2000.0 (proper motion applied, ``erfa.pmsafe``). They differ
+   from the apparent place of date by precession and nutation (a rotation, which a per-frame attitude absorbs) and by
+   annual aberration (up to 20.5", not a rotation: it changes interstar angles by up to 20.5" x the pair's angle in
+   radians), so only jobs that work on interstar angles can use them, with that loss (:data:`ABERRATION_MAX_RAD`).
+
+Identified rows whose ``star_id`` Hipparcos does not have (when the file gives no ra/dec) are skipped and named in
+:attr:`SessionReferences.unknown`, never fatal.
 """
 
 from __future__ import annotations
@@ -28,9 +36,14 @@ from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
 from onboard.site import Site, Weather
 
-#: ``SessionReferences.source`` values: the session's own columns, or Hipparcos apparent place through ERFA.
+#: ``SessionReferences.source`` values: the session's own columns, or Hipparcos apparent place through ERFA; and,
+#: with the time unknown, the file's columns as J2000 catalogue directions or Hipparcos at J2000.0.
 SOURCE_FILE = "file"
 SOURCE_HIPPARCOS = "hipparcos"
+SOURCE_FILE_J2000 = "file-j2000"
+SOURCE_HIPPARCOS_J2000 = "hipparcos-j2000"
+#: Largest annual aberration [rad]: v_earth / c = 29.8 km/s / c = 20.5" (IERS Conventions, the constant of aberration).
+ABERRATION_MAX_RAD = 20.49552 / 206264.806
 
 
 @dataclass(frozen=True)
@@ -40,14 +53,27 @@ class SessionReferences:
     r: (N, 3) float64 unit vectors, true equator and equinox of date (topocentric observed with a site); NaN rows
     where :attr:`usable` is False.
     usable: (N,) bool, an identified star (``star_id`` != 0) with a finite reference direction.
-    source: ``"file"`` (the session's ra_deg/dec_deg) or ``"hipparcos"`` (apparent place through ERFA).
+    source: ``"file"`` (the session's ra_deg/dec_deg) or ``"hipparcos"`` (apparent place through ERFA); with the
+    time unknown ``"file-j2000"`` or ``"hipparcos-j2000"`` (module docstring, item 3).
     refraction: ``"none"`` (geocentric), or a one-line description of the site correction that was applied.
+    unknown: (N,) bool, identified rows whose star_id is not in the Hipparcos catalogue (skipped); None: no row.
     """
 
     r: np.ndarray
     usable: np.ndarray
     source: str
     refraction: str = "none"
+    unknown: np.ndarray | None = None
+
+    @property
+    def time_known(self) -> bool:
+        """False when the directions are J2000 catalogue places (the session gave no time)."""
+        return self.source not in (SOURCE_FILE_J2000, SOURCE_HIPPARCOS_J2000)
+
+    @property
+    def unknown_rows(self) -> np.ndarray:
+        """Session rows (int64) whose star_id Hipparcos does not have."""
+        return np.zeros(0, dtype=np.int64) if self.unknown is None else np.flatnonzero(self.unknown)
 
     @property
     def n_rows(self) -> int:
@@ -62,27 +88,36 @@ class SessionReferences:
 def geocentric_references(session: Session, catalogue: Catalogue | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """(r (N, 3) float64, usable (N,) bool, source) of every row: geocentric apparent unit vectors, true equator and
     equinox of date, from the file's ra_deg/dec_deg [deg] when it has them, else from Hipparcos (``catalogue``,
-    default the full bundled one) at each frame's UTC. NaN rows for unidentified stars. An identified star_id
-    unknown to Hipparcos is a one-line :class:`UserError`."""
-    from hostlink.sky.apparent import apparent_directions, hip_lookup
+    default the full bundled one) at each frame's UTC; with the time unknown, J2000 catalogue directions (module
+    docstring, item 3). NaN rows for unidentified stars and for star_ids Hipparcos does not have (not usable:
+    :attr:`SessionReferences.unknown` names them)."""
+    from hostlink.sky.apparent import apparent_directions, hip_find, stars_at_j2000
 
     n = len(session)
     identified = session.star_id != 0
     r = np.full((n, 3), np.nan)
+    timed = session.time_known
     if session.ra_deg is not None and session.dec_deg is not None:
         ok = identified & np.isfinite(session.ra_deg) & np.isfinite(session.dec_deg)
         r[ok] = radec_to_unit(np.radians(session.ra_deg[ok]), np.radians(session.dec_deg[ok]))
-        return r, ok, SOURCE_FILE
+        return r, ok, SOURCE_FILE if timed else SOURCE_FILE_J2000
+    usable = identified.copy()
     if np.any(identified):
         if catalogue is None:
             from hostlink.sky.catalogue import load_catalogue
 
             catalogue = load_catalogue()
-        rows = hip_lookup(catalogue, session.star_id[identified])
-        jd1, jd2 = session.frame_times_jd()
-        frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[identified]
-        r[identified] = apparent_directions(catalogue, rows, jd1[frame_of_row], jd2[frame_of_row])
-    return r, identified.copy(), SOURCE_HIPPARCOS
+        rows, found = hip_find(catalogue, session.star_id[identified])
+        usable[identified] = found
+        rows = rows[found]
+        if timed:
+            jd1, jd2 = session.frame_times_jd()
+            frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[usable]
+            r[usable] = apparent_directions(catalogue, rows, jd1[frame_of_row], jd2[frame_of_row])
+        elif rows.size:
+            stars = stars_at_j2000(catalogue, rows)
+            r[usable] = radec_to_unit(stars.ra_rad, stars.dec_rad)
+    return r, usable, SOURCE_HIPPARCOS if timed else SOURCE_HIPPARCOS_J2000
 
 
 def topocentric_references(
@@ -128,21 +163,33 @@ def session_references(
     weather: Weather | None = None,
     dut1_s: float = 0.0,
     catalogue: Catalogue | None = None,
+    skip_unknown_ids: bool = False,
 ) -> SessionReferences:
     """The reference direction of every row of ``session`` at its frame's time (module docstring): geocentric
     apparent place, and with ``site`` as observed there (diurnal aberration; with ``weather`` also refraction).
     ``dut1_s`` = UT1 - UTC [s] (the site's orientation). Raises :class:`UserError` for weather without a site and
-    for an identified star_id that Hipparcos does not have (when the file has no ra_deg/dec_deg)."""
+    for a site when the session gives no time. An identified star_id Hipparcos does not have (when the file has no
+    ra_deg/dec_deg) is a one-line :class:`UserError`, or with ``skip_unknown_ids`` a row that is not usable and is
+    listed in :attr:`SessionReferences.unknown` (batch calibration skips and reports them)."""
     if weather is not None and site is None:
         raise UserError("weather without a site: refraction depends on where the sensor is")
+    if site is not None and not session.time_known:
+        raise UserError("--site needs the time of every frame, and the session gives none (t_utc empty)")
     r, usable, source = geocentric_references(session, catalogue)
+    unknown = (session.star_id != 0) & ~usable if source in (SOURCE_HIPPARCOS, SOURCE_HIPPARCOS_J2000) else None
+    if unknown is not None and not skip_unknown_ids and np.any(unknown):
+        k = int(np.argmax(unknown))
+        raise UserError(
+            f"star_id {int(session.star_id[k])}: not in the Hipparcos catalogue (within its magnitude limit), "
+            f"row {k} (line {k + 2})"
+        )
     if site is None or not np.any(usable):
-        return SessionReferences(r, usable, source)
+        return SessionReferences(r, usable, source, unknown=unknown)
     rows = np.flatnonzero(usable)
     sub = session.select(rows)
     jd1, jd2 = sub.frame_times_jd()
     r[rows] = topocentric_references(r[rows], sub.frame_starts, jd1, jd2, site, weather, dut1_s)
-    return SessionReferences(r, usable, source, site_correction_text(site, weather))
+    return SessionReferences(r, usable, source, site_correction_text(site, weather), unknown)
 
 
 def session_with_references(session: Session, references: SessionReferences) -> Session:

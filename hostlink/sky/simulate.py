@@ -20,33 +20,33 @@ Per frame k (time t_k = t0 + k * interval, on the session file's 1 ms grid):
 
 The CSV's ra_deg/dec_deg are always the geocentric apparent place (never refracted), as INTERFACES.md defines them.
 The truth (camera, noise, per-frame C and f, misidentified and false rows, site, weather) is a compact JSON beside
-the session (``SESSION.truth.json``), with per-frame quantities stored as arrays.
+the session (``SESSION.truth.json``, ``hostlink.files.truth``), with per-frame quantities stored as arrays.
 
 Star lookup: the catalogue's apparent directions are evaluated once per half-day bucket of frame times; a frame's
 candidates are the stars within the detector's half-diagonal field plus a margin (``_LOOKUP_MARGIN_RAD``, covering
 the drift of aberration, precession-nutation and proper motion over half a day, < 1", and the refraction lift).
 The candidates' exact directions then come from ERFA at each frame's own time: nothing is interpolated.
 
-Camera files: ``hostlink/data/seed004_camera.json`` is seed 004's simulated camera (f 70.2262 mm, 12 um, 1024 x 1024,
-principal point (500, 530), seed k1 2e-10, k2 -3.5e-15 converted by ``onboard.params.distortion_from_seed004``);
-``hostlink/data/seed004_nominal.json`` is what its user knows before calibrating: the 70 mm design focal length, the
-detector's pitch and size, the principal point at the image centre (511.5, 511.5) and no distortion.
+Camera files (package data, ``load_params("builtin:NAME")``): ``seed004_camera`` is seed 004's simulated camera
+(f 70.2262 mm, 12 um, 1024 x 1024, principal point (500, 530), seed k1 2e-10, k2 -3.5e-15 converted by
+``onboard.params.distortion_from_seed004``); ``seed004_nominal`` is what its user knows before calibrating: the
+70 mm design focal length, the detector's pitch and size, the principal point at the image centre (511.5, 511.5)
+and no distortion.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.params import BUILTIN_PREFIX, load_params
 from hostlink.files.session import Session
-from hostlink.files.times import parse_iso_utc, parse_iso_utc_many
+from hostlink.files.times import frame_times, parse_iso_utc, parse_iso_utc_many
+from hostlink.files.truth import TRUTH_FORMAT, TRUTH_VERSION
 from hostlink.sky.apparent import StarsJ2000, apparent_from_astrometry, frame_astrometry, stars_at_j2000
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.site import (
@@ -60,12 +60,8 @@ from hostlink.sky.site import (
     zenith_true_of_date,
 )
 from onboard.camera import distortion_px, pixels_to_unit, unit_to_pixels, unit_to_radec
-from onboard.params import CameraParams, distortion_from_seed004, params_from_dict, params_to_dict
+from onboard.params import CameraParams, params_to_dict
 from onboard.site import Site, Weather
-
-TRUTH_FORMAT = "startracker-companion simulation truth"
-TRUTH_VERSION = 1
-DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 
 #: Lookup margin [rad] beyond the field radius: 60" covers the half-day drift of the lookup directions (< 1").
 _LOOKUP_MARGIN_RAD = math.radians(60.0 / 3600.0)
@@ -130,65 +126,13 @@ class SimResult:
 
 def seed004_camera() -> CameraParams:
     """Seed 004's simulated camera (sec. 4): f 70.2262 mm, 12 um, 1024 x 1024, (x0, y0) = (500, 530),
-    k1 = 2e-10, k2 = -3.5e-15 in the seed's convention."""
-    return CameraParams(
-        focal_length_mm=70.2262,
-        pixel_pitch_um=12.0,
-        principal_point_px=(500.0, 530.0),
-        image_size_px=(1024, 1024),
-        distortion=distortion_from_seed004(2e-10, -3.5e-15),
-    )
+    k1 = 2e-10, k2 = -3.5e-15 in the seed's convention: the package data ``builtin:seed004_camera``."""
+    return load_params(BUILTIN_PREFIX + "seed004_camera")
 
 
 def seed004_config(frames: int = 1000, seed: int = 0) -> SimConfig:
     """Seed 004's simulation setup: its camera, Hp <= 6, >= 10 stars per frame, 0.05 px noise, 1000 frames."""
     return SimConfig(camera=seed004_camera(), frames=frames, noise_px=0.05, min_stars=10, maglim=6.0, seed=seed)
-
-
-def data_file(name: str) -> Path:
-    """Path of a file shipped with the package in ``hostlink/data`` (``seed004_camera.json``: seed 004's simulated
-    camera; ``seed004_nominal.json``: its design nominal), wherever the package is installed."""
-    return DATA_DIR / name
-
-
-def truth_path_for(session_path: str | Path) -> Path:
-    """``SESSION.csv`` -> ``SESSION.truth.json`` (beside it)."""
-    p = Path(session_path)
-    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
-    return p.with_name(stem + ".truth.json")
-
-
-def write_truth(path: str | Path, truth: dict) -> None:
-    """Write the truth JSON atomically (floats at full precision); an unwritable path is a one-line UserError."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(truth, separators=(",", ":"), allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write ({exc.strerror})") from None
-
-
-def read_truth(path: str | Path) -> dict:
-    """Read a truth JSON; per-frame arrays become numpy arrays: ``attitude`` (F, 3, 3), ``focal_length_mm`` (F,),
-    row lists as int64; ``camera`` becomes ``camera_params`` (a validated CameraParams) as well. A missing or
-    malformed file is a one-line UserError."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not a readable truth file ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != TRUTH_FORMAT:
-        raise UserError(f"{path}: not a simulation truth file")
-    data["attitude"] = np.asarray(data["attitude"], dtype=np.float64).reshape(-1, 3, 3)
-    data["focal_length_mm"] = np.asarray(data["focal_length_mm"], dtype=np.float64)
-    for key in ("misidentified_rows", "misidentified_true_star_id", "false_rows"):
-        data[key] = np.asarray(data[key], dtype=np.int64)
-    data["camera_params"] = params_from_dict(data["camera"])
-    return data
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -237,19 +181,6 @@ def _check_config(cfg: SimConfig) -> None:
 
 # ----------------------------------------------------------------------------------------------------------------
 # times and attitudes
-
-
-def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame time strings (object array, ISO 8601 with ms and Z) and their UTC two-part Julian dates.
-
-    t_k = t0 + round(k * interval in ms) (civil arithmetic as ``hostlink.files.times.iso_plus_seconds``)."""
-    y, mo, d, h, mi, s = parse_iso_utc(t0_iso)
-    base = np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}", "us") + np.timedelta64(round(s * 1e6), "us")
-    offsets_ms = np.round(np.arange(frames, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)
-    stamps = base.astype("datetime64[ms]") + offsets_ms.astype("timedelta64[ms]")
-    text = np.char.add(np.datetime_as_string(stamps, unit="ms"), "Z").astype(object)
-    jd1, jd2 = parse_iso_utc_many(text)
-    return text, jd1, jd2
 
 
 def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:

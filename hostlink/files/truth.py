@@ -1,0 +1,62 @@
+"""Simulation truth files (docs/file-formats.md, ``SESSION.truth.json``): the one reader and the one writer.
+
+``hostlink simulate --out S.csv`` writes ``S.truth.json`` beside the session: the true camera, the simulation's
+setup and the per-frame attitude C (b = C r) and focal length, as compact JSON (floats at full precision).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.files.atomic import write_json
+from onboard.params import ParameterError, params_from_dict
+
+TRUTH_FORMAT = "startracker-companion simulation truth"
+TRUTH_VERSION = 1
+#: Per-frame or per-row integer lists of a truth file (numpy int64 arrays once read).
+_ROW_LISTS = ("misidentified_rows", "misidentified_true_star_id", "false_rows")
+
+
+def truth_path_for(session_path: str | Path) -> Path:
+    """``SESSION.csv`` -> ``SESSION.truth.json`` (beside it)."""
+    p = Path(session_path)
+    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
+    return p.with_name(stem + ".truth.json")
+
+
+def write_truth(path: str | Path, truth: dict) -> None:
+    """Write the truth JSON atomically (compact, floats at full precision); an unwritable path is a one-line
+    UserError."""
+    write_json(path, truth, indent=None)
+
+
+def read_truth(path: str | Path) -> dict:
+    """Read a truth JSON; per-frame arrays become numpy arrays: ``attitude`` (F, 3, 3), ``focal_length_mm`` (F,),
+    row lists as int64; ``camera`` becomes ``camera_params`` (a validated CameraParams) as well. A missing or
+    malformed file is a one-line UserError."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not a readable truth file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != TRUTH_FORMAT:
+        raise UserError(f"{path}: not a simulation truth file")
+    try:
+        data["attitude"] = np.asarray(data["attitude"], dtype=np.float64).reshape(-1, 3, 3)
+        data["focal_length_mm"] = np.asarray(data["focal_length_mm"], dtype=np.float64)
+        for key in _ROW_LISTS:
+            data[key] = np.asarray(data[key], dtype=np.int64)
+        data["camera_params"] = params_from_dict(data["camera"])
+    except KeyError as exc:
+        raise UserError(f"{path}: truth file without {exc.args[0]!r}") from None
+    except ParameterError as exc:
+        raise UserError(f"{path}: camera.{exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{path}: malformed truth file ({exc})") from None
+    return data

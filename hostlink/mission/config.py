@@ -1,0 +1,73 @@
+"""What a bench run is given: the sensor's true camera, its nominal one, the two phases and the link (pure data)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from hostlink.errors import UserError
+from hostlink.files.params import load_params
+from onboard.params import CameraParams, Distortion
+from onboard.site import Site, Weather
+
+#: The embedded default "true" camera: seed 004's camera (Table 1) after a launch shock: the principal point and
+#: focal length moved, and small decentering and thin-prism terms appeared beside the radial distortion. Every term
+#: is a few tenths of a pixel at the corner, the regime where calibration matters at the 0.05 px noise level.
+BENCH_TRUE_CAMERA = CameraParams(
+    focal_length_mm=70.2262,
+    pixel_pitch_um=12.0,
+    principal_point_px=(500.0, 530.0),
+    image_size_px=(1024, 1024),
+    distortion=Distortion(k1=-2.0e-10, k2=3.5e-15, p1=3.0e-7, p2=-2.0e-7, s1=1.5e-7, s2=-1.0e-7),
+)
+#: The built-in camera's design values (package data): the nominal of :data:`BENCH_TRUE_CAMERA`.
+BENCH_NOMINAL = "builtin:seed004_nominal"
+
+
+@dataclass
+class BenchConfig:
+    out_dir: Path = Path("bench-report")
+    transport: str = "serial"
+    cal_frames: int = 600
+    drift_frames: int = 3000
+    #: exposures the sensor's replay holds beyond the two phases: a sensor keeps taking exposures until the host's
+    #: "stop streaming" reaches it, so the frames in flight then (a few on serial, up to ~100 in a CAN hub's queues)
+    #: are consumed between the phases; the spare frames keep the drift phase at its full length
+    spare_frames: int = 256
+    noise_px: float = 0.05
+    misid_fraction: float = 0.0
+    drift_um: float = 6.0
+    drift_period_frames: float = 3000.0
+    seed: int = 1
+    camera: CameraParams = field(default_factory=lambda: BENCH_TRUE_CAMERA)
+    #: the sensor's factory parameters; None: :func:`bench_nominal` decides
+    nominal: CameraParams | None = None
+    site: Site | None = None
+    weather: Weather | None = None
+    maglim: float = 6.0  # faintest Hipparcos magnitude simulated (SimConfig.maglim)
+    min_stars: int = 10  # fewest stars per frame (SimConfig.min_stars)
+    max_stars: int = 30  # most stars per frame, brightest kept (SimConfig.max_stars)
+    poll_every_frames: int = 25
+    #: further ``hostlink emulate`` options for the sensor
+    emulator_args: tuple[str, ...] = ()
+    t0_iso: str = "2026-03-14T02:10:00.000Z"
+
+
+def design_nominal(camera: CameraParams) -> CameraParams:
+    """What a user knows of a camera before calibrating it (docs/file-formats.md, nominal file): its design focal
+    length, pitch and image size, the principal point at the image centre ((W - 1) / 2, (H - 1) / 2 px, pixel
+    centres at integers) and no distortion."""
+    width, height = camera.image_size_px
+    return replace(camera, principal_point_px=((width - 1) / 2.0, (height - 1) / 2.0), distortion=Distortion())
+
+
+def bench_nominal(cfg: BenchConfig) -> CameraParams:
+    """The sensor's factory parameters for this run: ``cfg.nominal`` if given (it must describe the same detector as
+    ``cfg.camera``), the built-in design values for the built-in camera, else the camera's :func:`design_nominal`.
+    A mismatched detector is a one-line UserError."""
+    nominal, camera = cfg.nominal, cfg.camera
+    if nominal is None:
+        return load_params(BENCH_NOMINAL) if camera == BENCH_TRUE_CAMERA else design_nominal(camera)
+    if nominal.image_size_px != camera.image_size_px or nominal.pixel_pitch_um != camera.pixel_pitch_um:
+        raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
+    return nominal

@@ -1,0 +1,350 @@
+"""What a bench run produced (:class:`BenchRun`) and its report: ``summary.json``'s content and the terminal table.
+
+Pure functions of the run's data: nothing here touches a link, a process or the clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from hostlink.calibration.report import ARCSEC_PER_RAD, fitted_attitudes
+from hostlink.mission.config import BenchConfig
+from onboard.params import CameraParams
+
+if TYPE_CHECKING:  # annotations only
+    from hostlink.calibration.data import CalibrationData
+    from hostlink.calibration.run import CalibrationOutcome
+    from hostlink.links.operations import ActiveParams, UploadResult
+    from hostlink.sky.references import SessionReferences
+    from hostlink.sky.simulate import SimResult
+    from protocol.messages import Estimate
+
+
+@dataclass
+class Phase:
+    """One step of the run: its name, wall-clock duration [s] and a one-line detail for the report."""
+
+    name: str
+    seconds: float
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class EstimatorWork:
+    """The onboard estimator's work in a streaming phase, from the sensor's status: exposures it took and
+    estimator updates it made."""
+
+    exposures: int
+    updates: int
+
+
+@dataclass
+class BenchRun:
+    """Everything a bench run produced, as the report needs it.
+
+    ``cal_estimates`` / ``drift_estimates``: (frame counter of the estimate's last update, ``Estimate``) read in each
+    streaming phase; ``cal_sim`` / ``drift_sim``: the simulator's results (session and truth) of the two phases;
+    ``data`` and ``ref_info``: the calibration data built from the streamed session and where its reference
+    directions came from; ``outcome``: the host calibration; ``uploaded`` / ``active``: the safe upload's result and
+    the set read back afterwards."""
+
+    cfg: BenchConfig
+    nominal: CameraParams
+    cal_sim: SimResult
+    drift_sim: SimResult
+    data: CalibrationData | None = None
+    ref_info: SessionReferences | None = None
+    outcome: CalibrationOutcome | None = None
+    uploaded: UploadResult | None = None
+    active: ActiveParams | None = None
+    upload_steps: list[str] = field(default_factory=list)
+    cal_estimates: list[tuple[int, Estimate]] = field(default_factory=list)
+    drift_estimates: list[tuple[int, Estimate]] = field(default_factory=list)
+    n_drift_streamed: int = 0
+    drift_work: EstimatorWork = EstimatorWork(0, 0)
+    lost_messages: int = 0
+    phases: list[Phase] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------------------ per-quantity figures
+def rms(a: np.ndarray) -> float:
+    """Root mean square of ``a`` (NaN for no values)."""
+    a = np.asarray(a, dtype=np.float64)
+    return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
+
+
+def truth_focal_mm(sim: SimResult) -> np.ndarray:
+    """The simulator's true focal length [mm] at each frame."""
+    return np.asarray(sim.truth["focal_length_mm"], dtype=np.float64)
+
+
+def truth_attitudes(sim: SimResult) -> np.ndarray:
+    """The simulator's true attitude matrices (n_frames, 3, 3)."""
+    return np.asarray(sim.truth["attitude"], dtype=np.float64).reshape(-1, 3, 3)
+
+
+def estimate_rows(estimates: list[tuple[int, Estimate]]) -> dict[str, np.ndarray]:
+    """Polled estimates as columns (frame, f_mm, x0_px, y0_px and their 1-sigma, n_updates, base generation)."""
+    if not estimates:  # same keys and dtypes as below (integer columns index arrays)
+        empty = {k: np.zeros(0) for k in ("f_mm", "x0_px", "y0_px", "sigma_f_mm", "sigma_x0_px", "sigma_y0_px")}
+        return empty | {k: np.zeros(0, dtype=np.int64) for k in ("frame", "n_updates", "generation")}
+    vals = np.array([e.values for _, e in estimates], dtype=np.float64)
+    sig = np.array([e.sigma for _, e in estimates], dtype=np.float64)
+    return {
+        "frame": np.array([f for f, _ in estimates], dtype=np.int64),
+        "f_mm": vals[:, 0],
+        "x0_px": vals[:, 1],
+        "y0_px": vals[:, 2],
+        "sigma_f_mm": sig[:, 0],
+        "sigma_x0_px": sig[:, 1],
+        "sigma_y0_px": sig[:, 2],
+        "n_updates": np.array([e.n_updates for _, e in estimates], dtype=np.int64),
+        "generation": np.array([e.base_generation for _, e in estimates], dtype=np.int64),
+    }
+
+
+def attitude_error_vectors_arcsec(data, theta: np.ndarray, truth_c: np.ndarray, frame_index: np.ndarray) -> np.ndarray:
+    """Per-frame attitude from the camera ``theta`` (SVD over the frame's stars) against the simulator's truth, as
+    the small rotation vector phi [arcsec] of the error rotation C_est C_true^T = I - [phi x] in the sensor frame:
+    phi_x, phi_y tilt the boresight, phi_z is the roll about it."""
+    est = fitted_attitudes(data, theta)
+    d = np.einsum("fij,fkj->fik", est, truth_c[frame_index])
+    phi = 0.5 * np.stack([d[:, 1, 2] - d[:, 2, 1], d[:, 2, 0] - d[:, 0, 2], d[:, 0, 1] - d[:, 1, 0]], axis=1)
+    return phi * ARCSEC_PER_RAD
+
+
+def attitude_error_summary(phi_arcsec: np.ndarray) -> dict:
+    """Boresight (tilt) and roll errors: RMS in all, the constant part (a principal-point or focal error acts as a
+    fixed misalignment, which a ground alignment absorbs), and the frame-to-frame scatter around it."""
+    bias = np.mean(phi_arcsec, axis=0)
+    scatter = phi_arcsec - bias
+    return {
+        "boresight_rms": rms(np.hypot(phi_arcsec[:, 0], phi_arcsec[:, 1])),
+        "roll_rms": rms(phi_arcsec[:, 2]),
+        "boresight_bias": float(np.hypot(bias[0], bias[1])),
+        "roll_bias": float(bias[2]),
+        "boresight_scatter_rms": rms(np.hypot(scatter[:, 0], scatter[:, 1])),
+        "roll_scatter_rms": rms(scatter[:, 2]),
+    }
+
+
+def drift_frame_index(cfg: BenchConfig, drift_sim: SimResult, frames: np.ndarray) -> np.ndarray:
+    """Index into the drift phase's truth of each sensor frame counter (the drift phase follows the calibration
+    phase's ``cfg.cal_frames`` frames in the sensor's replay)."""
+    return frames - cfg.cal_frames - int(drift_sim.session.frame[0])
+
+
+# ------------------------------------------------------------------------------------------------- the summary
+def summarise(run: BenchRun) -> dict:
+    """The run's summary (the content of ``summary.json``, docs/commands.md ``bench``)."""
+    from hostlink.links.operations import float32_equal
+    from onboard.prior import sigma_from_dict
+
+    cfg, nominal, outcome, data = run.cfg, run.nominal, run.outcome, run.data
+    # attitude against truth, for the frames the calibration used
+    frame_index = data.frame_number - int(run.cal_sim.session.frame[0])
+    truth_c = truth_attitudes(run.cal_sim)
+    att_before = attitude_error_summary(
+        attitude_error_vectors_arcsec(data, nominal.model_vector(), truth_c, frame_index)
+    )
+    att_after = attitude_error_summary(
+        attitude_error_vectors_arcsec(data, outcome.params.model_vector(), truth_c, frame_index)
+    )
+
+    # focal tracking in the drift phase
+    est = estimate_rows(run.drift_estimates)
+    f_true = truth_focal_mm(run.drift_sim)
+    drift_index = drift_frame_index(cfg, run.drift_sim, est["frame"])
+    valid = (drift_index >= 0) & (drift_index < f_true.size) & (est["n_updates"] > 0)
+    err_um = (est["f_mm"][valid] - f_true[drift_index[valid]]) * 1000.0
+    # "once converged": after the first third of the drift phase (the filter restarted at the upload and its drift
+    # detector needs a few hundred frames to switch the focal random walk on)
+    settled = drift_index[valid] >= cfg.drift_frames // 3
+    n_dof = len(outcome.estimate) + 3 * data.n_frames
+    floor_px = float(np.sqrt(2.0) * cfg.noise_px * np.sqrt(max(1.0 - n_dof / (2.0 * data.n_obs), 0.0)))
+    truth = cfg.camera
+    active, uploaded = run.active, run.uploaded
+    return {
+        "config": {k: v for k, v in asdict(cfg).items() if k not in ("camera", "nominal", "site", "weather")}
+        | {"site": asdict(cfg.site) if cfg.site else None, "weather": asdict(cfg.weather) if cfg.weather else None},
+        "transport": cfg.transport,
+        "reference_directions": run.ref_info.source,
+        "refraction": run.ref_info.refraction,
+        "residual_before": outcome.before,
+        "residual_after": outcome.after,
+        "noise_floor_rms_px": floor_px,
+        "interstar_rms_rad": {"before": outcome.interstar_before_rad, "after": outcome.interstar_after_rad},
+        "rejected": outcome.rejected,
+        "attitude_error_arcsec": {"before": att_before, "after": att_after},
+        "parameters": {
+            "true": {"focal_length_mm": truth.focal_length_mm, "principal_point_px": list(truth.principal_point_px)},
+            "nominal": {
+                "focal_length_mm": nominal.focal_length_mm,
+                "principal_point_px": list(nominal.principal_point_px),
+            },
+            "calibrated": {
+                "focal_length_mm": outcome.params.focal_length_mm,
+                "principal_point_px": list(outcome.params.principal_point_px),
+            },
+            "sigma": outcome.sigma(),
+            "error_focal_um": (outcome.params.focal_length_mm - truth.focal_length_mm) * 1000.0,
+            "error_principal_point_px": [
+                outcome.params.principal_point_px[i] - truth.principal_point_px[i] for i in range(2)
+            ],
+        },
+        "upload": {
+            "generation": uploaded.generation,
+            "crc32": f"0x{uploaded.crc32:08x}",
+            "read_back_equal_float32": bool(
+                float32_equal(active.params, outcome.params, active.sigma, sigma_from_dict(outcome.sigma()))
+            ),
+            "sigma_prior_parameters": int(np.count_nonzero(np.isfinite(active.sigma) & (active.sigma > 0))),
+            "steps": run.upload_steps,
+        },
+        "link": {"lost_messages": int(run.lost_messages)},
+        "drift_tracking": {
+            "amplitude_um": cfg.drift_um,
+            "period_frames": cfg.drift_period_frames,
+            "frames_streamed": run.n_drift_streamed,
+            "estimates_read": int(est["frame"].size),
+            "sensor_exposures": run.drift_work.exposures,
+            "estimator_updates": run.drift_work.updates,
+            "focal_error_rms_um_converged": rms(err_um[settled]) if np.any(settled) else None,
+            "focal_error_rms_um_all": rms(err_um) if err_um.size else None,
+            "not_tracked_because": None
+            if np.any(settled)
+            else tracking_gap_reason(cfg, est["frame"].size, run.drift_work),
+            "focal_true_rms_deviation_um": rms(
+                (f_true[: cfg.drift_frames] - np.mean(f_true[: cfg.drift_frames])) * 1e3
+            ),
+        },
+        "after_upload": after_upload_summary(cfg, run.drift_sim, run.drift_estimates),
+        "phases": [asdict(p) for p in run.phases],
+    }
+
+
+def tracking_gap_reason(cfg: BenchConfig, n_estimates: int, work: EstimatorWork) -> str:
+    """Why the drift phase yields no tracking figure, from what the run shows (never a guess)."""
+    if work.updates == 0:
+        return f"the onboard estimator made no update in the drift phase ({work.exposures} exposures taken)"
+    if n_estimates == 0:
+        return "no onboard estimate could be read during the drift phase"
+    return (
+        f"the estimator's last update came before frame {cfg.drift_frames // 3} of the drift phase, where tracking "
+        "is scored"
+    )
+
+
+def after_upload_summary(cfg: BenchConfig, drift_sim: SimResult, drift_estimates: list[tuple[int, Estimate]]) -> dict:
+    """How the onboard estimator restarted from the uploaded set: error and 1-sigma of f [um], x0, y0 [px] at the
+    first estimate read after the upload, and the RMS error of x0, y0 (and the largest |error|) over the drift phase."""
+    est = estimate_rows(drift_estimates)
+    if est["frame"].size == 0:
+        return {}
+    f_true = truth_focal_mm(drift_sim)
+    drift_index = np.clip(drift_frame_index(cfg, drift_sim, est["frame"]), 0, f_true.size - 1)
+    err = {
+        "f_um": (est["f_mm"] - f_true[drift_index]) * 1000.0,
+        "x0_px": est["x0_px"] - cfg.camera.principal_point_px[0],
+        "y0_px": est["y0_px"] - cfg.camera.principal_point_px[1],
+    }
+    sig = {"f_um": est["sigma_f_mm"] * 1000.0, "x0_px": est["sigma_x0_px"], "y0_px": est["sigma_y0_px"]}
+    return {
+        "first_estimate": {"n_updates": int(est["n_updates"][0])}
+        | {f"error_{k}": float(v[0]) for k, v in err.items()}
+        | {f"sigma_{k}": float(v[0]) for k, v in sig.items()},
+        "x0_error_rms_px": rms(err["x0_px"]),
+        "y0_error_rms_px": rms(err["y0_px"]),
+        "x0_error_max_px": float(np.max(np.abs(err["x0_px"]))),
+        "y0_error_max_px": float(np.max(np.abs(err["y0_px"]))),
+        "principal_point_normalised_error_rms": rms(
+            np.concatenate([err["x0_px"] / sig["x0_px"], err["y0_px"] / sig["y0_px"]])
+        ),
+    }
+
+
+# ------------------------------------------------------------------------------------------------- as text
+def nan_to_null(o):
+    """The summary with every non-finite float as None (JSON has no NaN: strict readers refuse it)."""
+    if isinstance(o, dict):
+        return {k: nan_to_null(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple, np.ndarray)):
+        return [nan_to_null(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not np.isfinite(o):
+        return None
+    return o
+
+
+def json_default(o):
+    """JSON for what the summary holds beside plain Python values: numpy scalars and arrays, paths."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o).__name__)
+
+
+def tracking_text(summary: dict) -> str:
+    """The drift-tracking figure as one phrase: the error once converged, or why there is none."""
+    track = summary["drift_tracking"]
+    if track["focal_error_rms_um_converged"] is None:
+        return f"not scored: {track['not_tracked_because']}"
+    return f"tracking error {track['focal_error_rms_um_converged']:.2f} um RMS once converged"
+
+
+def summary_table(summary: dict) -> list[tuple[str, str, str]]:
+    """(quantity, before, after) rows for the terminal."""
+    b, a = summary["residual_before"], summary["residual_after"]
+    att_b, att_a = summary["attitude_error_arcsec"]["before"], summary["attitude_error_arcsec"]["after"]
+    p = summary["parameters"]
+    sig = p["sigma"]
+    track = summary["drift_tracking"]
+    pp_nominal = [p["nominal"]["principal_point_px"][i] - p["true"]["principal_point_px"][i] for i in range(2)]
+    return [
+        (
+            "residual RMS (px)",
+            f"{b['rms_px']:.4f}",
+            f"{a['rms_px']:.4f} (noise floor {summary['noise_floor_rms_px']:.4f})",
+        ),
+        ("residual max (px)", f"{b['max_px']:.3f}", f"{a['max_px']:.3f}"),
+        ("residual RMS (arcsec)", f"{b['rms_arcsec']:.3f}", f"{a['rms_arcsec']:.3f}"),
+        (
+            "attitude scatter, boresight / roll (arcsec RMS)",
+            f"{att_b['boresight_scatter_rms']:.2f} / {att_b['roll_scatter_rms']:.2f}",
+            f"{att_a['boresight_scatter_rms']:.3f} / {att_a['roll_scatter_rms']:.3f}",
+        ),
+        (
+            "attitude bias, boresight / roll (arcsec)",
+            f"{att_b['boresight_bias']:.1f} / {att_b['roll_bias']:.1f}",
+            f"{att_a['boresight_bias']:.1f} / {att_a['roll_bias']:.1f} (= principal point error x 1/F)",
+        ),
+        (
+            "focal length error (um)",
+            f"{(p['nominal']['focal_length_mm'] - p['true']['focal_length_mm']) * 1000:.1f}",
+            f"{p['error_focal_um']:.2f} (1-sigma {sig['focal_length_mm'] * 1000:.2f})",
+        ),
+        (
+            "principal point error (px)",
+            "{:.2f}, {:.2f}".format(*pp_nominal),
+            "{:.2f}, {:.2f} (1-sigma {:.2f}, {:.2f})".format(
+                *p["error_principal_point_px"], *sig["principal_point_px"]
+            ),
+        ),
+        (
+            "focal drift tracking (um RMS)",
+            f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
+            tracking_text(summary),
+        ),
+        (
+            "onboard estimator updates, drift phase",
+            "",
+            f"{track['estimator_updates']} of {track['sensor_exposures']} exposures "
+            f"({100.0 * track['estimator_updates'] / max(track['sensor_exposures'], 1):.0f} %)",
+        ),
+    ]

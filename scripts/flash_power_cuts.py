@@ -1,0 +1,149 @@
+"""Cross-process power cuts against ``hostlink emulate --flash`` (issue 15: "kill -9 of the emulator at 200 random
+points of uploads, restarted on the same --flash: the active set reads back as the complete old or complete new set
+every time, never another").
+
+Each trial runs the emulator (serial link, no estimator) on ONE flash file that every trial shares, uploads the other
+of two parameter sets (they alternate) and kills the emulator with SIGKILL at a point drawn from the seeded RNG:
+
+* even trials, from inside: ``--power-cut-after N``, the process kills itself after N 8-byte flash write units, N
+  uniform over the units an upload writes (a session record, then a sector erase and a bank record: 528 units), so
+  the cut lands on an exact byte of an erase or a program, whatever the speed of the machine;
+* odd trials, from outside: ``kill -9`` after a delay uniform in [0, 1.5 T] from the start of the upload, T the
+  duration of one whole upload measured at the start of the run (on the serial link about 25 ms): anywhere in the
+  exchange (opening the link, staging, verify, commit, read-back) or just after it.
+
+The emulator is then restarted on the same file and the active set is read back. Pass: its (generation, table) is
+the complete old set or the complete new one (generation + 1). Anything else is a failure (exit 1).
+
+Run (the acceptance run, 200 points; about 3 minutes on 2 cores)::
+
+    .venv/bin/python scripts/flash_power_cuts.py --trials 200 --seed 1
+
+``tests/test_emulator_flash.py`` runs the same trials, fewer of them, in CI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import random
+import signal
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+from hostlink.emulator.process import EmulatorProcess
+from hostlink.errors import LinkError, UserError
+from hostlink.links import open_link
+from hostlink.links.base import CommandRefused
+from hostlink.links.operations import safe_upload
+from onboard.banks import BANK_RECORD_BYTES, SECTOR_BYTES, STAGE_RECORD_BYTES, WRITE_BYTES, params_to_table
+from onboard.params import CameraParams, Distortion
+
+#: Flash write units of one upload: the session record, the erase of the inactive sector, the bank record.
+UPLOAD_UNITS = (STAGE_RECORD_BYTES + SECTOR_BYTES + BANK_RECORD_BYTES) // WRITE_BYTES
+#: Outside kills land within this multiple of one upload's measured duration from the upload's start.
+DELAY_FACTOR = 1.5
+#: Emulator options: the link and the banks matter here, not the frames.
+EMULATOR_ARGS = ("--no-estimator", "--sim-frames", "5")
+#: The two sets the trials alternate between: the design camera and a calibrated one (both plausible).
+SET_A = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
+SET_B = CameraParams(70.2262, 12.0, (500.0, 530.0), (1024, 1024), Distortion(k1=-2e-10, k2=3.5e-15))
+
+
+@dataclasses.dataclass(frozen=True)
+class Trial:
+    index: int
+    how: str  # "inside N" or "outside T s"
+    outcome: str  # "old", "new" or a description of what else was found
+
+
+def read_active(link_string: str) -> tuple[int, bytes]:
+    with open_link(link_string) as link:
+        active = link.read_active()
+    return active.generation, bytes(active.table)
+
+
+def _upload(link_string: str, params: CameraParams) -> None:
+    try:
+        with open_link(link_string, timeout_s=5.0) as link:
+            safe_upload(link, params)
+    except (LinkError, CommandRefused, UserError, OSError):
+        pass  # the sensor died under the host: expected
+
+
+def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial") -> list[Trial]:
+    """``n_trials`` power cuts on one flash file in ``workdir``; returns each trial's outcome. Reading the active set
+    writes nothing to flash, so the emulator restarted to check a trial is already armed for the next one."""
+    rng = random.Random(seed)
+    flash = workdir / "flash.img"
+    cut_units = [rng.randrange(UPLOAD_UNITS) if k % 2 == 0 else None for k in range(n_trials)]  # None: outside
+
+    def start(k: int) -> EmulatorProcess:
+        hook = () if k >= n_trials or cut_units[k] is None else ("--power-cut-after", str(cut_units[k]))
+        return EmulatorProcess(transport, (*EMULATOR_ARGS, *hook), flash_path=flash)
+
+    trials = []
+    emulator = EmulatorProcess(transport, EMULATOR_ARGS, flash_path=flash)
+    try:
+        t0 = time.monotonic()
+        _upload(emulator.link, SET_B)  # a first, uncut upload: its duration scales the outside kills
+        delay_max_s = DELAY_FACTOR * (time.monotonic() - t0)
+        emulator.stop()
+        emulator = start(0)
+        before = read_active(emulator.link)
+        for k in range(n_trials):
+            target = SET_B if before[1] == params_to_table(SET_A) else SET_A
+            upload = threading.Thread(target=_upload, args=(emulator.link, target))
+            upload.start()
+            if cut_units[k] is not None:  # inside: the armed hook cuts the power
+                how = f"inside {cut_units[k]} units"
+            else:  # outside: kill -9 at a random time of the upload
+                delay_s = rng.uniform(0.0, delay_max_s)
+                how = f"outside {delay_s:.3f} s"
+                upload.join(delay_s)
+                emulator.process.send_signal(signal.SIGKILL)
+            upload.join(60.0)
+            emulator.process.send_signal(signal.SIGKILL)  # if the hook's cut lay beyond this upload's writes
+            emulator.stop()
+            emulator = start(k + 1)
+            after = read_active(emulator.link)
+            if after == before:
+                outcome = "old"
+            elif after == (before[0] + 1, params_to_table(target)):
+                outcome = "new"
+            else:
+                outcome = f"MIXED: generation {after[0]} (was {before[0]})"
+            trials.append(Trial(k, how, outcome))
+            before = after
+    finally:
+        emulator.stop()
+    return trials
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--transport", default="serial", choices=("serial", "can", "modbus"))
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        trials = run_trials(args.trials, args.seed, Path(tmp), args.transport)
+    counts = Counter(t.outcome if t.outcome in ("old", "new") else "other" for t in trials)
+    for t in trials:
+        if t.outcome not in ("old", "new"):
+            print(f"trial {t.index} ({t.how}): {t.outcome}")
+    inside = Counter(t.outcome for t in trials if t.how.startswith("inside"))
+    outside = Counter(t.outcome for t in trials if t.how.startswith("outside"))
+    print(
+        f"{len(trials)} power cuts: {counts['old']} old set, {counts['new']} new set, {counts['other']} other "
+        f"(inside: {dict(inside)}; outside: {dict(outside)})"
+    )
+    return 0 if counts["other"] == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""``hostlink emulate --flash FILE``: the sensor's banks and counters live in a NOR-flash image file; a restart on the
+same file boots the last committed set; a kill -9 at any point of an upload leaves the complete old or complete new
+set; recorded serial upload bytes replayed after a restart activate nothing; bad --flash use is a one-line error."""
+
+import importlib.util
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from emulator_fixtures import hostlink
+
+from hostlink.emulator.flash import FileFlash
+from hostlink.emulator.process import EmulatorProcess
+from hostlink.errors import UserError
+from hostlink.links import open_link
+from hostlink.links.operations import read_active_params, safe_upload
+from hostlink.sky.simulate import seed004_camera
+from onboard import banks
+from onboard.params import CameraParams
+
+NOMINAL = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
+CAMERA = seed004_camera()
+FAST = ("--no-estimator", "--sim-frames", "5")  # the banks matter here, not the frames
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "flash_power_cuts.py"
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("flash_power_cuts", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass resolves annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path):
+    path = tmp_path / "f.img"
+    flash = FileFlash(path)
+    store = banks.factory_store(NOMINAL, flash=flash)
+    nonce = banks.stage_begin(store, banks.TABLE_BYTES)
+    table = banks.params_to_table(CAMERA)
+    assert banks.stage_chunk(store, 0, table) is None and banks.stage_verify(store, banks.crc32(table)) is None
+    assert banks.commit(store, banks.crc32(table), nonce, 1) == 2
+    flash.close()
+    on_disk = np.fromfile(path, dtype=np.uint8)
+    assert np.array_equal(on_disk, flash.image)  # every erase and program reached the file
+    again = FileFlash(path)
+    rebooted = banks.boot(again)
+    assert banks.active_set(rebooted)[:2] == (2, table) and rebooted.nonce_counter == nonce
+    assert banks.stage_begin(rebooted, banks.TABLE_BYTES) == nonce + 1  # the session counter survived too
+    again.close()
+
+
+def test_a_flash_file_of_the_wrong_size_or_in_use_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "bad.img"
+    bad.write_bytes(b"\xff" * 100)
+    with pytest.raises(UserError, match=f"100 bytes is not a flash image \\({banks.FLASH_BYTES} bytes\\)"):
+        FileFlash(bad)
+    first = FileFlash(tmp_path / "f.img")
+    with pytest.raises(UserError, match="in use by another emulated sensor"):
+        FileFlash(tmp_path / "f.img")
+    first.close()
+    run = hostlink("emulate", "--transport", "serial", "--flash", str(bad))
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1 and "not a flash image" in run.stderr
+    run = hostlink("emulate", "--transport", "serial", "--power-cut-after", "3")
+    assert run.returncode == 2 and "--power-cut-after needs --flash" in run.stderr
+
+
+def test_a_restart_on_the_same_flash_boots_the_last_committed_set(tmp_path):
+    flash = tmp_path / "sensor.img"
+    with EmulatorProcess("serial", FAST, flash_path=flash) as emulator:
+        with open_link(emulator.link) as link:
+            assert read_active_params(link).generation == 1  # a new image receives the factory set
+            assert safe_upload(link, CAMERA).generation == 2
+    with EmulatorProcess("serial", FAST, flash_path=flash) as emulator:  # SIGTERM above; a restart here
+        with open_link(emulator.link) as link:
+            active = read_active_params(link)
+    assert active.generation == 2 and banks.params_to_table(active.params) == banks.params_to_table(CAMERA)
+
+
+def test_recorded_serial_upload_bytes_replayed_after_a_restart_activate_nothing(tmp_path):
+    flash = tmp_path / "sensor.img"
+    recorded = bytearray()
+    with EmulatorProcess("serial", FAST, flash_path=flash) as emulator:
+        with open_link(emulator.link) as link:
+            write = link._port.write
+            link._port.write = lambda data: (recorded.extend(data), write(data))[1]  # tap the line
+            safe_upload(link, CAMERA)
+            link._port.write = write
+            safe_upload(link, NOMINAL)  # generation 3: the recorded set is not active any more
+    with EmulatorProcess("serial", FAST, flash_path=flash) as emulator:
+        with open_link(emulator.link) as link:
+            link._port.write(bytes(recorded))  # the whole recording, as another host on the line would send it
+            link._port.write(bytes(recorded[: len(recorded) // 2]))  # and its first half
+            active = read_active_params(link)  # replies in order: the replay has been handled by now
+    assert active.generation == 3 and banks.params_to_table(active.params) == banks.params_to_table(NOMINAL)
+
+
+def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path):
+    """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times.
+    The 200-point acceptance run is ``scripts/flash_power_cuts.py --trials 200`` (docs/hardware.md)."""
+    trials = load_script().run_trials(20, seed=15, workdir=tmp_path)
+    assert [t.outcome for t in trials if t.outcome not in ("old", "new")] == []
+    assert len(trials) == 20 and sum(t.how.startswith("inside") for t in trials) == 10
+
+
+def test_the_power_cut_hook_kills_the_emulator_mid_commit(tmp_path):
+    flash = tmp_path / "sensor.img"
+    with EmulatorProcess("serial", FAST, flash_path=flash):
+        pass  # the factory set, written once
+    units = (banks.STAGE_RECORD_BYTES + banks.SECTOR_BYTES // 2) // banks.WRITE_BYTES  # half-way through the erase
+    emulator = EmulatorProcess("serial", (*FAST, "--power-cut-after", str(units)), flash_path=flash)
+    try:
+        with open_link(emulator.link, timeout_s=5.0) as link, pytest.raises(Exception):  # noqa: B017 - link died
+            safe_upload(link, CAMERA)
+        assert emulator.process.wait(30) == -signal.SIGKILL
+    finally:
+        emulator.stop()
+    image = np.fromfile(flash, dtype=np.uint8)
+    assert banks.active_set(banks.boot(banks.RamFlash(image)))[0] == 1
