@@ -34,6 +34,7 @@ most ``NAK_TEXT_MAX`` bytes) such as ``principal_point_px[0]: 5000.0 is off the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import struct
 from dataclasses import dataclass
@@ -593,6 +594,7 @@ def _text_bytes(text: str, max_bytes: int) -> bytes:
 _NP_FORMAT = {"B": "u1", "?": "u1", "H": "<u2", "h": "<i2", "I": "<u4", "i": "<i4", "q": "<i8", "f": "<f4"}
 
 
+@functools.cache
 def _record_dtype(f: WireField) -> np.dtype:
     """numpy dtype of one record of a record field (packed, little-endian)."""
     return np.dtype([(m.name, _NP_FORMAT[m.fmt]) for m in f.record])
