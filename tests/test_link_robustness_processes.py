@@ -29,6 +29,13 @@ def _wait_for_written_frames(out, proc: subprocess.Popen) -> None:
     raise AssertionError(f"no frame reached {partial} ({proc.poll()=})")
 
 
+def _as_in_a_terminal() -> None:
+    """A terminal delivers Ctrl-C to a process whose SIGINT is at its default. A harness started in the background
+    (nohup, a CI runner's job) may ignore SIGINT, and a child inherits that: Python then installs no KeyboardInterrupt
+    handler. Reset it so the test models the user at a terminal, whatever started the suite."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_stream(link: str, out) -> subprocess.Popen:
     return subprocess.Popen(
         [
@@ -48,6 +55,7 @@ def _start_stream(link: str, out) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         env=_env(),
+        preexec_fn=_as_in_a_terminal,
     )
 
 
