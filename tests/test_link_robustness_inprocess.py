@@ -139,3 +139,65 @@ def test_modbus_connection_reset_mid_exchange_is_an_adapter_error_not_an_interna
         client.read("input", 0, 4)
     with pytest.raises(ModbusAdapterError, match="reset by peer"):
         client.write(0, [1])
+
+
+def test_a_stream_that_starts_the_moment_the_sensor_acknowledges_loses_no_frame():
+    """The sensor may put the first frame on the bus before the host has read the ACK of STREAM_CONTROL (the CAN
+    link's reader thread assembles it meanwhile): restarting loss counting after the ACK would cut that frame in
+    half. Modelled without threads: sending the command already feeds frame 0 up to its FRAME_END."""
+    from hostlink.links.base import MessageLink
+    from hostlink.links.can_link import StreamAssembler
+    from hostlink.links.operations import stream_frames
+    from protocol import can_frames as cf
+    from protocol.messages import Ack, EndOfStream, StreamControl
+
+    encoder = cf.StreamEncoder()
+    frames = [sf.frame for sf in _source(3)]
+    can_frames = [cf_ for f in frames for cf_ in encoder.encode(f)]
+    can_frames.append((cf.END_OF_STREAM.frame_id, cf.encode_end_of_stream(3, 2)))
+
+    class _EagerSensorLink(MessageLink):
+        name = "eager"
+
+        def __init__(self) -> None:
+            super().__init__(timeout_s=1.0)
+            self.assembler = StreamAssembler()
+            self.inbox: list = []
+            self.pending: list[tuple[int, bytes]] = []
+
+        def _send(self, msg) -> None:
+            if isinstance(msg, StreamControl) and msg.enable:
+                self.inbox.append(Ack(tag=msg.tag, command=int(StreamControl.TYPE)))
+                self.pending = list(can_frames)
+                while self.pending[0][0] != cf.FRAME_END.frame_id:  # frame 0 assembled before the ACK is read
+                    self.assembler.feed(*self.pending.pop(0))
+            elif isinstance(msg, StreamControl):
+                self.inbox.append(Ack(tag=msg.tag, command=int(StreamControl.TYPE)))
+
+        def _receive(self, timeout_s: float):
+            while not self.inbox and self.pending:
+                out = self.assembler.feed(*self.pending.pop(0))
+                if out is not None:
+                    self.inbox.append(out)
+            self.stats.corrupt_frames = self.assembler.corrupt
+            self.stats.lost_messages = self.assembler.lost
+            return self.inbox.pop(0) if self.inbox else None
+
+        def _reset_loss_counting(self) -> None:
+            self.assembler.forget_sequence()
+
+        def recv_frame(self, timeout_s=None):
+            while not self._stream:
+                msg = self._receive(0.0)
+                if msg is None:
+                    return None
+                self._stream.append(msg)
+            msg = self._stream.popleft()
+            return None if isinstance(msg, EndOfStream) else msg
+
+        def close(self) -> None:
+            pass
+
+    result = stream_frames(_EagerSensorLink(), None)
+    assert [f.frame for f in result.frames] == [0, 1, 2]
+    assert (result.lost_messages, result.corrupt_frames) == (0, 0)

@@ -236,14 +236,15 @@ class MessageLink(Link):
 
     def set_streaming(self, enable: bool) -> None:
         if enable:
+            # Loss counting restarts before the command goes out: the sensor may start sending the moment it
+            # acknowledges, and a reset after the ACK would cut the first frame in half (a lost, "corrupt" frame).
             self._discard_input()
-        self.request(StreamControl(enable=enable), Ack)
-        self._stream.clear()
-        self._ended = False
-        if enable:
             self._reset_loss_counting()
             self.stats.lost_messages = 0
             self.stats.corrupt_frames = 0
+        self.request(StreamControl(enable=enable), Ack)
+        self._stream.clear()
+        self._ended = False
 
     def stage_begin(self, length: int) -> int:
         return int(self.request(StageBegin(length=length), Ack).value)
