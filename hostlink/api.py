@@ -23,6 +23,14 @@ Files (INTERFACES.md formats; every write is atomic):
 Sky:
     :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
     (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
+Images:
+    :func:`centroid_images` (star centroids from FITS/TIFF/PNG images into a session of unidentified stars, with
+    :class:`CentroidOptions`, :class:`TimeOptions` and one :class:`FrameReport` per image in a
+    :class:`CentroidResult`), :func:`centroid_pixels` (one image array), :func:`read_image` (THE image reader),
+    :func:`centroid_crb_px` (the Cramer-Rao bound of a centroid), :func:`render_stars` / :func:`render_frame` with
+    :class:`RenderConfig` (images of simulated stars with known truth, for tests),
+    :func:`identify_session` (lost-in-space identification of a session's unidentified stars against Hipparcos,
+    with :class:`Identification` and one :class:`FrameIdentity` per frame: attitude, parity, scale).
 Calibration:
     :func:`calibrate_session` (batch ground calibration), :func:`result_extras`, :func:`replay_session` (the
     onboard recursive estimator over a session, as the sensor runs it), :func:`replay_config`, :func:`replay_prior`,
@@ -31,6 +39,10 @@ Sensor links (serial, CAN, Modbus; real or emulated, chosen by one link string):
     :func:`open_link`, :func:`stream_frames`, :func:`record_session`, :func:`poll_estimate`, :func:`poll_estimates`,
     :func:`estimate_record`, :func:`safe_upload`, :func:`read_active_params`, :func:`read_estimate`,
     :func:`accept_estimate`, :func:`params_float32_dict`, :func:`float32_equal`.
+Port kit (docs/port-kit.md):
+    :func:`export_c` (C99 headers and source of the wire protocol), :func:`write_vectors` (golden test vectors of the
+    onboard functions, float32 and fixed point, with tolerances), :func:`cost_table` / :func:`cost_table_text`
+    (operations and memory per frame at N stars).
 Emulated sensor and the bench:
     :class:`EmulatorProcess` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its
     frame source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end),
@@ -55,6 +67,17 @@ from hostlink.files.params import data_file, load_params, load_params_with_sigma
 from hostlink.files.session import Session, SessionWriter, read_session, write_session
 from hostlink.files.trace import read_trace, write_trace
 from hostlink.files.truth import read_truth, write_truth
+from hostlink.images.centroid import (
+    CentroidOptions,
+    CentroidResult,
+    FrameReport,
+    TimeOptions,
+    centroid_crb_px,
+    centroid_images,
+    centroid_pixels,
+)
+from hostlink.images.identify import FrameIdentity, Identification, identify_session
+from hostlink.images.read import RawImage, read_image
 from hostlink.links import Link, open_link
 from hostlink.links.base import CommandRefused
 from hostlink.links.operations import (
@@ -77,8 +100,12 @@ from hostlink.links.operations import (
 )
 from hostlink.mission.config import BenchConfig, design_nominal
 from hostlink.mission.run import run_bench
+from hostlink.portkit.costs import cost_table, cost_table_text
+from hostlink.portkit.export_c import write_c as export_c
+from hostlink.portkit.vectors import write_vectors
 from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
 from hostlink.sky.references import SessionReferences, session_references
+from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
 from hostlink.sky.simulate import SimConfig, SimResult, simulate
 from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
 from onboard.recursive import RecursiveConfig
@@ -91,14 +118,22 @@ __all__ = [
     "BenchConfig",
     "CalibrationOutcome",
     "CameraParams",
+    "CentroidOptions",
+    "CentroidResult",
     "Distortion",
     "ESTIMATE_NAMES",
     "Estimate",
     "EstimatePoll",
+    "FrameIdentity",
+    "FrameReport",
+    "Identification",
     "Link",
     "METHODS",
     "REFRACTION_MODES",
+    "RawImage",
     "RecursiveConfig",
+    "RenderConfig",
+    "RenderedFrame",
     "ReplayResult",
     "Session",
     "SessionAttitudes",
@@ -107,6 +142,7 @@ __all__ = [
     "SimResult",
     "Site",
     "StreamResult",
+    "TimeOptions",
     "UploadResult",
     "Weather",
     # errors
@@ -128,7 +164,15 @@ __all__ = [
     "write_session",
     "write_trace",
     "write_truth",
+    # images
+    "centroid_crb_px",
+    "centroid_images",
+    "centroid_pixels",
+    "read_image",
+    "render_frame",
+    "render_stars",
     # sky
+    "identify_session",
     "session_references",
     "simulate",
     "solve_attitudes",
@@ -152,6 +196,11 @@ __all__ = [
     "record_session",
     "safe_upload",
     "stream_frames",
+    # port kit
+    "cost_table",
+    "cost_table_text",
+    "export_c",
+    "write_vectors",
     # emulator and bench
     "EmulatorProcess",
     "build_sensor",

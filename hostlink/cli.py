@@ -20,6 +20,8 @@ from hostlink.errors import UserError
 COMMANDS: tuple[str, ...] = (
     "bench",
     "simulate",
+    "centroid",
+    "identify",
     "calibrate",
     "replay",
     "attitude",
@@ -31,6 +33,9 @@ COMMANDS: tuple[str, ...] = (
     "accept",
     "example",
     "import-can",
+    "export-c",
+    "vectors",
+    "costs",
 )
 
 

@@ -52,7 +52,22 @@ def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarr
         "max_arcsec": float(np.max(ang)),
         "n_stars": int(data.n_obs),
         "n_frames": int(data.n_frames),
+        "rms_px_clipped": clipped_rms(e_len),
     }
+
+
+def clipped_rms(e_len: np.ndarray, k: float = 3.0, max_passes: int = 20) -> float:
+    """RMS [px] of the residual lengths left after iterative k-sigma clipping (drop |e| > k x RMS of the kept ones,
+    repeat until nothing more is dropped): the figure other calibration tools report as their residual, for a
+    comparison on the same footing."""
+    keep = np.ones(e_len.shape, dtype=bool)
+    for _ in range(max_passes):
+        rms = float(np.sqrt(np.mean(e_len[keep] ** 2))) if keep.any() else float("nan")
+        new_keep = e_len <= k * rms
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return rms
 
 
 def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> float:

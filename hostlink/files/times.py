@@ -78,6 +78,33 @@ def tai_minus_utc_s(jd_utc1: float, jd_utc2: float) -> int:
     return int(round(float(erfa.dat(y, m, d, fd))))
 
 
+#: Time scales :func:`iso_to_utc` reads, with their offset [s] to the ERFA scale they are read in (GPS = TAI - 19 s).
+TIME_SCALES = {"UTC": ("UTC", 0.0), "TAI": ("TAI", 0.0), "TT": ("TT", 0.0), "GPS": ("TAI", 19.0)}
+
+
+def iso_to_utc(text: str, scale: str) -> str:
+    """An ISO 8601 date-time in the time scale ``scale`` (UTC, TAI, TT or GPS: a FITS ``TIMESYS``) -> ISO UTC with
+    milliseconds and a Z (ERFA dtf2d, tttai, taiutc, d2dtf: leap seconds applied). Raises ValueError naming the
+    text or the scale."""
+    key = str(scale).strip().upper()
+    if key not in TIME_SCALES:
+        raise ValueError(f"time scale {scale!r} is not one of {', '.join(TIME_SCALES)}")
+    erfa_scale, plus_s = TIME_SCALES[key]
+    y, mo, d, h, mi, sec = parse_iso_utc(text)
+    try:
+        jd1, jd2 = erfa.dtf2d(erfa_scale, y, mo, d, h, mi, sec)
+        jd2 = jd2 + plus_s / 86400.0
+        if erfa_scale == "TT":
+            jd1, jd2 = erfa.tttai(jd1, jd2)
+        if erfa_scale != "UTC":
+            jd1, jd2 = erfa.taiutc(jd1, jd2)
+        (yy, mm, dd, ihmsf) = erfa.d2dtf("UTC", 3, jd1, jd2)
+    except (erfa.ErfaError, ValueError) as exc:
+        raise ValueError(f"invalid date or time {text!r} ({exc})") from None
+    hh, mn, ss, ms = (int(v) for v in np.asarray(ihmsf).tolist())
+    return f"{int(yy):04d}-{int(mm):02d}-{int(dd):02d}T{hh:02d}:{mn:02d}:{ss:02d}.{ms:03d}Z"
+
+
 def utc_to_tt(jd1: np.ndarray, jd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """UTC -> TT two-part Julian dates (ERFA utctai, taitt)."""
     tai1, tai2 = erfa.utctai(jd1, jd2)

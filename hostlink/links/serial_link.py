@@ -17,7 +17,7 @@ import serial
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
 from protocol.framing import FrameSplitter, FramingError, decode_frame, encode_frame, seq_gap
-from protocol.messages import DecodeError, Message, decode, encode
+from protocol.messages import CentroidFrame, DecodeError, EndOfStream, Message, decode, encode
 
 try:  # pyserial's POSIX flush() raises termios.error (not an OSError) when the other end of a pty is gone
     from termios import error as _TermiosError
@@ -92,7 +92,11 @@ class SerialLink(MessageLink):
                 continue
             if self._rx_seq is not None:
                 self.stats.lost_messages += seq_gap(self._rx_seq, frame.seq)
-            self._rx_seq = frame.seq
+                self._rx_seq = frame.seq
+            elif isinstance(msg, (CentroidFrame, EndOfStream)):
+                # after a (re)start, loss is counted from the first stream message received, as on CAN and Modbus
+                # (whose frame counters are all the host has): frames lost before it are not known to be lost
+                self._rx_seq = frame.seq
             self.stats.rx_messages += 1
             self._ready.append(msg)
 

@@ -1,0 +1,129 @@
+"""``hostlink centroid``: star centroids from images into a session (issue 11).
+
+Parses the options, calls :func:`hostlink.images.centroid.centroid_images` (the method and its checks are there),
+writes the session through the one session writer and prints one line per image.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "find star centroids in images (FITS, TIFF, PNG) and write them as a session of unidentified stars"
+DESCRIPTION = (
+    "Read each IMAGE (FITS, 8/16-bit TIFF, PNG; a colour image as the mean of its channels), subtract a dark or "
+    "median frame if given, then a local background (SEP), detect stars (SEP's matched filter and deblending), "
+    "reject hot pixels (single-pixel spikes), saturated stars (a pixel at the clip level), blended stars (deblended "
+    "from a neighbour, or elongated: an unresolved pair) and stars cut by the image edge, and centroid the rest by "
+    "fitting the pixel-integrated Gaussian PSF of the frame's width, started at SEP's windowed centroid. Writes "
+    "SESSION.csv: one frame per image in time order, star_id 0, x_px/y_px with (0, 0) the centre of the top-left "
+    "pixel, mag the instrumental magnitude (-2.5 log10 flux), extra columns flux_adu, image and time_source. The "
+    "time of each image comes from one option (--time, --times, --time-pattern, --date, --time-unknown) or else from "
+    "the file (FITS DATE-AVG or DATE-OBS + EXPTIME/2; EXIF DateTimeOriginal); an image with no known time is an "
+    "error. Exit 2 when no star is found in any image."
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (.fits/.fit, .tif/.tiff, .png)")
+    parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
+    background = parser.add_mutually_exclusive_group()
+    background.add_argument("--dark", metavar="FILE", help="dark frame to subtract from every image first")
+    background.add_argument("--median", metavar="FILE", help="median (sky) frame to subtract from every image first")
+    background.add_argument(
+        "--median-of-inputs",
+        action="store_true",
+        help="subtract the per-pixel median of the IMAGEs themselves (>= 3 images at different pointings)",
+    )
+    when = parser.add_mutually_exclusive_group()
+    when.add_argument("--time", metavar="ISO", help="exposure mid-time of every image, ISO 8601 UTC")
+    when.add_argument(
+        "--times", metavar="FILE", help="text file, one line per image: FILE_NAME,ISO_UTC_TIME (# comments)"
+    )
+    when.add_argument(
+        "--time-pattern",
+        metavar="STRPTIME",
+        help="read the time from each file name, e.g. 'img_%%Y%%m%%d_%%H%%M%%S' (UTC unless the pattern has %%z)",
+    )
+    when.add_argument(
+        "--date",
+        metavar="YYYY-MM-DD",
+        help="UTC date only, time of day unknown: writes 12:00:00 UTC (annual aberration then errs <= 0.18 arcsec)",
+    )
+    when.add_argument(
+        "--time-unknown", action="store_true", help="no time: t_utc empty (calibrate then uses J2000 directions)"
+    )
+    parser.add_argument(
+        "--threshold-sigma",
+        type=float,
+        default=5.0,
+        metavar="N",
+        help="detection threshold in units of the local background noise (default 5)",
+    )
+    parser.add_argument("--min-area", type=int, default=3, metavar="PX", help="minimum footprint in pixels (default 3)")
+    parser.add_argument(
+        "--saturation-adu",
+        type=float,
+        metavar="ADU",
+        help="level at which the detector clips (default: the file type's maximum, or FITS SATURATE)",
+    )
+    parser.add_argument(
+        "--keep-saturated",
+        action="store_true",
+        help="keep saturated stars (windowed centroid, ranked first) instead of rejecting them",
+    )
+    parser.add_argument(
+        "--psf-sigma-px", type=float, metavar="PX", help="PSF sigma for the centroid window (default: measured)"
+    )
+    parser.add_argument(
+        "--gain",
+        type=float,
+        metavar="E_PER_ADU",
+        help="detector gain [e-/ADU], if known: the PSF fit and the blend test then weigh the stars' shot noise",
+    )
+    parser.add_argument(
+        "--centroid",
+        choices=("psf-fit", "window"),
+        default="psf-fit",
+        help="psf-fit: fit the pixel-integrated Gaussian PSF, maximum likelihood (default); window: SEP's windowed "
+        "centroid only",
+    )
+    parser.add_argument("--max-stars", type=int, metavar="N", help="keep only the N brightest stars of each image")
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hostlink.api import CentroidOptions, TimeOptions, centroid_images, write_session
+
+    options = CentroidOptions(
+        threshold_sigma=args.threshold_sigma,
+        min_area_px=args.min_area,
+        dark=args.dark,
+        median=args.median,
+        median_of_inputs=args.median_of_inputs,
+        saturation_adu=args.saturation_adu,
+        psf_sigma_px=args.psf_sigma_px,
+        gain_e_per_adu=args.gain,
+        method=args.centroid,
+        keep_saturated=args.keep_saturated,
+        max_stars=args.max_stars,
+    )
+    times = TimeOptions(
+        time_utc=args.time,
+        times_file=args.times,
+        time_pattern=args.time_pattern,
+        date=args.date,
+        time_unknown=args.time_unknown,
+    )
+    result = centroid_images(args.images, options, times)
+    write_session(args.out, result.session)
+    if not args.quiet:
+        for k, f in enumerate(result.frames):
+            print(
+                f"frame {k} {f.path}: {f.kept} stars of {f.detected} detections (rejected: {f.rejected_hot} hot, "
+                f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge"
+                f"{f'; {f.saturated_kept} saturated kept' if args.keep_saturated else ''}); "
+                f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
+                f"time {f.time_utc or 'unknown'} ({f.time_source})"
+            )
+        print(f"{len(result.session)} stars in {len(result.frames)} images; wrote {args.out}")
+    return 0

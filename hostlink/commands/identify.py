@@ -1,0 +1,82 @@
+"""``hostlink identify``: lost-in-space identification of a session's unidentified stars (issue 11).
+
+Parses the options, calls :func:`hostlink.images.identify.identify_session` (the method and its checks are there),
+writes the session through the one session writer and prints one line per frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "identify a session's unidentified stars (star_id 0) against Hipparcos, lost in space"
+DESCRIPTION = (
+    "Identify the rows of SESSION.csv with star_id 0 (centroids from `hostlink centroid`, or a sensor's raw "
+    "telemetry) against the bundled Hipparcos catalogue, frame by frame, with no attitude known. Tolerates a "
+    "nominal focal length off by up to 10 %, unknown distortion, false stars (hot pixels, noise) and a mirrored "
+    "detector (the parity is found and reported). The tetra3rs pattern engine proposes matches; frames it cannot "
+    "match are tried again with the project's own pair-anchored matcher at the focal length the identified frames "
+    "measured. Every match is then verified with the project's interstar test, and a frame is accepted only when "
+    "enough stars verify. Writes the session with the identified star_id (and ra_deg/dec_deg when the file has "
+    "those columns); frames that fail keep star_id 0 and are reported. Exit 2 when no frame is identified."
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument(
+        "--nominal",
+        required=True,
+        metavar="NOMINAL.json",
+        help="nominal camera parameter file (focal length within 10 %%; a path or builtin:NAME)",
+    )
+    parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write (may be the input)")
+    parser.add_argument(
+        "--maglim", type=float, metavar="MAG", help="use only catalogue stars at least this bright (Hp; default all)"
+    )
+    parser.add_argument("--report", metavar="REPORT.json", help="write the per-frame report (attitude, parity, scale)")
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def run(args: argparse.Namespace) -> int:
+    import math
+    from pathlib import Path
+
+    from hostlink.errors import UserError
+    from hostlink.files.atomic import write_json
+    from hostlink.files.params import load_params
+    from hostlink.files.session import check_on_detector, read_session, write_session
+    from hostlink.images.identify import identify_session
+
+    session = read_session(args.session)
+    nominal = load_params(args.nominal)
+    check_on_detector(session, nominal.image_size_px, Path(args.session).name, args.nominal)
+    if args.maglim is not None and not math.isfinite(args.maglim):
+        raise UserError(f"--maglim must be a finite magnitude, got {args.maglim}")
+    result = identify_session(session, nominal, maglim=args.maglim)
+    if not result.frames:
+        raise UserError(f"{args.session}: no unidentified star (every star_id is already set)")
+    if args.report:
+        write_json(args.report, result.report())
+    if result.n_frames_identified == 0:
+        raise UserError(
+            f"no frame identified ({len(result.frames)} tried, engine {result.engine}): check the nominal focal "
+            "length (within 10 %), the image size and that the centroids are stars"
+        )
+    write_session(args.out, result.session)
+    if not args.quiet:
+        for f in result.frames:
+            if f.status == "identified":
+                parity = "mirrored" if f.mirrored else "normal"
+                print(
+                    f"frame {f.frame}: {f.n_identified} of {f.n_centroids} identified ({f.n_candidates} candidates), "
+                    f"boresight ra {f.ra_deg:.4f} dec {f.dec_deg:.4f} roll {f.roll_deg:.2f} deg, parity {parity}, "
+                    f"scale {f.scale:.4f}, residual {f.residual_arcsec:.1f} arcsec"
+                )
+            else:
+                print(f"frame {f.frame}: not identified ({f.status}; {f.n_centroids} centroids)")
+        parity = "mirrored (flip x before calibrate)" if result.mirrored else "normal"
+        print(
+            f"identified {result.n_identified} stars in {result.n_frames_identified} of {len(result.frames)} frames "
+            f"({result.engine}); parity {parity}; focal length {result.scale:.4f} x nominal; wrote {args.out}"
+        )
+    return 0

@@ -1,0 +1,765 @@
+"""Star centroids from images (issue 11, ``hostlink centroid``): images -> a session of unidentified stars
+(``star_id`` 0), with the source extraction of SEP (Barbary 2016, JOSS 1:58: the Source Extractor algorithms of
+Bertin & Arnouts 1996 as a library).
+
+Per image:
+
+1. subtract a given dark or median frame (a median of night-sky frames taken at different pointings removes the
+   fixed pattern: hot pixels, amplifier glow, vignetted sky), then SEP's spatially varying background
+   (``sep.Background``, a 64 px mesh, 3 x 3 median filter) and its noise map, corrected to what the detection
+   filter actually sees (:func:`_filtered_noise_correction`: clipped, skewed or correlated noise);
+2. detect: SEP's matched-filter detection (``sep.extract``) at ``threshold_sigma`` x the local noise with a minimum
+   footprint, its multi-threshold deblending (32 levels, contrast 0.005);
+3. reject, each counted: a *hot pixel* (a single-pixel spike: the mean of the 4 pixels next to the brightest one is
+   below ``hot_pixel_ratio`` of it; a star's PSF integrated over pixels gives >= 0.23 down to sigma 0.5 px),
+   *saturated* (a pixel of the footprint at the image's clip level; kept instead with ``keep_saturated``),
+   *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour; or Gaussian-windowed second moments more
+   elongated than the frame's own PSF, :func:`_unresolved_pairs`: two stars closer than the deblender can split),
+   *edge* (footprint truncated by the image border, ``OBJ_TRUNC``);
+4. centroid: SEP's windowed centroid (``sep.winpos``, Source Extractor's XWIN_IMAGE: the iterated Gaussian-weighted
+   first moment, which converges to the maximum of the image correlated with the window) with the window sigma
+   equal to the frame's PSF sigma (the median over its most significant stars of the half-light radius / 1.1774,
+   the Gaussian's r50 = sigma sqrt(2 ln 2)): the matched filter, maximum likelihood where background and read noise
+   dominate, but (4/3)^2 x the Cramer-Rao variance where the star's own shot noise does. It starts the default
+   ``psf-fit``: a weighted least-squares fit of the pixel-integrated Gaussian PSF (:func:`psf_model`; position, flux
+   and local background free, sigma fixed at the frame's) with the weights of shot + read noise when the gain is
+   known: maximum likelihood at every signal-to-noise ratio (measured at 0.99-1.08 x the bound from peak SNR 15 to
+   250, :func:`centroid_crb_px`, tests/test_images_centroid.py);
+5. flux: the linear least-squares amplitude of the pixel-integrated Gaussian PSF (the renderer's model,
+   :func:`hostlink.sky.render.pixel_integrated_gaussian`) at the centroid, F = sum (I - b) P / sum P^2 over +-3 PSF
+   sigmas [ADU, the star's total flux], with b the local background (median of the surrounding ring: it removes what
+   the mesh background leaves, e.g. on skewed noise clipped at zero): the maximum-likelihood flux where background
+   noise dominates, so stars rank by signal-to-noise, not by how much noise an aperture collects; instrumental
+   magnitude ``mag = -2.5 log10(flux_adu)`` (no zero point: it orders stars, brightest first).
+
+SEP and this module use the camera-model pixel convention (docs/camera-model.md): ``(0, 0)`` is the centre of the
+first (top-left) pixel, ``x`` the column, ``y`` the row.
+
+Time of each image (exposure mid-time, UTC): one of ``TimeOptions`` (a time for every image, a list per image, a
+strptime pattern on the file name, a date with the time of day unknown, or no time), else the file's metadata
+(:mod:`hostlink.images.read`); an image with no known time is a one-line error naming it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError, one_line
+from hostlink.files.session import Session
+from hostlink.files.times import parse_iso_utc_many
+from hostlink.images.read import RawImage, read_image
+from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dsource
+
+#: r50 / sigma of a circular Gaussian: sqrt(2 ln 2).
+_R50_PER_SIGMA = math.sqrt(2.0 * math.log(2.0))
+#: The PSF flux is fitted over +-this many PSF sigmas (+1 px) around the centroid; the local background is the median
+#: of the ring from there out to 3 px farther.
+_PSF_FIT_SIGMAS = 3.0
+_RING_WIDTH_PX = 3
+#: Stars (the most significant kept) over which the frame's PSF sigma is the median: few, as a noisy frame may hold
+#: only a dozen real stars among its detections.
+_PSF_STARS = 10
+#: The PSF sigma is iterated from this start [px], each time measuring r50 within this many sigmas (99.97 % of a
+#: Gaussian's flux lies within 4 sigma; a larger radius only adds background noise to r50).
+_DEFAULT_PSF_SIGMA_PX = 1.0
+_PSF_RMAX_SIGMAS = 4.0
+_PSF_ITERATIONS = 3
+#: Smallest PSF sigma the window may take [px] (SEP's own floor for winpos, 2 / 2.35 x 0.5 = 0.43 px, rounded).
+_MIN_PSF_SIGMA_PX = 0.45
+#: A windowed centroid that moves farther than this from the isophotal one [px] has failed (a neighbour pulled it).
+_WINPOS_MAX_SHIFT_PX = 2.0
+#: An ellipticity is significant beyond this many standard deviations of its noise (a round star exceeds it with
+#: probability exp(-16 / 2) = 3e-4: the ellipticity's two components are Gaussian with that deviation).
+_ELLIPTICITY_SIGNIFICANCE = 4.0
+#: The detection filter (SEP's default 3 x 3 kernel, a Gaussian of sigma ~1 px sampled on pixels).
+_FILTER_KERNEL = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], dtype=np.float32)
+#: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
+#: frame keeps): the images then share a pointing.
+_MEDIAN_MAX_STARS = 5
+#: A PSF fit that moves the centroid farther than this from the windowed one [px] has failed (a neighbour, noise).
+_FIT_MAX_SHIFT_PX = 1.0
+#: Centroid methods: the PSF fit (maximum likelihood, the default) or SEP's windowed centroid alone.
+CENTROID_METHODS = ("psf-fit", "window")
+#: Well-measured stars needed to take the frame's PSF shape from them (else the PSF is taken as round).
+_PSF_SHAPE_STARS = 5
+#: ... whose ellipticity is known to this standard deviation.
+_PSF_SHAPE_MAX_SIGMA = 0.1
+#: SEP's buffers: a noisy frame at a low threshold can hold many more pixels above threshold than SEP's default.
+_SEP_PIXSTACK = 3_000_000
+_SEP_SUB_OBJECTS = 4096
+
+
+@dataclass(frozen=True)
+class CentroidOptions:
+    """How to centroid. ``threshold_sigma``: detection threshold in units of the local background noise;
+    ``min_area_px``: minimum footprint [px] above threshold; ``dark`` / ``median``: a frame to subtract first (a file);
+    ``median_of_inputs``: subtract the per-pixel median of all the images given (they must be taken at different
+    pointings, at least 3); ``saturation_adu``: the clip level (default: from the file, the integer type's maximum);
+    ``psf_sigma_px``: the centroid window (default: measured per frame); ``hot_pixel_ratio``, ``max_ellipticity``:
+    rejection limits (module docstring); ``gain_e_per_adu``: the detector's gain, when known, adds the stars' own
+    shot noise to the weights of the PSF fit (without it: 1.13-1.17 x the bound instead of 1.0 for stars whose shot
+    noise dominates) and to the noise of the blend test (without it the test counts background noise only and
+    rejects about 1 % of moderately bright single stars); ``background_box_px``: SEP's background mesh;
+    ``max_stars``: keep the brightest N per image (None: all); ``method``: ``psf-fit`` (default) or ``window``
+    (:data:`CENTROID_METHODS`); ``keep_saturated``: keep saturated stars instead of rejecting them (for cameras whose
+    brightest stars, the best anchors of identification, always saturate): windowed centroid (a clipped core does
+    not follow the PSF), ranked first, counted in ``FrameReport.saturated_kept``."""
+
+    threshold_sigma: float = 5.0
+    min_area_px: int = 3
+    dark: str | Path | None = None
+    median: str | Path | None = None
+    median_of_inputs: bool = False
+    saturation_adu: float | None = None
+    psf_sigma_px: float | None = None
+    hot_pixel_ratio: float = 0.2
+    max_ellipticity: float = 0.1
+    keep_saturated: bool = False
+    gain_e_per_adu: float | None = None
+    method: str = "psf-fit"
+    background_box_px: int = 64
+    max_stars: int | None = None
+
+
+@dataclass(frozen=True)
+class TimeOptions:
+    """Where the time of each image comes from (at most one; none: the files' metadata). ``time_utc``: one ISO UTC
+    time for every image; ``times_file``: a text file, one line per image, ``NAME,TIME`` or ``NAME TIME`` (NAME the
+    image's file name, TIME ISO UTC; ``#`` starts a comment); ``time_pattern``: a ``datetime.strptime`` pattern
+    matching the whole file name or its stem (UTC unless it has ``%z``); ``date``: ``YYYY-MM-DD``, the UTC date with
+    the time of day unknown (12:00:00 UTC is written: within 12 h of any time of that day, which moves annual
+    aberration by at most 0.18", docs/file-formats.md); ``time_unknown``: no time (every ``t_utc`` empty)."""
+
+    time_utc: str | None = None
+    times_file: str | Path | None = None
+    time_pattern: str | None = None
+    date: str | None = None
+    time_unknown: bool = False
+
+
+@dataclass
+class FrameReport:
+    """What happened to one image: detections, the stars kept and every rejection by reason, the background noise
+    [ADU], the PSF sigma used [px], the time and its source."""
+
+    path: str
+    detected: int = 0
+    kept: int = 0
+    rejected_hot: int = 0
+    rejected_saturated: int = 0
+    saturated_kept: int = 0
+    rejected_blended: int = 0
+    rejected_edge: int = 0
+    background_rms_adu: float = float("nan")
+    psf_sigma_px: float = float("nan")
+    time_utc: str = ""
+    time_source: str = ""
+
+
+@dataclass
+class Detections:
+    """The stars kept in one image, brightest first: centroid [px] (camera convention), flux [ADU], instrumental
+    magnitude; ``report`` the counts."""
+
+    x_px: np.ndarray
+    y_px: np.ndarray
+    flux_adu: np.ndarray
+    mag: np.ndarray
+    report: FrameReport = field(default_factory=lambda: FrameReport(path=""))
+
+
+@dataclass
+class CentroidResult:
+    """The session (one frame per image, in time order; ``star_id`` 0; extra columns ``flux_adu``, ``image``,
+    ``time_source``) and one :class:`FrameReport` per frame."""
+
+    session: Session
+    frames: list[FrameReport]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# one image
+
+
+def centroid_pixels(
+    pixels: np.ndarray,
+    options: CentroidOptions = CentroidOptions(),
+    background: np.ndarray | None = None,
+    saturation_adu: float | None = None,
+) -> Detections:
+    """Detect and centroid the stars of one image ``pixels[row, column]`` [ADU] (module docstring, steps 1-5).
+    ``background``: a dark or median frame to subtract first; ``saturation_adu``: the clip level of ``pixels``
+    (``options.saturation_adu`` wins; None: no saturation test)."""
+    import sep
+
+    _check_options(options)
+    raw = np.ascontiguousarray(pixels, dtype=np.float64)
+    if background is not None:
+        if background.shape != raw.shape:
+            raise UserError(
+                f"background frame is {background.shape[1]} x {background.shape[0]} px, image is "
+                f"{raw.shape[1]} x {raw.shape[0]} px"
+            )
+        data = raw - background
+    else:
+        data = raw.copy()
+    box = int(min(options.background_box_px, max(8, min(data.shape) // 2)))
+    sep.set_extract_pixstack(_SEP_PIXSTACK)
+    sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
+    try:
+        bkg = sep.Background(data, bw=box, bh=box, fw=3, fh=3)
+        sub = data - bkg.back()
+        offset, rms = _filtered_noise_correction(sub, bkg.rms())
+        sub -= offset
+        objects, segmap = sep.extract(
+            sub,
+            options.threshold_sigma,
+            err=rms,
+            minarea=options.min_area_px,
+            filter_kernel=_FILTER_KERNEL,
+            deblend_nthresh=32,
+            deblend_cont=0.005,
+            segmentation_map=True,
+        )
+    except Exception as exc:  # SEP reports buffer overflows as plain exceptions
+        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
+    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms)))
+    empty = Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report)
+    if objects.size == 0:
+        return empty
+    keep = np.ones(objects.size, bool)
+
+    # edge: the footprint touches the border (its centroid is biased)
+    edge = (objects["flag"] & sep.OBJ_TRUNC) != 0
+    # saturated: a raw pixel of the footprint at the clip level
+    level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
+    saturated = np.zeros(objects.size, bool)
+    if level is not None:
+        from scipy import ndimage
+
+        peak_raw = ndimage.maximum(raw, labels=segmap, index=np.arange(1, objects.size + 1))
+        saturated = np.asarray(peak_raw) >= level
+    hot = _hot_pixels(sub, objects, options.hot_pixel_ratio) & ~saturated
+    blended = (objects["flag"] & sep.OBJ_MERGED) != 0
+    rejections = (hot, blended, edge) if options.keep_saturated else (saturated, hot, blended, edge)
+    for mask in rejections:
+        mask &= keep
+        keep &= ~mask
+    report.rejected_saturated = 0 if options.keep_saturated else int(saturated.sum())
+    report.rejected_hot = int(hot.sum())
+    report.rejected_blended = int(blended.sum())
+    report.rejected_edge = int(edge.sum())
+    good = objects[keep]
+    clipped = saturated[keep]  # kept saturated stars (keep_saturated only)
+    if good.size == 0:
+        return empty
+
+    sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
+    x, y = _windowed_centroids(sub, good, sigma)
+    # unresolved pairs (too close for a saddle between them: the deblender sees one peak) are elongated
+    ellipticity, ellipticity_sigma = _windowed_ellipticity(sub, rms, x, y, sigma, options.gain_e_per_adu)
+    unresolved = _unresolved_pairs(ellipticity, ellipticity_sigma, options.max_ellipticity)
+    report.rejected_blended += int(unresolved.sum())
+    good, clipped = good[~unresolved], clipped[~unresolved]
+    if good.size == 0:
+        return empty
+    if options.psf_sigma_px is None and np.any(unresolved):  # the pairs widened the first estimate
+        sigma = _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
+        x, y = _windowed_centroids(sub, good, sigma)
+    else:
+        x, y = x[~unresolved], y[~unresolved]
+    report.psf_sigma_px = float(sigma)
+    report.saturated_kept = int(clipped.sum())
+    if options.method == "psf-fit":  # a clipped core does not follow the PSF: saturated stars keep the window
+        fit = ~clipped
+        x[fit], y[fit] = _psf_fit_centroids(sub, rms, x[fit], y[fit], sigma, options.gain_e_per_adu)
+    flux = _psf_fluxes(sub, x, y, sigma)
+    # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
+    flux[clipped] = np.maximum(flux[clipped], good["flux"][clipped])
+    order = np.argsort(-flux, kind="stable")
+    if options.max_stars is not None:
+        order = order[: options.max_stars]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag = np.where(flux > 0, -2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
+    report.kept = int(order.size)
+    return Detections(x[order], y[order], flux[order], mag[order], report)
+
+
+def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float, np.ndarray]:
+    """(offset [ADU], noise map [ADU]) that make SEP's background and noise describe the detection image as it is.
+    SEP assumes independent Gaussian pixel noise: its clipped-mode background and clipped rms are biased when the
+    noise is clipped at zero (an 8-bit camera whose black level sits below zero) or skewed, and its matched-filter
+    threshold is too low when neighbouring pixels are correlated (a demosaiced colour image). Measured on the image
+    filtered by the detection kernel: the offset is the median, the noise half the distance from the median to the
+    upper 2-sigma point, (P97.725 - P50) / 2 (blind to the clipped lower half, counts a heavy upper tail, and the
+    star pixels, < 1 % of a frame, do not reach it), compared with the noise SEP assumes after filtering,
+    median(rms) sqrt(sum k^2) / sum k: the map is scaled up by their ratio (never down). For independent Gaussian noise
+    both corrections vanish (ratio 1.00-1.02). When SEP's rms is 0 (most pixels clipped to one value) the map is the
+    measured noise, uniform."""
+    from scipy import ndimage
+
+    kernel = _FILTER_KERNEL / _FILTER_KERNEL.sum()
+    filtered = ndimage.convolve(sub, kernel, mode="nearest")
+    p50, p977 = np.percentile(filtered, [50.0, 97.725])
+    # the per-pixel noise of independent pixels that would give the filtered image's measured noise
+    equivalent = 0.5 * float(p977 - p50) / math.sqrt(float(np.sum(kernel**2)))
+    level = float(np.median(rms))
+    if level > 0:
+        return float(p50), rms * max(equivalent / level, 1.0)
+    # more than half of the pixels clipped to one value: SEP's clipped rms is 0; the filtered image still knows
+    return float(p50), np.full_like(rms, equivalent)
+
+
+def _check_options(options: CentroidOptions) -> None:
+    if not (math.isfinite(options.threshold_sigma) and options.threshold_sigma > 0):
+        raise UserError(f"threshold-sigma must be a number > 0, got {options.threshold_sigma!r}")
+    if options.min_area_px < 1:
+        raise UserError(f"minimum area must be >= 1 px, got {options.min_area_px}")
+    if options.psf_sigma_px is not None and not (options.psf_sigma_px > 0):
+        raise UserError(f"psf sigma must be > 0 px, got {options.psf_sigma_px!r}")
+    if options.gain_e_per_adu is not None and not (options.gain_e_per_adu > 0):
+        raise UserError(f"gain must be > 0 e-/ADU, got {options.gain_e_per_adu!r}")
+    if options.method not in CENTROID_METHODS:
+        raise UserError(f"centroid method must be one of {', '.join(CENTROID_METHODS)}, got {options.method!r}")
+    if options.max_stars is not None and options.max_stars < 1:
+        raise UserError(f"max-stars must be >= 1, got {options.max_stars}")
+
+
+def _hot_pixels(sub: np.ndarray, objects: np.ndarray, ratio: float) -> np.ndarray:
+    """Single-pixel spikes: the mean of the 4 edge neighbours of the brightest (unfiltered) pixel is below ``ratio``
+    of it. A pixel-integrated Gaussian of sigma s has a neighbour/peak ratio of at least
+    [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1] (0.23 at s = 0.5 px, 0.60 at s = 1 px)."""
+    h, w = sub.shape
+    c = np.clip(objects["xpeak"].astype(np.int64), 1, w - 2)
+    r = np.clip(objects["ypeak"].astype(np.int64), 1, h - 2)
+    peak = sub[r, c]
+    neighbours = (sub[r - 1, c] + sub[r + 1, c] + sub[r, c - 1] + sub[r, c + 1]) / 4.0
+    return neighbours < ratio * peak
+
+
+def _psf_fluxes(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
+    """PSF-fit flux [ADU] of each star at its centroid (module docstring, step 5)."""
+    h, w = sub.shape
+    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    outer = half + _RING_WIDTH_PX
+    flux = np.zeros(x.size)
+    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
+        c, r = int(round(xc)), int(round(yc))
+        c0, c1, r0, r1 = max(c - outer, 0), min(c + outer + 1, w), max(r - outer, 0), min(r + outer + 1, h)
+        cols, rows = np.arange(c0, c1), np.arange(r0, r1)
+        cut = sub[r0:r1, c0:c1]
+        inner = (np.abs(rows - r)[:, None] <= half) & (np.abs(cols - c)[None, :] <= half)
+        ring = cut[~inner]
+        background = float(np.median(ring)) if ring.size else 0.0
+        psf = np.outer(pixel_integrated_gaussian(rows, yc, sigma_px), pixel_integrated_gaussian(cols, xc, sigma_px))
+        p = psf[inner]
+        flux[k] = float(np.sum((cut[inner] - background) * p) / np.sum(p * p))
+    return flux
+
+
+def _windowed_centroids(sub: np.ndarray, good: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """SEP's windowed centroids (XWIN_IMAGE) with window ``sigma_px``; where the window fails or wanders more than
+    :data:`_WINPOS_MAX_SHIFT_PX` from the isophotal barycentre, the barycentre."""
+    import sep
+
+    xw, yw, flag = sep.winpos(sub, good["x"], good["y"], np.full(good.size, sigma_px))
+    failed = (flag != 0) | (np.hypot(xw - good["x"], yw - good["y"]) > _WINPOS_MAX_SHIFT_PX)
+    return np.where(failed, good["x"], xw), np.where(failed, good["y"], yw)
+
+
+def _unresolved_pairs(e: np.ndarray, e_sigma: np.ndarray, max_ellipticity: float) -> np.ndarray:
+    """Stars more elongated than the frame's PSF: |e - e_psf| beyond max(``max_ellipticity``, 3 x the spread of the
+    well-measured stars' ellipticities beyond their noise) and beyond :data:`_ELLIPTICITY_SIGNIFICANCE` x its noise.
+    ``e_psf`` (median) and the spread (robust: the median excess) come from every star whose ellipticity is known to
+    :data:`_PSF_SHAPE_MAX_SIGMA` (at least :data:`_PSF_SHAPE_STARS`, else the PSF is taken as round; blends are a
+    minority). A real lens's PSF is elliptical (coma, astigmatism, an undersampled spot on the pixel grid) by 0.1-0.3
+    and varies over the field: only what stands out from it is a blend."""
+    reference = np.flatnonzero(e_sigma < _PSF_SHAPE_MAX_SIGMA)
+    e_psf, spread = np.zeros(2), 0.0
+    if reference.size >= _PSF_SHAPE_STARS:
+        e_psf = np.median(e[reference], axis=0)
+        # |e - e_psf|^2 / v is chi-square with 2 degrees of freedom (median 2 ln 2) for a per-component variance
+        # v = spread^2 + noise^2: the PSF's own spread is what is left after the noise
+        excess = np.sum((e[reference] - e_psf) ** 2, axis=1) - 2.0 * e_sigma[reference] ** 2
+        spread = math.sqrt(max(float(np.median(excess)) / (2.0 * math.log(2.0)), 0.0))
+    deviation = np.hypot(*(e - e_psf).T)
+    limit = max(max_ellipticity, 3.0 * spread)
+    return (deviation > limit) & (deviation > _ELLIPTICITY_SIGNIFICANCE * e_sigma)
+
+
+def _windowed_ellipticity(
+    sub: np.ndarray, rms: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float, gain_e_per_adu: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ellipticity (Mxx - Myy, 2 Mxy) / (Mxx + Myy) (n, 2) of the Gaussian-weighted (window sigma = the PSF's) second
+    moments M of each star around its centroid, and its standard deviation from the pixel noise (linear
+    propagation: dM/dI_i = w_i (q_i - M) / sum w I; variance rms^2, plus the star's shot noise I / gain [ADU^2]
+    when the gain is known). A round PSF gives 0; two equal stars d apart along x give Mxx - Myy ~ d^2 / 16 over
+    Mxx + Myy ~ sigma^2 + d^2 / 16: 0.2 at d = 2 sigma, where no saddle separates them."""
+    h, w = sub.shape
+    half = int(math.ceil(4 * sigma_px))
+    e = np.zeros((x.size, 2))
+    e_sigma = np.full(x.size, np.inf)
+    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
+        c0, c1 = max(int(round(xc)) - half, 0), min(int(round(xc)) + half + 1, w)
+        r0, r1 = max(int(round(yc)) - half, 0), min(int(round(yc)) + half + 1, h)
+        dx = np.arange(c0, c1)[None, :] - xc
+        dy = np.arange(r0, r1)[:, None] - yc
+        weight = np.exp(-(dx**2 + dy**2) / (2 * sigma_px**2))
+        data = sub[r0:r1, c0:c1]
+        total = float(np.sum(weight * data))
+        if total <= 0:
+            continue
+        qa = dx**2 - dy**2 + 0 * dy
+        qb = 2 * dx * dy
+        qt = dx**2 + dy**2
+        a = np.sum(weight * data * qa) / total
+        b = np.sum(weight * data * qb) / total
+        t = np.sum(weight * data * qt) / total
+        if t <= 0:
+            continue
+        var = rms[r0:r1, c0:c1] ** 2
+        if gain_e_per_adu:
+            var = var + np.maximum(data, 0.0) / gain_e_per_adu
+        var_a = np.sum((weight / total) ** 2 * (qa - a) ** 2 * var)
+        var_b = np.sum((weight / total) ** 2 * (qb - b) ** 2 * var)
+        e[k] = a / t, b / t
+        e_sigma[k] = math.sqrt(0.5 * (var_a + var_b)) / t
+    return e, e_sigma
+
+
+def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
+    """The frame's PSF sigma [px]: median over its most significant stars of the half-light radius / sqrt(2 ln 2),
+    measured within 4 sigma of the previous estimate (three rounds from 1 px)."""
+    import sep
+
+    # the most significant peaks (by the filtered peak over the threshold): on a noisy frame the largest isophotal
+    # fluxes are noise blobs, the highest peaks are stars
+    isolated = good[good["flag"] == 0]
+    bright = isolated[np.argsort(-(isolated["cpeak"] / isolated["thresh"]))[:_PSF_STARS]]
+    if bright.size == 0:
+        return _DEFAULT_PSF_SIGMA_PX
+    sigma = _DEFAULT_PSF_SIGMA_PX
+    for _ in range(_PSF_ITERATIONS):  # the radius bounds how much background noise enters r50
+        rmax = np.full(bright.size, max(_PSF_RMAX_SIGMAS * sigma, 2.5))
+        r50, flag = sep.flux_radius(sub, bright["x"], bright["y"], rmax, 0.5, subpix=5)
+        ok = (flag == 0) & np.isfinite(r50) & (r50 > 0)
+        if not np.any(ok):
+            return _DEFAULT_PSF_SIGMA_PX
+        sigma = float(max(np.median(r50[ok]) / _R50_PER_SIGMA, _MIN_PSF_SIGMA_PX))
+    return sigma
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# many images -> a session
+
+
+def centroid_images(
+    paths: Sequence[str | Path],
+    options: CentroidOptions = CentroidOptions(),
+    times: TimeOptions = TimeOptions(),
+) -> CentroidResult:
+    """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
+    the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
+    (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
+    frame of another size, no star in any image) is a one-line :class:`UserError`."""
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise UserError("no image given")
+    chosen = [k for k, v in _time_choices(times).items() if v]
+    if len(chosen) > 1:
+        raise UserError(f"give at most one of {', '.join(chosen)}")
+    sources = [options.dark, options.median, options.median_of_inputs or None]
+    if sum(s is not None for s in sources) > 1:
+        raise UserError("give at most one of --dark, --median, --median-of-inputs")
+    listed = _read_times_file(Path(times.times_file)) if times.times_file is not None else None
+    background = _background_frame(paths, options)
+
+    frames: list[tuple[str, Detections, str]] = []
+    for path in paths:
+        image = read_image(path)
+        time_utc, source = image_time(image, times, listed)
+        det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
+        det.report.path = str(path)
+        det.report.time_utc, det.report.time_source = time_utc, source
+        frames.append((time_utc, det, source))
+    if options.median_of_inputs:
+        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
+    if all(det.report.kept == 0 for _, det, _ in frames):
+        raise UserError(f"no star found in any of the {len(paths)} image(s); lower --threshold-sigma")
+    if times.time_unknown:
+        order = list(range(len(frames)))
+    else:
+        jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
+        order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
+    return _session([frames[k] for k in order])
+
+
+def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, kept: list[int]) -> None:
+    """Refuse ``--median-of-inputs`` on images that share a pointing: their median then holds their stars, and
+    subtracting it removes them. The median of frames at different pointings holds at most a few star-like sources
+    (warm pixel clusters, a star that stayed put), fewer than :data:`_MEDIAN_MAX_STARS` and fewer than a frame
+    keeps."""
+    in_median = centroid_pixels(median, replace(options, max_stars=None)).report.kept
+    per_frame = float(np.mean(kept)) if kept else 0.0
+    if in_median >= _MEDIAN_MAX_STARS and in_median >= per_frame:
+        raise UserError(
+            f"--median-of-inputs: the median of the images holds {in_median} star-like sources (a frame keeps "
+            f"{per_frame:.0f}): the images share a pointing and the median would remove their stars; give --dark, "
+            "or no background frame"
+        )
+
+
+def _time_choices(times: TimeOptions) -> dict[str, bool]:
+    return {
+        "--time": times.time_utc is not None,
+        "--times": times.times_file is not None,
+        "--time-pattern": times.time_pattern is not None,
+        "--date": times.date is not None,
+        "--time-unknown": bool(times.time_unknown),
+    }
+
+
+def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
+    counts = [det.x_px.size for _, det, _ in frames]
+    n = int(sum(counts))
+    frame_no = np.repeat(np.arange(len(frames), dtype=np.int64), counts)
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(det, name) for _, det, _ in frames]) if n else np.zeros(0)
+
+    t_utc = np.array([t for (t, _, _), c in zip(frames, counts, strict=True) for _ in range(c)], dtype=object)
+    flux = cat("flux_adu")
+    session = Session(
+        frame=frame_no,
+        t_utc=t_utc,
+        star_id=np.zeros(n, np.int64),
+        x_px=cat("x_px"),
+        y_px=cat("y_px"),
+        mag=cat("mag"),
+        extra={
+            "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
+            "image": np.array(
+                [Path(d.report.path).name for (_, d, _), c in zip(frames, counts, strict=True) for _ in range(c)],
+                dtype=object,
+            ),
+            "time_source": np.array(
+                [s for (_, _, s), c in zip(frames, counts, strict=True) for _ in range(c)], dtype=object
+            ),
+        },
+    )
+    return CentroidResult(session, [det.report for _, det, _ in frames])
+
+
+def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray | None:
+    given = options.dark if options.dark is not None else options.median
+    if given is not None:
+        return read_image(given).pixels
+    if not options.median_of_inputs:
+        return None
+    if len(paths) < 3:
+        raise UserError(f"--median-of-inputs needs at least 3 images taken at different pointings, got {len(paths)}")
+    stack = None
+    for k, path in enumerate(paths):
+        pixels = read_image(path).pixels
+        if stack is None:
+            stack = np.empty((len(paths), *pixels.shape), dtype=np.float32)
+        elif pixels.shape != stack.shape[1:]:
+            raise UserError(
+                f"{path}: {pixels.shape[1]} x {pixels.shape[0]} px, the first image is "
+                f"{stack.shape[2]} x {stack.shape[1]} px: --median-of-inputs needs one size"
+            )
+        stack[k] = pixels
+    return np.median(stack, axis=0).astype(np.float64)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# time of an image
+
+
+def image_time(image: RawImage, times: TimeOptions, listed: dict[str, str] | None = None) -> tuple[str, str]:
+    """(ISO UTC time or "" when unknown, its source) of one image: the option given, else the file's metadata; no
+    time at all is a one-line UserError naming the image."""
+    name = image.path.name
+    if times.time_unknown:
+        return "", "unknown"
+    if times.time_utc is not None:
+        return _checked_iso(times.time_utc, "--time"), "option"
+    if listed is not None:
+        if name not in listed:
+            raise UserError(f"{image.path}: not listed in the times file {times.times_file}")
+        return listed[name], f"times file {Path(str(times.times_file)).name}"
+    if times.time_pattern is not None:
+        return _time_from_name(image.path, times.time_pattern), f"file name ({times.time_pattern})"
+    if times.date is not None:
+        return _date_noon(times.date), "date only (time of day unknown: 12:00 UTC)"
+    if image.time_utc is not None:
+        return image.time_utc, str(image.time_source)
+    raise UserError(
+        f"{image.path}: no time known (no FITS DATE-OBS / EXIF DateTimeOriginal): give --time, --times FILE, "
+        "--time-pattern, --date or --time-unknown"
+    )
+
+
+def _checked_iso(text: str, what: str) -> str:
+    try:
+        parse_iso_utc_many([text])
+    except ValueError as exc:
+        raise UserError(f"{what}: {exc}") from None
+    return str(text).strip()
+
+
+def _date_noon(text: str) -> str:
+    try:
+        day = _dt.date.fromisoformat(str(text).strip())
+    except ValueError:
+        raise UserError(f"--date: not a date YYYY-MM-DD: {text!r}") from None
+    return f"{day.isoformat()}T12:00:00.000Z"
+
+
+def _time_from_name(path: Path, pattern: str) -> str:
+    last: Exception | None = None
+    for candidate in (path.name, path.stem):
+        try:
+            when = _dt.datetime.strptime(candidate, pattern)
+            break
+        except ValueError as exc:
+            last = exc
+    else:
+        raise UserError(f"{path}: the file name does not match --time-pattern {pattern!r} ({one_line(last)})")
+    if when.tzinfo is not None:
+        when = when.astimezone(_dt.timezone.utc).replace(tzinfo=None)
+    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
+
+
+def _read_times_file(path: Path) -> dict[str, str]:
+    try:
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read ({one_line(exc)})") from None
+    out: dict[str, str] = {}
+    for k, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        parts = [p.strip() for p in (text.split(",") if "," in text else text.split(None, 1))]
+        if len(parts) != 2 or not parts[0] or not parts[1]:
+            raise UserError(f"{path}: line {k}: expected 'IMAGE_NAME,ISO_UTC_TIME', got {line.strip()!r}")
+        out[Path(parts[0]).name] = _checked_iso(parts[1], f"{path}: line {k}")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the PSF model: the fit and the bound
+
+
+def psf_model(cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel-integrated Gaussian star on a flat background over the pixels ``rows x cols`` and its Jacobian:
+    mu = B + N Py(y) Px(x) for params = (x [px], y [px], N, B) (:func:`hostlink.sky.render.pixel_integrated_gaussian`);
+    returns mu (len(rows), len(cols)) and d mu / d params (len(rows), len(cols), 4)."""
+    x, y, n, b = (float(v) for v in params)
+    px = pixel_integrated_gaussian(cols, x, sigma_px)
+    py = pixel_integrated_gaussian(rows, y, sigma_px)
+    dpx = pixel_integrated_gaussian_dsource(cols, x, sigma_px)
+    dpy = pixel_integrated_gaussian_dsource(rows, y, sigma_px)
+    shape = np.outer(py, px)
+    jac = np.stack([n * np.outer(py, dpx), n * np.outer(dpy, px), shape, np.ones_like(shape)], axis=-1)
+    return b + n * shape, jac
+
+
+def _fit_residual(p, cols, rows, data, whiten, sigma_px) -> np.ndarray:
+    return ((psf_model(cols, rows, p, sigma_px)[0] - data) * whiten).ravel()
+
+
+def _fit_jacobian(p, cols, rows, data, whiten, sigma_px) -> np.ndarray:
+    return (psf_model(cols, rows, p, sigma_px)[1] * whiten[..., None]).reshape(-1, 4)
+
+
+def _psf_fit_centroids(
+    sub: np.ndarray, rms: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float, gain_e_per_adu: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Maximum-likelihood centroids (module docstring, step 4): fit :func:`psf_model` (position, flux, local
+    background; the PSF sigma fixed at the frame's) to the pixels within +-(3 sigma + 1) of the windowed centroid by
+    weighted least squares (scipy.optimize.least_squares, Levenberg-Marquardt), weights 1 / sqrt(rms^2 + signal /
+    gain) from the first pass's model (signal term only when the gain is known). A fit that fails, finds no flux or
+    moves more than :data:`_FIT_MAX_SHIFT_PX` keeps the windowed centroid."""
+    from scipy.optimize import least_squares
+
+    h, w = sub.shape
+    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    out_x, out_y = x.copy(), y.copy()
+    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
+        c, r = int(round(xc)), int(round(yc))
+        c0, c1, r0, r1 = max(c - half, 0), min(c + half + 1, w), max(r - half, 0), min(r + half + 1, h)
+        if c1 - c0 < 3 or r1 - r0 < 3:
+            continue
+        cols, rows = np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64)
+        data = sub[r0:r1, c0:c1]
+        noise_var = rms[r0:r1, c0:c1] ** 2
+        start = np.array([xc, yc, max(float(np.sum(data - np.median(data))), 1.0), float(np.median(data))])
+        params = start
+        for weighted in (False, True):
+            if weighted and not gain_e_per_adu:
+                break
+            variance = noise_var
+            if weighted:
+                model, _ = psf_model(cols, rows, params, sigma_px)
+                variance = noise_var + np.maximum(model - params[3], 0.0) / gain_e_per_adu
+            problem = (cols, rows, data, 1.0 / np.sqrt(variance), sigma_px)
+            try:
+                fit = least_squares(_fit_residual, params, jac=_fit_jacobian, method="lm", args=problem)
+            except (ValueError, np.linalg.LinAlgError):
+                break
+            if not fit.success or not np.all(np.isfinite(fit.x)):
+                break
+            params = fit.x
+        if params[2] > 0 and math.hypot(params[0] - xc, params[1] - yc) <= _FIT_MAX_SHIFT_PX:
+            out_x[k], out_y[k] = params[0], params[1]
+    return out_x, out_y
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the bound
+
+
+def centroid_crb_px(
+    x_px: float,
+    y_px: float,
+    flux_e: float,
+    psf_sigma_px: float,
+    background_e: float,
+    read_noise_e: float,
+    gain_e_per_adu: float = 1.0,
+    half_width_px: int | None = None,
+) -> tuple[float, float]:
+    """Cramer-Rao bound (standard deviation per axis [px]) of an unbiased centroid of a star of ``flux_e`` [e-] at
+    ``(x_px, y_px)`` imaged with a circular Gaussian PSF of ``psf_sigma_px`` integrated over square pixels
+    (:func:`hostlink.sky.render.pixel_integrated_gaussian`, the renderer's model), on a background of
+    ``background_e`` [e- per pixel], with shot noise, Gaussian read noise ``read_noise_e`` [e-] and the ADC's
+    quantisation (gain^2 / 12 [e-^2]).
+
+    Fisher information over the pixels i of a box of +-``half_width_px`` (default 6 sigma + 2) around the star, for
+    the parameters p = (x, y, N, B) (position, flux and background all unknown):
+    I = sum_i (d mu_i / dp)(d mu_i / dp)^T / (mu_i + sigma_r^2 + g^2 / 12), mu_i = B + N P_i(x, y): exact for
+    Poisson and for Gaussian noise alone, and for both the shifted-Poisson approximation (Huang et al. 2013, Nat.
+    Methods 10:653, eq. S5), with the model's derivatives from :func:`psf_model` (tested against finite
+    differences). Returns sqrt(diag(I^-1)) for x and y."""
+    sigma = float(psf_sigma_px)
+    half = int(half_width_px if half_width_px is not None else math.ceil(6 * sigma) + 2)
+    cols = np.arange(math.floor(x_px) - half, math.floor(x_px) + half + 2, dtype=np.float64)
+    rows = np.arange(math.floor(y_px) - half, math.floor(y_px) + half + 2, dtype=np.float64)
+
+    p0 = np.array([x_px, y_px, flux_e, background_e], dtype=np.float64)
+    mu, jac = psf_model(cols, rows, p0, sigma)
+    jac = jac.reshape(-1, 4).T
+    variance = mu.ravel() + read_noise_e**2 + gain_e_per_adu**2 / 12.0
+    fisher = (jac / variance) @ jac.T
+    cov = np.linalg.inv(fisher)
+    return float(math.sqrt(cov[0, 0])), float(math.sqrt(cov[1, 1]))

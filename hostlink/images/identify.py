@@ -1,0 +1,760 @@
+"""Lost-in-space identification of a session's unidentified stars (``star_id`` 0) against the bundled Hipparcos
+catalogue (issue 11, ``hostlink identify``), tolerant of a nominal focal length off by up to 10 %, unknown distortion,
+false stars (hot pixels, noise) and a mirrored detector.
+
+Per frame:
+
+1. Propose: the pattern engine (:mod:`hostlink.images.solver_adapter`, tetra3rs) matches the frame's centroids,
+   brightest first, to catalogue 4-star patterns over a field range covering the nominal +-12 %. It tries the
+   whole frame, then only the brightest 30, 20, 15 and 10 centroids (false stars among the bright ones spoil its
+   patterns). Frames it cannot match go to the project's own pair-anchored matcher (:func:`anchor_candidates`,
+   a hypothesise-and-test over catalogue pairs of the same angle) at the focal length the session's identified
+   frames measured (one camera for the whole session); without the engine, over a scan of focal lengths.
+2. Re-derive with the project's own code, trusting nothing of the engine but its pairs (centroid, Hipparcos number):
+   directions b through the nominal camera (for a mirrored detector with x mirrored about the principal point),
+   reference directions r at J2000.0 (annual aberration changes an interstar angle by at most 20.5" x the angle in
+   radians: 2" over a 6 deg pair, far inside the tolerances below), the focal-length scale from the pairs' own
+   interstar angles (:func:`hostlink.calibration.robust.estimate_scale`), and the parity from the handedness of
+   star triples (:func:`hostlink.calibration.robust.triple_handedness`): the parity that verifies is kept, whatever
+   the engine said.
+3. Extend: the attitude (Markley's SVD, :func:`onboard.attitude.attitude_from_vectors`) of the consistent pairs
+   predicts where every catalogue star of the field, down to one magnitude fainter than the faintest proposed
+   match, falls on the detector; a centroid within :data:`EXTEND_RADIUS_PX` (scaled by the fit's residual) of
+   exactly one predicted star, and nearer to it than any other centroid, is a candidate too. Two rounds.
+4. Verify: every candidate goes through the project's interstar vote
+   (:func:`hostlink.calibration.robust.vote_consistent_stars`, seed 000 eq. 3: interstar angles do not depend on
+   the attitude) with the tolerances :data:`VERIFY_REL_TOL` and :data:`VERIFY_ABS_TOL_PX`, and must agree with at
+   least :data:`VERIFY_MIN_AGREEMENT` of the others. A frame is accepted only if at least :data:`MIN_VERIFIED`
+   stars verify, they are at least :data:`MIN_VERIFIED_FRACTION` of its candidates, and the triple handedness is
+   unanimous to :data:`PARITY_MIN_AGREEMENT`; and at least :data:`MIN_COMPLETENESS` of the catalogue stars the
+   solution puts on the detector, as bright as its median identified star, must be among the identified (a chance
+   alignment of faint stars leaves the bright ones of its field unmatched); a matcher's proposal must also give the
+   session's focal-length scale within :data:`SCALE_AGREEMENT`.
+
+After every frame has been tried once, the frames not yet identified are tried again by the engine with the field
+of view the identified frames measured and a tolerance of :data:`REFINED_FOV_TOLERANCE`, then by the own matcher.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hostlink.calibration.data import build_data
+from hostlink.calibration.robust import estimate_scale, triple_handedness, vote_consistent_stars
+from hostlink.files.session import Session
+from hostlink.images import solver_adapter
+from hostlink.sky.catalogue import Catalogue
+from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
+from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels, unit_to_radec
+from onboard.params import CameraParams
+
+#: Brightest-centroid subsets the engine is tried on after the whole frame (false stars among the brightest
+#: centroids spoil its 4-star patterns; a smaller subset of the brightest avoids them).
+ENGINE_SUBSETS = (30, 20, 15, 10)
+#: Verification: relative interstar-angle tolerance after the scale is estimated. Unknown radial distortion of a
+#: few pixels at the edge of a 1000 px detector changes a long pair's angle by a few 1e-3.
+VERIFY_REL_TOL = 0.005
+#: Verification: absolute interstar tolerance [px, converted to rad by the estimated focal length]: centroid
+#: noise of real faint stars (0.3-1 px) plus the unmodelled distortion of a short pair.
+VERIFY_ABS_TOL_PX = 3.0
+#: Verification: fraction of the other candidates of its frame a star must agree with (a misidentified star agrees
+#: with almost none; a true one with all true ones, so it passes while up to 30 % of its frame is wrong).
+VERIFY_MIN_AGREEMENT = 0.7
+#: A frame's identification is accepted with at least this many verified stars (4 stars give 5 independent
+#: interstar angles beyond the attitude: a chance alignment of 4 wrong identities within the tolerance is
+#: negligible, and the engine's own false-match probability budget is 1e-5).
+MIN_VERIFIED = 4
+#: ... and when the verified stars are at least this fraction of the frame's candidates.
+MIN_VERIFIED_FRACTION = 0.6
+#: Triples of verified stars must agree on the parity at least this often (1.0 for a clean frame; a near-collinear
+#: triple with centroid noise can flip, so not all are required).
+PARITY_MIN_AGREEMENT = 0.9
+#: Extension: a centroid within this radius [px] of a predicted catalogue star (or 4 x the fit's rms residual,
+#: whichever is larger) is a candidate; the nearest other predicted star must be at least twice as far.
+EXTEND_RADIUS_PX = 4.0
+#: Extension: catalogue stars down to this many magnitudes fainter than the faintest proposed match are predicted.
+EXTEND_MAG_MARGIN = 1.0
+#: Second pass: field-of-view tolerance once the identified frames have measured the focal length.
+REFINED_FOV_TOLERANCE = 0.02
+#: Acceptance: of the catalogue stars on the detector at least as bright as the median identified star, at least
+#: this fraction must be identified (half of them are identified by construction when all are detected).
+MIN_COMPLETENESS = 0.5
+#: Acceptance of a fallback (pair-anchored) proposal: its frame's focal-length scale must agree with the session's
+#: within this fraction (the identified frames of the real set scatter by +-0.05 %; distortion sampled by a few
+#: stars moves a frame's scale by ~0.1 %).
+SCALE_AGREEMENT = 0.002
+#: Extension rounds (the second uses the attitude refitted with the first round's stars).
+EXTEND_ROUNDS = 2
+
+
+@dataclass(frozen=True)
+class FrameIdentity:
+    """What identification found in one frame.
+
+    frame: the session's frame counter; n_centroids: its unidentified rows (star_id 0); n_candidates: matches
+    proposed (engine and extension); n_identified: verified and written; status: ``identified`` or why not;
+    attitude: C (3, 3) with b = C r for J2000 directions r (None when not identified); ra_deg, dec_deg: the
+    boresight; roll_deg: the angle from the image's -y axis (up) to the projected celestial north, toward +x;
+    mirrored: the parity (True: the image is the sky's mirror image; None when unknown); scale: F / F_nominal;
+    residual_arcsec: rms of |b - C r| over the identified stars.
+    """
+
+    frame: int
+    n_centroids: int
+    n_candidates: int = 0
+    n_identified: int = 0
+    status: str = "no match"
+    attitude: np.ndarray | None = None
+    ra_deg: float = math.nan
+    dec_deg: float = math.nan
+    roll_deg: float = math.nan
+    mirrored: bool | None = None
+    scale: float = math.nan
+    residual_arcsec: float = math.nan
+
+    def as_dict(self) -> dict:
+        """JSON-ready report of this frame."""
+        return {
+            "frame": self.frame,
+            "status": self.status,
+            "centroids": self.n_centroids,
+            "candidates": self.n_candidates,
+            "identified": self.n_identified,
+            "ra_deg": _finite(self.ra_deg),
+            "dec_deg": _finite(self.dec_deg),
+            "roll_deg": _finite(self.roll_deg),
+            "parity": None if self.mirrored is None else ("mirrored" if self.mirrored else "normal"),
+            "scale": _finite(self.scale),
+            "residual_arcsec": _finite(self.residual_arcsec),
+            "attitude": None if self.attitude is None else [[float(v) for v in row] for row in self.attitude],
+        }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+@dataclass(frozen=True)
+class Identification:
+    """The result of :func:`identify_session`: the session with the identified rows' ``star_id`` (and ra/dec when
+    the file has those columns) filled in, and one :class:`FrameIdentity` per frame that had unidentified rows."""
+
+    session: Session
+    frames: tuple[FrameIdentity, ...]
+    engine: str
+    nominal_fov_deg: float
+
+    @property
+    def n_identified(self) -> int:
+        return sum(f.n_identified for f in self.frames)
+
+    @property
+    def n_frames_identified(self) -> int:
+        return sum(f.status == "identified" for f in self.frames)
+
+    @property
+    def mirrored(self) -> bool | None:
+        """The session's parity: the majority of its identified frames (None when none was identified)."""
+        votes = [f.mirrored for f in self.frames if f.status == "identified"]
+        return None if not votes else sum(votes) > len(votes) / 2
+
+    @property
+    def scale(self) -> float:
+        """Median F / F_nominal over the identified frames (NaN when none)."""
+        s = [f.scale for f in self.frames if f.status == "identified"]
+        return float(np.median(s)) if s else math.nan
+
+    def report(self) -> dict:
+        """JSON-ready report: totals, the session's parity and scale, and every frame."""
+        return {
+            "engine": self.engine,
+            "frames": len(self.frames),
+            "frames_identified": self.n_frames_identified,
+            "stars_identified": self.n_identified,
+            "parity": None if self.mirrored is None else ("mirrored" if self.mirrored else "normal"),
+            "scale": _finite(self.scale),
+            "per_frame": [f.as_dict() for f in self.frames],
+        }
+
+
+@dataclass(frozen=True)
+class _Sky:
+    """The catalogue as J2000.0 unit vectors, with magnitudes and Hipparcos numbers (sorted, as the catalogue)."""
+
+    hip: np.ndarray
+    r: np.ndarray
+    mag: np.ndarray
+
+
+def _sky(catalogue: Catalogue) -> _Sky:
+    from hostlink.sky.apparent import stars_at_j2000
+
+    stars = stars_at_j2000(catalogue)
+    return _Sky(catalogue.hip, radec_to_unit(stars.ra_rad, stars.dec_rad), catalogue.mag)
+
+
+def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray:
+    """Column coordinates mirrored about the principal point's column when ``mirrored`` (a mirrored detector seen
+    through a proper camera), unchanged otherwise."""
+    return 2.0 * theta[1] - x_px if mirrored else x_px
+
+
+@dataclass(frozen=True)
+class _Verified:
+    keep: np.ndarray  # (K,) bool over the candidates
+    mirrored: bool
+    scale: float
+    parity_agreement: float
+    attitude: np.ndarray | None
+    residual_rad: np.ndarray | None
+
+
+#: Pruning a matcher's proposal: a star agreeing with fewer than this fraction of the others is dropped, and the vote
+#: repeated over the rest, until none is dropped (true stars then form the majority the final vote needs).
+PRUNE_MIN_AGREEMENT = 0.5
+
+
+def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False) -> _Verified:
+    """The project's own checks of candidate pairs (module docstring, steps 2 and 4) at one parity. ``scale``: the
+    focal-length scale when already known (else estimated from the pairs); ``prune``: drop the least consistent
+    candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs."""
+    n = x_px.shape[0]
+    nothing = _Verified(np.zeros(n, dtype=bool), mirrored, math.nan, math.nan, None, None)
+    if n < 3:
+        return nothing
+    data = build_data(_mirror_x(x_px, theta, mirrored), y_px, r, np.zeros(n, dtype=np.int64))
+    if scale is None:
+        scale, n_pairs = estimate_scale(data, theta)
+        if n_pairs == 0:
+            return nothing
+    theta_s = np.array(theta, dtype=np.float64)
+    theta_s[0] *= scale
+    b = pixels_to_unit(data.x_px, data.y_px, theta_s)
+    tolerances = {"rel_tol": VERIFY_REL_TOL, "abs_tol_rad": VERIFY_ABS_TOL_PX / theta_s[0]}
+    alive = np.ones(n, dtype=bool)
+    while prune and np.count_nonzero(alive) >= 3:
+        sub = np.flatnonzero(alive)
+        part, _, _ = data.select(alive, min_stars=1)
+        ok = vote_consistent_stars(part, b[sub], min_agreement=PRUNE_MIN_AGREEMENT, **tolerances)
+        if np.all(ok):
+            break
+        alive[sub[~ok]] = False
+    keep = np.zeros(n, dtype=bool)
+    sub = np.flatnonzero(alive)
+    if sub.size >= 3:
+        part, _, _ = data.select(alive, min_stars=1)
+        keep[sub] = vote_consistent_stars(part, b[sub], min_agreement=VERIFY_MIN_AGREEMENT, **tolerances)
+    if np.count_nonzero(keep) < 3:
+        return _Verified(keep, mirrored, scale, math.nan, None, None)
+    opposite, total = triple_handedness(data, b, keep)
+    agreement = 1.0 - opposite / total if total else math.nan
+    try:
+        c = attitude_from_vectors(b[keep], r[keep])
+    except DegenerateGeometry:
+        return _Verified(keep, mirrored, scale, agreement, None, None)
+    return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c))
+
+
+def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
+    """Both parities, the hinted one first; the first whose triples agree wins."""
+    first = _verify(x_px, y_px, r, theta, mirrored_hint, scale, prune)
+    if first.parity_agreement >= PARITY_MIN_AGREEMENT:
+        return first
+    second = _verify(x_px, y_px, r, theta, not mirrored_hint, scale, prune)
+    if second.parity_agreement >= PARITY_MIN_AGREEMENT:
+        return second
+    return first
+
+
+def _predict(
+    sky: _Sky, theta: np.ndarray, v: _Verified, image_size_px: tuple[int, int], mag_limit: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Catalogue stars at least ``mag_limit`` bright that the verified attitude and scale put on the detector:
+    (sky indices, x [px], y [px]) in the detector's own columns (mirrored back for a mirrored detector)."""
+    none = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    theta_s = np.array(theta, dtype=np.float64)
+    theta_s[0] *= v.scale
+    width, height = image_size_px
+    corners_x = np.array([-0.5, width - 0.5, -0.5, width - 0.5])
+    corners_y = np.array([-0.5, -0.5, height - 0.5, height - 0.5])
+    cos_field = float(np.min(pixels_to_unit(corners_x, corners_y, theta_s)[:, 2]))
+    near = np.flatnonzero((sky.r @ v.attitude[2] >= cos_field - 1e-6) & (sky.mag <= mag_limit))  # row 3 of C: bore
+    b_pred = sky.r[near] @ v.attitude.T
+    front = b_pred[:, 2] > 0
+    near, b_pred = near[front], b_pred[front]
+    if near.size == 0:
+        return none
+    try:
+        xp, yp = unit_to_pixels(b_pred, theta_s)
+    except ValueError:
+        return none
+    xp = _mirror_x(xp, theta_s, v.mirrored)  # back to the detector's own columns
+    on = (xp >= -0.5) & (xp <= width - 0.5) & (yp >= -0.5) & (yp <= height - 0.5)
+    return near[on], xp[on], yp[on]
+
+
+def _extend(
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    sky: _Sky,
+    theta: np.ndarray,
+    v: _Verified,
+    taken_rows: np.ndarray,
+    mag_limit: float,
+    image_size_px: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidates beyond the proposal's (module docstring, step 3): (rows into the frame, sky indices)."""
+    near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
+    if near.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    focal_px = theta[0] * v.scale
+    rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * focal_px
+    radius = max(EXTEND_RADIUS_PX, 4.0 * rms_px)
+    d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2  # (centroids, predicted)
+    rows, stars = [], []
+    for i in range(x_px.shape[0]):
+        if taken_rows[i]:
+            continue
+        order = np.argsort(d2[i])
+        j = int(order[0])
+        if d2[i, j] > radius * radius:
+            continue
+        if order.size > 1 and d2[i, int(order[1])] < 4.0 * d2[i, j]:
+            continue  # two catalogue stars nearly as close: ambiguous
+        if int(np.argmin(d2[:, j])) != i:
+            continue  # another centroid is nearer to this star
+        rows.append(i)
+        stars.append(int(near[j]))
+    return np.asarray(rows, dtype=np.int64), np.asarray(stars, dtype=np.int64)
+
+
+def _completeness(sky: _Sky, theta: np.ndarray, v: _Verified, image_size_px, identified: np.ndarray) -> float:
+    """Of the catalogue stars the solution puts on the detector that are at least as bright as the median
+    identified star, the fraction identified (a true solution finds most of them; a chance alignment of faint
+    stars in a rich field leaves the bright ones of that field unmatched)."""
+    mags = sky.mag[identified]
+    near, _, _ = _predict(sky, theta, v, image_size_px, float(np.median(mags)))
+    if near.size == 0:
+        return 1.0
+    return float(np.count_nonzero(np.isin(near, identified))) / near.size
+
+
+@dataclass(frozen=True)
+class PairCatalogue:
+    """Every pair of catalogue stars closer than ``max_angle_rad``, sorted by angle: the fallback matcher's index.
+
+    a, b: (P,) int64 indices into the :class:`_Sky` arrays; angle_rad: (P,) their separations, ascending;
+    r: the sky's unit vectors (indexed by a and b); rows: the sky indices of the stars taking part (brighter than
+    the limit), and tree: a k-d tree of their unit vectors (``scipy.spatial.cKDTree``)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    angle_rad: np.ndarray
+    max_angle_rad: float
+    r: np.ndarray
+    rows: np.ndarray
+    tree: object
+
+
+def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
+    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
+    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2))."""
+    from scipy.spatial import cKDTree
+
+    rows = np.flatnonzero(sky.mag <= maglim)
+    chord = 2.0 * math.sin(0.5 * max_angle_rad)
+    tree = cKDTree(sky.r[rows])
+    pairs = tree.query_pairs(chord, output_type="ndarray")
+    a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
+    dot = np.clip(np.sum(sky.r[a] * sky.r[b], axis=1), -1.0, 1.0)
+    angle = np.arccos(dot)
+    order = np.argsort(angle, kind="stable")
+    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree)
+
+
+#: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
+MATCH_STARS = 20
+ANCHOR_STARS = 7
+#: Fallback matcher, second round at a known scale for frames the first did not identify (faint fields where
+#: noise outranks some stars): deeper, and about 5 x slower.
+DEEP_MATCH_STARS = 40
+DEEP_ANCHOR_STARS = 12
+#: Fallback matcher: anchor-pair angle tolerance, relative (the focal length is known to ~0.1 % from the session's
+#: identified frames; a scan step otherwise) plus :data:`ANCHOR_ABS_TOL_PX` of centroid error and distortion.
+ANCHOR_REL_TOL = 0.002
+ANCHOR_ABS_TOL_PX = 1.5
+#: ... once the session's identified frames have measured the scale (they agree to +-0.05 % on the real set):
+#: half the scan's tolerance, half the hypotheses.
+ANCHOR_REL_TOL_KNOWN = 0.001
+#: Fallback matcher: a star predicted by an anchor hypothesis must fall within this radius [px] of a catalogue star.
+HIT_RADIUS_PX = 2.0
+#: Fallback matcher: hits beyond the anchor pair a hypothesis needs (at a catalogue density of 1 star per square
+#: degree and a 4 px = 1' radius on a 6 deg field, three chance hits on one of ~10^4 hypotheses have a probability of
+#: ~1e-3; the verification then tests every star again).
+MIN_HITS = 3
+#: Fallback matcher: focal-length scales scanned when no identified frame gives one (a nominal within 10 %).
+#: Ordered from the nominal outward (a good nominal is found first); the step is twice :data:`ANCHOR_REL_TOL`.
+SCAN_SCALES = tuple(sorted((float(s) for s in np.round(np.arange(0.90, 1.1001, 0.004), 3)), key=lambda s: abs(s - 1)))
+
+
+def _triad_inverse(b1, b2, r1, r2) -> np.ndarray:
+    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r."""
+
+    def frame(v1, v2):
+        t2 = np.cross(v1, v2)
+        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
+        return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)  # columns t1, t2, t3
+
+    return frame(r1, r2) @ np.swapaxes(frame(b1, b2), -1, -2)
+
+
+def anchor_candidates(
+    b: np.ndarray,
+    pairs: PairCatalogue,
+    tree,
+    tree_rows: np.ndarray,
+    focal_px: float,
+    anchor_stars: int = ANCHOR_STARS,
+    rel_tol: float = ANCHOR_REL_TOL,
+    skip_first: int = 0,
+) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
+    """The project's own lost-in-space matcher (a pair-anchored hypothesise-and-test, as in the pyramid method of
+    Mortari et al. 2004): for an anchor pair of bright measured directions ``b`` (K, 3), every catalogue pair of the
+    same angle (within ``rel_tol`` x angle + :data:`ANCHOR_ABS_TOL_PX`), in both orders and both
+    parities, gives an attitude (TRIAD) that predicts the other K - 2 stars; the hypothesis whose predictions land
+    on catalogue stars (``tree``: a k-d tree of the catalogue unit vectors ``tree_rows``) within
+    :data:`HIT_RADIUS_PX` most often, at least :data:`MIN_HITS` times, is proposed. Yields, anchor pair by anchor
+    pair (brightest first, pairs among the first ``anchor_stars``), (rows into b, sky indices, mirrored); the
+    caller verifies each until one holds."""
+    k = b.shape[0]
+    if k < 2 + MIN_HITS:
+        return
+    hit_chord = HIT_RADIUS_PX / focal_px
+    for i, j in zip(*np.triu_indices(min(k, anchor_stars), 1), strict=True):
+        ang = float(np.arccos(np.clip(b[i] @ b[j], -1.0, 1.0)))
+        if j < skip_first:
+            continue  # an anchor pair a previous round already tried
+        tol = rel_tol * ang + ANCHOR_ABS_TOL_PX / focal_px
+        if ang + tol > pairs.max_angle_rad or ang < 20.0 * tol:
+            continue  # short pairs leave the roll about them too loose for the predictions
+        lo, hi = np.searchsorted(pairs.angle_rad, [ang - tol, ang + tol])
+        if hi <= lo:
+            continue
+        first = np.concatenate([pairs.a[lo:hi], pairs.b[lo:hi]])
+        second = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
+        others = np.array([m for m in range(k) if m not in (i, j)])
+        thirds = [m for m in range(min(k, anchor_stars)) if m not in (i, j)]
+        for mirrored in (False, True):
+            bm = b * np.array([-1.0, 1.0, 1.0]) if mirrored else b
+            c_t = _triad_inverse(bm[i][None], bm[j][None], pairs.r[first], pairs.r[second])
+            # pyramid pruning: a hypothesis must first put one more anchor star on a catalogue star
+            alive = np.zeros(first.size, dtype=bool)
+            for m in thirds:
+                dist, _ = tree.query(c_t @ bm[m], distance_upper_bound=hit_chord)
+                alive |= np.isfinite(dist)
+            live = np.flatnonzero(alive)
+            if live.size == 0:
+                continue
+            predicted = np.einsum("mij,kj->mki", c_t[live], bm[others])
+            dist, idx = tree.query(predicted.reshape(-1, 3), distance_upper_bound=hit_chord)
+            idx = idx.reshape(live.size, others.size)
+            star = tree_rows[np.minimum(idx, tree_rows.size - 1)]
+            # a hit on one of the anchors' own catalogue stars (a close double) is no evidence
+            hits = np.isfinite(dist).reshape(live.size, others.size)
+            hits &= (star != first[live][:, None]) & (star != second[live][:, None])
+            count = hits.sum(axis=1)
+            best = int(np.argmax(count))
+            if count[best] >= MIN_HITS:
+                got = hits[best]
+                h = live[best]
+                rows = np.concatenate([[i, j], others[got]]).astype(np.int64)
+                stars = np.concatenate([[first[h], second[h]], star[best][got]]).astype(np.int64)
+                yield rows, stars, mirrored
+
+
+def _boresight_and_roll(c: np.ndarray) -> tuple[float, float, float]:
+    """Boresight (ra, dec) [deg] and roll [deg]: the angle from the image's -y axis (up) to the celestial north
+    projected into the image, measured toward +x."""
+    bore = c[2]
+    ra, dec = unit_to_radec(bore[None, :])
+    north = np.array([0.0, 0.0, 1.0]) - bore * bore[2]
+    n_cam = c @ north
+    roll = math.degrees(math.atan2(n_cam[0], -n_cam[1])) if np.hypot(n_cam[0], n_cam[1]) > 1e-12 else math.nan
+    return math.degrees(float(ra[0])), math.degrees(float(dec[0])), roll
+
+
+def _confirm(
+    ident: FrameIdentity,
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    rows: np.ndarray,
+    stars: np.ndarray,
+    mirrored_hint: bool,
+    theta: np.ndarray,
+    sky: _Sky,
+    image_size_px: tuple[int, int],
+    scale: float | None = None,
+) -> tuple[FrameIdentity, np.ndarray]:
+    """Verify, extend and verify again a proposal (module docstring, steps 2-4): the frame's identity and the
+    (N,) Hipparcos number of each centroid (0 where not identified). ``scale``: F / F_nominal when known (a
+    matcher's proposal, whose wrong pairs are then pruned), else estimated from the proposal."""
+    n = x_px.shape[0]
+    hip_out = np.zeros(n, dtype=np.int64)
+    n_proposed = int(rows.size)
+    v = _verify_best_parity(x_px[rows], y_px[rows], sky.r[stars], theta, mirrored_hint, scale, scale is not None)
+    if v.attitude is None:
+        return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
+    mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
+    for _ in range(EXTEND_ROUNDS):
+        taken = np.zeros(n, dtype=bool)
+        taken[rows[v.keep]] = True
+        new_rows, new_stars = _extend(x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px)
+        rows = np.concatenate([rows[v.keep], new_rows])
+        stars = np.concatenate([stars[v.keep], new_stars])
+        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta, v.mirrored)
+        if v.attitude is None:
+            return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
+    n_ok = int(np.count_nonzero(v.keep))
+    ident = replace(ident, n_candidates=max(n_proposed, int(rows.size)), mirrored=v.mirrored, scale=v.scale)
+    if n_ok < MIN_VERIFIED:
+        return replace(ident, status=f"only {n_ok} stars verified (need {MIN_VERIFIED})"), hip_out
+    if n_ok < MIN_VERIFIED_FRACTION * rows.size:
+        return replace(ident, status=f"only {n_ok} of {rows.size} candidates verified"), hip_out
+    if not v.parity_agreement >= PARITY_MIN_AGREEMENT:
+        return replace(ident, status="parity not unanimous"), hip_out
+    completeness = _completeness(sky, theta, v, image_size_px, stars[v.keep])
+    if completeness < MIN_COMPLETENESS:
+        return replace(ident, status=f"only {100 * completeness:.0f} % of the bright stars in the field found"), hip_out
+    if scale is not None and abs(v.scale / scale - 1.0) > SCALE_AGREEMENT:
+        return replace(ident, status=f"scale {v.scale:.4f} disagrees with the session's {scale:.4f}"), hip_out
+    hip_out[rows[v.keep]] = sky.hip[stars[v.keep]]
+    ra, dec, roll = _boresight_and_roll(v.attitude)
+    rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * 206264.80624709636
+    identified = replace(
+        ident,
+        n_identified=n_ok,
+        status="identified",
+        attitude=v.attitude,
+        ra_deg=ra,
+        dec_deg=dec,
+        roll_deg=roll,
+        residual_arcsec=rms,
+    )
+    return identified, hip_out
+
+
+def _engine_proposal(x_px, y_px, order, brightness, nominal, theta, sky, database, fov_deg, fov_tolerance):
+    """The pattern engine's matches (rows, sky indices, its parity), or None."""
+    n = x_px.shape[0]
+    for size in (n, *(s for s in ENGINE_SUBSETS if s < n)):
+        sub = order[:size]
+        match = solver_adapter.solve_frame(
+            database,
+            x_px[sub] - theta[1],
+            y_px[sub] - theta[2],
+            None if brightness is None else brightness[sub],
+            nominal.image_size_px,
+            fov_deg,
+            fov_tolerance,
+        )
+        if match is not None:
+            idx = np.searchsorted(sky.hip, match.hip)
+            found = (idx < sky.hip.size) & (sky.hip[np.minimum(idx, sky.hip.size - 1)] == match.hip)
+            return sub[match.rows][found], idx[found], match.mirrored
+    return None
+
+
+def identify_frame(
+    frame: int,
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    mag: np.ndarray | None,
+    nominal: CameraParams,
+    sky: _Sky,
+    database,
+    fov_deg: float,
+    fov_tolerance: float,
+    pairs: PairCatalogue | None = None,
+    scales: tuple[float, ...] = (),
+) -> tuple[FrameIdentity, np.ndarray]:
+    """Identify one frame's centroids (module docstring). The engine (when ``database`` is given) proposes first;
+    then, with ``pairs``, the pair-anchored matcher (:func:`anchor_candidates`) at each focal-length scale of ``scales``
+    (F / F_nominal). Returns its :class:`FrameIdentity` and the (N,) int64 Hipparcos number of each centroid (0
+    where not identified)."""
+    n = x_px.shape[0]
+    ident = FrameIdentity(frame=frame, n_centroids=n)
+    if n < solver_adapter.MIN_CENTROIDS:
+        return replace(ident, status=f"too few centroids ({n})"), np.zeros(n, dtype=np.int64)
+    theta = nominal.model_vector(np.float64)
+    if mag is not None and not np.any(np.isfinite(mag)):
+        mag = None  # no brightness at all: the file's order stands
+    order = np.argsort(np.where(np.isfinite(mag), mag, np.inf), kind="stable") if mag is not None else np.arange(n)
+    brightness = None if mag is None else np.where(np.isfinite(mag), 10.0 ** (-0.4 * mag), 0.0)
+    best = (ident, np.zeros(n, dtype=np.int64))
+    if database is not None:
+        proposal = _engine_proposal(
+            x_px, y_px, order, brightness, nominal, theta, sky, database, fov_deg, fov_tolerance
+        )
+        if proposal is not None:
+            best = _confirm(ident, x_px, y_px, *proposal, theta, sky, nominal.image_size_px)
+            if best[0].status == "identified":
+                return best
+    if pairs is None:
+        return best
+    known = len(scales) == 1
+    rounds = [(MATCH_STARS, ANCHOR_STARS, 0)] + ([(DEEP_MATCH_STARS, DEEP_ANCHOR_STARS, ANCHOR_STARS)] if known else [])
+    rel_tol = ANCHOR_REL_TOL_KNOWN if known else ANCHOR_REL_TOL
+    for n_match, n_anchor, skip in rounds:
+        bright = order[:n_match]
+        for scale in scales:
+            theta_s = np.array(theta, dtype=np.float64)
+            theta_s[0] *= scale
+            b = pixels_to_unit(x_px[bright], y_px[bright], theta_s)
+            proposals = anchor_candidates(b, pairs, pairs.tree, pairs.rows, theta_s[0], n_anchor, rel_tol, skip)
+            for rows, stars, mirrored in proposals:
+                result = _confirm(
+                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale
+                )
+                if result[0].status == "identified":
+                    return result
+                if result[0].n_candidates > best[0].n_candidates:
+                    best = result
+    return best
+
+
+#: Fallback matcher: catalogue depth when no frame has been identified to tell how deep the camera sees [Hp mag]
+#: (37622 Hipparcos stars; their pairs within a 10 deg field fit in ~100 MB).
+FALLBACK_MAGLIM = 8.0
+#: Fallback matcher: catalogue depth beyond the 90th percentile of the magnitudes the engine identified in the
+#: session (the extension step adds a few stars fainter than the camera's usual depth; the pair index grows with the
+#: square of the star count, so they should not set it) [mag].
+FALLBACK_MAG_MARGIN = 0.5
+FALLBACK_DEPTH_PERCENTILE = 90
+
+
+def identify_session(
+    session: Session,
+    nominal: CameraParams,
+    catalogue: Catalogue | None = None,
+    maglim: float | None = None,
+    use_engine: bool = True,
+    progress=None,
+) -> Identification:
+    """Identify every frame's unidentified rows (module docstring). ``nominal``: the camera as its user knows it
+    (focal length within 10 %); ``catalogue``: default the bundled Hipparcos; ``maglim``: only stars at least this
+    bright [Hp mag] (default all). ``use_engine``: False (or tetra3rs not installed) identifies with the project's
+    own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
+    after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
+    them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
+    if catalogue is None:
+        from hostlink.sky.catalogue import load_catalogue
+
+        catalogue = load_catalogue()
+    if maglim is not None:
+        catalogue = catalogue.subset(np.flatnonzero(catalogue.mag <= maglim))
+    width, height = nominal.image_size_px
+    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
+    sky = _sky(catalogue)
+    engine = use_engine and solver_adapter.engine_available()
+    database = solver_adapter.pattern_database(catalogue, fov, maglim) if engine else None
+    starts = session.frame_starts
+    todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
+    results: dict[int, tuple[FrameIdentity, np.ndarray]] = {}
+
+    def run(k: int, db, fov_deg: float, tol: float, pairs=None, scales=()) -> tuple[FrameIdentity, np.ndarray]:
+        a, b = int(starts[k]), int(starts[k + 1])
+        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
+        mag = None if session.mag is None else session.mag[rows]
+        return identify_frame(
+            int(session.frame[a]),
+            session.x_px[rows],
+            session.y_px[rows],
+            mag,
+            nominal,
+            sky,
+            db,
+            fov_deg,
+            tol,
+            pairs,
+            scales,
+        )
+
+    if engine:
+        for done, k in enumerate(todo):
+            results[k] = run(k, database, fov, solver_adapter.FOV_MARGIN)
+            if progress is not None:
+                progress(done + 1, len(todo))
+    failed = [k for k in todo if k not in results or results[k][0].status != "identified"]
+    engine_scale_known = any(results[k][0].status == "identified" for k in results)
+    # the own matcher: at the engine's measured scale, or without the engine by a scan of scales (slow, ~1 s per
+    # scale and frame: only when the engine is not there; a session the engine matched nowhere is not rescanned)
+    if failed and (engine_scale_known or not engine):
+        found = [k for k in todo if k in results and results[k][0].status == "identified"]
+        scales = [results[k][0].scale for k in found]
+        scale = float(np.median(scales)) if scales else math.nan
+        hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
+        hips = hips[hips != 0]
+        depth = (
+            float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
+            + FALLBACK_MAG_MARGIN
+            if hips.size
+            else FALLBACK_MAGLIM
+        )
+        half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
+        pairs = pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
+        tried_without_scale = []
+        for k in failed:
+            known = math.isfinite(scale)
+            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width) if known else fov
+            tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
+            retry = run(k, database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
+            if (
+                k not in results
+                or retry[0].status == "identified"
+                or retry[0].n_candidates > results[k][0].n_candidates
+            ):
+                results[k] = retry
+            if not known and retry[0].status == "identified":
+                scale = retry[0].scale  # one camera for the session: the other frames need no scan
+            elif not known:
+                tried_without_scale.append(k)
+        if math.isfinite(scale):
+            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width)
+            for k in tried_without_scale:  # the frames scanned before the session's scale was known
+                retry = run(k, None, refined, REFINED_FOV_TOLERANCE, pairs, (scale,))
+                if retry[0].status == "identified":
+                    results[k] = retry
+    star_id = session.star_id.copy()
+    for k in todo:
+        a, b = int(starts[k]), int(starts[k + 1])
+        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
+        star_id[rows] = results[k][1]
+    out = _with_identities(session, star_id, catalogue)
+    name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
+    return Identification(out, tuple(results[k][0] for k in todo), name, fov)
+
+
+def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue) -> Session:
+    """``session`` with ``star_id``; when the file has ra_deg/dec_deg, the newly identified rows get theirs (the
+    geocentric apparent place at the frame's time, INTERFACES.md; the J2000 place when the time is unknown)."""
+    out = replace(session, star_id=star_id)
+    if session.ra_deg is None or session.dec_deg is None:
+        return out
+    new = np.flatnonzero((star_id != 0) & (session.star_id == 0))
+    ra, dec = session.ra_deg.copy(), session.dec_deg.copy()
+    if new.size:
+        from hostlink.sky.apparent import apparent_radec_deg, hip_lookup, stars_at_j2000
+
+        cat_rows = hip_lookup(catalogue, star_id[new])
+        if session.time_known:
+            jd1, jd2 = session.frame_times_jd()
+            frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[new]
+            ra[new], dec[new] = apparent_radec_deg(catalogue, cat_rows, jd1[frame_of_row], jd2[frame_of_row])
+        else:
+            stars = stars_at_j2000(catalogue, cat_rows)
+            ra[new], dec[new] = np.degrees(stars.ra_rad), np.degrees(stars.dec_rad)
+    return replace(out, ra_deg=ra, dec_deg=dec)
