@@ -73,6 +73,7 @@ class Figures:
     star_fraction: float
     engine: object = None  # hostlink.images.solver_adapter.EngineCalibration of the same centroids, or None
     on_engine_stars: dict | None = None  # our default calibration of only the stars the engine matched
+    held_out: object = None  # HeldOut: both calibrations judged on stars left out of both fits, or None
 
     def passed(self) -> bool:
         return (
@@ -139,9 +140,10 @@ def _sigma_vector(camera: dict) -> dict[str, float]:
     }
 
 
-def engine_calibration(centroids: Path):
+def engine_calibration(centroids: Path, skip_frames: frozenset = frozenset()):
     """The established solver's own multi-image calibration (tetra3rs, frames it solves alone, its radial model)
-    of the same centroids, through the project's adapter: an outside figure for the focal length and residual."""
+    of the same centroids, through the project's adapter: an outside figure for the focal length and residual.
+    ``skip_frames``: frame numbers left out (held-out frames)."""
     import numpy as np
 
     from hostlink.files.session import read_session
@@ -157,11 +159,82 @@ def engine_calibration(centroids: Path):
     fov = solver_adapter.horizontal_fov_deg(focal_px, width)
     frames = []
     for rows in session.frame_slices():
+        if int(session.frame[rows.start]) in skip_frames:
+            continue
         order = np.argsort(session.mag[rows], kind="stable")
         x, y, mag = session.x_px[rows][order], session.y_px[rows][order], session.mag[rows][order]
         frames.append((x - x0, y - y0, 10.0 ** (-0.4 * mag)))
     database = solver_adapter.pattern_database(load_catalogue(), fov)
     return solver_adapter.engine_calibration(database, frames, (width, height), fov)
+
+
+#: Folds of the held-out comparison: each third of the identified frames is left out of both fits once.
+HELD_OUT_FOLDS = 3
+
+
+@dataclass
+class HeldOut:
+    """Both calibrations judged on stars left out of both fits (hostlink.calibration.holdout), folds pooled."""
+
+    n_stars: int
+    ours_rms_px: float
+    engine_rms_px: float
+
+    @property
+    def ratio(self) -> float:
+        return self.ours_rms_px / self.engine_rms_px
+
+
+def held_out_comparison(centroids: Path, identified: Path, work: Path, log=print) -> HeldOut | None:
+    """k-fold held-out comparison with the established solver (:data:`HELD_OUT_FOLDS`): in each fold a third of the
+    identified frames is left out of our default calibration AND of the engine's own calibration; each camera is
+    then judged on every star of those frames, the attitude solved from the frame's other stars through that camera
+    (hostlink.calibration.holdout). Residuals pooled over the folds, on the stars both could judge."""
+    import numpy as np
+
+    from hostlink.calibration.holdout import held_out_residuals_rad, hold_out_frames
+    from hostlink.files.params import params_from_dict
+    from hostlink.files.session import read_session, write_session
+    from hostlink.images import solver_adapter
+    from hostlink.sky.references import geocentric_references
+    from onboard.camera import pixels_to_unit
+
+    session = read_session(identified)
+    r, usable, _ = geocentric_references(session)
+    x0, y0 = NOMINAL["principal_point_px"]
+    ours_res, engine_res = [], []
+    focal_px = []
+    for fold in range(HELD_OUT_FOLDS):
+        held = hold_out_frames(session, usable, HELD_OUT_FOLDS, fold)
+        engine = engine_calibration(centroids, skip_frames=frozenset(int(f) for f in np.unique(session.frame[held])))
+        if engine is None:
+            log(f"held-out fold {fold}: the established solver solved no frame")
+            return None
+        subset = work / f"identified_fold{fold}.csv"
+        write_session(subset, session.select(~held))
+        out = work / f"camera_fold{fold}.json"
+        code, text = _hostlink(
+            ["calibrate", str(subset), "--nominal", str(work / "nominal_1.json"), "--out", str(out), "--quiet"]
+        )
+        if code:
+            log(f"held-out fold {fold}: our calibration failed: {text.strip()}")
+            return None
+        theta = params_from_dict(json.loads(out.read_text())).model_vector()
+        focal_px.append(theta[0])
+        ours = held_out_residuals_rad(session, lambda x, y, t=theta: pixels_to_unit(x, y, t), r, usable, held)
+        theirs = held_out_residuals_rad(
+            session, lambda x, y, e=engine: solver_adapter.engine_pixels_to_unit(e, x - x0, y - y0), r, usable, held
+        )
+        both = np.isfinite(ours) & np.isfinite(theirs)
+        ours_res.append(ours[both])
+        engine_res.append(theirs[both])
+    ours_all, engine_all = np.concatenate(ours_res), np.concatenate(engine_res)
+    px_per_rad = float(np.mean(focal_px))
+    return HeldOut(
+        n_stars=int(ours_all.size),
+        ours_rms_px=float(np.sqrt(np.mean(ours_all**2))) * px_per_rad,
+        engine_rms_px=float(np.sqrt(np.mean(engine_all**2))) * px_per_rad,
+    )
 
 
 def calibrate_on_engine_stars(identified: Path, matched, work: Path) -> dict | None:
@@ -252,6 +325,7 @@ def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True
     on_engine_stars = None
     if engine is not None and engine.matched:
         on_engine_stars = calibrate_on_engine_stars(work / "identified_1.csv", engine.matched, work)
+    held_out = held_out_comparison(centroids, work / "identified_1.csv", work, log) if engine is not None else None
     return Figures(
         frames=rep["frames"],
         frames_identified=rep["frames_identified"],
@@ -265,6 +339,7 @@ def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True
         star_fraction=n_good / n_best if n_best else 0.0,
         engine=engine,
         on_engine_stars=on_engine_stars,
+        held_out=held_out,
     )
 
 
@@ -307,6 +382,13 @@ def print_figures(fig: Figures) -> None:
                 f"ours on the engine's stars only: {after['n_stars']} stars, residual {after['rms_px']:.3f} px, "
                 f"clipped at 3 sigma {after['rms_px_clipped']:.3f} px (engine {e.rmse_px:.3f} px)"
             )
+    if fig.held_out is not None:
+        h = fig.held_out
+        print(
+            f"held out of both fits ({HELD_OUT_FOLDS} folds over the frames, attitude from each star's other stars): "
+            f"{h.n_stars} stars, ours "
+            f"{h.ours_rms_px:.3f} px, established solver {h.engine_rms_px:.3f} px (ours / solver = {h.ratio:.3f})"
+        )
     print(
         f"nominal -10 % / +10 % vs good nominal: largest difference {fig.sigma_difference:.2e} sigma "
         f"(need <= {MAX_SIGMA_DIFFERENCE})"

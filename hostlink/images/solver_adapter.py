@@ -202,6 +202,7 @@ class EngineCalibration:
     n_outliers: int
     n_frames: int
     matched: tuple[tuple[int, int], ...] = ()
+    camera: object = None  # the engine's fitted camera model (see engine_pixels_to_unit)
 
 
 def engine_calibration(
@@ -245,4 +246,15 @@ def engine_calibration(
         int(cal.n_outliers),
         len(solved),
         tuple(matched),
+        cal.camera_model,
     )
+
+
+def engine_pixels_to_unit(calibration: EngineCalibration, u_px: np.ndarray, v_px: np.ndarray) -> np.ndarray:
+    """Unit vectors (N, 3) in the camera frame (x right, y down, z along the boresight: the project's convention)
+    of pixel offsets ``u_px``, ``v_px`` from the nominal principal point (the coordinates the engine was given),
+    through the engine's own fitted camera (its tangent-plane coordinates xi, eta [rad]: direction (xi, eta, 1))."""
+    camera = calibration.camera
+    xi_eta = np.array([camera.pixel_to_tanplane(float(u), float(v)) for u, v in zip(u_px, v_px, strict=True)])
+    xyz = np.column_stack([xi_eta.reshape(-1, 2), np.ones(len(u_px))])
+    return xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
