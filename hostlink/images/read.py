@@ -195,12 +195,16 @@ def _read_pillow(path: Path):
     with Image.open(path) as im:
         im.load()
         mode = im.mode
+        file_format = im.format
         if mode in ("P", "1", "LA", "PA", "CMYK", "YCbCr", "LAB", "HSV"):
             im = im.convert("RGB" if mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV") else "L")
         pixels = np.asarray(im)
         exif_ifd = im.getexif().get_ifd(_EXIF_IFD)
         exif = {_EXIF_NAMES.get(k, k): v for k, v in exif_ifd.items()}
-    if mode in ("I", "F"):  # 32-bit int or float images: the level they clip at is not in the file
+    if file_format == "PNG" and mode in ("I", "I;16", "I;16B"):
+        # PNG stores at most 16 bits per sample; Pillow < 10.1 opens 16-bit greyscale as 32-bit mode "I"
+        saturation = 65535.0
+    elif mode in ("I", "F"):  # 32-bit int or float images: the level they clip at is not in the file
         saturation = None
     elif pixels.dtype == np.int32 and mode.startswith("I;16"):
         saturation = 65535.0
