@@ -16,9 +16,12 @@ to a sensor fails; :class:`SensorRefused` / :class:`CommandRefused` when the sen
 :class:`UploadMismatch` when a read-back differs from what was uploaded.
 
 Files (INTERFACES.md formats; every write is atomic):
-    :func:`read_session`, :func:`write_session`, :class:`SessionWriter`, :func:`load_params`,
+    :func:`read_session`, :func:`read_session_chunks` (a session of any length, or several files, in chunks of whole
+    frames), :func:`concatenate_sessions`, :func:`write_session`, :class:`SessionWriter` (CSV, or Parquet for
+    ``*.parquet``), :func:`load_params`,
     :func:`load_params_with_sigma`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
-    :func:`write_attitudes`, :func:`write_trace`, :func:`read_trace`, :func:`data_file` (the camera files shipped with
+    :func:`write_attitudes`, :func:`write_trace`, :class:`TraceWriter`, :func:`read_trace`, :func:`data_file` (the
+    camera files shipped with
     the package; ``load_params("builtin:NAME")`` reads one by name).
 Sky:
     :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
@@ -32,8 +35,11 @@ Images:
     :func:`identify_session` (lost-in-space identification of a session's unidentified stars against Hipparcos,
     with :class:`Identification` and one :class:`FrameIdentity` per frame: attitude, parity, scale).
 Calibration:
-    :func:`calibrate_session` (batch ground calibration), :func:`result_extras`, :func:`replay_session` (the
-    onboard recursive estimator over a session, as the sensor runs it), :func:`replay_config`, :func:`replay_prior`,
+    :func:`calibrate_session` (batch ground calibration), :func:`calibrate_archive` (the same for sessions of any
+    length: files, globs, Parquet, chunk by chunk in bounded memory, optionally on a Dask cluster),
+    :func:`result_extras`, :func:`replay_session` (the
+    onboard recursive estimator over a session, as the sensor runs it), :func:`replay_chunks` (the same over chunks,
+    its trace streamed), :func:`replay_config`, :func:`replay_prior`,
     :func:`estimate_extras`.
 Sensor links (serial, CAN, Modbus; real or emulated, chosen by one link string):
     :func:`open_link`, :func:`stream_frames`, :func:`record_session`, :func:`poll_estimate`, :func:`poll_estimates`,
@@ -54,18 +60,26 @@ from __future__ import annotations
 from hostlink.calibration.replay import (
     ReplayResult,
     estimate_extras,
+    replay_chunks,
     replay_config,
     replay_prior,
     replay_session,
 )
-from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_session, result_extras
+from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_archive, calibrate_session, result_extras
 from hostlink.emulator.process import EmulatorProcess
 from hostlink.emulator.setup import build_sensor
 from hostlink.errors import LinkError, SensorRefused, UserError
 from hostlink.files.attitude import write_attitudes
 from hostlink.files.params import data_file, load_params, load_params_with_sigma, save_params
-from hostlink.files.session import Session, SessionWriter, read_session, write_session
-from hostlink.files.trace import read_trace, write_trace
+from hostlink.files.session import (
+    Session,
+    SessionWriter,
+    concatenate_sessions,
+    read_session,
+    read_session_chunks,
+    write_session,
+)
+from hostlink.files.trace import TraceWriter, read_trace, write_trace
 from hostlink.files.truth import read_truth, write_truth
 from hostlink.images.centroid import (
     CentroidOptions,
@@ -153,10 +167,13 @@ __all__ = [
     "UserError",
     # files
     "SessionWriter",
+    "TraceWriter",
     "data_file",
     "load_params",
     "load_params_with_sigma",
     "read_session",
+    "read_session_chunks",
+    "concatenate_sessions",
     "read_trace",
     "read_truth",
     "save_params",
@@ -178,10 +195,12 @@ __all__ = [
     "solve_attitudes",
     # calibration
     "calibrate_session",
+    "calibrate_archive",
     "estimate_extras",
     "replay_config",
     "replay_prior",
     "replay_session",
+    "replay_chunks",
     "result_extras",
     # links
     "accept_estimate",

@@ -9,8 +9,9 @@ from collections.abc import Callable, Iterator
 
 
 @contextlib.contextmanager
-def progress_bar(what: str, total: int, enabled: bool = True) -> Iterator[Callable[[int], None]]:
-    """Yields ``advance(done)``; shows ``what`` done/total with a rate while the block runs."""
+def progress_bar(what: str, total: int | None, enabled: bool = True) -> Iterator[Callable[[int], None]]:
+    """Yields ``advance(done)``; shows ``what`` done/total with a rate while the block runs (``total`` None: not
+    known in advance, as for a session read in chunks)."""
     if not enabled or not sys.stderr.isatty():
         yield lambda done: None
         return

@@ -18,9 +18,13 @@ good to 0.1".
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from onboard.earth import ARCSEC_TO_RAD, true_of_date_matrix
+from onboard.fixedpoint import FixedRangeError, Q, div_round, normalise_q30, quantise_unit_q30, rshift_round
 from onboard.timescale import (
     DAYS_PER_JULIAN_CENTURY,
     DAYS_PER_JULIAN_YEAR,
@@ -261,3 +265,122 @@ def apparent_place(
     r0, pm = catalogue_vectors(ra_rad, dec_rad, pm_ra_cosdec_mas_yr, pm_dec_mas_yr, dtype)
     plx = np.asarray(parallax_mas, dtype=dtype)
     return apparent_place_vectors(r0, pm, plx, epoch_jyear, t_tt, observer_velocity_gcrs_m_s)
+
+
+# ------------------------------------------------------------------------------------------------- fixed point
+# The per-star part of :func:`apparent_place_vectors` in integers, for a sensor without an FPU (its twin, step by
+# step; docs/port-kit.md "Fixed-point formats"; ``tests/test_fixedpoint_apparent.py`` holds it against float64 of the
+# float code). The per-instant part (the Earth's state, the GCRS -> TOD matrix: once per frame, not per star) runs in
+# soft float64 (:func:`fixed_instant`) and is quantised once. Every shift and division rounds to nearest.
+#
+#   quantity                         format  range (why)
+#   r0, Sun->Earth unit e, result    Q30     unit vectors; the GCRS -> TOD matrix M: |M_ij| <= 1
+#   proper motion pm [rad/yr]        Q46     |pm| <= 2^-14 rad/yr (12.6"/yr; Barnard's star 10.4"/yr): < 2^32
+#   years since the catalogue epoch  Q20     |years| <= 2^7: < 2^27; years pm: Q66 < 2^59
+#   parallax [rad]                   Q48     <= 2^-17 rad (1.57"; Proxima 0.77"): < 2^31
+#   Earth barycentric E_b [AU]       Q30     < 1.02 AU < 2^0.03; parallax E_b: Q78 < 2^61.1
+#   space motion change c1           Q48     <= 2^7 2^-14 + 2^-17 1.02 < 2^-6.9: < 2^41.1
+#   k = 2 G M / (c^2 |E_h|) [rad]    Q70     <= 1.97e-8 / 0.983 < 2^-25.5: < 2^44.5
+#   1 + p.e (clamped at 2^-5)        Q30     stars >= 14.4 deg from the Sun (a star tracker's Sun exclusion is wider)
+#   k / (1 + p.e)                    Q48     <= 2^-20.5: < 2^27.5 (numerator k << 8 < 2^52.5)
+#   velocity beta = v / c            Q44     |beta| <= 2^-13 (36.6 km/s: the Earth's 30 km/s and an orbit's 8)
+#   p.beta, beta^2                   Q44     < 2^31, < 2^18; products Q30 x Q44 < 2^61, three summed < 1.5 2^62
+#
+# Aberration to second order: from (w1 v - (p.v + v^2 / (1 + bm1)) p) / (1 + p.v) (``aberration_change``),
+# change = v - (p.v / 2) v - (p.v - (p.v)^2 + v^2 / 2) p, leaving terms of order |beta|^3 < 2^-38 (1/256 Q30 step).
+
+#: Fractional bits of the formats above.
+PM_FRAC_BITS = 46
+YEARS_FRAC_BITS = 20
+PARALLAX_FRAC_BITS = 48
+CHANGE_FRAC_BITS = 48
+DEFLECTION_K_FRAC_BITS = 70
+ABERRATION_BETA_FRAC_BITS = 44
+#: 1 + p.e is clamped at 2^-5 in Q30 (stars >= 14.4 deg from the Sun are exact).
+MIN_ONE_PLUS_PE_Q30 = 1 << 25
+#: Largest magnitudes the formats take (checked by :func:`fixed_catalogue` and :func:`fixed_instant`).
+MAX_PM_RAD_YR = 2.0**-14
+MAX_YEARS = 2.0**7
+MAX_PARALLAX_RAD = 2.0**-17
+MAX_BETA = 2.0**-13
+
+
+@dataclass(frozen=True)
+class FixedInstant:
+    """What :func:`apparent_place_vectors_q30` needs of one instant, in the fixed formats (module table)."""
+
+    years_q20: int
+    earth_bary_q30: np.ndarray  # (3,) AU
+    sun_to_earth_q30: np.ndarray  # (3,) unit
+    deflection_k_q70: int
+    beta_q44: np.ndarray  # (3,)
+    tod_q30: np.ndarray  # (3, 3) GCRS -> TOD
+
+
+def fixed_catalogue(r0: np.ndarray, pm_rad_yr: np.ndarray, parallax_mas) -> tuple[np.ndarray, ...]:
+    """Catalogue vectors (float64, :func:`catalogue_vectors`) -> (r0 Q30, pm Q46, parallax Q48 rad), once, when the
+    catalogue is built. Raises ``FixedRangeError`` for a proper motion above 2^-14 rad/yr or a parallax above 2^-17
+    rad."""
+    pm = np.asarray(pm_rad_yr, dtype=np.float64)
+    plx = np.asarray(parallax_mas, dtype=np.float64) * (1e-3 * ARCSEC_TO_RAD)
+    if not (np.all(np.sqrt(np.sum(pm * pm, axis=-1)) <= MAX_PM_RAD_YR) and np.all(np.abs(plx) <= MAX_PARALLAX_RAD)):
+        raise FixedRangeError("proper motion or parallax above the fixed-point range (2^-14 rad/yr, 2^-17 rad)")
+    return (
+        quantise_unit_q30(r0),
+        np.rint(np.ldexp(pm, PM_FRAC_BITS)).astype(np.int64),
+        np.rint(np.ldexp(plx, PARALLAX_FRAC_BITS)).astype(np.int64),
+    )
+
+
+def fixed_instant(t_tt: FixedTime, epoch_jyear: float, observer_velocity_gcrs_m_s=None) -> FixedInstant:
+    """The per-instant quantities of :func:`apparent_place_vectors` (soft float64 on the sensor, once per frame), in
+    the fixed formats. Raises ``FixedRangeError`` outside them (more than 128 years from the catalogue epoch, a
+    velocity above 2^-13 c)."""
+    f64 = np.float64
+    earth_p, earth_v, earth_h = earth_barycentric_state(t_tt, f64)
+    years = float(days_since_j2000(t_tt, f64)) / DAYS_PER_JULIAN_YEAR + (EPOCH_J2000_JYEAR - epoch_jyear)
+    v_c = earth_v * AU_LIGHT_TIME_DAY
+    if observer_velocity_gcrs_m_s is not None:
+        v_c = v_c + np.asarray(observer_velocity_gcrs_m_s, dtype=f64) / SPEED_OF_LIGHT_M_S
+    if not (abs(years) <= MAX_YEARS and np.sqrt(np.sum(v_c * v_c)) <= MAX_BETA):
+        raise FixedRangeError("instant or velocity outside the fixed-point range (128 years, 2^-13 c)")
+    dist = float(np.sqrt(np.sum(earth_h * earth_h)))
+    return FixedInstant(
+        years_q20=round(math.ldexp(years, YEARS_FRAC_BITS)),
+        earth_bary_q30=quantise_unit_q30(earth_p),
+        sun_to_earth_q30=quantise_unit_q30(earth_h / dist),
+        deflection_k_q70=round(math.ldexp(SUN_DEFLECTION_RAD / dist, DEFLECTION_K_FRAC_BITS)),
+        beta_q44=np.rint(np.ldexp(v_c, ABERRATION_BETA_FRAC_BITS)).astype(np.int64),
+        tod_q30=quantise_unit_q30(true_of_date_matrix(t_tt, f64)),
+    )
+
+
+def apparent_place_vectors_q30(r0_q30, pm_q46, parallax_q48, inst: FixedInstant):
+    """:func:`apparent_place_vectors` in integers: catalogue vectors (N, 3) Q30, proper motions (N, 3) Q46 [rad/yr],
+    parallaxes (N,) Q48 [rad] -> apparent directions in TOD (N, 3) Q30. Space motion, light deflection, aberration
+    (second order) as changes in Q48 added to r0, normalised by the integer reciprocal square root, then rotated by
+    the Q30 matrix. Integer-generic (int64, or Python integers in object arrays)."""
+    up = CHANGE_FRAC_BITS - Q  # Q30 -> Q48
+    r0 = np.asarray(r0_q30)
+    # space motion: years pm - parallax E_b (Q48)
+    c1 = rshift_round(inst.years_q20 * np.asarray(pm_q46), YEARS_FRAC_BITS + PM_FRAC_BITS - CHANGE_FRAC_BITS)
+    c1 = c1 - rshift_round(np.asarray(parallax_q48)[:, None] * inst.earth_bary_q30[None, :], Q)
+    # light deflection at p = r0 + c1: k (e - (p.e) p) / (1 + p.e) (Q48)
+    p = rshift_round((r0 << up) + c1, up)  # Q30
+    e = inst.sun_to_earth_q30
+    pe = rshift_round(p @ e, Q)  # Q30
+    one_pe = np.maximum((1 << Q) + pe, MIN_ONE_PLUS_PE_Q30)
+    q = div_round(inst.deflection_k_q70 << (CHANGE_FRAC_BITS + Q - DEFLECTION_K_FRAC_BITS), one_pe)  # Q78 / Q30
+    c2 = c1 + rshift_round(q[:, None] * (e[None, :] - rshift_round(pe[:, None] * p, Q)), Q)
+    # aberration at the normalised direction, second order (module table), Q44
+    p = normalise_q30(rshift_round((r0 << up) + c2, up))
+    v = inst.beta_q44
+    vb = ABERRATION_BETA_FRAC_BITS
+    pv = rshift_round(p @ v, Q)
+    v2 = rshift_round(v @ v, vb)
+    m = pv - rshift_round(pv * pv, vb) + rshift_round(v2, 1)
+    ab = v[None, :] - rshift_round(pv[:, None] * v[None, :], vb + 1) - rshift_round(m[:, None] * p, Q)
+    c3 = c2 + (ab << (CHANGE_FRAC_BITS - vb))
+    # normalise, then rotate to the true equator and equinox of date
+    p = normalise_q30(rshift_round((r0 << up) + c3, up))
+    return rshift_round(p @ inst.tod_q30.T, Q)

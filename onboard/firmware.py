@@ -26,6 +26,12 @@ READ_ESTIMATE      an estimator with at least one update (NO_ESTIMATE)
 Pure: no I/O, no clock, no threads (time comes in with each frame). The estimator is plugged in through a small
 seam (:class:`EstimatorSeam`); :class:`RecursiveEstimator` adapts ``onboard.recursive`` to it.
 
+Precision: the sensor's arithmetic is one option of its estimator, ``RecursiveEstimator(precision=...)``
+(:data:`PRECISIONS`): ``"float32"``, a single-precision FPU, or ``"fixed"``, a sensor without one, whose per-star front
+end (centroids in Q10 px, catalogue vectors and the camera model in Q30, exact Q61 interstar residuals:
+``onboard.fixedpoint``) runs in integers and whose filter runs in float32 by a soft-float library.
+:func:`estimator_update` is the one per-frame entry, shared with the host's ``hostlink replay``.
+
 Scheduling: the estimator is the sensor's background task. Which exposures it processes is decided by a modelled
 budget (:class:`EstimatorBudget`: the estimator's declared worst-case cost per update against the time between
 exposures, both in the sensor's own time, which comes with each frame), never by how fast the machine running this
@@ -41,7 +47,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from onboard import banks, recursive
+from onboard import banks, fixedpoint, recursive
 from onboard.params import ESTIMATE_NAMES, CameraParams
 from onboard.prior import prior_config
 from protocol.messages import (
@@ -75,7 +81,8 @@ class EstimatorSeam(Protocol):
         ESTIMATE_NAMES order, parameter units; NaN or 0 = unknown: the cold-start prior)."""
 
     def update(self, state: Any, x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray, identified: np.ndarray) -> None:
-        """One frame: centroids [px] (float32), reference unit vectors (N, 3) (float32), identified mask."""
+        """One frame: centroids [px] and reference unit vectors (N, 3) as the frame and the catalogue hold them
+        (float64; the estimator takes them in its own precision), identified mask."""
 
     def estimate(self, state: Any) -> tuple[np.ndarray, np.ndarray, int, int]:
         """(values, sigma, estimated_mask, n_updates): values and 1-sigma in ESTIMATE_NAMES order, f in mm
@@ -269,15 +276,15 @@ class Firmware:
         reach it is :meth:`process_frame`'s decision."""
         if self._estimator is None or self._est_state is None or r_ref is None or frame.n_stars == 0:
             return
-        r = np.asarray(r_ref, dtype=np.float32).reshape(-1, 3)
+        r = np.asarray(r_ref, dtype=np.float64).reshape(-1, 3)
         identified = (np.asarray(frame.star_id) != 0) & np.all(np.isfinite(r), axis=1)
         try:
             with np.errstate(all="ignore"):
                 self._estimator.update(
                     self._est_state,
-                    np.asarray(frame.x_px, dtype=np.float32),
-                    np.asarray(frame.y_px, dtype=np.float32),
-                    np.where(identified[:, None], r, np.float32(0.0)),
+                    np.asarray(frame.x_px, dtype=np.float64),
+                    np.asarray(frame.y_px, dtype=np.float64),
+                    np.where(identified[:, None], r, np.float64(0.0)),
                     identified,
                 )
             self._est_last_frame = int(frame.frame)
@@ -345,13 +352,51 @@ def estimate_convergence(active: CameraParams, estimate: Estimate) -> str | None
     return None
 
 
+#: The sensor's precisions: "float32" (a single-precision FPU) and "fixed" (no FPU: the integer front end of
+#: ``onboard.fixedpoint``, the filter in soft float32). The host's reference, float64, runs the same code.
+PRECISIONS = ("float32", "fixed")
+
+
+def precision_dtype(precision: str) -> np.dtype:
+    """The estimator's float dtype in a precision: float32 for "float32" and "fixed" (its filter), float64 for the
+    host's "float64" reference. Anything else is a ValueError naming the choices."""
+    if precision not in (*PRECISIONS, "float64"):
+        raise ValueError(f"unknown precision {precision!r} (expected one of {', '.join(PRECISIONS)} or float64)")
+    return np.dtype(np.float64) if precision == "float64" else np.dtype(np.float32)
+
+
+def estimator_update(
+    state: recursive.RecursiveState,
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r_ref: np.ndarray,
+    identified: np.ndarray | None,
+    precision: str = "float32",
+) -> recursive.FrameResult:
+    """One frame of the onboard recursive estimator in ``precision``: the one per-frame entry of the sensor's
+    firmware (:class:`RecursiveEstimator`) and of the host's replay. "fixed": :func:`onboard.fixedpoint.update`
+    (centroids taken in Q10 px, references in Q30; raises ``FixedRangeError``, a ValueError, outside the proved
+    range); otherwise :func:`onboard.recursive.update` in the state's dtype."""
+    if precision == "fixed":
+        return fixedpoint.update(state, x_px, y_px, r_ref, identified)
+    return recursive.update(state, x_px, y_px, r_ref, identified)
+
+
 @dataclass
 class RecursiveEstimator:
-    """``onboard.recursive`` behind the firmware's seam, in the sensor's precision (float32 by default)."""
+    """``onboard.recursive`` behind the firmware's seam, in the sensor's ``precision`` (:data:`PRECISIONS`; float32 by
+    default). ``dtype`` float64 gives the host's reference of the float32 sensor (same code)."""
 
     estimate_names: tuple[str, ...] = ESTIMATE_NAMES
     config: recursive.RecursiveConfig | None = None
     dtype: type = np.float32
+    precision: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {self.precision!r} (expected one of {', '.join(PRECISIONS)})")
+        if self.precision == "fixed" and np.dtype(self.dtype) != np.float32:
+            raise ValueError("the fixed-point sensor's filter runs in float32")
 
     def start(self, nominal: CameraParams, sigma: np.ndarray | None = None) -> recursive.RecursiveState:
         config = prior_config(self.config, nominal, sigma, self.estimate_names)
@@ -365,7 +410,7 @@ class RecursiveEstimator:
         r_ref: np.ndarray,
         identified: np.ndarray,
     ) -> None:
-        recursive.update(state, x_px, y_px, r_ref, identified)
+        estimator_update(state, x_px, y_px, r_ref, identified, self.precision)
 
     def cost_flops(self, n_stars: int) -> int:
         return recursive.update_cost_flops(n_stars, len(self.estimate_names), self.config)

@@ -10,6 +10,12 @@ soft-float library, and so do the Jacobians, which need only ~1e-4 relative accu
 instructions; the front end is where the precision matters (the residual is a small difference of numbers near 1)
 and where the per-star operations are, so it is the part written in integers.
 
+Entry: :func:`update` is one frame of the estimator on such a sensor (``onboard.firmware.estimator_update`` calls it
+for ``precision="fixed"``, in the emulated sensor and in ``hostlink replay`` alike): :func:`frame_front_end` takes the
+centroids in the wire's Q10 steps and the catalogue in Q30, then ``onboard.recursive.update`` runs with this module's
+residuals. The integer primitives :func:`rshift_round`, :func:`div_round`, :func:`isqrt` and :func:`bit_length` are
+shared with the fixed-point site correction (``onboard.refraction.topocentric_observed_q30``).
+
 Rounding: every right shift rounds to nearest, ties toward +infinity (``(a + 2^(n-1)) >> n``, :func:`rshift_round`).
 Every operand stays below 2^34 and every product below 2^62.2, so int64 (< 2^63) never overflows (ranges proved
 in the comments below; tested at the extremes against the same code run on exact Python integers, where the largest
@@ -60,7 +66,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import CENTROID_STEPS_PER_PX
+from onboard import recursive
+from protocol.messages import CENTROID_STEPS_PER_PX, dequantise_px, quantise_px
 
 #: Bits of the centroid's fractional part on the wire (2^-10 px = protocol.messages.CENTROID_LSB_PX).
 CENTROID_FRAC_BITS = 10
@@ -244,7 +251,7 @@ def rsqrt_q30(n2):
     Normalise n2 = alpha 2^(31 + sh) with alpha = a 2^-31 in [1/4, 1] and 31 + sh even (a = n2 >> sh rounded, its
     top 30-31 bits); then 1/sqrt(n2) = alpha^-1/2 2^-(31 + sh)/2, so k = (31 + sh) / 2. alpha^-1/2 starts from the
     table at a >> 26 and takes :data:`RSQRT_ITERATIONS` Newton steps y <- y (3 - alpha y^2) / 2 in integers."""
-    length = _bit_length(n2)  # 51..62
+    length = bit_length(n2)  # 51..62
     sh = length - Q - 1  # a in [2^30, 2^31)
     sh = sh + ((sh + 1) & 1)  # make sh odd (then a in [2^29, 2^30)): 31 + sh even
     a = rshift_round(n2, sh)  # in [2^29, 2^31]
@@ -256,8 +263,8 @@ def rsqrt_q30(n2):
     return y, (Q + 1 + sh) >> 1
 
 
-def _bit_length(x):
-    """Bit length of positive integers < 2^63 (a CLZ instruction on a sensor): binary search with shifts."""
+def bit_length(x):
+    """Bit length of integers 0 <= x < 2^63 (a CLZ instruction on a sensor): binary search with shifts."""
     n = np.zeros_like(x)
     y = x
     for k in (32, 16, 8, 4, 2, 1):
@@ -267,12 +274,33 @@ def _bit_length(x):
     return n + (y > 0)
 
 
+def div_round(num, den):
+    """num / den rounded to nearest, ties toward +infinity, for den > 0: floor((num + floor(den / 2)) / den) (an
+    int64 division: a library call on cores without a 64-bit divider)."""
+    return (num + (den >> 1)) // den
+
+
+#: Newton iterations of :func:`isqrt`: from x0 in [sqrt n, 2 sqrt n] the relative error goes 1 -> 1/4 -> 2.5e-2 ->
+#: 3e-4 -> 5e-8 -> 1e-15, under one unit of a root < 2^31 after six; the seventh and eighth reach the floor.
+ISQRT_ITERATIONS = 8
+
+
+def isqrt(n):
+    """floor(sqrt(n)) for integers 0 <= n < 2^62 (int64, or Python integers in an object array): Newton's method in
+    integers from the power of two 2^ceil(bits/2) >= sqrt(n); the iterates decrease to the floor and stay there."""
+    n = np.asarray(n)
+    x = np.maximum(1 << ((bit_length(n) + 1) >> 1), 1)
+    for _ in range(ISQRT_ITERATIONS):
+        x = np.minimum(x, np.maximum((x + n // x) >> 1, 1))  # stays >= 1: n = 0 never divides by 0
+    return np.where(n > 0, x, 0)
+
+
 def offsets_to_unit_q30(u_ideal, v_ideal, cam: FixedCamera):
     """Ideal offsets (Q30 normalised) -> sensor-frame unit vectors b = (u', v', F) / |.| in Q30, shape (N, 3)."""
     down = Q - cam.qw  # >= 2
     wu = rshift_round(u_ideal, down)  # |u'| < 2.5 <= 4: |wu| <= 2^30 (max(F/S, 4) 2^qw <= 2^30)
     wv = rshift_round(v_ideal, down)
-    wf = cam.f_w  # F 2^qw / S in [2^(qw - 3), 2^30]
+    wf = cam.f_w  # F 2^qw / S in [2^(qw - 3), 2^30]; one value per frame (wf^2 once, not per star)
     n2 = wu * wu + wv * wv + wf * wf  # < 3 2^60; >= wf^2 >= 2^50 (F >= S/8 and qw = 28 when F < 4S)
     y, k = rsqrt_q30(n2)
     b = np.empty((np.shape(wu)[0], 3), dtype=np.result_type(wu))
@@ -280,6 +308,15 @@ def offsets_to_unit_q30(u_ideal, v_ideal, cam: FixedCamera):
     b[:, 1] = rshift_round(wv * y, k)
     b[:, 2] = rshift_round(wf * y, k)
     return b
+
+
+def normalise_q30(w):
+    """Integer vectors (N, 3) with |w_c| <= 2^30 and 2^50 <= |w|^2 < 2^62, at any common scale -> unit vectors w / |w|
+    in Q30: :func:`rsqrt_q30` of |w|^2, then each component times it (|w_c| y <= 2^30 2^31 = 2^61), as
+    :func:`offsets_to_unit_q30` does with its per-frame third component."""
+    n2 = w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2]
+    y, k = rsqrt_q30(n2)
+    return rshift_round(w * y[:, None], k[:, None])
 
 
 def pixels_to_unit_q30(x_steps, y_steps, cam: FixedCamera):
@@ -330,3 +367,48 @@ class FixedFrame:
         b = pixels_to_unit_q30(self.x_steps[rows], self.y_steps[rows], cam)
         e = difference_residuals_q61(b, self.r_q30[rows], pi, pj)
         return residuals_to_float(e, np.asarray(theta).dtype), cam.theta_q
+
+
+#: Largest |centroid| [px] taken before the detector check: keeps the Q10 conversion inside int64 for any float input
+#: (everything this far off the detector is refused by :func:`on_detector` anyway).
+_CENTROID_CLIP_PX = float(1 << 40)
+
+
+def frame_front_end(
+    x_px: np.ndarray, y_px: np.ndarray, r_ref: np.ndarray, identified: np.ndarray | None, image_size_px: tuple[int, int]
+) -> tuple[FixedFrame, np.ndarray]:
+    """One frame as a sensor without an FPU holds it: centroids [px] in the wire's Q10 steps (round half even, as
+    :func:`protocol.messages.quantise_px`: the centroider's output format), catalogue unit vectors in Q30 (the
+    integers a fixed-point catalogue stores, :func:`quantise_unit_q30`), and the mask of stars the front end takes:
+    identified (``identified``, None = all), finite, and on the detector (:func:`on_detector`).
+    Returns (the :class:`FixedFrame`, that mask)."""
+    x = np.asarray(x_px, dtype=np.float64)
+    y = np.asarray(y_px, dtype=np.float64)
+    r = np.asarray(r_ref, dtype=np.float64).reshape(-1, 3)
+    usable = np.isfinite(x) & np.isfinite(y) & np.all(np.isfinite(r), axis=1)
+    if identified is not None:
+        usable &= np.asarray(identified, dtype=bool)
+    clip = _CENTROID_CLIP_PX
+    x_steps = quantise_px(np.clip(np.where(usable, x, 0.0), -clip, clip))
+    y_steps = quantise_px(np.clip(np.where(usable, y, 0.0), -clip, clip))
+    usable &= on_detector(x_steps, y_steps, image_size_px)
+    r_q30 = quantise_unit_q30(np.where(usable[:, None], r, 0.0))
+    return FixedFrame(x_steps, y_steps, r_q30, (int(image_size_px[0]), int(image_size_px[1]))), usable
+
+
+def update(
+    state: recursive.RecursiveState,
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r_ref: np.ndarray,
+    identified: np.ndarray | None = None,
+) -> recursive.FrameResult:
+    """One frame of the onboard recursive estimator on a sensor without an FPU: :func:`onboard.recursive.update` with
+    the residuals from this module's integer front end (:func:`frame_front_end`); the float32 (soft-float) filter and
+    its Jacobians see the same Q10 centroids. Raises :class:`FixedRangeError` when the estimate has left the
+    fixed-point range (:func:`fixed_camera`)."""
+    front, usable = frame_front_end(x_px, y_px, r_ref, identified, state.nominal.image_size_px)
+    r = np.where(usable[:, None], np.asarray(r_ref, dtype=np.float64).reshape(-1, 3), 0.0)
+    return recursive.update(
+        state, dequantise_px(front.x_steps), dequantise_px(front.y_steps), r, usable, front_end=front
+    )

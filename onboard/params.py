@@ -109,7 +109,10 @@ def params_from_dict(data: dict, validate: bool = True) -> CameraParams:
     def number(key: str, value: object) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParameterError(key, f"expected a number, got {value!r}")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # a JSON integer beyond the float range
+            raise ParameterError(key, f"an integer of {value.bit_length()} bits, beyond the float range") from None
 
     def pair(key: str) -> tuple[float, float]:
         value = data.get(key)
@@ -222,8 +225,8 @@ def min_radial_slope(distortion: Distortion, s_max_px2: float, dtype: type = np.
     k1, k2, k3 = dtype(distortion.k1), dtype(distortion.k2), dtype(distortion.k3)
     s_max = dtype(s_max_px2)
     candidates = [dtype(0), s_max]
-    a, b, c = -c21 * k3, -ten * k2, -three * k1  # P'(s) = a s^2 + b s + c
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):  # a huge coefficient overflows to inf / NaN, which the caller refuses
+        a, b, c = -c21 * k3, -ten * k2, -three * k1  # P'(s) = a s^2 + b s + c
         if a != 0:
             disc = b * b - four * a * c
             if disc >= 0:

@@ -99,7 +99,10 @@ def sigma_from_dict(data: Mapping | None, validate: bool = True) -> np.ndarray:
             return math.nan
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParameterError(field, f"expected a number or null, got {value!r}")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # a JSON integer beyond the float range
+            raise ParameterError(field, f"an integer of {value.bit_length()} bits, beyond the float range") from None
 
     if "focal_length_mm" in data:
         out[0] = number(SIGMA_FILE_FIELDS[0], data["focal_length_mm"])

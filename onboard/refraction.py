@@ -31,9 +31,13 @@ of the two velocities (ERFA apco13), differs by O(beta_earth beta_site) = 1.6e-1
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from onboard.apparent import SPEED_OF_LIGHT_M_S, aberration_change
+from onboard.fixedpoint import FixedRangeError, Q, div_round, isqrt, quantise_unit_q30, rshift_round
 from onboard.site import Weather
 
 ARCSEC_TO_RAD = np.pi / 648000.0
@@ -192,3 +196,143 @@ def topocentric_observed(
     if weather is None:
         return topo
     return refract_toward_zenith(topo, zenith, weather, model, lat_rad, true_zenith_argument)
+
+
+# ------------------------------------------------------------------------------------------------- fixed point
+# The per-star part of :func:`topocentric_observed` in integers, for a sensor without an FPU (the twin of the
+# float code above, step by step; formats and their ranges below, bounds in docs/port-kit.md "Fixed-point formats";
+# ``tests/test_fixedpoint_refraction.py`` holds it against float64 of the float code). Every shift rounds to nearest
+# (``onboard.fixedpoint.rshift_round``); every division rounds to nearest (``fixedpoint.div_round``, divisor > 0).
+#
+#   quantity                    format   range (why)
+#   r, zenith U, result         Q30      unit vectors: |component| <= 2^30 + 1
+#   beta = v / c                Q48      |beta| <= 2^-18 (v <= 1143 m/s: a site, a ship, an aircraft): |B_c| <= 2^30
+#   r.beta                      Q48      <= 2^30; products Q30 x Q48 <= 2^60, three summed < 2^62
+#   A, B                        Q56      |A| <= 2^-10, |B| <= 2^-19 (fixed_refraction refuses more): <= 2^46, 2^37
+#   cos z, sin z (clamped)      Q30      cos z >= MIN_COS_ZENITH (the float code's limit), sin z <= 1
+#   tan z                       Q24      <= 1 / MIN_COS_ZENITH = 20: < 2^28.4 (numerator sin z 2^54 < 2^63)
+#   tan^2 z                     Q16      <= 400: < 2^24.7;  B tan^2 z: 2^37 x 2^24.7 < 2^62
+#   A + B tan^2, A + 3 B tan^2  Q56      <= 2^-10 + 3 2^-19 400 < 2^-7.6: < 2^48.4
+#   refraction R, Newton g      Q36      |R| <= 20 (2^-10 + 2^-19 400) < 2^-3.9: < 2^32.1; g << 30 < 2^62.2
+#   1 + (A + 3 B tan^2) / cos^2 Q30      in [1 - 2^-5, 1 + 2^-0.9]: numerator Q60 < 2^52.4
+#   cos R, sin R, sin R / sin z Q30      |R| < 2^-3.9 (series below); sin R / sin z <= (A + B tan^2) / cos z < 2^-3.3
+#
+# Series: cos R = 1 - R^2/2 + R^4/24 and sin R = R - R^3/6 leave R^6/720 and R^5/120, < 2^-37 at |R| < 2^-3.9.
+# The diurnal aberration is first order, beta - (r.beta) r: the relativistic formula of ``aberration_change`` differs
+# by at most 1.5 |beta|^2 < 2^-36, and the result's length differs from 1 by |beta|^2 / 2 < 2^-37 (not renormalised).
+
+#: Fractional bits of the site velocity beta = v / c, and its largest magnitude (2^-18 = 1143 m/s).
+BETA_FRAC_BITS = 48
+MAX_BETA_LOG2 = -18
+#: Fractional bits of the refraction coefficients A, B, of the refraction R, of tan z and tan^2 z.
+COEF_FRAC_BITS = 56
+R_FRAC_BITS = 36
+TAN_FRAC_BITS = 24
+TAN2_FRAC_BITS = 16
+#: Largest |A| and |B| the formats are proved for: 2^-10 rad = 202" (3.4x A at sea level, 0 C), 2^-19 rad.
+MAX_A_LOG2 = -10
+MAX_B_LOG2 = -19
+
+
+@dataclass(frozen=True)
+class FixedRefraction:
+    """A refraction model R = A tan z_a + B tan^3 z_a in the fixed-point formats: A and B in Q56 [rad]. Built once
+    per weather (:func:`fixed_refraction`), like the float sensor's (A, B)."""
+
+    a_q56: int
+    b_q56: int
+
+
+def fixed_refraction(weather: Weather, model: str = "atan", lat_rad: float | None = None) -> FixedRefraction:
+    """(A, B) of :func:`model_coefficients` in Q56. Raises ``onboard.fixedpoint.FixedRangeError`` when |A| > 2^-10
+    or |B| > 2^-19 rad (the formats' range: pressures above ~3400 hPa)."""
+    a, b = model_coefficients(weather, model, lat_rad)
+    if not (abs(a) <= 2.0**MAX_A_LOG2 and abs(b) <= 2.0**MAX_B_LOG2):
+        raise FixedRangeError(f"refraction coefficients A {a:.3g}, B {b:.3g} rad exceed the fixed-point range")
+    return FixedRefraction(round(math.ldexp(a, COEF_FRAC_BITS)), round(math.ldexp(b, COEF_FRAC_BITS)))
+
+
+def beta_q48(site_velocity_m_s: np.ndarray) -> np.ndarray:
+    """A site velocity (3,) [m/s] as beta = v / c in Q48 (int64). Raises ``FixedRangeError`` above 2^-18 c."""
+    beta = np.asarray(site_velocity_m_s, dtype=np.float64) / SPEED_OF_LIGHT_M_S
+    if not (np.all(np.isfinite(beta)) and np.sqrt(np.sum(beta * beta)) <= 2.0**MAX_BETA_LOG2):
+        raise FixedRangeError("site velocity above the fixed-point range (2^-18 c = 1143 m/s)")
+    return np.rint(np.ldexp(beta, BETA_FRAC_BITS)).astype(np.int64)
+
+
+def _cos_sin_q30(r_q36):
+    """cos R and sin R in Q30 from R in Q36 (|R| < 2^-3.9): the series of the table above."""
+    r = rshift_round(r_q36, R_FRAC_BITS - Q)  # Q30, |r| < 2^26.1
+    r2 = rshift_round(r * r, Q)  # R^2, Q30 < 2^22.2
+    r4 = rshift_round(r2 * r2, Q)  # R^4, Q30
+    cos_r = (1 << Q) - rshift_round(r2, 1) + div_round(r4, 24)
+    sin_r = r - div_round(rshift_round(r * r2, Q), 6)
+    return cos_r, sin_r
+
+
+def refraction_from_true_zenith_q36(cos_q30, sin_q30, coef: FixedRefraction, steps: int = TRUE_ZENITH_NEWTON_STEPS):
+    """R [rad] in Q36 from cos and sin of the true zenith distance (Q30): :func:`refraction_from_true_zenith` step by
+    step (Newton on R - A tan(z_t - R) - B tan^3(z_t - R), from R = 0, the rotation of (cos, sin) by R), in
+    integers with one division for tan z and one for the Newton step per iteration. Integer-generic: int64 arrays,
+    or object arrays of Python integers (the exact reference of the range tests)."""
+    min_cos = round(MIN_COS_ZENITH * (1 << Q))
+    a, b = coef.a_q56, coef.b_q56
+    r = np.zeros_like(cos_q30)
+    for _ in range(steps):
+        cr, sr = _cos_sin_q30(r)
+        c = np.maximum(rshift_round(cos_q30 * cr + sin_q30 * sr, Q), min_cos)  # cos(z_t - R)
+        s = rshift_round(sin_q30 * cr - cos_q30 * sr, Q)  # sin(z_t - R)
+        tz = div_round(s << TAN_FRAC_BITS, c)  # tan, Q24
+        tz2 = rshift_round(tz * tz, 2 * TAN_FRAC_BITS - TAN2_FRAC_BITS)  # Q16
+        btz2 = rshift_round(b * tz2, TAN2_FRAC_BITS)  # B tan^2, Q56
+        k = a + btz2  # Q56
+        f = rshift_round(rshift_round(k, COEF_FRAC_BITS - 40) * tz, 40 + TAN_FRAC_BITS - R_FRAC_BITS)  # Q36
+        g = r - f
+        c2 = rshift_round(c * c, Q)  # Q30 >= 2^21.4
+        dg = (1 << Q) + div_round((a + 3 * btz2) << (2 * Q - COEF_FRAC_BITS), c2)  # Q30: Q60 / Q30
+        r = r - div_round(g << Q, dg)
+    return r
+
+
+def topocentric_observed_q30(
+    r_q30: np.ndarray, zenith_q30: np.ndarray, beta: np.ndarray, coef: FixedRefraction | None = None
+) -> np.ndarray:
+    """:func:`topocentric_observed` in integers: geocentric apparent unit vectors (N, 3) Q30 -> as observed at the
+    site (N, 3) Q30. ``zenith_q30`` (3,) Q30 and ``beta`` (3,) Q48 (:func:`beta_q48`) in r's frame; ``coef``
+    (:func:`fixed_refraction`) or None for no atmosphere.
+
+    1. Diurnal aberration to first order: r + beta - (r.beta) r, in Q48, rounded to Q30 once.
+    2. Refraction by addition (seed 001 sec. 4): cos z = r.U, tangential t = U - (r.U) r, sin z = |t| (integer
+       square root), R from :func:`refraction_from_true_zenith_q36`, then r cos R + t (sin R / sin z)."""
+    r = np.asarray(r_q30)
+    beta = np.asarray(beta)
+    shift = BETA_FRAC_BITS - Q
+    rb = rshift_round(r @ beta, Q)  # r.beta, Q48
+    topo = rshift_round((r << shift) + beta[None, :] - rshift_round(rb[:, None] * r, Q), shift)
+    if coef is None:
+        return topo
+    u = np.asarray(zenith_q30)
+    cz = rshift_round(topo @ u, Q)  # Q30
+    t = u[None, :] - rshift_round(cz[:, None] * topo, Q)  # Q30, |t| = sin z
+    sz = isqrt(np.sum(t * t, axis=1))  # Q30 (|t|^2 in Q60 < 2^60.01)
+    refr = refraction_from_true_zenith_q36(cz, sz, coef)
+    cr, sr = _cos_sin_q30(refr)
+    ratio = np.where(sz > 0, div_round(sr << Q, np.maximum(sz, 1)), 0)  # sin R / sin z, Q30 (t = 0 where sz = 0)
+    return rshift_round(cr[:, None] * topo + ratio[:, None] * t, Q)
+
+
+def topocentric_observed_fixed(
+    r: np.ndarray,
+    zenith: np.ndarray,
+    site_velocity_m_s: np.ndarray,
+    weather: Weather | None = None,
+    model: str = "atan",
+    lat_rad: float | None = None,
+) -> np.ndarray:
+    """:func:`topocentric_observed` as a sensor without an FPU computes it (float64 in and out, for the host's
+    emulation of that sensor): r and the zenith quantised to Q30 (its catalogue and its site frame), the velocity
+    to Q48 and (A, B) to Q56 once, then :func:`topocentric_observed_q30`. Raises ``FixedRangeError`` outside the
+    formats' range."""
+    coef = None if weather is None else fixed_refraction(weather, model, lat_rad)
+    out = topocentric_observed_q30(quantise_unit_q30(r), quantise_unit_q30(zenith), beta_q48(site_velocity_m_s), coef)
+    return np.ldexp(out.astype(np.float64), -Q)

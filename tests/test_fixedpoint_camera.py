@@ -120,7 +120,7 @@ def test_integer_bit_length_matches_python():
     rng = np.random.default_rng(1)
     x = np.concatenate([2 ** np.arange(63, dtype=np.int64), rng.integers(1, 2**62, 2000, dtype=np.int64)])
     x = x[x > 0]
-    got = fx._bit_length(x)
+    got = fx.bit_length(x)
     assert got.tolist() == [int(v).bit_length() for v in x.tolist()]
 
 

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData, frame_chunks, measured_directions
-from hostlink.calibration.frames import apply_attitude_increment, wahba_svd
-from hostlink.calibration.robust import huber_cost, huber_weights, robust_sigma_2d, vote_consistent_stars
+from hostlink.calibration.frames import apply_attitude_increment, per_frame_products, triad_attitudes, wahba_svd
+from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_cost, huber_weights, vote_consistent_stars
 from onboard.camera import distortion_partials, ideal_offset_jacobians, ideal_offsets
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
@@ -132,6 +132,13 @@ def observation_terms(
         [i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1], i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1
     )
     j_theta += whitening_jacobian(x_px - theta[1], y_px - theta[2], theta, cols, e, (i00, i01, i10, i11))
+    return e, j_theta, _attitude_jacobian(s, p, inv_z, focal_px, (i00, i01, i10, i11))
+
+
+def _attitude_jacobian(s: np.ndarray, p: np.ndarray, inv_z: np.ndarray, focal_px: float, jc_inv: tuple) -> np.ndarray:
+    """de/dphi (n, 2, 3) for the rotation increment of the star's frame, from s = C r, its projection p, 1 / s_z
+    and the whitening Jc^-1 (entries)."""
+    i00, i01, i10, i11 = jc_inv
     # dp/dphi for s -> s + phi x s: row k of dp/ds times [s]x, i.e. (dp_k/ds) x s, with
     # dp_0/ds = (F/z, 0, -p_0/z) and dp_1/ds = (0, F/z, -p_1/z)
     fz = focal_px * inv_z
@@ -139,8 +146,23 @@ def observation_terms(
     sx, sy, sz = s[:, 0], s[:, 1], s[:, 2]
     c0 = np.stack([-a0z * sy, a0z * sx - fz * sz, fz * sy], axis=1)
     c1 = np.stack([fz * sz - a1z * sy, a1z * sx, -fz * sx], axis=1)
-    j_phi = -np.stack([i00[:, None] * c0 + i01[:, None] * c1, i10[:, None] * c0 + i11[:, None] * c1], axis=1)
-    return e, j_theta, j_phi
+    return -np.stack([i00[:, None] * c0 + i01[:, None] * c1, i10[:, None] * c0 + i11[:, None] * c1], axis=1)
+
+
+def attitude_terms(
+    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened residuals e (n, 2) and their attitude Jacobian J_phi (n, 2, 3) alone (the camera held): the
+    per-frame attitude steps of :func:`frame_attitudes`. Same e and J_phi as :func:`observation_terms`."""
+    q_u, q_v = ideal_offsets(x_px, y_px, theta)
+    dx_u, dx_v, dy_u, dy_v = distortion_partials(x_px - theta[1], y_px - theta[2], theta)
+    s, p, inv_z = _projection(r, attitude_obs, theta[0])
+    jc = np.stack([np.stack([1 - dx_u, -dx_v], axis=-1), np.stack([-dy_u, 1 - dy_v], axis=-1)], axis=-2)
+    jc_inv = _inverse_2x2(jc)
+    i00, i01, i10, i11 = jc_inv
+    d0, d1 = q_u - p[:, 0], q_v - p[:, 1]
+    e = np.stack([i00 * d0 + i01 * d1, i10 * d0 + i11 * d1], axis=1)
+    return e, _attitude_jacobian(s, p, inv_z, theta[0], jc_inv)
 
 
 def whitening_jacobian(
@@ -223,20 +245,33 @@ def accumulate_normals(
         a, b = int(starts[f0]), int(starts[f1])
         att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
         e, jt, jp = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, cols)
-        jt = jt * col_scale[None, None, :]
-        w = weights[a:b, None, None]
-        jt_w = jt * w
-        jp_w = jp * w
-        flat_w = jt_w.reshape(-1, k)
-        blocks.u += flat_w.T @ jt.reshape(-1, k)
-        blocks.g += flat_w.T @ e.ravel()
-        local = starts[f0:f1] - a
-        jp_w_t = jp_w.transpose(0, 2, 1)
-        blocks.a[f0:f1] = np.add.reduceat(jp_w_t @ jp, local, axis=0)
-        blocks.b[f0:f1] = np.add.reduceat(jt_w.transpose(0, 2, 1) @ jp, local, axis=0)
-        blocks.g_phi[f0:f1] = np.add.reduceat((jp_w_t @ e[:, :, None])[:, :, 0], local, axis=0)
+        u, g, blocks.a[f0:f1], blocks.b[f0:f1], blocks.g_phi[f0:f1] = normal_blocks(
+            e, jt * col_scale[None, None, :], jp, weights[a:b], starts[f0 : f1 + 1] - a
+        )
+        blocks.u += u
+        blocks.g += g
         blocks.e[a:b] = e
     return blocks
+
+
+def normal_blocks(
+    e: np.ndarray, jt: np.ndarray, jp: np.ndarray, w: np.ndarray, local_starts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted normal-equation blocks of a run of whole frames from their terms (:func:`observation_terms`):
+    U = sum J_t^T W J_t, g = sum J_t^T W e (K x K, K), and per frame A = sum J_phi^T W J_phi, B = sum J_t^T W J_phi,
+    g_phi = sum J_phi^T W e; ``local_starts`` are the frames' first rows (one more entry: the row count). The
+    per-frame blocks are one product [J_t J_phi e]^T W J_phi per frame
+    (:func:`hostlink.calibration.frames.per_frame_products`)."""
+    k = jt.shape[2]
+    jt_w = (jt * w[:, None, None]).reshape(-1, k)
+    per_frame = per_frame_products(np.concatenate([jt, jp, e[:, :, None]], axis=2), jp, w, local_starts)
+    return (
+        jt_w.T @ jt.reshape(-1, k),
+        jt_w.T @ e.ravel(),
+        per_frame[:, k : k + 3, :],
+        per_frame[:, :k, :],
+        per_frame[:, k + 3, :],
+    )
 
 
 def residuals(
@@ -287,130 +322,452 @@ def initial_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
     return wahba_svd(measured_directions(data, theta), data.r, data.frame_starts)
 
 
-def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleOptions | None = None) -> BundleResult:
-    """Calibrate the camera and every frame's attitude by robust Levenberg-Marquardt (see module docstring).
+#: Gauss-Newton steps of each frame's attitude at a fixed camera, from the closed-form TRIAD start
+#: (:func:`frame_attitudes`): the start is within ~2e-4 rad (centroid noise over the lever arm of one star) and one
+#: step of this nearly linear 3-parameter problem squares the error (to ~1e-8 rad, 1e-3 of the attitude noise). The
+#: camera step does not depend on what is left to first order (the Schur right-hand side carries g_phi), and the
+#: cost only to second order (~1e-9 px^2 per frame).
+ATTITUDE_STEPS = 1
+#: A robust-scale round ends when the robust sigma of its residuals is within this fraction of the scale its Huber
+#: weights used: a 1 % different scale moves the Huber threshold (3 sigma) by 0.03 sigma, which changes the weight
+#: of ~0.1 % of the stars slightly and the estimate by far less than 0.01 sigma.
+SCALE_ROUND_TOL = 0.01
+#: The first round (plain least squares, before any robust scale is known) stops at steps below this many standard
+#: deviations: the robust rounds after it continue from there to ``BundleOptions.step_tol``.
+ROUGH_STEP_SIGMAS = 0.1
+#: A step below this many standard deviations that does not lower the cost ends the round as converged (the cost
+#: then moves by less than the attitudes' own convergence changes it: ~1e-4 sigma^2 per frame), rather than being
+#: retried at growing damping.
+SMALL_STEP_SIGMAS = 0.01
+#: Relative rounding of a pass's cost (a sum of ~10^4..10^7 terms in float64): a step whose cost is higher by less
+#: than this is at the minimum and is accepted (its relative decrease, below ``ftol``, then ends the round).
+COST_ROUNDING = 1e-12
+#: Histogram of residual lengths for the robust scale: log-spaced bins over [1e-6, 1e3] px. Integer counts add up
+#: exactly over chunks and workers, so the scale does not depend on how the frames are split; the median is
+#: interpolated within a bin 0.25 % wide (the scale is used only for Huber weights and the 5-sigma gate).
+SCALE_HIST_RANGE_PX = (1e-6, 1e3)
+SCALE_HIST_BINS = 8192
 
-    ``nominal`` gives the starting values and the fixed values of parameters not in ``options.estimate``.
-    Raises ValueError if fewer than one frame with three consistent stars remains.
-    """
+
+def residual_histogram(norm_px: np.ndarray) -> np.ndarray:
+    """Counts (SCALE_HIST_BINS,) of residual lengths [px] in the log-spaced bins of :data:`SCALE_HIST_RANGE_PX`
+    (values outside go to the end bins)."""
+    lo, hi = np.log(SCALE_HIST_RANGE_PX[0]), np.log(SCALE_HIST_RANGE_PX[1])
+    pos = (np.log(np.maximum(norm_px, 1e-300)) - lo) * (SCALE_HIST_BINS / (hi - lo))
+    idx = np.clip(pos.astype(np.int64), 0, SCALE_HIST_BINS - 1)
+    return np.bincount(idx, minlength=SCALE_HIST_BINS).astype(np.int64)
+
+
+def robust_sigma_from_histogram(hist: np.ndarray) -> float:
+    """Per-axis sigma [px] from a :func:`residual_histogram`: its median (log-interpolated within the bin) over
+    sqrt(2 ln 2), as :func:`hostlink.calibration.robust.robust_sigma_2d` does with the exact median."""
+    n = int(hist.sum())
+    if n == 0:
+        return float("nan")
+    cum = np.cumsum(hist)
+    half = 0.5 * n
+    k = int(np.searchsorted(cum, half, side="left"))
+    below = cum[k] - hist[k]
+    frac = (half - below) / max(hist[k], 1)
+    lo, hi = np.log(SCALE_HIST_RANGE_PX[0]), np.log(SCALE_HIST_RANGE_PX[1])
+    width = (hi - lo) / SCALE_HIST_BINS
+    return float(np.exp(lo + (k + frac) * width) / RAYLEIGH_MEDIAN)
+
+
+def _weights(norm: np.ndarray, sigma_px: float, huber_k: float) -> np.ndarray:
+    return np.ones_like(norm) if not np.isfinite(sigma_px) else huber_weights(norm, sigma_px, huber_k)
+
+
+def _cost(norm: np.ndarray, sigma_px: float, huber_k: float) -> float:
+    return 0.5 * float(np.sum(norm * norm)) if not np.isfinite(sigma_px) else huber_cost(norm, sigma_px, huber_k)
+
+
+def frame_attitudes(
+    data: CalibrationData, theta: np.ndarray, sigma_px: float = np.inf, huber_k: float = 3.0
+) -> np.ndarray:
+    """The attitude of every frame (M, 3, 3) that minimises its robust whitened cost at the camera ``theta``:
+    TRIAD from the measured directions (:func:`hostlink.calibration.frames.triad_attitudes`), then
+    :data:`ATTITUDE_STEPS` Gauss-Newton steps with the Huber
+    weights of scale ``sigma_px`` (inf: plain least squares). A function of each frame alone, so the same for any
+    split of the frames into chunks. With the attitudes eliminated this way the camera is fitted on the reduced
+    cost sum_f min_C_f rho(e_f) (variable projection, Golub and Pereyra 1973), whose Gauss-Newton matrix is the Schur
+    complement of :func:`reduced_normal`."""
+    att = triad_attitudes(measured_directions(data, theta), data.r, data.frame_starts)
+    for _ in range(ATTITUDE_STEPS):
+        att_obs = np.repeat(att, data.counts, axis=0)
+        e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta)
+        w = _weights(np.linalg.norm(e, axis=1), sigma_px, huber_k)
+        prod = per_frame_products(np.concatenate([jp, e[:, :, None]], axis=2), jp, w, data.frame_starts)
+        att = apply_attitude_increment(att, -np.linalg.solve(prod[:, :3, :], prod[:, 3, :, None])[:, :, 0])
+    return att
+
+
+@dataclass
+class PassSums:
+    """What one pass over the frames adds up; every field is a sum (or a max, or a union) over frames, so chunks
+    and workers merge in any grouping (:meth:`merge`) to the same numbers up to the order of floating additions."""
+
+    s: np.ndarray  # (K, K) reduced normal matrix (Schur complement), scaled camera columns
+    rhs: np.ndarray  # (K,) its right-hand side
+    u_diag: np.ndarray  # (K,) diagonal of U before the attitudes are eliminated
+    cost: float  # robust cost at the pass's camera
+    sum_e2: float  # sum |e|^2 [px^2]
+    n_obs: int
+    n_frames: int
+    hist: np.ndarray  # residual_histogram of |e|
+    over_gate: np.ndarray  # source rows whose |e| exceeds the gate given to the pass (int64)
+    max_e_px: float = 0.0
+    s_unit: np.ndarray | None = None  # final pass: S with unit weights, unscaled columns (the covariance)
+    u_diag_unit: np.ndarray | None = None
+
+    def merge(self, other: PassSums) -> PassSums:
+        def add(a, b):
+            return None if a is None or b is None else a + b
+
+        return PassSums(
+            self.s + other.s,
+            self.rhs + other.rhs,
+            self.u_diag + other.u_diag,
+            self.cost + other.cost,
+            self.sum_e2 + other.sum_e2,
+            self.n_obs + other.n_obs,
+            self.n_frames + other.n_frames,
+            self.hist + other.hist,
+            np.concatenate([self.over_gate, other.over_gate]),
+            max(self.max_e_px, other.max_e_px),
+            add(self.s_unit, other.s_unit),
+            add(self.u_diag_unit, other.u_diag_unit),
+        )
+
+
+def empty_pass(k: int, final: bool = False) -> PassSums:
+    z = np.zeros(0, dtype=np.int64)
+    unit = (np.zeros((k, k)), np.zeros(k)) if final else (None, None)
+    return PassSums(
+        np.zeros((k, k)), np.zeros(k), np.zeros(k), 0.0, 0.0, 0, 0, np.zeros(SCALE_HIST_BINS, np.int64), z, 0.0, *unit
+    )
+
+
+def frames_of(data: CalibrationData, f0: int, f1: int) -> CalibrationData:
+    """The frames [f0, f1) of ``data`` as a CalibrationData of their own (views, no copy)."""
+    a, b = int(data.frame_starts[f0]), int(data.frame_starts[f1])
+    return CalibrationData(
+        data.x_px[a:b],
+        data.y_px[a:b],
+        data.r[a:b],
+        data.frame_starts[f0 : f1 + 1] - a,
+        data.frame_number[f0:f1],
+        data.star_id[a:b],
+        data.source_rows()[a:b],
+    )
+
+
+def without_rows(data: CalibrationData, excluded_rows: np.ndarray) -> CalibrationData:
+    """``data`` less the stars whose source row is in the sorted array ``excluded_rows``, and less the frames left
+    with fewer than :data:`hostlink.calibration.data.MIN_STARS_PER_FRAME` stars."""
+    rows = data.source_rows()
+    if excluded_rows.size:
+        pos = np.minimum(np.searchsorted(excluded_rows, rows), excluded_rows.size - 1)
+        keep = excluded_rows[pos] != rows
+    else:
+        keep = np.ones(data.n_obs, dtype=bool)
+    return data.select(keep)[0]
+
+
+@dataclass(frozen=True)
+class PassRequest:
+    """One pass over the frames: the camera, the scale of the Huber weights (inf: none), the columns and their
+    scales, and what to leave out. ``final``: also the normal matrix with unit weights and unscaled columns (the
+    covariance), and the stars beyond ``gate_px`` listed."""
+
+    theta: np.ndarray
+    sigma_px: float
+    cols: np.ndarray
+    col_scale: np.ndarray
+    excluded_rows: np.ndarray
+    huber_k: float
+    chunk_obs: int
+    final: bool = False
+    gate_px: float = np.inf
+
+
+def chunk_pass(data: CalibrationData, req: PassRequest) -> PassSums:
+    """The sums of one chunk of frames (whole frames) for ``req``: per sub-chunk of at most ``chunk_obs`` stars,
+    attitudes eliminated (:func:`frame_attitudes`), residuals and Jacobians (:func:`observation_terms`), Huber
+    weights, normal blocks (:func:`normal_blocks`) reduced at once by the Schur complement
+    (:func:`reduced_normal`), robust cost and residual histogram."""
+    out = empty_pass(req.cols.size, req.final)
+    for f0, f1 in frame_chunks(data.frame_starts, req.chunk_obs):
+        sub = without_rows(frames_of(data, f0, f1), req.excluded_rows)
+        if sub.n_frames == 0:
+            continue
+        try:
+            with np.errstate(all="ignore"):  # a trial camera far off can make a frame's terms non-finite
+                part = _sub_chunk_sums(sub, req)
+        except np.linalg.LinAlgError:
+            part = None
+        if part is None or not (np.isfinite(part.cost) and np.all(np.isfinite(part.s))):
+            out.cost = np.inf  # a camera some frame cannot be fitted with: the step is rejected
+            return out
+        out = out.merge(part)
+    return out
+
+
+def _sub_chunk_sums(sub: CalibrationData, req: PassRequest) -> PassSums:
+    att = frame_attitudes(sub, req.theta, req.sigma_px, req.huber_k)
+    att_obs = np.repeat(att, sub.counts, axis=0)
+    e, jt, jp = observation_terms(sub.x_px, sub.y_px, sub.r, att_obs, req.theta, req.cols)
+    norm = np.linalg.norm(e, axis=1)
+    w = _weights(norm, req.sigma_px, req.huber_k)
+    u, g, a, b, g_phi = normal_blocks(e, jt * req.col_scale[None, None, :], jp, w, sub.frame_starts)
+    s, rhs, _ = reduced_normal(NormalBlocks(u, g, a, b, g_phi, e), 0.0)
+    unit = (None, None)
+    if req.final:
+        blocks = NormalBlocks(*normal_blocks(e, jt, jp, np.ones(sub.n_obs), sub.frame_starts), e)
+        unit = (reduced_normal(blocks, 0.0)[0], np.diag(blocks.u).copy())
+    return PassSums(
+        s,
+        rhs,
+        np.diag(u).copy(),
+        _cost(norm, req.sigma_px, req.huber_k),
+        float(np.sum(norm * norm)),
+        sub.n_obs,
+        sub.n_frames,
+        residual_histogram(norm),
+        sub.source_rows()[norm > req.gate_px].astype(np.int64),
+        float(norm.max(initial=0.0)),
+        *unit,
+    )
+
+
+@dataclass(frozen=True)
+class ChunkSource:
+    """The frames of a calibration as chunks (whole frames, each with its source rows): ``handles`` are what
+    ``load`` turns into a :class:`CalibrationData` (the data itself in memory, a spool file on disk), so a pass
+    can run where the handle is (:mod:`hostlink.calibration.distributed`)."""
+
+    handles: tuple
+    load: Callable[[object], CalibrationData] | None = None
+
+    def chunk(self, handle: object) -> CalibrationData:
+        return handle if self.load is None else self.load(handle)
+
+    def __iter__(self):
+        return (self.chunk(h) for h in self.handles)
+
+
+def in_memory_source(data: CalibrationData) -> ChunkSource:
+    """``data`` as a one-chunk source (the in-memory path: the same passes, one chunk)."""
+    return ChunkSource((data,))
+
+
+def serial_pass(source: ChunkSource, req: PassRequest) -> PassSums:
+    """Run :func:`chunk_pass` over every chunk in this process, one chunk in memory at a time, in order."""
+    out = empty_pass(req.cols.size, req.final)
+    for chunk in source:
+        out = out.merge(chunk_pass(chunk, req))
+    return out
+
+
+#: A pass runner: (source, request) -> sums over all chunks. :func:`serial_pass`, or a Dask one.
+PassRunner = Callable[[ChunkSource, PassRequest], PassSums]
+
+
+@dataclass
+class ChunkedBundleResult:
+    """The camera of :func:`bundle_adjust_chunks` and what the report needs; no per-frame state."""
+
+    theta: np.ndarray
+    estimate: tuple[str, ...]
+    normal: np.ndarray
+    normal_u_diag: np.ndarray
+    covariance: np.ndarray
+    sigma_px: float
+    sigma_estimated_px: float
+    robust_sigma_px: float
+    gated_rows: np.ndarray  # source rows dropped by residual gating (sorted int64)
+    n_obs: int
+    n_frames: int
+    max_e_px: float
+    history: list[dict] = field(default_factory=list)
+    converged: bool = False
+
+
+def bundle_adjust_chunks(
+    source: ChunkSource,
+    nominal: CameraParams,
+    options: BundleOptions | None = None,
+    excluded_rows: np.ndarray | None = None,
+    run_pass: PassRunner = serial_pass,
+    warm_start: CalibrationData | None = None,
+) -> ChunkedBundleResult:
+    """Calibrate the camera over the chunks of ``source``, leaving out the stars whose source rows are in
+    ``excluded_rows`` (interstar voting's rejects), with one pass over the chunks per Levenberg-Marquardt
+    iteration: memory O(K^2 + one chunk) for any number of frames.
+
+    Each pass eliminates every frame's attitude at the pass's camera (:func:`frame_attitudes`) and sums the reduced
+    normal equations (Schur complement) with Huber weights of a fixed robust scale. The first round is plain least
+    squares to :data:`ROUGH_STEP_SIGMAS` (on ``warm_start``, a sample of the frames held in memory, when given). A
+    round ends at convergence with a final pass (also unit weights: the covariance; and the stars beyond
+    ``options.gate`` robust sigmas), which starts the next round at the new robust scale; the fit ends when no star
+    was gated and the scale moved by at most :data:`SCALE_ROUND_TOL`. ``options.screen`` is not used here (voting
+    is the caller's: ``excluded_rows``). Raises ValueError when no frame with three stars is left."""
     opt = options or BundleOptions()
     cols = parameter_columns(opt.estimate)
     if cols.size == 0:
         raise ValueError("no parameter to estimate")
     scale = parameter_scales(nominal)[cols]
     theta = nominal.model_vector(np.float64)
-    n_input = data.n_obs
-    rows_used = np.ones(n_input, dtype=bool)
-    n_voted = 0
-    if opt.screen:
-        consistent = vote_consistent_stars(data, measured_directions(data, theta))
-        n_voted = int(np.sum(~consistent))
-        fit, kept_rows, _ = data.select(consistent)
-        rows_used = kept_rows
-    else:
-        fit, kept_rows, _ = data.select(np.ones(n_input, dtype=bool))
-        rows_used = kept_rows
-    input_index = np.flatnonzero(rows_used)  # fit row -> input row
-    rows_gated = np.zeros(n_input, dtype=bool)
-    if fit.n_frames == 0:
-        raise ValueError("no frame with at least 3 consistent identified stars")
-    att = initial_attitudes(fit, theta)
+    excluded = np.unique(np.asarray(excluded_rows if excluded_rows is not None else [], dtype=np.int64))
+    gated = np.zeros(0, dtype=np.int64)
     history: list[dict] = []
-    n_gated = 0
-    damping = 1e-6
-    converged = False
-    iteration = 0
-    e = residuals(fit, theta, att, opt.chunk_obs)
-    for _round in range(opt.max_gate_rounds + 1):
-        converged = False
-        while iteration < opt.max_iter:
-            iteration += 1
-            norm = np.linalg.norm(e, axis=1)
-            sig = robust_sigma_2d(norm)
-            w = huber_weights(norm, sig, opt.huber_k)
-            cost = huber_cost(norm, sig, opt.huber_k)
-            blocks = accumulate_normals(fit, theta, att, cols, w, scale, opt.chunk_obs)
+    state = {"iteration": 0}
+
+    def request(th, sig, fin=False, gate_px=np.inf):
+        drop = np.union1d(excluded, gated)
+        return PassRequest(th, sig, cols, scale, drop, opt.huber_k, opt.chunk_obs, fin, gate_px)
+
+    def fit_round(src, theta, cur, sigma, step_tol):
+        """LM iterations at a fixed robust scale from ``cur`` (the pass at ``theta``); returns theta, the pass
+        at it and whether it converged."""
+        # Gauss-Newton on the reduced cost, Marquardt's damping only after a step that fails; the first round
+        # starts damped (from a nominal camera the full step can leave every star off the detector)
+        damping = 1e-6 if not np.isfinite(sigma) else 0.0
+        while state["iteration"] < opt.max_iter:
+            state["iteration"] += 1
+            noise = max(robust_sigma_from_histogram(cur.hist), 1e-300)
             accepted = False
             for _trial in range(12):
-                s, rhs, a_inv = reduced_normal(blocks, damping)
-                dx = solve_scaled(s, rhs)
-                dphi = np.einsum("mij,mj->mi", a_inv, -blocks.g_phi - np.einsum("mkj,k->mj", blocks.b, dx))
+                s = cur.s.copy()
+                kdx = np.arange(s.shape[0])
+                s[kdx, kdx] *= 1.0 + damping
+                dx = solve_scaled(s, cur.rhs)
                 theta_new = theta.copy()
                 theta_new[cols] += dx * scale
-                att_new = apply_attitude_increment(att, dphi)
-                e_new = residuals(fit, theta_new, att_new, opt.chunk_obs)
-                cost_new = huber_cost(np.linalg.norm(e_new, axis=1), sig, opt.huber_k)
-                if np.isfinite(cost_new) and cost_new <= cost:
+                # the step's size in standard deviations of the camera: sqrt(dx^T S dx) / sigma
+                step_sigmas = float(np.sqrt(max(dx @ cur.rhs, 0.0))) / noise
+                if step_sigmas < step_tol:
+                    return theta_new, cur, True  # converged: the final pass evaluates this last, tiny step
+                new = run_pass(src, request(theta_new, sigma))
+                # accepted when the cost does not rise beyond the rounding of its sum (a step at the minimum)
+                if np.isfinite(new.cost) and new.cost <= cur.cost * (1.0 + COST_ROUNDING):
                     accepted = True
                     break
+                if step_sigmas < SMALL_STEP_SIGMAS:
+                    return theta, cur, True  # a step this small that does not lower the cost: at the minimum
                 damping = max(10.0 * damping, 1e-6)
             if not accepted:
-                converged = True  # no descent direction left at any damping: at the minimum to round-off
-                break
-            decrease = (cost - cost_new) / max(cost, 1e-300)
-            theta, att, e = theta_new, att_new, e_new
-            # the weakest directions (principal point against attitude) need damping far below 1e-6 of the
-            # diagonal to move at all: let it fall to zero (a plain Gauss-Newton step) once steps succeed
+                return theta, cur, True  # no descent direction left at any damping: at the minimum to round-off
+            decrease = (cur.cost - new.cost) / max(cur.cost, 1e-300)
+            theta, cur = theta_new, new
             damping = damping / 10.0 if damping > 1e-12 else 0.0
-            step_sigmas = float(np.sqrt(max(dx @ rhs, 0.0))) / max(sig, 1e-300)
             entry = {
-                "iteration": iteration,
-                "cost": cost_new,
-                "rms_px": float(np.sqrt(np.mean(np.sum(e * e, axis=1)))),
-                "robust_sigma_px": sig,
+                "iteration": state["iteration"],
+                "cost": new.cost,
+                "rms_px": float(np.sqrt(new.sum_e2 / max(new.n_obs, 1))),
+                "robust_sigma_px": robust_sigma_from_histogram(new.hist),
                 "damping": damping,
                 "step_sigmas": step_sigmas,
-                "n_obs": fit.n_obs,
+                "n_obs": new.n_obs,
             }
             history.append(entry)
             if opt.progress:
                 opt.progress(entry)
-            if decrease < opt.ftol or step_sigmas < opt.step_tol:
-                converged = True
-                break
-        norm = np.linalg.norm(e, axis=1)
-        sig = robust_sigma_2d(norm)
-        bad = norm > opt.gate * sig
-        if not np.any(bad) or _round == opt.max_gate_rounds:
+            if decrease < opt.ftol:
+                return theta, cur, True
+        return theta, cur, False
+
+    def check(p: PassSums, first: bool) -> PassSums:
+        if p.n_frames == 0 or not np.isfinite(p.cost):
+            raise ValueError(
+                "no frame with at least 3 consistent identified stars"
+                if first
+                else "every frame lost its stars to outlier gating"
+            )
+        return p
+
+    sigma = np.inf  # the first round: plain least squares
+    if warm_start is not None:
+        warm = in_memory_source(warm_start)
+        cur = check(run_pass(warm, request(theta, sigma)), True)
+        theta, cur, _ = fit_round(warm, theta, cur, sigma, ROUGH_STEP_SIGMAS)
+        sigma = robust_sigma_from_histogram(cur.hist)
+    cur = check(run_pass(source, request(theta, sigma)), True)
+    final = None
+    converged = False
+    for _round in range(opt.max_gate_rounds + 3):
+        step_tol = opt.step_tol if np.isfinite(sigma) else ROUGH_STEP_SIGMAS
+        theta, last, converged = fit_round(source, theta, cur, sigma, step_tol)
+        sigma_new = robust_sigma_from_histogram(last.hist)
+        final = check(run_pass(source, request(theta, sigma_new, True, opt.gate * sigma_new)), False)
+        newly = np.setdiff1d(final.over_gate, gated)
+        stable = np.isfinite(sigma) and abs(sigma_new / sigma - 1.0) <= SCALE_ROUND_TOL
+        sigma = sigma_new
+        if newly.size and _round < opt.max_gate_rounds:
+            gated = np.union1d(gated, newly)
+            cur = check(run_pass(source, request(theta, sigma)), False)
+            continue
+        if stable or not converged or state["iteration"] >= opt.max_iter:
             break
-        n_gated += int(bad.sum())
-        rows_gated[input_index[bad]] = True
-        fit_new, kept, frame_kept = fit.select(~bad)
-        input_index = input_index[kept]
-        att = att[frame_kept]
-        fit = fit_new
-        if fit.n_frames == 0:
-            raise ValueError("every frame lost its stars to outlier gating")
-        e = residuals(fit, theta, att, opt.chunk_obs)
-        damping = 1e-6
-    rows_used = np.zeros(n_input, dtype=bool)
-    rows_used[input_index] = True
-    m_in = data.select(np.ones(n_input, dtype=bool))[0].n_frames
-    # final normal matrix at the solution, plain least squares (unit weights), model-vector units
-    ones = np.ones(fit.n_obs)
-    blocks = accumulate_normals(fit, theta, att, cols, ones, np.ones(cols.size), opt.chunk_obs)
-    s = reduced_normal(blocks, 0.0)[0]
-    dof = max(2 * fit.n_obs - cols.size - 3 * fit.n_frames, 1)
-    sigma_est = float(np.sqrt(np.sum(blocks.e * blocks.e) / dof))
-    sigma = float(opt.noise_px) if opt.noise_px else sigma_est
-    cov = covariance_from_normal(s, sigma)
-    return BundleResult(
+        cur = final  # its weighted sums are at the new scale: the next round starts from them
+    assert final is not None
+    dof = max(2 * final.n_obs - cols.size - 3 * final.n_frames, 1)
+    sigma_est = float(np.sqrt(final.sum_e2 / dof))
+    sigma_used = float(opt.noise_px) if opt.noise_px else sigma_est
+    return ChunkedBundleResult(
         theta=theta,
-        attitudes=att,
+        estimate=tuple(ESTIMATE_NAMES[c] for c in cols),
+        normal=final.s_unit,
+        normal_u_diag=final.u_diag_unit,
+        covariance=covariance_from_normal(final.s_unit, sigma_used),
+        sigma_px=sigma_used,
+        sigma_estimated_px=sigma_est,
+        robust_sigma_px=robust_sigma_from_histogram(final.hist),
+        gated_rows=gated,
+        n_obs=final.n_obs,
+        n_frames=final.n_frames,
+        max_e_px=final.max_e_px,
+        history=history,
+        converged=converged,
+    )
+
+
+def bundle_adjust(data: CalibrationData, nominal: CameraParams, options: BundleOptions | None = None) -> BundleResult:
+    """Calibrate the camera and every frame's attitude by robust Levenberg-Marquardt: :func:`bundle_adjust_chunks`
+    on ``data`` as one chunk (with interstar voting first when ``options.screen``), plus the in-memory extras:
+    the inlier data, their attitudes and the masks of input rows used and gated.
+
+    ``nominal`` gives the starting values and the fixed values of parameters not in ``options.estimate``.
+    Raises ValueError if fewer than one frame with three consistent stars remains.
+    """
+    opt = options or BundleOptions()
+    theta0 = nominal.model_vector(np.float64)
+    rows = data.source_rows()
+    n_input = data.n_obs
+    voted = np.zeros(n_input, dtype=bool)
+    if opt.screen:
+        voted = ~vote_consistent_stars(data, measured_directions(data, theta0))
+    res = bundle_adjust_chunks(in_memory_source(data), nominal, opt, rows[voted])
+    rows_gated = np.isin(rows, res.gated_rows)
+    fit, rows_used, frame_kept = data.select(~voted & ~rows_gated)
+    m_in = data.select(np.ones(n_input, dtype=bool))[0].n_frames
+    return BundleResult(
+        theta=res.theta,
+        attitudes=frame_attitudes(fit, res.theta, res.robust_sigma_px, opt.huber_k),
         data=fit,
         rows_used=rows_used,
         rows_gated=rows_gated,
-        n_rejected_voting=n_voted,
-        n_rejected_gating=n_gated,
+        n_rejected_voting=int(voted.sum()),
+        n_rejected_gating=int(rows_gated.sum()),
         n_frames_dropped=int(m_in - fit.n_frames),
-        sigma_px=sigma,
-        sigma_estimated_px=sigma_est,
-        estimate=tuple(ESTIMATE_NAMES[c] for c in cols),
-        normal=s,
-        normal_u_diag=np.diag(blocks.u).copy(),
-        covariance=cov,
-        history=history,
-        converged=converged,
+        sigma_px=res.sigma_px,
+        sigma_estimated_px=res.sigma_estimated_px,
+        estimate=res.estimate,
+        normal=res.normal,
+        normal_u_diag=res.normal_u_diag,
+        covariance=res.covariance,
+        history=res.history,
+        converged=res.converged,
     )
 
 

@@ -7,6 +7,7 @@ Everything is float64 numpy columns, one row per identified star, rows grouped b
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -131,24 +132,79 @@ def calibration_data_from_session(
     ``weather`` also refracted; ``dut1_s`` = UT1 - UTC [s]; star ids Hipparcos does not have are skipped and
     listed in the report) and its report of where they came from. Raises
     :class:`UserError` when no star is identified or no frame has enough of them."""
-    from hostlink.sky.references import session_references
-
     if not np.any(session.star_id != 0):
         raise UserError("the session has no identified star (every star_id is 0)")
-    references = session_references(session, site, weather, dut1_s, skip_unknown_ids=True)
-    rows = np.flatnonzero(references.usable)
+    data, references = session_chunk_data(session, site, weather, dut1_s)
     unknown = references.unknown_rows
-    if rows.size == 0 and unknown.size:
+    if not np.any(references.usable) and unknown.size:
         raise UserError(
             f"no identified star is in the Hipparcos catalogue ({unknown.size} unknown star_id, first "
             f"{int(session.star_id[unknown[0]])} on line {int(unknown[0]) + 2})"
         )
-    sub = session.select(rows)
-    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id, rows)
-    data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
     if data.n_frames == 0:
         raise UserError(f"no frame has at least {MIN_STARS_PER_FRAME} identified stars")
     return data, references
+
+
+def session_chunk_data(
+    session: Session,
+    site: Site | None = None,
+    weather: Weather | None = None,
+    dut1_s: float = 0.0,
+    row_offset: int = 0,
+) -> tuple[CalibrationData, SessionReferences]:
+    """:func:`calibration_data_from_session` for one chunk of a session (whole frames), without its checks: the
+    data may be empty. Source rows are the chunk's rows plus ``row_offset`` (the rows of the chunks before it)."""
+    from hostlink.sky.references import session_references
+
+    references = session_references(session, site, weather, dut1_s, skip_unknown_ids=True)
+    rows = np.flatnonzero(references.usable)
+    sub = session.select(rows)
+    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id, rows + row_offset)
+    data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
+    return data, references
+
+
+def save_chunk(path: Path, data: CalibrationData) -> None:
+    """Write one chunk of calibration data to ``path`` (.npy arrays in an uncompressed .npz: read back at disk
+    speed by :func:`load_chunk`)."""
+    np.savez(
+        path,
+        x_px=data.x_px,
+        y_px=data.y_px,
+        r=data.r,
+        frame_starts=data.frame_starts,
+        frame_number=data.frame_number,
+        star_id=data.star_id,
+        row=data.source_rows(),
+    )
+
+
+def load_chunk(path: str | Path) -> CalibrationData:
+    """A chunk written by :func:`save_chunk`."""
+    with np.load(path) as z:
+        return CalibrationData(
+            z["x_px"], z["y_px"], z["r"], z["frame_starts"], z["frame_number"], z["star_id"], z["row"]
+        )
+
+
+def concatenate_data(parts: list[CalibrationData]) -> CalibrationData:
+    """Data sets of consecutive frames joined into one (frames and source rows kept as they are)."""
+    if not parts:
+        return build_data(np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    starts, offset = [np.zeros(1, dtype=np.int64)], 0
+    for p in parts:
+        starts.append(p.frame_starts[1:] + offset)
+        offset += p.n_obs
+    return CalibrationData(
+        np.concatenate([p.x_px for p in parts]),
+        np.concatenate([p.y_px for p in parts]),
+        np.concatenate([p.r for p in parts]),
+        np.concatenate(starts),
+        np.concatenate([p.frame_number for p in parts]),
+        np.concatenate([p.star_id for p in parts]),
+        np.concatenate([p.source_rows() for p in parts]),
+    )
 
 
 def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]]:

@@ -61,3 +61,52 @@ def rotation_from_vector(a: np.ndarray) -> np.ndarray:
 def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarray:
     """C <- exp(-[dphi x]) C: the update whose first-order effect on s = C r is ds = [s x] dphi."""
     return rotation_from_vector(-dphi) @ attitude
+
+
+def per_frame_products(
+    terms: np.ndarray, right: np.ndarray, weights: np.ndarray, frame_starts: np.ndarray
+) -> np.ndarray:
+    """sum_k w_k T_k^T R_k over the stars k of each frame, (M, c, d), for per-star matrices T_k (N, r, c) and
+    R_k (N, r, d) (here r = 2 residual rows; T the Jacobian columns and the residual, R the attitude columns).
+
+    Frames are laid out padded with zeros to the largest star count, so the sums are one batched matrix product
+    per frame (r x nmax rows) instead of one per star; padding adds exact zeros, so every frame's sum is its own
+    whatever the other frames of the call (to the rounding of the product's blocking)."""
+    m = frame_starts.shape[0] - 1
+    counts = np.diff(frame_starts)
+    n, r, c = terms.shape
+    d = right.shape[2]
+    nmax = int(counts.max(initial=0))
+    frame = np.repeat(np.arange(m), counts)
+    slot = np.arange(n) - np.repeat(frame_starts[:-1], counts)
+    padded = np.zeros((m, nmax, r, c))
+    padded[frame, slot] = terms
+    padded_r = np.zeros((m, nmax, r, d))
+    padded_r[frame, slot] = right * weights[:, None, None]
+    return padded.reshape(m, nmax * r, c).transpose(0, 2, 1) @ padded_r.reshape(m, nmax * r, d)
+
+
+def triad_attitudes(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray) -> np.ndarray:
+    """A closed-form attitude per frame (M, 3, 3), b ~ C r, by TRIAD (Black 1964; Shuster and Oh 1981, sec. II):
+    the primary pair is the frame's mean direction (exact under a rotation), the secondary its star farthest from
+    that mean (the longest lever arm for the roll). No SVD: a start for Gauss-Newton, within a few centroid-noise
+    angles over the pair's separation of the least-squares attitude."""
+    counts = np.diff(frame_starts)
+    m = counts.shape[0]
+    frame = np.repeat(np.arange(m), counts)
+    b1 = np.add.reduceat(b, frame_starts[:-1], axis=0)
+    r1 = np.add.reduceat(r, frame_starts[:-1], axis=0)
+    cos_to_mean = np.einsum("ni,ni->n", b, b1[frame]) / np.linalg.norm(b1, axis=1)[frame]
+    slot = np.arange(b.shape[0]) - frame_starts[:-1][frame]
+    padded = np.full((m, int(counts.max(initial=1))), np.inf)
+    padded[frame, slot] = cos_to_mean
+    far = frame_starts[:-1] + np.argmin(padded, axis=1)  # per frame, the star with the smallest cosine to the mean
+    return _triad_matrix(b1, b[far]) @ _triad_matrix(r1, r[far]).transpose(0, 2, 1)
+
+
+def _triad_matrix(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+    """Columns (v1, v1 x v2, v1 x (v1 x v2)), normalised: the TRIAD frame of a vector pair, (M, 3, 3)."""
+    t1 = v1 / np.linalg.norm(v1, axis=1, keepdims=True)
+    t2 = np.cross(t1, v2)
+    t2 /= np.linalg.norm(t2, axis=1, keepdims=True)
+    return np.stack([t1, t2, np.cross(t1, t2)], axis=2)

@@ -2,14 +2,17 @@
 
 :func:`replay_session` feeds a session, frame by frame, to :mod:`onboard.recursive` exactly as the sensor would
 (identified stars only, the sensor's float32 or the host's float64 reference, or ``fixed``: the fixed-point front end
-of :mod:`onboard.fixedpoint` for a sensor without an FPU, with its float32 filter) and collects a per-frame trace. It
-is shared by ``hostlink replay`` and the emulator.
+of :mod:`onboard.fixedpoint` for a sensor without an FPU, with its float32 filter) and collects a per-frame trace.
+Each frame goes through :func:`onboard.firmware.estimator_update`, the entry the sensor's firmware runs.
+:func:`replay_chunks` does the same over a session given in chunks of whole frames (read from disk by
+:func:`hostlink.files.session.read_session_chunks`), handing each chunk's trace on as it goes, so its memory does not
+grow with the session; :func:`replay_session` is it with one chunk.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +21,8 @@ from hostlink.errors import UserError
 from hostlink.files.session import Session
 from hostlink.files.trace import TRACE_COLUMNS
 from hostlink.sky.references import session_references
-from onboard import recursive
+from onboard import firmware, recursive
+from onboard.fixedpoint import FixedRangeError
 from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, ParameterError, validate_params
 from onboard.prior import prior_config, refined_mask, sigma_to_dict
 
@@ -29,47 +33,38 @@ PRECISIONS = ("float32", "float64", "fixed")
 class ReplayResult:
     params: CameraParams
     state: recursive.RecursiveState
-    trace: dict[str, list]  # column name -> one value per frame (TRACE_COLUMNS)
+    #: column name -> one value per frame (TRACE_COLUMNS); None when the trace was streamed, not kept
+    trace: dict[str, list] | None
     #: where the prior came from: "file" (the nominal's sigma for every estimated parameter), "file+cold" or "cold"
     prior: str = "cold"
+    frames: int = 0
+    #: frames that updated the estimate (not skipped)
+    frames_used: int = 0
+    #: stars the estimator's gate rejected, over all frames
+    rejected_stars: int = 0
 
     @property
     def n_frames(self) -> int:
-        return len(self.trace["frame"])
+        return self.frames
 
 
 def precision_dtype(precision: str) -> np.dtype:
     """'float32' / 'float64' -> dtype of the estimator; 'fixed' -> float32 (its filter runs in soft float32 behind
-    the integer front end). Anything else is a one-line UserError."""
+    the integer front end; ``onboard.firmware.precision_dtype``). Anything else is a one-line UserError."""
     if precision not in PRECISIONS:
         raise UserError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
-    return np.dtype(np.float32) if precision == "fixed" else np.dtype(precision)
+    return firmware.precision_dtype(precision)
 
 
-@dataclass
-class _FixedInputs:
-    """The session as a fixed-point sensor receives it: centroids in the wire's 2^-10 px steps, catalogue unit
-    vectors in Q30, and the mask of stars the front end can take (identified and on the detector)."""
-
-    x_steps: np.ndarray
-    y_steps: np.ndarray
-    r_q30: np.ndarray
-    usable: np.ndarray
-
-
-def _fixed_inputs(session: Session, nominal: CameraParams, r_all: np.ndarray, identified: np.ndarray) -> _FixedInputs:
+def check_fixed_range(nominal: CameraParams) -> None:
+    """The nominal set inside the fixed-point formats' proved range (``onboard.fixedpoint.fixed_camera``), or a
+    one-line UserError: a fixed-point sensor could not run its estimator from it (replay and the emulator)."""
     from onboard import fixedpoint
-    from protocol.messages import quantise_px
 
     try:
         fixedpoint.fixed_camera(nominal.model_vector(np.float32), nominal.image_size_px)
     except fixedpoint.FixedRangeError as exc:
         raise UserError(f"--precision fixed: the nominal parameters are outside the fixed-point range: {exc}") from None
-    x_steps = quantise_px(session.x_px)
-    y_steps = quantise_px(session.y_px)
-    r_q30 = fixedpoint.quantise_unit_q30(np.where(np.isfinite(r_all), r_all, 0.0))
-    usable = identified & fixedpoint.on_detector(x_steps, y_steps, nominal.image_size_px)
-    return _FixedInputs(x_steps, y_steps, r_q30, usable)
 
 
 def replay_config(
@@ -112,72 +107,136 @@ def replay_session(
     on_frame: Callable[[int, recursive.FrameResult], None] | None = None,
     prior_sigma: np.ndarray | None = None,
 ) -> ReplayResult:
-    """Run the onboard estimator over every frame of ``session`` and return the final estimate and the trace.
+    """Run the onboard estimator over every frame of ``session`` (in memory) and return the final estimate and the
+    whole trace: :func:`replay_chunks` with one chunk."""
+    return replay_chunks([session], nominal, estimate, config, precision, on_frame, prior_sigma, keep_trace=True)
+
+
+def replay_chunks(
+    chunks: Iterable[Session],
+    nominal: CameraParams,
+    estimate: tuple[str, ...] = ESTIMATE_NAMES,
+    config: recursive.RecursiveConfig | None = None,
+    precision: str = "float32",
+    on_frame: Callable[[int, recursive.FrameResult], None] | None = None,
+    prior_sigma: np.ndarray | None = None,
+    on_trace: Callable[[dict[str, list]], None] | None = None,
+    keep_trace: bool = False,
+    name: str = "the session",
+) -> ReplayResult:
+    """Run the onboard estimator over every frame of a session given as consecutive chunks of whole frames (for
+    instance :func:`hostlink.files.session.read_session_chunks`), in bounded memory: each chunk's trace (one row
+    per frame, :data:`TRACE_COLUMNS`) goes to ``on_trace`` as it is done (a :class:`hostlink.files.trace.
+    TraceWriter`), and is kept in the result only with ``keep_trace``. The estimate is the same, bit for bit, as
+    over the whole session at once: the estimator sees the same frames in the same order.
+
     ``prior_sigma`` (10 values, ESTIMATE_NAMES order, parameter units; NaN/0 = unknown) is the nominal's 1-sigma:
     the estimator starts from it exactly as the sensor does after an upload (``onboard.prior.prior_config``).
     Reference directions: :func:`hostlink.sky.references.session_references` (the file's ra_deg/dec_deg, or the
     Hipparcos apparent place as the sensor computes it from its onboard catalogue); unidentified stars are not
-    used."""
+    used. ``on_frame(k, result)`` is called after frame k (counted from 0 over all chunks). A session without
+    frames ("NAME: no frames", ``name`` the session's), one where no frame could update the estimate, a diverged
+    or unusable estimate is a one-line :class:`UserError`."""
     dtype = precision_dtype(precision)
     try:
         config = prior_config(config, nominal, prior_sigma, estimate)
         state = recursive.create(nominal, estimate, config, dtype)
     except ValueError as exc:
         raise UserError(f"estimator configuration: {exc}") from None
-    references = session_references(session)
-    r_all, identified_all = references.r, references.usable
-    fixed = _fixed_inputs(session, nominal, r_all, identified_all) if precision == "fixed" else None
-    trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
-    for k, rows in enumerate(session.frame_slices()):
-        if fixed is None:
-            res = recursive.update(state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows])
-        else:
-            res = _update_fixed(state, fixed, rows, r_all, nominal, int(session.frame[rows.start]))
-        _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
-        if on_frame is not None:
-            on_frame(k, res)
+    if precision == "fixed":
+        check_fixed_range(nominal)
+    kept: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
+    tally = _Tally()
+    rows_before = 0
+    for session in chunks:
+        trace = _replay_chunk(state, session, precision, on_frame, tally, rows_before)
+        rows_before += len(session)
+        if on_trace is not None:
+            on_trace(trace)
+        if keep_trace:
+            for name, values in kept.items():
+                values.extend(trace[name])
+    if tally.frames == 0:
+        raise UserError(f"{name}: no frames")
     refined = refined_mask(prior_sigma)[state.idx]
     prior = "file" if np.all(refined) else ("file+cold" if np.any(refined) else "cold")
     if state.updates == 0:
         raise UserError("no frame had 3 or more identified, consistent stars; nothing estimated")
     params = recursive.current_params(state)
-    check_estimate(params, trace)
-    return ReplayResult(params=params, state=state, trace=trace, prior=prior)
+    _check_diverged(tally.first_nonfinite_frame)
+    check_usable(params)
+    return ReplayResult(
+        params=params,
+        state=state,
+        trace=kept if keep_trace else None,
+        prior=prior,
+        frames=tally.frames,
+        frames_used=tally.frames_used,
+        rejected_stars=tally.rejected_stars,
+    )
+
+
+@dataclass
+class _Tally:
+    """What the result reports of the frames replayed so far, kept as they go (the trace need not be kept)."""
+
+    frames: int = 0
+    frames_used: int = 0
+    rejected_stars: int = 0
+    first_nonfinite_frame: int | None = None
+
+
+def _replay_chunk(
+    state, session: Session, precision: str, on_frame, tally: _Tally, rows_before: int
+) -> dict[str, list]:
+    """The frames of one chunk through the estimator; returns the chunk's trace and counts its frames in ``tally``."""
+    references = session_references(session, first_row=rows_before)
+    r_all, identified_all = references.r, references.usable
+    trace: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
+    for rows in session.frame_slices():
+        args = (state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows], precision)
+        try:
+            res = firmware.estimator_update(*args)  # what the sensor runs on each frame, in its precision
+        except FixedRangeError as exc:
+            frame = int(session.frame[rows.start])
+            raise UserError(
+                f"--precision fixed: frame {frame}: the estimate left the fixed-point range: {exc}"
+            ) from None
+        _append_trace(trace, state, res, int(session.frame[rows.start]), str(session.t_utc[rows.start]))
+        if on_frame is not None:
+            on_frame(tally.frames, res)
+        tally.frames += 1
+        tally.frames_used += not res.skipped
+        tally.rejected_stars += len(res.rejected_stars)
+    if tally.first_nonfinite_frame is None:
+        focal = np.asarray(trace["focal_length_mm"], dtype=np.float64)
+        if not np.all(np.isfinite(focal)):
+            tally.first_nonfinite_frame = int(trace["frame"][int(np.argmax(~np.isfinite(focal)))])
+    return trace
 
 
 def check_estimate(params: CameraParams, trace: dict[str, list]) -> None:
     """A diverged or unusable estimate is a one-line error naming the first bad frame, never a NaN file."""
     focal = np.asarray(trace["focal_length_mm"], dtype=np.float64)
     bad = ~np.isfinite(focal)
-    if np.any(bad):
-        frame = trace["frame"][int(np.argmax(bad))]
+    _check_diverged(int(trace["frame"][int(np.argmax(bad))]) if np.any(bad) else None)
+    check_usable(params)
+
+
+def _check_diverged(first_nonfinite_frame: int | None) -> None:
+    if first_nonfinite_frame is not None:
         raise UserError(
-            f"the onboard estimator diverged (non-finite estimate at frame {frame}); check the nominal "
-            "parameters and --noise-px"
+            f"the onboard estimator diverged (non-finite estimate at frame {first_nonfinite_frame}); check the "
+            "nominal parameters and --noise-px"
         )
+
+
+def check_usable(params: CameraParams) -> None:
+    """The final estimate a valid parameter set, or a one-line UserError."""
     try:
         validate_params(params)
     except ParameterError as exc:
         raise UserError(f"the final estimate is not a usable parameter set: {exc}") from None
-
-
-def _update_fixed(state, fixed: _FixedInputs, rows: slice, r_all, nominal: CameraParams, frame: int):
-    """One frame through the fixed-point front end; the float32 Jacobians see the same (wire-rounded) centroids."""
-    from onboard import fixedpoint
-    from protocol.messages import dequantise_px
-
-    front = fixedpoint.FixedFrame(fixed.x_steps[rows], fixed.y_steps[rows], fixed.r_q30[rows], nominal.image_size_px)
-    try:
-        return recursive.update(
-            state,
-            dequantise_px(fixed.x_steps[rows]),
-            dequantise_px(fixed.y_steps[rows]),
-            r_all[rows],
-            fixed.usable[rows],
-            front_end=front,
-        )
-    except fixedpoint.FixedRangeError as exc:
-        raise UserError(f"--precision fixed: frame {frame}: the estimate left the fixed-point range: {exc}") from None
 
 
 def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, frame: int, t_utc: str) -> None:
@@ -212,7 +271,6 @@ def estimate_extras(result: ReplayResult, precision: str) -> dict:
     (``file``: the nominal's sigma for every estimated parameter; ``file+cold``: for some; ``cold``) and frame
     statistics."""
     state = result.state
-    used = sum(1 for s in result.trace["skipped"] if not s)
     return {
         "sigma": estimate_sigma_json(state),
         "method": "onboard-recursive-ud",
@@ -221,8 +279,8 @@ def estimate_extras(result: ReplayResult, precision: str) -> dict:
         "burn_in_frames": int(state.config.burn_in_frames),
         "estimated": list(state.names),
         "frames": result.n_frames,
-        "frames_used": used,
-        "rejected_stars": int(sum(result.trace["n_rejected_stars"])),
+        "frames_used": result.frames_used,
+        "rejected_stars": result.rejected_stars,
         "focal_drift_detected_frame": state.drift_frame if state.drift_on else None,
     }
 

@@ -42,17 +42,47 @@ def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarr
     """RMS and maximum residual in measured px and in arcsec (see module docstring)."""
     e = residuals(data, theta, attitudes)
     e_len = np.linalg.norm(e, axis=1)
+    stats = stats_from_sums(residual_sums(data, theta, attitudes, e_len))
+    stats["rms_px_clipped"] = clipped_rms(e_len)
+    return stats
+
+
+def residual_sums(
+    data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray, e_len: np.ndarray | None = None
+) -> dict:
+    """The additive parts of :func:`residual_stats` (sums of squares, maxima, counts), so chunks of frames combine
+    exactly (:func:`merge_sums`, then :func:`stats_from_sums`)."""
+    if e_len is None:
+        e_len = np.linalg.norm(residuals(data, theta, attitudes), axis=1)
     b = pixels_to_unit(data.x_px, data.y_px, theta)
     s = np.einsum("nij,nj->ni", np.repeat(attitudes, data.counts, axis=0), data.r)
     ang = angle_arcsec(b, s)
     return {
-        "rms_px": float(np.sqrt(np.mean(e_len**2))),
-        "max_px": float(np.max(e_len)),
-        "rms_arcsec": float(np.sqrt(np.mean(ang**2))),
-        "max_arcsec": float(np.max(ang)),
+        "sum_px2": float(np.sum(e_len**2)),
+        "max_px": float(np.max(e_len, initial=0.0)),
+        "sum_arcsec2": float(np.sum(ang**2)),
+        "max_arcsec": float(np.max(ang, initial=0.0)),
         "n_stars": int(data.n_obs),
         "n_frames": int(data.n_frames),
-        "rms_px_clipped": clipped_rms(e_len),
+    }
+
+
+def merge_sums(a: dict, b: dict) -> dict:
+    """Two :func:`residual_sums` (or interstar sums) combined: sums add, maxima take the larger."""
+    return {k: max(a[k], b[k]) if k.startswith("max") else a[k] + b[k] for k in a}
+
+
+def stats_from_sums(sums: dict) -> dict:
+    """:func:`residual_stats` from merged :func:`residual_sums` (no clipped RMS: it needs every residual)."""
+    n = max(sums["n_stars"], 1)
+    return {
+        "rms_px": float(np.sqrt(sums["sum_px2"] / n)),
+        "max_px": sums["max_px"],
+        "rms_arcsec": float(np.sqrt(sums["sum_arcsec2"] / n)),
+        "max_arcsec": sums["max_arcsec"],
+        "n_stars": sums["n_stars"],
+        "n_frames": sums["n_frames"],
+        "rms_px_clipped": None,
     }
 
 
@@ -72,6 +102,12 @@ def clipped_rms(e_len: np.ndarray, k: float = 3.0, max_passes: int = 20) -> floa
 
 def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> float:
     """Seed 000's Delta_rms [rad] over all n(n-1)/2 pairs of every frame (padded per chunk, bounded memory)."""
+    total, count = interstar_sums(data, theta, chunk_obs)
+    return math.sqrt(total / count) if count else float("nan")
+
+
+def interstar_sums(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> tuple[float, int]:
+    """(sum of squared interstar angle differences [rad^2], number of pairs) of :func:`interstar_rms_rad`."""
     b_all = pixels_to_unit(data.x_px, data.y_px, theta)
     total, count = 0.0, 0
     starts = data.frame_starts
@@ -82,7 +118,7 @@ def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int =
         d = (pair_angles_rad(pf.b) - pair_angles_rad(pf.r))[upper]
         total += float(np.sum(d * d))
         count += d.size
-    return math.sqrt(total / count) if count else float("nan")
+    return total, count
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:

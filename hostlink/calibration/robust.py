@@ -208,11 +208,24 @@ def triple_handedness(
 def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
     """The pre-pass before voting (:func:`estimate_scale`, then :func:`triple_handedness` over the stars that
     the interstar vote at the rescaled focal length finds consistent), on at most :data:`PREPASS_MAX_FRAMES`
-    evenly spaced frames."""
+    evenly spaced frames (:func:`prepass_frames`; the chunked path gathers the same frames from its chunks and
+    calls :func:`scale_and_parity_of_sample`)."""
     if data.n_frames > PREPASS_MAX_FRAMES:
         frames = np.zeros(data.n_frames, dtype=bool)
-        frames[np.linspace(0, data.n_frames - 1, PREPASS_MAX_FRAMES).round().astype(np.int64)] = True
+        frames[prepass_frames(data.n_frames)] = True
         data = data.select(frames[data.frame_index()], min_stars=1)[0]
+    return scale_and_parity_of_sample(data, theta, chunk_obs)
+
+
+def prepass_frames(n_frames: int) -> np.ndarray:
+    """Indices (sorted, unique) of the at most :data:`PREPASS_MAX_FRAMES` evenly spaced frames the pre-pass uses."""
+    if n_frames <= PREPASS_MAX_FRAMES:
+        return np.arange(n_frames, dtype=np.int64)
+    return np.unique(np.linspace(0, n_frames - 1, PREPASS_MAX_FRAMES).round().astype(np.int64))
+
+
+def scale_and_parity_of_sample(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
+    """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
     scale, n_pairs = estimate_scale(data, theta, chunk_obs)
     theta_s = np.array(theta, dtype=np.float64)
     theta_s[0] *= scale

@@ -5,11 +5,32 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from hostlink.calibration.bundle import BundleOptions, bundle_adjust, covariance_from_normal, residuals
-from hostlink.calibration.data import CalibrationData, calibration_data_from_session
+from hostlink.calibration.bundle import (
+    BundleOptions,
+    ChunkSource,
+    PassRunner,
+    bundle_adjust_chunks,
+    covariance_from_normal,
+    frame_attitudes,
+    in_memory_source,
+    residuals,
+    serial_pass,
+    without_rows,
+)
+from hostlink.calibration.data import (
+    MIN_STARS_PER_FRAME,
+    CalibrationData,
+    calibration_data_from_session,
+    concatenate_data,
+    load_chunk,
+    measured_directions,
+    save_chunk,
+    session_chunk_data,
+)
 from hostlink.calibration.interstar_methods import calibrate_interstar
 from hostlink.calibration.report import (
     ARCSEC_PER_RAD,
@@ -17,13 +38,24 @@ from hostlink.calibration.report import (
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
+    interstar_sums,
     max_pair_angle_rad,
+    merge_sums,
     rejected_stars,
     residual_stats,
+    residual_sums,
     sigma_dict,
+    stats_from_sums,
     undetermined_parameters,
 )
-from hostlink.calibration.robust import ScaleParity, estimate_scale_and_parity, robust_sigma_2d, vote_consistent_stars
+from hostlink.calibration.robust import (
+    ScaleParity,
+    estimate_scale_and_parity,
+    prepass_frames,
+    robust_sigma_2d,
+    scale_and_parity_of_sample,
+    vote_consistent_stars,
+)
 from hostlink.calibration.seed004 import SEED004_ESTIMATE, calibrate_seed004
 from hostlink.errors import UserError
 from hostlink.files.session import Session, check_on_detector
@@ -79,6 +111,11 @@ class CalibrationOutcome:
     #: of a session without time (None when the time is known)
     rejected_stars: RejectedStars | None = None
     time_note: str | None = None
+    #: stars and frames of the final fit (the chunked path has no ``data`` in memory: ``data`` is None there)
+    n_stars_used: int = 0
+    n_frames_used: int = 0
+    #: the largest catalogue angle between two stars of one frame [rad] (for :func:`time_unknown_note`)
+    field_rad: float = float("nan")
 
     def sigma(self) -> dict:
         return sigma_dict(self.estimate, self.covariance, self.params)
@@ -92,7 +129,7 @@ class CalibrationOutcome:
                 "nominal and the identifications)"
             )
         rej = self.rejected
-        n_in = self.data.n_obs + rej["total_stars"]
+        n_in = self.n_stars_used + rej["total_stars"]
         if n_in and rej["total_stars"] > MAX_REJECTED_FRACTION * n_in:
             return (
                 f"{rej['total_stars']} of {n_in} identified stars ({100 * rej['total_stars'] / n_in:.0f} %, more "
@@ -116,11 +153,17 @@ def prepass_start(data: CalibrationData, nominal: CameraParams, scale_focal: boo
     """The camera the fit starts from: the nominal with its focal length scaled by what the identified stars say
     (when ``scale_focal``), after checking the parity. Raises ValueError for a mirrored image."""
     prepass = estimate_scale_and_parity(data, nominal.model_vector(np.float64))
+    return start_from_prepass(prepass, nominal, scale_focal), prepass
+
+
+def start_from_prepass(prepass: ScaleParity, nominal: CameraParams, scale_focal: bool) -> CameraParams:
+    """The camera the fit starts from, given the pre-pass (:func:`prepass_start`). Raises ValueError for a
+    mirrored image."""
     if prepass.mirrored:
         raise ValueError(mirrored_message(prepass, nominal.image_size_px))
     if not scale_focal or prepass.n_pairs == 0:
-        return nominal, prepass
-    return nominal.with_focal_length_mm(nominal.focal_length_mm * prepass.scale), prepass
+        return nominal
+    return nominal.with_focal_length_mm(nominal.focal_length_mm * prepass.scale)
 
 
 def prepass_report(prepass: ScaleParity, nominal: CameraParams, start: CameraParams) -> dict:
@@ -162,11 +205,6 @@ def _interstar_with_gating(data, start, method, estimate, progress, consistent):
     return result, fit_data, gated
 
 
-def _bundle(data, start, estimate, noise_px, max_iter, progress):
-    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress, screen=False)
-    return bundle_adjust(data, start, options)
-
-
 def calibrate(
     data: CalibrationData,
     nominal: CameraParams,
@@ -188,6 +226,8 @@ def calibrate(
        (their papers' scope), (f, x0, y0, k1, k2) for ``seed004``. An explicit ``estimate`` is used as given."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
+    if method == "bundle":
+        return calibrate_chunks(in_memory_source(data), nominal, estimate, noise_px, max_iter, progress, keep_data=data)
     theta0 = nominal.model_vector(np.float64)
     start, prepass = prepass_start(data, nominal, estimate is None or "f" in estimate)
     consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, start.model_vector(np.float64)))
@@ -197,33 +237,11 @@ def calibrate(
             f"no star agrees with the catalogue at the nominal focal length, which the stars say is "
             f"{100 * (1 / prepass.scale - 1):+.1f} % off: estimate f"
         )
-    stages: list[dict] = []
-    held: list[dict] = []
-    if method == "bundle":
-        voted, kept_rows, _ = data.select(consistent)
-        if voted.n_frames == 0:
-            raise ValueError("no frame with at least 3 consistent identified stars")
-        res = _bundle(voted, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress)
-        if estimate is None:
-            sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
-            chosen, held = undetermined_parameters(res.normal, res.estimate, sigma_full, nominal, res.theta)
-            if held:
-                theta_start = res.theta.copy()
-                fixed = [ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n not in chosen]
-                theta_start[fixed] = theta0[fixed]
-                res = _bundle(voted, nominal.with_model_vector(theta_start), chosen, noise_px, max_iter, progress)
-        theta, fit_data, att = res.theta, res.data, res.attitudes
-        normal, est, sigma_est = res.normal, res.estimate, res.sigma_estimated_px
-        u_diag = res.normal_u_diag
-        gated = np.zeros(data.n_obs, dtype=bool)
-        gated[np.flatnonzero(kept_rows)[res.rows_gated]] = True
-        history, converged = res.history, res.converged
-    else:
-        fit, fit_data, gated = _interstar_with_gating(data, start, method, estimate, progress, consistent)
-        theta, normal, est, sigma_est = fit.theta, fit.normal, fit.estimate, fit.sigma_estimated_px
-        att = fitted_attitudes(fit_data, theta)
-        u_diag = None
-        history, converged, stages = fit.history, fit.converged, fit.stages
+    fit, fit_data, gated = _interstar_with_gating(data, start, method, estimate, progress, consistent)
+    theta, normal, est, sigma_est = fit.theta, fit.normal, fit.estimate, fit.sigma_estimated_px
+    att = fitted_attitudes(fit_data, theta)
+    u_diag = None
+    history, converged, stages = fit.history, fit.converged, fit.stages
     rejected = {
         "voting": int(np.sum(voted_out)),
         "gating": int(np.sum(gated)),
@@ -254,10 +272,154 @@ def calibrate(
         converged=converged,
         stages=stages,
         prepass=prepass_report(prepass, nominal, start),
-        held=held,
         voted_out=voted_out,
         gated=gated,
+        n_stars_used=fit_data.n_obs,
+        n_frames_used=fit_data.n_frames,
+        field_rad=max_pair_angle_rad(fit_data),
     )
+
+
+def _bundle_chunks(source, start, estimate, noise_px, max_iter, progress, excluded, run_pass, warm):
+    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress, screen=False)
+    return bundle_adjust_chunks(source, start, options, excluded, run_pass, warm)
+
+
+@dataclass
+class _Screened:
+    """What the voting pass over the chunks found: rejected source rows and the input's size."""
+
+    voted_rows: np.ndarray
+    n_stars: int
+    n_frames: int
+    field_rad: float
+
+
+def _vote_chunk(data: CalibrationData, theta: np.ndarray) -> _Screened:
+    consistent = vote_consistent_stars(data, measured_directions(data, theta))
+    rows = data.source_rows()[~consistent]
+    return _Screened(rows.astype(np.int64), data.n_obs, data.n_frames, max_pair_angle_rad(data))
+
+
+def _stats_chunk(data, theta0, theta, excluded, sigma_px, huber_k) -> tuple[dict, dict, tuple, tuple]:
+    """Residual and interstar sums of one chunk's inliers, before (nominal, SVD attitudes) and after the fit."""
+    fit = without_rows(data, excluded)
+    att = frame_attitudes(fit, theta, sigma_px, huber_k)
+    return (
+        residual_sums(fit, theta0, fitted_attitudes(fit, theta0)),
+        residual_sums(fit, theta, att),
+        interstar_sums(fit, theta0),
+        interstar_sums(fit, theta),
+    )
+
+
+def sample_frames(source: ChunkSource, frames: np.ndarray) -> CalibrationData:
+    """The frames with the given global indices (sorted; counted through the chunks in order) as one data set."""
+    parts, offset = [], 0
+    for chunk in source:
+        local = frames[(frames >= offset) & (frames < offset + chunk.n_frames)] - offset
+        if local.size:
+            pick = np.zeros(chunk.n_frames, dtype=bool)
+            pick[local] = True
+            parts.append(chunk.select(pick[chunk.frame_index()], min_stars=1)[0])
+        offset += chunk.n_frames
+    return concatenate_data(parts)
+
+
+def calibrate_chunks(
+    source: ChunkSource,
+    nominal: CameraParams,
+    estimate: tuple[str, ...] | None = None,
+    noise_px: float | None = None,
+    max_iter: int = 100,
+    progress: Callable[[dict], None] | None = None,
+    run_pass: PassRunner = serial_pass,
+    keep_data: CalibrationData | None = None,
+) -> CalibrationOutcome:
+    """The bundle calibration of :func:`calibrate` over the chunks of ``source`` (whole frames, each with its
+    source rows), in memory O(K^2 + one chunk): the pre-pass on the evenly spaced frames gathered from the chunks,
+    one voting pass, :func:`hostlink.calibration.bundle.bundle_adjust_chunks` (one pass per iteration, through
+    ``run_pass``: in this process or on a Dask cluster, :mod:`hostlink.calibration.distributed`), and one pass for
+    the residual statistics. :func:`calibrate` with ``method="bundle"`` is this on its data as one chunk
+    (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
+    Raises ValueError as :func:`calibrate` does."""
+    theta0 = nominal.model_vector(np.float64)
+    sample = sample_frames(source, prepass_frames(sum(c.n_frames for c in source)))
+    prepass = scale_and_parity_of_sample(sample, theta0)
+    start = start_from_prepass(prepass, nominal, estimate is None or "f" in estimate)
+    theta_start = start.model_vector(np.float64)
+    screened = [_vote_chunk(c, theta_start) for c in source]
+    voted = np.unique(np.concatenate([v.voted_rows for v in screened] + [np.zeros(0, np.int64)]))
+    n_in = sum(v.n_stars for v in screened)
+    m_in = sum(v.n_frames for v in screened)
+    field_rad = max((v.field_rad for v in screened), default=float("nan"))
+    if start is nominal and prepass.n_pairs and abs(prepass.scale - 1.0) > 0.03 and voted.size == n_in:
+        raise ValueError(
+            f"no star agrees with the catalogue at the nominal focal length, which the stars say is "
+            f"{100 * (1 / prepass.scale - 1):+.1f} % off: estimate f"
+        )
+    held: list[dict] = []
+    # a session much longer than the pre-pass sample starts its least-squares round on that sample (in memory)
+    warm = sample if m_in > 2 * sample.n_frames else None
+    res = _bundle_chunks(source, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress, voted, run_pass, warm)
+    if estimate is None:
+        sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
+        chosen, held = undetermined_parameters(res.normal, res.estimate, sigma_full, nominal, res.theta)
+        if held:
+            theta_restart = res.theta.copy()
+            fixed = [ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n not in chosen]
+            theta_restart[fixed] = theta0[fixed]
+            restart = nominal.with_model_vector(theta_restart)
+            res = _bundle_chunks(source, restart, chosen, noise_px, max_iter, progress, voted, run_pass, None)
+    dropped = np.union1d(voted, res.gated_rows)
+    before, after = None, None
+    inter_before, inter_after = (0.0, 0), (0.0, 0)
+    for chunk in source:
+        b, a, ib, ia = _stats_chunk(chunk, theta0, res.theta, dropped, res.robust_sigma_px, BundleOptions.huber_k)
+        before = b if before is None else merge_sums(before, b)
+        after = a if after is None else merge_sums(after, a)
+        inter_before = (inter_before[0] + ib[0], inter_before[1] + ib[1])
+        inter_after = (inter_after[0] + ia[0], inter_after[1] + ia[1])
+    rejected = {
+        "voting": int(voted.size),
+        "gating": int(res.gated_rows.size),
+        "frames_dropped": int(m_in - res.n_frames),
+        "total_stars": int(n_in - res.n_obs),
+    }
+    outcome = CalibrationOutcome(
+        method="bundle",
+        params=nominal.with_model_vector(res.theta),
+        theta=res.theta,
+        estimate=res.estimate,
+        covariance=res.covariance,
+        sigma_px=res.sigma_px,
+        sigma_estimated_px=res.sigma_estimated_px,
+        data=None,
+        attitudes=None,
+        before=stats_from_sums(before),
+        after=stats_from_sums(after),
+        interstar_before_rad=math.sqrt(inter_before[0] / inter_before[1]) if inter_before[1] else float("nan"),
+        interstar_after_rad=math.sqrt(inter_after[0] / inter_after[1]) if inter_after[1] else float("nan"),
+        rejected=rejected,
+        degeneracies=degeneracies(res.normal, res.estimate, res.normal_u_diag),
+        history=res.history,
+        converged=res.converged,
+        prepass=prepass_report(prepass, nominal, start),
+        held=held,
+        n_stars_used=res.n_obs,
+        n_frames_used=res.n_frames,
+        field_rad=field_rad,
+    )
+    if keep_data is not None:
+        rows = keep_data.source_rows()
+        outcome.voted_out = np.isin(rows, voted)
+        outcome.gated = np.isin(rows, res.gated_rows)
+        fit = without_rows(keep_data, dropped)
+        outcome.data = fit
+        outcome.attitudes = frame_attitudes(fit, res.theta, res.robust_sigma_px, BundleOptions.huber_k)
+        outcome.before = residual_stats(fit, theta0, fitted_attitudes(fit, theta0))
+        outcome.after = residual_stats(fit, res.theta, outcome.attitudes)
+    return outcome
 
 
 def calibrate_session(
@@ -299,14 +461,7 @@ def calibrate_session(
         outcome = calibrate(data, nominal, method, estimate, noise_px, max_iter, progress)
     except ValueError as exc:
         raise UserError(f"calibration failed: {exc}") from None
-    failure = outcome.failure()
-    if failure is not None and not keep_failed:
-        raise UserError(f"calibration failed: {failure}")
-    if failure is None:
-        try:
-            validate_params(outcome.params)
-        except ParameterError as exc:
-            raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
+    _check_result(outcome, keep_failed)
     outcome.rejected_stars = rejected_stars(session, references, data, outcome)
     outcome.time_note = None if references.time_known else time_unknown_note(outcome)
     return outcome, references
@@ -317,7 +472,7 @@ def time_unknown_note(outcome: CalibrationOutcome) -> str:
     (up to :data:`hostlink.sky.references.ABERRATION_MAX_RAD`) is left in the references. Its differential part over
     the field changes interstar angles by up to 20.5" x the angle [rad]: a scale error of up to 1.0e-4 in the focal
     length, and up to 20.5" x the field's largest pair angle in the directions."""
-    field_rad = max_pair_angle_rad(outcome.data)
+    field_rad = outcome.field_rad if outcome.data is None else max_pair_angle_rad(outcome.data)
     focal_px = float(outcome.theta[0])
     return (
         "time unknown: reference directions are J2000 catalogue places; precession and nutation are absorbed by "
@@ -376,3 +531,129 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
     if failure:
         extras["failed"] = failure
     return _json_safe(extras)
+
+
+@dataclass(frozen=True)
+class ReferencesSummary:
+    """Where the reference directions of a chunked session came from (the fields of
+    :class:`hostlink.sky.references.SessionReferences` the result file reports), over all its chunks."""
+
+    source: str
+    refraction: str
+    n_unidentified: int
+    unknown_rows: np.ndarray  # session rows (counted through all files) whose star_id Hipparcos does not have
+    time_known: bool
+
+
+def spool_session(
+    source,
+    chunk_frames: int,
+    nominal: CameraParams,
+    directory: Path,
+    site: Site | None = None,
+    weather: Weather | None = None,
+    dut1_s: float = 0.0,
+) -> tuple[ChunkSource, ReferencesSummary]:
+    """Read the session of ``source`` (paths, a glob, .csv or .parquet: :func:`hostlink.files.session.
+    read_session_chunks`) ``chunk_frames`` frames at a time, turn each chunk into calibration data with its
+    reference directions (:func:`hostlink.calibration.data.session_chunk_data`) and write it to ``directory``
+    (:func:`hostlink.calibration.data.save_chunk`), so every later pass reads arrays at disk speed and computes no
+    reference twice. Memory: one chunk. Raises UserError as :func:`calibrate_session` does."""
+    from hostlink.files.session import read_session_chunks
+
+    files: list[str] = []
+    offset = 0
+    n_identified = 0
+    n_unidentified = 0
+    unknown: list[np.ndarray] = []
+    sources, refraction, time_known = set(), "none", True
+    for k, chunk in enumerate(read_session_chunks(source, chunk_frames)):
+        check_on_detector(chunk, nominal.image_size_px, "the session", "the nominal parameters")
+        n_identified += int(np.count_nonzero(chunk.star_id))
+        data, refs = session_chunk_data(chunk, site, weather, dut1_s, offset)
+        sources.add(refs.source)
+        refraction = refs.refraction
+        time_known &= refs.time_known
+        n_unidentified += refs.n_unidentified
+        unknown.append(refs.unknown_rows + offset)
+        offset += len(chunk)
+        if data.n_frames:
+            path = directory / f"chunk{k:06d}.npz"
+            save_chunk(path, data)
+            files.append(str(path))
+    if offset == 0:
+        raise UserError("no star rows in the session")
+    if n_identified == 0:
+        raise UserError("the session has no identified star (every star_id is 0)")
+    if not files:
+        raise UserError(f"no frame has at least {MIN_STARS_PER_FRAME} identified stars")
+    summary = ReferencesSummary(
+        "+".join(sorted(sources)), refraction, n_unidentified, np.concatenate(unknown), time_known
+    )
+    return ChunkSource(tuple(files), load_chunk), summary
+
+
+def calibrate_archive(
+    source,
+    nominal: CameraParams,
+    chunk_frames: int | None = None,
+    estimate: tuple[str, ...] | None = None,
+    noise_px: float | None = None,
+    max_iter: int = 100,
+    site: Site | None = None,
+    weather: Weather | None = None,
+    dut1_s: float = 0.0,
+    progress: Callable[[dict], None] | None = None,
+    keep_failed: bool = False,
+    dask: str | None = None,
+    dask_workers: int | None = None,
+    spool_dir: str | Path | None = None,
+) -> tuple[CalibrationOutcome, ReferencesSummary]:
+    """Bundle calibration of a session of any length in bounded memory: ``source`` is what
+    :func:`hostlink.files.session.read_session_chunks` reads (a path, a glob, several files; CSV or Parquet),
+    ``chunk_frames`` frames at a time (default :data:`hostlink.files.session.DEFAULT_CHUNK_FRAMES`), spooled to a
+    temporary directory (in ``spool_dir`` when given) by :func:`spool_session`, then :func:`calibrate_chunks`:
+    memory O(K^2 + one chunk), time linear in the frames. ``dask``: None (this process), ``"local"`` (a
+    LocalCluster of ``dask_workers`` workers, default 2) or a scheduler address (``tcp://host:port``; its workers
+    must see ``spool_dir``). Other arguments, the checks and the failure rule as :func:`calibrate_session`; the
+    outcome has no in-memory data (``data`` None; its counts in ``n_stars_used``/``n_frames_used``)."""
+    import tempfile
+
+    from hostlink.files.session import DEFAULT_CHUNK_FRAMES
+
+    if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
+        raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
+    if max_iter < 1:
+        raise UserError(f"--max-iter {max_iter}: expected at least 1")
+    chunk_frames = DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames
+    if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
+        raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")
+    with tempfile.TemporaryDirectory(prefix="hostlink-calibrate-", dir=spool_dir) as tmp:
+        chunks, references = spool_session(source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s)
+        try:
+            if dask is None:
+                outcome = calibrate_chunks(chunks, nominal, estimate, noise_px, max_iter, progress)
+            else:
+                from hostlink.calibration.distributed import DEFAULT_WORKERS, DaskPasses, dask_client
+
+                with dask_client(dask, dask_workers or DEFAULT_WORKERS) as client:
+                    outcome = calibrate_chunks(
+                        chunks, nominal, estimate, noise_px, max_iter, progress, DaskPasses(client)
+                    )
+        except ValueError as exc:
+            raise UserError(f"calibration failed: {exc}") from None
+    _check_result(outcome, keep_failed)
+    outcome.time_note = None if references.time_known else time_unknown_note(outcome)
+    return outcome, references
+
+
+def _check_result(outcome: CalibrationOutcome, keep_failed: bool) -> None:
+    """Raise UserError for a failed result (unless ``keep_failed``) or unusable parameters."""
+    failure = outcome.failure()
+    if failure is not None and not keep_failed:
+        raise UserError(f"calibration failed: {failure}")
+    if failure is None:
+        try:
+            validate_params(outcome.params)
+        except ParameterError as exc:
+            raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None

@@ -102,6 +102,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="K",
         help="most stars per frame, brightest kept (default 30)",
     )
+    parser.add_argument(
+        "--precision",
+        choices=("float32", "fixed"),
+        default="float32",
+        help="the emulated sensor's arithmetic: float32 (a single-precision FPU, the default) or fixed (no FPU: the "
+        "onboard estimator's per-star front end in integers, its filter in soft float32)",
+    )
     add_site_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -138,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         maglim=args.maglim,
         min_stars=args.min_stars,
         max_stars=args.max_stars,
+        precision=args.precision,
     )
     if args.camera:
         cfg.camera = load_params(args.camera)
@@ -159,7 +167,7 @@ def _print_table(summary: dict) -> None:
 
     from hostlink.mission.summary import summary_table
 
-    table = Table(title=f"hostlink bench ({summary['transport']})")
+    table = Table(title=f"hostlink bench ({summary['transport']}, {summary['precision']} sensor)")
     for col in ("quantity", "before (nominal)", "after"):
         table.add_column(col)
     for row in summary_table(summary):

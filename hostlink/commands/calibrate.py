@@ -21,14 +21,23 @@ DESCRIPTION = (
     "overrides). Star ids Hipparcos does not have are skipped. A session without time (t_utc empty) is calibrated "
     "against J2000 directions with the stated loss from annual aberration. A fit that does not converge or rejects "
     "more than half of the identified stars fails (exit 2) and writes nothing unless --keep-failed. The result is a "
-    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts."
+    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts. Sessions of any "
+    "length (several files or a glob in time order, Parquet, or --chunk-frames N) are calibrated chunk by chunk: "
+    "memory bounded by one chunk, one pass over the frames per iteration, the same camera as the whole session in "
+    "memory to rounding; --dask maps the passes over a Dask cluster."
 )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from onboard.params import ESTIMATE_NAMES
 
-    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument(
+        "session",
+        nargs="+",
+        metavar="SESSION",
+        help="session file(s) (INTERFACES.md): one CSV, or several files, a glob pattern or .parquet files read as "
+        "one session in time order (the chunked path)",
+    )
     parser.add_argument(
         "--nominal",
         required=True,
@@ -68,15 +77,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-iter", type=int, default=100, metavar="N", help="most iterations (default 100)")
     parser.add_argument("--plot", metavar="DIR", help="write residual-field and convergence PNGs into DIR")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    parser.add_argument(
+        "--chunk-frames",
+        type=int,
+        metavar="N",
+        help="read and fit the session N frames at a time, in memory bounded by one chunk whatever its length "
+        "(bundle method; implied by several files, a glob, .parquet or --dask; default 10000 frames then)",
+    )
+    parser.add_argument(
+        "--dask",
+        metavar="ADDRESS",
+        help="map the chunks' normal equations over a Dask cluster: 'local' (a local cluster, --dask-workers "
+        "workers) or a scheduler address such as tcp://host:8786 (its workers must see --spool-dir)",
+    )
+    parser.add_argument("--dask-workers", type=int, metavar="N", help="workers of the --dask local cluster (default 2)")
+    parser.add_argument(
+        "--spool-dir",
+        metavar="DIR",
+        help="directory for the chunked path's temporary arrays (default: the system's temporary directory)",
+    )
     add_site_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from hostlink.calibration.run import calibrate_session, result_extras
+    from hostlink.calibration.run import result_extras
     from hostlink.files.params import load_params, save_params
-    from hostlink.files.session import check_on_detector, read_session
     from onboard.recursive import parse_estimate_names
 
     try:
@@ -85,29 +112,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--estimate {args.estimate!r}: {exc}") from None
     site, weather = site_and_weather(args)
     nominal = load_params(args.nominal)
-    session = read_session(args.session)
-    if len(session) == 0:
-        raise UserError(f"{args.session}: no star rows")
-    check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
-    large = len(session) > 200_000
-
-    def progress(entry: dict) -> None:
-        if not args.quiet and large:
-            print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
-
-    outcome, references = calibrate_session(
-        session,
-        nominal,
-        args.method,
-        estimate,
-        args.noise_px,
-        args.max_iter,
-        site,
-        weather,
-        args.dut1,
-        progress,
-        keep_failed=True,  # decided here: the --rejected list is written either way
-    )
+    calibrate = _calibrate_chunks if _chunked(args) else _calibrate_whole
+    outcome, references = calibrate(args, nominal, estimate, site, weather)
     failure = outcome.failure()
     if args.rejected:
         from hostlink.calibration.report import write_rejected
@@ -118,11 +124,11 @@ def run(args: argparse.Namespace) -> int:
     save_params(args.out, outcome.params, result_extras(outcome, references))
     if not args.quiet:
         unknown = references.unknown_rows
+        ignored = references.n_unidentified - unknown.size
         print(
-            f"calibrate: {outcome.data.n_obs + outcome.rejected['total_stars']} identified stars, "
-            f"{outcome.data.n_obs} used in {outcome.data.n_frames} frames ({references.n_unidentified - unknown.size} "
-            f"unidentified rows ignored); references from {references.source}; "
-            f"refraction: {references.refraction}"
+            f"calibrate: {outcome.n_stars_used + outcome.rejected['total_stars']} identified stars, "
+            f"{outcome.n_stars_used} used in {outcome.n_frames_used} frames ({ignored} unidentified rows ignored); "
+            f"references from {references.source}; refraction: {references.refraction}"
         )
         if unknown.size:
             lines = ", ".join(str(int(k) + 2) for k in unknown[:10]) + (", ..." if unknown.size > 10 else "")
@@ -137,6 +143,82 @@ def run(args: argparse.Namespace) -> int:
     if failure:
         raise UserError(f"calibration failed: {failure}; kept in {args.out} as asked (--keep-failed)")
     return 0
+
+
+def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather):
+    """One CSV read whole: every method, the --rejected list and the plots."""
+    from hostlink.calibration.run import calibrate_session
+    from hostlink.files.session import check_on_detector, read_session
+
+    path = args.session[0]
+    session = read_session(path)
+    if len(session) == 0:
+        raise UserError(f"{path}: no star rows")
+    check_on_detector(session, nominal.image_size_px, path, args.nominal)
+    large = len(session) > 200_000
+
+    def progress(entry: dict) -> None:
+        if not args.quiet and large:
+            print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
+
+    return calibrate_session(
+        session,
+        nominal,
+        args.method,
+        estimate,
+        args.noise_px,
+        args.max_iter,
+        site,
+        weather,
+        args.dut1,
+        progress,
+        keep_failed=True,  # decided here: the --rejected list is written either way
+    )
+
+
+def _chunked(args: argparse.Namespace) -> bool:
+    """The chunked path: asked for, or a source only it reads (several files, a glob, Parquet)."""
+    one = args.session[0]
+    several = len(args.session) > 1 or any(c in one for c in "*?[") or one.endswith(".parquet")
+    return several or args.chunk_frames is not None or args.dask is not None
+
+
+def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather):
+    """Any number of files, chunk by chunk (bundle only; no per-star output)."""
+    from hostlink.calibration.run import calibrate_archive
+
+    if args.method != "bundle":
+        raise UserError(
+            f"--method {args.method}: the chunked path (--chunk-frames, --dask, several files, a glob, "
+            ".parquet) calibrates with bundle only"
+        )
+    if args.rejected or args.plot:
+        raise UserError(
+            "--rejected and --plot need the session read whole: give one CSV file without --chunk-frames and --dask"
+        )
+    if args.dask_workers is not None and args.dask_workers < 1:
+        raise UserError(f"--dask-workers {args.dask_workers}: expected at least 1")
+
+    def progress(entry: dict) -> None:
+        if not args.quiet:
+            print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
+
+    return calibrate_archive(
+        args.session[0] if len(args.session) == 1 else args.session,
+        nominal,
+        args.chunk_frames,
+        estimate,
+        args.noise_px,
+        args.max_iter,
+        site,
+        weather,
+        args.dut1,
+        progress,
+        keep_failed=True,  # the failure is reported here, as for the whole session
+        dask=args.dask,
+        dask_workers=args.dask_workers,
+        spool_dir=args.spool_dir,
+    )
 
 
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:

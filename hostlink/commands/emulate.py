@@ -55,6 +55,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-estimator", action="store_true", help="run without the onboard recursive estimator")
     parser.add_argument(
+        "--precision",
+        choices=("float32", "fixed"),
+        default="float32",
+        help="the sensor's arithmetic: float32 (a single-precision FPU, the default) or fixed (no FPU: the estimator's "
+        "per-star front end in integers, Q10 centroids and Q30 unit vectors, its filter in soft float32)",
+    )
+    parser.add_argument(
         "--flash",
         metavar="FILE",
         help="keep the sensor's parameter banks, generation and staging-session counters in this NOR-flash image "
@@ -85,7 +92,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="testing: lose every Kth streamed message on the line (default 0 = never)",
     )
     parser.add_argument(
-        "--option", action="append", default=[], metavar="KEY=VALUE", help="transport-specific setting (repeatable)"
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="transport-specific setting (repeatable); modbus: rtu_port=PORT, the RTU-over-TCP server's TCP port "
+        "(default: a free one); an unknown key is refused",
     )
 
 
@@ -99,21 +111,18 @@ def run(args: argparse.Namespace) -> int:
 
     from hostlink.emulator import ENDPOINTS
     from hostlink.emulator.sensor import EndpointOptions
-    from hostlink.emulator.setup import build_sensor
+    from hostlink.emulator.setup import build_sensor, parse_endpoint_options
     from hostlink.errors import UserError
     from onboard.firmware import EstimatorBudget
 
-    extra = {}
-    for item in args.option:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise UserError(f"--option {item!r}: expected KEY=VALUE")
-        extra[key.strip()] = value.strip()
+    extra = parse_endpoint_options(args.transport, args.option)
     for name in ("baud", "bitrate", "sim_frames"):
         if getattr(args, name) <= 0:
             raise UserError(f"--{name.replace('_', '-')} must be > 0")
     if not 0 <= args.port < 65536:
         raise UserError("--port must be in 0..65535")
+    if not 1 <= args.unit <= 247:  # Modbus: 0 is the broadcast address, which a device never answers; 248-255 reserved
+        raise UserError(f"--unit must be a Modbus device address 1..247, got {args.unit}")
     if args.power_cut_after is not None and (args.flash is None or args.power_cut_after < 0):
         raise UserError("--power-cut-after needs --flash and a count >= 0")
     if args.drop_every < 0:
@@ -132,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
         budget=EstimatorBudget(flops_per_s=args.estimator_mflops * 1e6),
         flash=args.flash,
         power_cut_after_units=args.power_cut_after,
+        precision=args.precision,
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra

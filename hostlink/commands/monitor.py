@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
                 poll_every_s=0.0 if args.every_frames else args.interval,
                 max_polls=max_polls,
                 on_poll=show,
+                keep_polls=False,  # shown, not kept: a monitor left running must not grow
             )
     return 0
 

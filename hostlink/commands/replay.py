@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 
 HELP = "run the onboard recursive calibration over a session, exactly as the sensor would"
+#: Frames read at a time: the replay's memory is one chunk and the estimator, whatever the session's length.
+REPLAY_CHUNK_FRAMES = 2000
 DESCRIPTION = (
-    "Feeds every frame of SESSION.csv (identified stars with ra_deg/dec_deg) to the onboard recursive estimator "
+    "Feeds every frame of SESSION (identified stars; reference directions from its ra_deg/dec_deg or Hipparcos) "
+    "to the onboard recursive estimator "
     "(interstar difference measurements, whitened over 2n-3 pairs, Bierman U-D updates, misidentification gating, "
     "focal-drift tracking) starting from NOMINAL.json, and writes the final estimate as a camera parameter file "
     "with a 'sigma' object. --precision float64 runs the same code as the host reference; --precision fixed runs "
@@ -20,7 +23,13 @@ DESCRIPTION = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("session", metavar="SESSION.csv", help="session file with ra_deg/dec_deg columns")
+    p.add_argument(
+        "session",
+        nargs="+",
+        metavar="SESSION",
+        help="session file (CSV, or Parquet: SESSION.parquet); several files or a quoted glob pattern "
+        "('nights/*.csv') form one session, taken in time order; read in chunks, in bounded memory",
+    )
     p.add_argument(
         "--nominal",
         required=True,
@@ -59,17 +68,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from contextlib import nullcontext
+
     from hostlink.calibration.replay import (
         estimate_extras,
         precision_dtype,
+        replay_chunks,
         replay_config,
         replay_prior,
-        replay_session,
     )
     from hostlink.errors import UserError
     from hostlink.files.params import load_params_with_sigma, save_params
-    from hostlink.files.session import check_on_detector, read_session
-    from hostlink.files.trace import write_trace
+    from hostlink.files.session import check_on_detector, read_session_chunks, session_paths
+    from hostlink.files.trace import TraceWriter
     from hostlink.progress import progress_bar
     from onboard.recursive import parse_estimate_names
 
@@ -81,23 +92,32 @@ def run(args: argparse.Namespace) -> int:
     config = replay_config(args.noise_px, args.focal_walk_um, not args.no_drift_detect, args.max_stars)
     nominal, file_sigma = load_params_with_sigma(args.nominal)
     prior_sigma = replay_prior(file_sigma, args.prior, args.nominal)
-    session = read_session(args.session)
-    check_on_detector(session, nominal.image_size_px, args.session, args.nominal)
-    if len(session) == 0:
-        raise UserError(f"{args.session}: no frames")
-    with progress_bar("replaying frames", session.n_frames) as advance:
-        result = replay_session(
-            session,
+    source = args.session[0] if len(args.session) == 1 else args.session
+    name = ", ".join(args.session)
+    session_paths(source)  # a pattern that matches nothing is refused before any output is opened
+
+    def chunks():
+        for chunk in read_session_chunks(source, REPLAY_CHUNK_FRAMES):
+            check_on_detector(chunk, nominal.image_size_px, name, args.nominal)
+            yield chunk
+
+    # the session is read, replayed and its trace written chunk by chunk: memory does not grow with the file
+    with (
+        TraceWriter(args.trace) if args.trace else nullcontext() as trace,
+        progress_bar("replaying frames", None) as advance,
+    ):
+        result = replay_chunks(
+            chunks(),
             nominal,
             names,
             config,
             args.precision,
             on_frame=lambda k, _res: advance(k + 1),
             prior_sigma=prior_sigma,
+            on_trace=None if trace is None else trace.append,
+            name=name,
         )
     save_params(args.out, result.params, estimate_extras(result, args.precision))
-    if args.trace:
-        write_trace(args.trace, result.trace)
     p = result.params
     print(
         f"replayed {result.n_frames} frames ({result.state.updates} used): f = {p.focal_length_mm:.6f} mm, "

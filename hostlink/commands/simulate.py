@@ -37,7 +37,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the package, e.g. builtin:seed004_camera)",
     )
     parser.add_argument("--frames", type=int, metavar="N", help="number of frames (preset seed004: 1000)")
-    parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
+    parser.add_argument(
+        "--out",
+        required=True,
+        metavar="SESSION.csv",
+        help="session file to write: CSV, or Parquet when the name ends in .parquet (columnar: exact float64, "
+        "half the size, faster to read; docs/file-formats.md)",
+    )
     parser.add_argument(
         "--preset",
         choices=PRESETS,

@@ -18,7 +18,13 @@ DESCRIPTION = (
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_link_arguments(parser)
     parser.add_argument("--frames", type=int, required=True, metavar="N", help="frames to record")
-    parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
+    parser.add_argument(
+        "--out",
+        required=True,
+        metavar="SESSION.csv",
+        help="session file to write: CSV, or Parquet when the name ends in .parquet (columnar: exact float64, "
+        "half the size, faster to read; docs/file-formats.md)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

@@ -48,7 +48,7 @@ class EndpointOptions:
     unit: int = 1
     #: Test hook: drop every Kth stream message after it was numbered (0 = never), so loss counting is testable.
     drop_every: int = 0
-    extra: dict[str, str] = field(default_factory=dict)
+    extra: dict[str, object] = field(default_factory=dict)  # --option settings, parsed (emulator.setup)
 
 
 def session_frames(session: Session, cycle: bool = False) -> Iterator[SourceFrame]:

@@ -2,16 +2,54 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from hostlink.emulator.sensor import EmulatedSensor, session_frames
 from hostlink.errors import UserError
 from hostlink.files.params import load_params
 from onboard import banks
-from onboard.firmware import EstimatorBudget, Firmware, RecursiveEstimator
+from onboard.firmware import PRECISIONS, EstimatorBudget, Firmware, RecursiveEstimator
 from onboard.params import CameraParams, PlausibilityLimits
 from onboard.recursive import RecursiveConfig, parse_estimate_names
 
 DEFAULT_NOMINAL = "builtin:seed004_nominal"
 DEFAULT_CAMERA = "builtin:seed004_camera"
+
+
+def _tcp_port(text: str) -> int:
+    if not (text.isdigit() and int(text) < 65536):
+        raise ValueError("expected a TCP port number 0..65535 (0: a free one)")
+    return int(text)
+
+
+#: The ``hostlink emulate --option KEY=VALUE`` settings each transport's endpoint reads: key -> (value parser, help).
+#: A parser raises ValueError with what it expected.
+ENDPOINT_OPTIONS: dict[str, dict[str, tuple[Callable[[str], object], str]]] = {
+    "serial": {},
+    "can": {},
+    "modbus": {"rtu_port": (_tcp_port, "TCP port of the Modbus RTU-over-TCP server (default 0: a free one)")},
+}
+
+
+def parse_endpoint_options(transport: str, items: list[str]) -> dict[str, object]:
+    """``--option KEY=VALUE`` items -> the endpoint's settings (``EndpointOptions.extra``), each value parsed. An item
+    without ``=``, a key the transport does not read (the known ones are listed) or a bad value is a one-line
+    :class:`UserError`."""
+    known = ENDPOINT_OPTIONS[transport]
+    extra: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise UserError(f"--option {item!r}: expected KEY=VALUE")
+        if key not in known:
+            listed = ", ".join(known) or "none"
+            raise UserError(f"--option {key}: not a setting of the {transport} emulator (known: {listed})")
+        try:
+            extra[key] = known[key][0](value.strip())
+        except ValueError as exc:
+            raise UserError(f"--option {key}={value.strip()}: {exc}") from None
+    return extra
 
 
 def build_sensor(
@@ -26,10 +64,12 @@ def build_sensor(
     budget: EstimatorBudget | None = None,
     flash: str | None = None,
     power_cut_after_units: int | None = None,
+    precision: str = "float32",
 ) -> EmulatedSensor:
     """Firmware with the factory set ``nominal`` in bank A, fed by ``replay`` or by the simulator; ``budget`` models
     the sensor's processor (which exposures its estimator processes; default :class:`EstimatorBudget`); ``flash``:
-    the flash image file (:func:`sensor_banks`; ``power_cut_after_units``: its test hook)."""
+    the flash image file (:func:`sensor_banks`; ``power_cut_after_units``: its test hook); ``precision``: the
+    sensor's arithmetic (``onboard.firmware.PRECISIONS``: "float32", or "fixed" for a sensor without an FPU)."""
     from hostlink.sky.simulate import SimConfig, simulate
 
     nominal_params = load_params(nominal or DEFAULT_NOMINAL)
@@ -37,7 +77,14 @@ def build_sensor(
         names = parse_estimate_names(estimate_names)
     except ValueError as exc:
         raise UserError(f"--estimate: {exc}") from None
-    seam = RecursiveEstimator(names, RecursiveConfig(centroid_noise_px=noise_px)) if estimator else None
+    if precision not in PRECISIONS:
+        raise UserError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if estimator and precision == "fixed":
+        from hostlink.calibration.replay import check_fixed_range
+
+        check_fixed_range(nominal_params)
+    config = RecursiveConfig(centroid_noise_px=noise_px)
+    seam = RecursiveEstimator(names, config, precision=precision) if estimator else None
     firmware = Firmware(sensor_banks(nominal_params, flash, power_cut_after_units), seam, budget)
     if replay:
         from hostlink.files.session import read_session

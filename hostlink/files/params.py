@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -57,33 +58,62 @@ def load_params_with_extras(path: str | Path, validate: bool = True) -> tuple[Ca
     """As :func:`load_params`, also returning the file's whole JSON object (for ``sigma`` and other extras).
     ``validate=False`` checks the form only, not the ranges (``onboard.params.params_from_dict``)."""
     path = params_path(path)
+    return params_from_text(_read_text(path), str(path), validate)
+
+
+def _read_text(path: Path) -> str:
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
         raise UserError(f"{path}: not a JSON text file ({exc.reason} at byte {exc.start})") from None
-    try:
-        data = json.loads(text, parse_constant=_json_constant)
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+
+
+def params_from_text(text: str, source: str = "<text>", validate: bool = True) -> tuple[CameraParams, dict]:
+    """A parameter file's text -> (validated CameraParams, the whole JSON object); ``source`` names it in errors.
+    Any problem with the text (not JSON, nested too deeply, an integer too long to convert, a field missing, of the
+    wrong type or out of range) is a one-line :class:`UserError`."""
+    data = parse_json(text, source)
     try:
         return params_from_dict(data, validate), data
     except ParameterError as exc:
-        raise UserError(f"{path}: {exc}") from None
+        raise UserError(f"{source}: {exc}") from None
+
+
+def parse_json(text: str, source: str = "<text>") -> object:
+    """JSON text -> Python object (NaN and +-Infinity read as floats); a malformed text is a one-line
+    :class:`UserError` naming ``source``."""
+    try:
+        return json.loads(text, parse_constant=_json_constant)
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{source}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    except RecursionError:  # Python's parser recurses once per level of [ or {
+        raise UserError(f"{source}: not valid JSON for this reader (arrays or objects nested too deeply)") from None
+    except ValueError:  # the only other ValueError json raises: an integer of more digits than Python converts
+        limit = sys.get_int_max_str_digits()
+        raise UserError(f"{source}: not valid JSON for this reader (an integer of more than {limit} digits)") from None
 
 
 def load_params_with_sigma(path: str | Path, validate: bool = True) -> tuple[CameraParams, np.ndarray]:
     """A camera parameter file and its ``sigma`` object as 10 values in ESTIMATE_NAMES order (parameter units, NaN =
     unknown; ``onboard.prior.sigma_from_dict``). ``validate=False`` reads both without the range checks (for
     letting a sensor's own checks refuse them). Any problem is a one-line :class:`UserError`."""
-    params, data = load_params_with_extras(path, validate)
+    path = params_path(path)
+    return params_with_sigma_from_text(_read_text(path), str(path), validate)
+
+
+def params_with_sigma_from_text(
+    text: str, source: str = "<text>", validate: bool = True
+) -> tuple[CameraParams, np.ndarray]:
+    """As :func:`load_params_with_sigma`, from the file's text (``source`` names it in errors)."""
+    params, data = params_from_text(text, source, validate)
     try:
         return params, sigma_from_dict(data.get("sigma"), validate=validate)
     except ParameterError as exc:
-        raise UserError(f"{path}: {exc}") from None
+        raise UserError(f"{source}: {exc}") from None
 
 
 def _json_constant(name: str) -> float:
@@ -110,8 +140,6 @@ def save_params(path: str | Path, params: CameraParams, extras: dict | None = No
 
 def emit_param_file(data: dict, out: str | Path | None = None) -> None:
     """Print a parameter-file object as JSON on stdout and, with ``out``, also write it there (atomically)."""
-    import sys
-
     text = json_text(data)
     sys.stdout.write(text)
     if out:

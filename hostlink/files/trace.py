@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.atomic import atomic_open
+from hostlink.files.atomic import AtomicFile, cannot_write
 from protocol.param_table import DISTORTION_NAMES
 
 #: Trace columns (INTERFACES.md requires frame, focal_length_mm, x0_px, y0_px).
@@ -53,15 +53,58 @@ def _cell(name: str, value) -> str:
     return "%.9g" % value
 
 
+class TraceWriter:
+    """The one trace writer: rows are appended chunk by chunk as the replay goes (``append``: column name -> one
+    value per frame, :data:`TRACE_COLUMNS`), into a temporary file renamed onto ``path`` by :meth:`commit`
+    (:class:`hostlink.files.atomic.AtomicFile`). Memory holds one chunk, whatever the session's length. As a
+    context manager: a normal exit commits; an exception removes the temporary file (a failed replay leaves no
+    trace that looks finished)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.rows = 0
+        self._file = AtomicFile(self.path, newline="")
+        self._writer = None
+
+    def append(self, trace: dict[str, list]) -> None:
+        if self._writer is None:
+            self._writer = csv.writer(self._file.open(), lineterminator="\n")
+            self._write([TRACE_COLUMNS])
+        columns = [[_cell(c, v) for v in trace[c]] for c in TRACE_COLUMNS]
+        self._write(zip(*columns, strict=True))
+        self.rows += len(trace["frame"])
+
+    def _write(self, rows) -> None:
+        try:
+            self._writer.writerows(rows)
+        except OSError as exc:
+            raise cannot_write(self.path, exc) from None
+
+    def commit(self) -> None:
+        """Rename the finished trace onto ``path`` (a trace without frames is its header)."""
+        if self._writer is None:
+            self.append({c: [] for c in TRACE_COLUMNS})
+        self._file.commit()
+
+    def abandon(self) -> None:
+        """Remove the temporary file; ``path`` is left as it was."""
+        self._file.abandon(keep=False)
+
+    def __enter__(self) -> TraceWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, _tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abandon()
+
+
 def write_trace(path: str | Path, trace: dict[str, list]) -> None:
     """Write the per-frame trace CSV atomically: ``trace`` maps each of :data:`TRACE_COLUMNS` to one value per
-    frame."""
-    n = len(trace["frame"])
-    with atomic_open(path, newline="") as handle:
-        writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow(TRACE_COLUMNS)
-        for k in range(n):
-            writer.writerow([_cell(c, trace[c][k]) for c in TRACE_COLUMNS])
+    frame (one :class:`TraceWriter` chunk)."""
+    with TraceWriter(path) as writer:
+        writer.append(trace)
 
 
 def read_trace(path: str | Path) -> dict[str, np.ndarray]:

@@ -43,7 +43,7 @@ def read_truth(path: str | Path) -> dict:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad UTF-8, JSON or a too-long integer
         raise UserError(f"{path}: not a readable truth file ({exc})") from None
     if not isinstance(data, dict) or data.get("format") != TRUTH_FORMAT:
         raise UserError(f"{path}: not a simulation truth file")

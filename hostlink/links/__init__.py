@@ -13,7 +13,8 @@ scheme                    module                                 example
 ========================  =====================================  =========================================
 
 Each transport module defines ``open_link(scheme: str, target: str, timeout_s: float) -> Link`` and raises
-``UserError`` (one line) for a malformed target and ``LinkError`` when the port cannot be opened. Real ports and the
+``UserError`` (one line) for a malformed target or an interface whose driver is not installed here (a python-can
+interface without its vendor library), and ``LinkError`` when the port cannot be opened. Real ports and the
 emulators (``hostlink emulate`` prints the string to use) are opened the same way.
 """
 

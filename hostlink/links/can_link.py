@@ -28,10 +28,13 @@ Limits, by design of the CAN layout (``protocol/startracker.dbc``):
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import queue
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import can
@@ -117,7 +120,8 @@ def parse_target(target: str) -> CanTarget:
 
 
 def open_bus(t: CanTarget) -> can.BusABC:
-    """Open the python-can bus named by a target; LinkError (one line) when it cannot be opened."""
+    """Open the python-can bus named by a target. One-line UserError when the interface is unknown or its driver is
+    missing on this machine, LinkError when the bus cannot be opened."""
     kwargs = dict(t.options)
     if t.bitrate is not None:
         kwargs.setdefault("bitrate", t.bitrate)
@@ -126,10 +130,44 @@ def open_bus(t: CanTarget) -> can.BusABC:
         kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
         if channel.lower().startswith("socket://"):
             channel = _buffered_socket_url(channel)
+    with _driver_log() as records:
+        try:
+            bus = can.Bus(interface=t.interface, channel=channel, **kwargs)
+        except (can.CanInterfaceNotImplementedError, ImportError, NameError, AttributeError) as exc:
+            # python-can raises the first for an unknown name or a driver it could not load; the others come from
+            # interface modules that import without their vendor library and fail on first use (kvaser: NameError)
+            said = [" ".join(r.getMessage().split()) for r in records if r.levelno >= logging.WARNING]
+            reason = "; ".join(dict.fromkeys([*said, one_line(exc)]))[:300]
+            error: UserError = UserError(f"CAN interface {t.interface} is not available here ({reason})")
+        except (can.CanError, OSError, ValueError, TypeError) as exc:
+            error = LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {one_line(exc)}")
+        else:
+            error = None
+        if error is not None:
+            gc.collect()  # a half-built bus logs "... was not properly shut down" when collected: in here, not later
+    if error is not None:
+        raise error
+    for record in records:  # an open that worked: what the driver logged goes on as usual
+        logging.getLogger(record.name).handle(record)
+    return bus
+
+
+@contextmanager
+def _driver_log() -> Iterator[list[logging.LogRecord]]:
+    """Holds back what python-can and its interface modules log while a bus is opened (a missing vendor library is
+    logged as a warning on import, besides the exception), so that a failed open is one line."""
+    logger = logging.getLogger("can")
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(logging.DEBUG)
+    handler.emit = records.append  # type: ignore[method-assign]
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
     try:
-        return can.Bus(interface=t.interface, channel=channel, **kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
-        raise LinkError(f"cannot open CAN interface {t.interface} channel {t.channel}: {one_line(exc)}") from None
+        yield records
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def _buffered_socket_url(url: str) -> str:

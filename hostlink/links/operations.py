@@ -106,6 +106,7 @@ def stream_frames(
     poll_every_s: float = 0.0,
     max_polls: int | None = None,
     on_poll: Callable[[EstimatePoll], None] | None = None,
+    keep_polls: bool = True,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
 ) -> StreamResult:
@@ -114,7 +115,8 @@ def stream_frames(
 
     Each frame goes to ``on_frame`` and, if ``keep_frames``, into ``result.frames``. The onboard estimate is polled
     (:func:`poll_estimate`, tolerant of "no estimate yet") every ``poll_every_frames`` frames and/or every
-    ``poll_every_s`` seconds; each poll goes to ``on_poll`` and ``result.polls``. After the source ended, time-based
+    ``poll_every_s`` seconds; each poll goes to ``on_poll`` and, if ``keep_polls``, ``result.polls`` (a loop that runs
+    until interrupted keeps neither frames nor polls, so its memory stays flat). After the source ended, time-based
     polls go on (the estimate is still readable) until ``max_polls``. Everything received is in ``result`` (pass your
     own to keep it when a LinkError or Ctrl-C interrupts the loop)."""
     result = StreamResult() if result is None else result
@@ -123,14 +125,19 @@ def stream_frames(
     timed = poll_every_s > 0
     next_poll_t = clock() + poll_every_s
 
+    n_polls = len(result.polls)
+
     def poll() -> None:
+        nonlocal n_polls
         p = poll_estimate(link, result.frames_received)
-        result.polls.append(p)
+        n_polls += 1
+        if keep_polls:
+            result.polls.append(p)
         if on_poll is not None:
             on_poll(p)
 
     def polls_done() -> bool:
-        return max_polls is not None and len(result.polls) >= max_polls
+        return max_polls is not None and n_polls >= max_polls
 
     link.set_streaming(True)
     try:

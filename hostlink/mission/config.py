@@ -48,6 +48,8 @@ class BenchConfig:
     min_stars: int = 10  # fewest stars per frame (SimConfig.min_stars)
     max_stars: int = 30  # most stars per frame, brightest kept (SimConfig.max_stars)
     poll_every_frames: int = 25
+    #: the sensor's arithmetic (``onboard.firmware.PRECISIONS``): "float32" (an FPU) or "fixed" (no FPU)
+    precision: str = "float32"
     #: further ``hostlink emulate`` options for the sensor
     emulator_args: tuple[str, ...] = ()
     t0_iso: str = "2026-03-14T02:10:00.000Z"

@@ -45,7 +45,10 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     from hostlink.links.operations import read_active_params
     from hostlink.mission.plots import write_plots
     from hostlink.mission.summary import json_default, nan_to_null, summarise
+    from onboard.firmware import PRECISIONS
 
+    if cfg.precision not in PRECISIONS:
+        raise UserError(f"precision: expected one of {', '.join(PRECISIONS)}, got {cfg.precision!r}")
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
@@ -53,10 +56,11 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
 
     t = time.perf_counter()
     args = ["--replay", str(replay_path), "--nominal", str(nominal_path), "--noise-px", repr(cfg.noise_px)]
+    args += ["--precision", cfg.precision]
     flash = out / "sensor-flash.img"  # the sensor's NOR-flash banks (--flash); a fresh sensor for every run
     flash.unlink(missing_ok=True)
     with EmulatorProcess(cfg.transport, [*args, *cfg.emulator_args], flash_path=flash) as emulator:
-        say(f"[2/6] emulated sensor on {emulator.link}")
+        say(f"[2/6] emulated {cfg.precision} sensor on {emulator.link}")
         with open_link(emulator.link) as link:
             generation_before = read_active_params(link).generation
             streamed = stream_calibration_phase(run, link, t, out, say, show_progress)
@@ -81,7 +85,7 @@ def simulate_phase(cfg: BenchConfig, out: Path, say: Callable[[str], None]) -> t
     cal_sim, drift_sim = simulate_phases(cfg)
     replay = concatenate_sessions(cal_sim.session, drift_sim.session, cfg.cal_frames)
     replay_path, nominal_path = out / "sensor-replay.csv", out / "nominal.json"
-    write_session(replay_path, sensor_reference_session(replay, cfg.site, cfg.weather))
+    write_session(replay_path, sensor_reference_session(replay, cfg.site, cfg.weather, cfg.precision))
     save_params(out / "true-camera.json", cfg.camera)
     save_params(nominal_path, nominal)
     run = BenchRun(cfg=cfg, nominal=nominal, cal_sim=cal_sim, drift_sim=drift_sim)
@@ -214,15 +218,25 @@ def concatenate_sessions(first: Session, second: Session, frame_offset: int) -> 
     )
 
 
-def sensor_reference_session(session: Session, site: Site | None, weather: Weather | None) -> Session:
+def sensor_reference_session(
+    session: Session, site: Site | None, weather: Weather | None, precision: str = "float32"
+) -> Session:
     """The replay file the emulated sensor holds: a ground sensor turns its catalogue directions into observed ones
     itself (diurnal aberration, then refraction: seed 001 sec. 4, ``onboard.refraction.topocentric_observed``), so
-    its recursive estimator sees corrected references."""
+    its recursive estimator sees corrected references; a ``precision="fixed"`` sensor does so in integers
+    (``topocentric_observed_fixed``)."""
     if site is None:
         return session
     from hostlink.sky.references import session_references, session_with_references
+    from onboard.fixedpoint import FixedRangeError
 
-    return session_with_references(session, session_references(session, site, weather))
+    try:
+        references = session_references(
+            session, site, weather, precision="fixed" if precision == "fixed" else "float64"
+        )
+    except FixedRangeError as exc:
+        raise UserError(f"--precision fixed: the site correction is outside the fixed-point range: {exc}") from None
+    return session_with_references(session, references)
 
 
 def stream_phase(

@@ -172,6 +172,7 @@ def summarise(run: BenchRun) -> dict:
         "config": {k: v for k, v in asdict(cfg).items() if k not in ("camera", "nominal", "site", "weather")}
         | {"site": asdict(cfg.site) if cfg.site else None, "weather": asdict(cfg.weather) if cfg.weather else None},
         "transport": cfg.transport,
+        "precision": cfg.precision,
         "reference_directions": run.ref_info.source,
         "refraction": run.ref_info.refraction,
         "residual_before": outcome.before,

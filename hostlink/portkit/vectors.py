@@ -542,6 +542,41 @@ def _apparent_tolerance(inp: dict, out: dict) -> dict[str, Tolerance]:
     }
 
 
+_INSTANT_FIELDS = ("years_q20", "earth_bary_q30", "sun_to_earth_q30", "deflection_k_q70", "beta_q44", "tod_q30")
+
+
+def _apparent_fixed_cases() -> list[dict]:
+    """The float32 cases' catalogue in the fixed formats (r0 Q30, pm Q46, parallax Q48 rad) and each instant's
+    quantities from ``apparent.fixed_instant`` (soft float64 once per frame on the sensor: inputs here)."""
+    out = []
+    for case in _apparent_cases():
+        r0, pm, plx = apparent.fixed_catalogue(
+            case["r0"].astype(np.float64), case["pm_rad_yr"].astype(np.float64), case["parallax_mas"]
+        )
+        inst = apparent.fixed_instant(make_time(case["t_tt_day"], case["t_tt_frac"]), float(case["epoch_jyear"]))
+        fields = {k: np.asarray(getattr(inst, k), dtype=np.int64) for k in _INSTANT_FIELDS}
+        out.append({"r0_q30": r0, "pm_q46": pm, "parallax_q48": plx} | fields)
+    return out
+
+
+def _apparent_fixed_constants() -> dict:
+    """Fractional bits of the formats and the Sun clamp (onboard/apparent.py); the reciprocal-square-root table of
+    the normalisation is in pixel_to_direction.fixed.json."""
+    bits = ("PM", "YEARS", "PARALLAX", "CHANGE", "DEFLECTION_K", "ABERRATION_BETA")
+    return {f"{b.lower()}_frac_bits": np.array(getattr(apparent, f"{b}_FRAC_BITS"), dtype=np.int64) for b in bits} | {
+        "min_one_plus_pe_q30": np.array(apparent.MIN_ONE_PLUS_PE_Q30, dtype=np.int64)
+    }
+
+
+def _apparent_fixed_compute(inp: dict, dtype) -> dict:
+    inst = apparent.FixedInstant(
+        **{k: int(inp[k]) if np.ndim(inp[k]) == 0 else np.asarray(inp[k]) for k in _INSTANT_FIELDS}
+    )
+    return {
+        "apparent_q30": apparent.apparent_place_vectors_q30(inp["r0_q30"], inp["pm_q46"], inp["parallax_q48"], inst)
+    }
+
+
 # attitude ------------------------------------------------------------------------------------------------------
 def _attitude_cases() -> list[dict]:
     out = []
@@ -616,6 +651,46 @@ def _bank_compute(inp: dict, dtype) -> dict:
 
 def _bytes_exact(inp: dict, out: dict) -> dict[str, Tolerance]:
     return {k: Tolerance(0.0, "bytes and verdicts: exact") for k in out}
+
+
+def _refraction_fixed_cases() -> list[dict]:
+    """The float32 cases in the fixed formats (r, zenith Q30; A, B Q56), each with no site velocity (refraction
+    alone) and with a 420 m/s one (beta Q48: diurnal aberration first)."""
+    out = []
+    for case in _refraction_cases():
+        coef = (round(float(case[k]) * 2.0**refraction.COEF_FRAC_BITS) for k in ("a_rad", "b_rad"))
+        base = {
+            "r_q30": fixedpoint.quantise_unit_q30(case["r"].astype(np.float64)),
+            "zenith_q30": fixedpoint.quantise_unit_q30(case["zenith"].astype(np.float64)),
+            "ab_q56": np.array(list(coef), dtype=np.int64),
+        }
+        for velocity in ((0.0, 0.0, 0.0), (210.0, -340.0, 120.0)):
+            out.append(base | {"beta_q48": refraction.beta_q48(np.array(velocity))})
+    return out
+
+
+def _refraction_fixed_compute(inp: dict, dtype) -> dict:
+    coef = refraction.FixedRefraction(int(inp["ab_q56"][0]), int(inp["ab_q56"][1]))
+    args = (inp["r_q30"], inp["zenith_q30"], inp["beta_q48"])
+    return {
+        "aberrated_q30": refraction.topocentric_observed_q30(*args, None),
+        "observed_q30": refraction.topocentric_observed_q30(*args, coef),
+    }
+
+
+def _refraction_fixed_constants() -> dict:
+    """Fractional bits of the formats, the Newton steps and the horizon clamp (onboard/refraction.py)."""
+    return {
+        "q": np.array(fixedpoint.Q, dtype=np.int64),
+        "beta_frac_bits": np.array(refraction.BETA_FRAC_BITS, dtype=np.int64),
+        "coef_frac_bits": np.array(refraction.COEF_FRAC_BITS, dtype=np.int64),
+        "r_frac_bits": np.array(refraction.R_FRAC_BITS, dtype=np.int64),
+        "tan_frac_bits": np.array(refraction.TAN_FRAC_BITS, dtype=np.int64),
+        "tan2_frac_bits": np.array(refraction.TAN2_FRAC_BITS, dtype=np.int64),
+        "newton_steps": np.array(refraction.TRUE_ZENITH_NEWTON_STEPS, dtype=np.int64),
+        "min_cos_zenith_q30": np.array(round(refraction.MIN_COS_ZENITH * 2**fixedpoint.Q), dtype=np.int64),
+        "isqrt_iterations": np.array(fixedpoint.ISQRT_ITERATIONS, dtype=np.int64),
+    }
 
 
 # ------------------------------------------------------------------------------------------------------ table
@@ -699,6 +774,18 @@ SPECS: tuple[VectorSpec, ...] = (
         _refraction_tolerance,
     ),
     VectorSpec(
+        "refraction_by_addition",
+        "fixed",
+        "onboard.refraction.topocentric_observed_q30 (refraction_from_true_zenith_q36; fixedpoint.isqrt, div_round)",
+        "The ground sensor's per-star correction in integers: Q30 directions aberrated by the site velocity beta "
+        "(Q48, first order), then lifted toward the Q30 zenith by R (Q36, two Newton steps on the true zenith "
+        "distance) with A, B in Q56; beta = 0: the refraction alone.",
+        _refraction_fixed_cases,
+        _refraction_fixed_compute,
+        _exact(("aberrated_q30", "observed_q30")),
+        _refraction_fixed_constants,
+    ),
+    VectorSpec(
         "apparent_place",
         "float32",
         "onboard.earth.true_of_date_matrix, onboard.apparent.apparent_place_vectors",
@@ -708,6 +795,18 @@ SPECS: tuple[VectorSpec, ...] = (
         _apparent_cases,
         _apparent_compute,
         _apparent_tolerance,
+    ),
+    VectorSpec(
+        "apparent_place",
+        "fixed",
+        "onboard.apparent.apparent_place_vectors_q30 (fixedpoint.normalise_q30, div_round)",
+        "The per-star apparent place in integers: space motion and light deflection as Q48 changes, aberration to "
+        "second order in Q44, normalisation by the integer reciprocal square root, rotation by the Q30 GCRS -> TOD "
+        "matrix. The instant's quantities (apparent.fixed_instant: soft float64 once per frame) are inputs.",
+        _apparent_fixed_cases,
+        _apparent_fixed_compute,
+        _exact(("apparent_q30",)),
+        _apparent_fixed_constants,
     ),
     VectorSpec(
         "attitude",
@@ -737,8 +836,6 @@ FIXED_POINT_NOTES: dict[str, str] = {
     "camera_jacobians": "float32 (soft float) on a sensor without an FPU (onboard.fixedpoint module docstring)",
     "ud_update": "float32 (soft float) on a sensor without an FPU (onboard.fixedpoint module docstring)",
     "attitude": "float32 (soft float); no fixed-point attitude in the reference model",
-    "refraction_by_addition": "no fixed-point path in the reference model yet",
-    "apparent_place": "no fixed-point path in the reference model yet",
 }
 
 

@@ -128,13 +128,17 @@ def topocentric_references(
     site: Site,
     weather: Weather | None,
     dut1_s: float = 0.0,
+    precision: str = "float64",
 ) -> np.ndarray:
     """Geocentric apparent unit vectors r (N, 3), grouped by frame (``frame_starts``, (F + 1,)), -> as observed from
     the site at each frame's UTC (two-part Julian dates (F,)): aberrated by the site's rotation velocity and, with
     weather, lifted toward that frame's zenith by the refraction (seed 001 sec. 4,
-    ``onboard.refraction.topocentric_observed``, float64). ``dut1_s`` = UT1 - UTC [s]. Rows must be finite."""
+    ``onboard.refraction.topocentric_observed``, float64). ``dut1_s`` = UT1 - UTC [s]. Rows must be finite.
+    ``precision="fixed"``: as a sensor without an FPU computes it (``topocentric_observed_fixed``, in integers)."""
     from hostlink.sky.site import site_velocity_true_of_date, zenith_true_of_date
-    from onboard.refraction import topocentric_observed
+    from onboard.refraction import topocentric_observed, topocentric_observed_fixed
+
+    observe = topocentric_observed_fixed if precision == "fixed" else topocentric_observed
 
     zenith = zenith_true_of_date(jd_utc1, jd_utc2, site, dut1_s)
     velocity_m_s = site_velocity_true_of_date(jd_utc1, jd_utc2, site, dut1_s)
@@ -142,7 +146,7 @@ def topocentric_references(
     for f in range(frame_starts.shape[0] - 1):
         a, b = int(frame_starts[f]), int(frame_starts[f + 1])
         if b > a:
-            out[a:b] = topocentric_observed(r[a:b], zenith[f], velocity_m_s[f], weather)
+            out[a:b] = observe(r[a:b], zenith[f], velocity_m_s[f], weather)
     return out
 
 
@@ -164,13 +168,17 @@ def session_references(
     dut1_s: float = 0.0,
     catalogue: Catalogue | None = None,
     skip_unknown_ids: bool = False,
+    first_row: int = 0,
+    precision: str = "float64",
 ) -> SessionReferences:
     """The reference direction of every row of ``session`` at its frame's time (module docstring): geocentric
     apparent place, and with ``site`` as observed there (diurnal aberration; with ``weather`` also refraction).
     ``dut1_s`` = UT1 - UTC [s] (the site's orientation). Raises :class:`UserError` for weather without a site and
     for a site when the session gives no time. An identified star_id Hipparcos does not have (when the file has no
     ra_deg/dec_deg) is a one-line :class:`UserError`, or with ``skip_unknown_ids`` a row that is not usable and is
-    listed in :attr:`SessionReferences.unknown` (batch calibration skips and reports them)."""
+    listed in :attr:`SessionReferences.unknown` (batch calibration skips and reports them). ``first_row``: the row
+    of the session's first row in the whole session, for that error (a chunk of a session read in chunks). ``precision``
+    "fixed": the site correction as a sensor without an FPU computes it (:func:`topocentric_references`)."""
     if weather is not None and site is None:
         raise UserError("weather without a site: refraction depends on where the sensor is")
     if site is not None and not session.time_known:
@@ -181,14 +189,14 @@ def session_references(
         k = int(np.argmax(unknown))
         raise UserError(
             f"star_id {int(session.star_id[k])}: not in the Hipparcos catalogue (within its magnitude limit), "
-            f"row {k} (line {k + 2})"
+            f"row {first_row + k} (line {first_row + k + 2})"
         )
     if site is None or not np.any(usable):
         return SessionReferences(r, usable, source, unknown=unknown)
     rows = np.flatnonzero(usable)
     sub = session.select(rows)
     jd1, jd2 = sub.frame_times_jd()
-    r[rows] = topocentric_references(r[rows], sub.frame_starts, jd1, jd2, site, weather, dut1_s)
+    r[rows] = topocentric_references(r[rows], sub.frame_starts, jd1, jd2, site, weather, dut1_s, precision)
     return SessionReferences(r, usable, source, site_correction_text(site, weather), unknown)
 
 

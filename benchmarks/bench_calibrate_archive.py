@@ -1,0 +1,338 @@
+"""Calibration of long sessions: time and peak memory, side by side in one run (issue 12).
+
+For each size (default 10^3, 10^4, 10^5 frames; ``--sizes`` up to 10^6) one session of 10-30 stars per frame
+(seed 004's camera, 0.05 px isotropic centroid noise, no misidentification) is generated chunk by chunk (each
+chunk its own seed, so no process ever holds the whole session unless it asks to) and spooled to disk as
+calibration data (:func:`hostlink.calibration.data.save_chunk`). Then, each in its own process (peak resident
+memory from the kernel's rusage of that process, loading of the input included; one BLAS thread each):
+
+- ``chunked``: ``hostlink.calibration.run.calibrate_chunks`` over the spooled chunks (10^4 frames each): pre-pass,
+  voting, robust bundle, held parameters, statistics; memory O(K^2 + one chunk).
+- ``in-memory``: ``hostlink.calibration.run.calibrate`` on the whole session loaded into memory (the same code on
+  one chunk).
+- ``scipy``: ``scipy.optimize.least_squares`` (trf, sparse finite-difference Jacobian through ``jac_sparsity``:
+  each residual depends on the 10 camera parameters and its frame's 3 attitude parameters) on the same residual
+  function (``bundle.observation_terms``), plain least squares, from the nominal camera and SVD attitudes.
+- ``opencv``: the bundle adjustment an engineer would write on OpenCV: its camera model (fx = fy, cx, cy,
+  k1, k2, p1, p2, k3), ``cv2.projectPoints`` for the projections and their Jacobians (every star rotated by its
+  frame's attitude and projected with rvec = 0, so d/drvec is the derivative by a rotation increment), and
+  Levenberg-Marquardt on the sparse normal equations (camera + 3 attitude parameters per frame, scipy's sparse LU),
+  from the same start.
+
+Accuracy: the validation residual (``tests/crb_bounds.py``: RMS over a grid of the detector of the difference
+between the estimated and the true camera's directions, best rotation removed) against its Cramer-Rao bound from
+the Fisher information of the noise-free session (summed chunk by chunk). Ratios are against ``chunked`` in the same
+run. Acceptance (issue 12): 10^6 frames chunked under 500 MB and within 1.2x of 10x the 10^5 time; chunked within
+0.01 sigma of in-memory at 10^5; >= 5x faster than OpenCV at 10^4 and 10^5, no slower at 10^3.
+
+Usage: nice -n 10 .venv/bin/python benchmarks/bench_calibrate_archive.py [--sizes 1000,10000,100000]
+       [--methods chunked,in-memory,scipy,opencv] [--skip-scipy-above 1000] [--work DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers below live there
+
+import crb_bounds as crb  # noqa: E402
+from synthetic_sessions import synthetic_session  # noqa: E402
+
+from hostlink.calibration.bundle import (  # noqa: E402
+    ChunkSource,
+    initial_attitudes,
+    observation_terms,
+    parameter_columns,
+    parameter_scales,
+)
+from hostlink.calibration.data import (  # noqa: E402
+    CalibrationData,
+    build_data,
+    concatenate_data,
+    load_chunk,
+    save_chunk,
+)
+from hostlink.calibration.frames import apply_attitude_increment, rotation_from_vector, wahba_svd  # noqa: E402
+from hostlink.files.params import load_params  # noqa: E402
+from onboard.params import ESTIMATE_NAMES  # noqa: E402
+
+TRUTH = load_params("builtin:seed004_camera")
+NOMINAL = load_params("builtin:seed004_nominal")
+NOISE_PX = 0.05
+CHUNK_FRAMES = 10_000
+ALL = parameter_columns(ESTIMATE_NAMES)
+METHODS = ("chunked", "in-memory", "scipy", "opencv")
+
+
+# ---------------------------------------------------------------------------------------------------- the data
+def generate(frames: int, folder: Path) -> None:
+    """Spool a session of ``frames`` frames to ``folder`` (chunks of CHUNK_FRAMES) and its Fisher information."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if (folder / "info.npy").exists():
+        return
+    info = np.zeros((10, 10))
+    offset = 0
+    for k, start in enumerate(range(0, frames, CHUNK_FRAMES)):
+        n = min(CHUNK_FRAMES, frames - start)
+        ss = synthetic_session(TRUTH, n, noise_px=NOISE_PX, seed=1000 * frames + k)
+        d = ss.data
+        rows = np.arange(d.n_obs, dtype=np.int64) + offset
+        offset += d.n_obs
+        save_chunk(folder / f"chunk{k:05d}.npz", build_data(d.x_px, d.y_px, d.r, d.frame_index(), None, None, rows))
+        noise_free = build_data(ss.x_true_px, ss.y_true_px, d.r, d.frame_index())
+        info += crb.fisher_information(noise_free, TRUTH.model_vector(), ss.attitudes_true, ALL, NOISE_PX)
+    np.save(folder / "info.npy", info)
+
+
+def chunk_files(folder: Path) -> tuple[str, ...]:
+    return tuple(str(p) for p in sorted(folder.glob("chunk*.npz")))
+
+
+def load_all(folder: Path) -> CalibrationData:
+    return concatenate_data([load_chunk(p) for p in chunk_files(folder)])
+
+
+# ------------------------------------------------------------------------------------------------- the methods
+def run_chunked(folder: Path) -> np.ndarray:
+    from hostlink.calibration.run import calibrate_chunks
+
+    return calibrate_chunks(ChunkSource(chunk_files(folder), load_chunk), NOMINAL).theta
+
+
+def run_in_memory(folder: Path) -> np.ndarray:
+    from hostlink.calibration.run import calibrate
+
+    return calibrate(load_all(folder), NOMINAL).theta
+
+
+def run_scipy(folder: Path) -> np.ndarray:
+    from scipy.optimize import least_squares
+    from scipy.sparse import coo_matrix
+
+    data = load_all(folder)
+    scale = parameter_scales(NOMINAL)
+    theta0 = NOMINAL.model_vector()
+    att0 = initial_attitudes(data, theta0)
+    m = data.n_frames
+    fidx = data.frame_index()
+
+    def fun(z):
+        theta = theta0 + z[:10] * scale
+        att = apply_attitude_increment(att0, z[10:].reshape(m, 3))
+        e = observation_terms(data.x_px, data.y_px, data.r, att[fidx], theta, np.zeros(0, np.int64))[0]
+        return e.ravel()
+
+    n_res = 2 * data.n_obs
+    res_rows = np.arange(n_res)
+    cam_r = np.repeat(res_rows, 10)
+    cam_c = np.tile(np.arange(10), n_res)
+    att_r = np.repeat(res_rows, 3)
+    att_c = (10 + 3 * np.repeat(fidx, 2)[:, None] + np.arange(3)[None, :]).ravel()
+    rows = np.concatenate([cam_r, att_r])
+    cols = np.concatenate([cam_c, att_c])
+    sparsity = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n_res, 10 + 3 * m)).tocsr()
+    sol = least_squares(fun, np.zeros(10 + 3 * m), jac_sparsity=sparsity, method="trf", x_scale="jac", max_nfev=100)
+    return theta0 + sol.x[:10] * scale
+
+
+def _opencv_model(x: np.ndarray, nominal_f: float) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV camera matrix and distortion (k1, k2, p1, p2, k3) from the 8 estimated values (f, cx, cy, k1, k2,
+    p1, p2, k3)."""
+    cam = np.array([[x[0], 0.0, x[1]], [0.0, x[0], x[2]], [0.0, 0.0, 1.0]])
+    return cam, np.array(x[3:8])
+
+
+def run_opencv(folder: Path, max_iter: int = 100) -> np.ndarray:
+    """Levenberg-Marquardt bundle on OpenCV's model and Jacobians; returns the 8 OpenCV values."""
+    import cv2
+    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse.linalg import spsolve
+
+    data = load_all(folder)
+    theta0 = NOMINAL.model_vector()
+    fidx = data.frame_index()
+    m, n = data.n_frames, data.n_obs
+    att = initial_attitudes(data, theta0)
+    x = np.array([theta0[0], theta0[1], theta0[2], 0.0, 0.0, 0.0, 0.0, 0.0])
+    measured = np.stack([data.x_px, data.y_px], axis=1)
+    zero = np.zeros(3)
+
+    def evaluate(x, att, jac: bool):
+        cam, dist = _opencv_model(x, theta0[0])
+        s = np.einsum("nij,nj->ni", att[fidx], data.r)
+        p, j = cv2.projectPoints(s.reshape(-1, 1, 3), zero, zero, cam, dist)
+        e = (p.reshape(-1, 2) - measured).ravel()
+        if not jac:
+            return e, None
+        # columns of j: rvec(3), tvec(3), fx, fy, cx, cy, k1, k2, p1, p2, k3
+        j_cam = np.concatenate([j[:, 6:7] + j[:, 7:8], j[:, 8:10], j[:, 10:15]], axis=1)
+        return e, (j_cam, j[:, 0:3])
+
+    e, jacs = evaluate(x, att, True)
+    cost = float(e @ e)
+    lam = 1e-3
+    res_rows = np.arange(2 * n)
+    frame_of_res = np.repeat(fidx, 2)
+    for _ in range(max_iter):
+        j_cam, j_att = jacs
+        rows = np.concatenate([np.repeat(res_rows, 8), np.repeat(res_rows, 3)])
+        cols = np.concatenate(
+            [np.tile(np.arange(8), 2 * n), (8 + 3 * frame_of_res[:, None] + np.arange(3)[None, :]).ravel()]
+        )
+        jac = coo_matrix((np.concatenate([j_cam.ravel(), j_att.ravel()]), (rows, cols)), shape=(2 * n, 8 + 3 * m))
+        jac = jac.tocsr()
+        jtj = (jac.T @ jac).tocsc()
+        g = jac.T @ e
+        improved = False
+        for _trial in range(10):
+            step = spsolve(jtj + diags(lam * jtj.diagonal()), -g)
+            x_new = x + step[:8]
+            att_new = rotation_from_vector(step[8:].reshape(m, 3)) @ att
+            e_new, _ = evaluate(x_new, att_new, False)
+            cost_new = float(e_new @ e_new)
+            if cost_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        decrease = (cost - cost_new) / cost
+        x, att, cost = x_new, att_new, cost_new
+        lam = max(lam / 10.0, 1e-12)
+        e, jacs = evaluate(x, att, True)
+        if decrease < 1e-10:
+            break
+    return x
+
+
+RUNNERS = {"chunked": run_chunked, "in-memory": run_in_memory, "scipy": run_scipy, "opencv": run_opencv}
+
+
+# ------------------------------------------------------------------------------------------------ the accuracy
+def validation_px(method: str, estimate: np.ndarray) -> float:
+    """Validation residual [px] of an estimate: our model vector, or OpenCV's 8 values (directions of the grid
+    through cv2.undistortPoints, aligned to the truth's by the best rotation as in crb_bounds)."""
+    if method != "opencv":
+        return crb.validation_residual_px(estimate, TRUTH)
+    import cv2
+
+    theta_true = TRUTH.model_vector()
+    gx, gy = crb.grid_points(TRUTH)
+    b_true = crb.pixels_to_unit(gx, gy, theta_true)
+    cam, dist = _opencv_model(estimate, theta_true[0])
+    und = cv2.undistortPoints(np.stack([gx, gy], axis=1).reshape(-1, 1, 2), cam, dist, criteria=None)
+    und = und.reshape(-1, 2)
+    b_est = np.concatenate([und, np.ones((und.shape[0], 1))], axis=1)
+    b_est /= np.linalg.norm(b_est, axis=1, keepdims=True)
+    rot = wahba_svd(b_true, b_est, np.array([0, gx.size]))[0]
+    target = crb._project(b_true, theta_true[0])
+    for _ in range(5):
+        s = b_est @ rot.T
+        d = crb._project(s, theta_true[0]) - target
+        j = (crb._project_jacobian(s, theta_true[0]) @ crb.skew(s)).reshape(-1, 3)
+        rot = rotation_from_vector(-np.linalg.lstsq(j, -d.ravel(), rcond=None)[0]) @ rot
+    diff = crb._project(b_est @ rot.T, theta_true[0]) - target
+    return float(np.sqrt(np.mean(np.sum(diff * diff, axis=1))))
+
+
+# ----------------------------------------------------------------------------------------------- the harness
+def child(method: str, folder: Path) -> None:
+    """Run one method in this process and print its result as one JSON line."""
+    t0 = time.perf_counter()
+    estimate = RUNNERS[method](folder)
+    elapsed = time.perf_counter() - t0
+    print(json.dumps({"time_s": elapsed, "estimate": [float(v) for v in estimate]}))
+
+
+def run_measured(method: str, folder: Path) -> dict:
+    """Run ``child`` in a fresh process; its peak resident memory [MB] from the kernel's rusage (wait4)."""
+    cmd = [sys.executable, __file__, "--child", method, "--work", str(folder)]
+    # one BLAS thread for every method: the same footing, and no oversubscription of a shared machine
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) as proc:
+        out = proc.stdout.read()
+        err = proc.stderr.read()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        return {"error": err.strip().splitlines()[-1] if err.strip() else f"exit {proc.returncode}"}
+    result = json.loads(out.strip().splitlines()[-1])
+    result["peak_mb"] = usage.ru_maxrss / 1024.0
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="1000,10000,100000")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--skip-scipy-above", type=int, default=1000, help="scipy takes minutes past this")
+    ap.add_argument("--work", default="/tmp/hostlink-bench-archive")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args.child, Path(args.work))
+        return
+    work = Path(args.work)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    sigma_of = {}
+    results: dict[int, dict[str, dict]] = {}
+    for frames in [int(s) for s in args.sizes.split(",")]:
+        folder = work / f"frames{frames}"
+        t0 = time.perf_counter()
+        generate(frames, folder)
+        info = np.load(folder / "info.npy")
+        bound = crb.crb_validation_px(info, crb.validation_jacobian(TRUTH, ALL))
+        d = np.sqrt(np.diag(info))  # equilibrated: the entries span 30 orders of magnitude
+        sigma_of[frames] = np.sqrt(np.diag(np.linalg.pinv(info / d[:, None] / d[None, :], hermitian=True))) / d
+        print(
+            f"\n{frames} frames (data ready in {time.perf_counter() - t0:.1f} s); CRB of the validation residual "
+            f"{bound:.5f} px",
+            flush=True,
+        )
+        results[frames] = {}
+        for method in methods:
+            if method == "scipy" and frames > args.skip_scipy_above:
+                print(f"  {method:10s} skipped (above {args.skip_scipy_above} frames)", flush=True)
+                continue
+            r = run_measured(method, folder)
+            results[frames][method] = r
+            if "error" in r:
+                print(f"  {method:10s} FAILED: {r['error']}", flush=True)
+                continue
+            v = validation_px(method, np.array(r["estimate"]))
+            r["validation_px"] = v
+            print(
+                f"  {method:10s} {r['time_s']:9.2f} s  peak {r['peak_mb']:8.1f} MB  validation {v:.5f} px "
+                f"({v / bound:.2f}x CRB)",
+                flush=True,
+            )
+        base = results[frames].get("chunked")
+        if base and "error" not in base:
+            for method, r in results[frames].items():
+                if method != "chunked" and "error" not in r:
+                    print(f"  {method} / chunked time: {r['time_s'] / base['time_s']:.2f}x")
+            mem = results[frames].get("in-memory")
+            if mem and "error" not in mem:
+                d = np.abs(np.array(base["estimate"]) - np.array(mem["estimate"]))[ALL] / sigma_of[frames]
+                print(f"  chunked vs in-memory: largest difference {d.max():.2e} sigma (CRB sigma)")
+    sizes = sorted(results)
+    for small, big in zip(sizes[:-1], sizes[1:], strict=True):
+        a, b = results[small].get("chunked"), results[big].get("chunked")
+        if a and b and "error" not in a and "error" not in b:
+            ratio = b["time_s"] / (a["time_s"] * big / small)
+            print(
+                f"chunked {big} frames: {b['time_s']:.1f} s = {ratio:.2f} x ({big // small} x the {small}-frame "
+                f"time); peak {b['peak_mb']:.0f} MB"
+            )
+
+
+if __name__ == "__main__":
+    main()
