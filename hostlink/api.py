@@ -37,7 +37,8 @@ Images:
 Calibration:
     :func:`calibrate_session` (batch ground calibration), :func:`calibrate_archive` (the same for sessions of any
     length: files, globs, Parquet, chunk by chunk in bounded memory, optionally on a Dask cluster),
-    :func:`result_extras`, :func:`replay_session` (the
+    :func:`result_extras`, :func:`cross_validate` (a calibration judged on stars held out of its fit: k-fold
+    over the frames, :class:`CrossValidation`), :func:`replay_session` (the
     onboard recursive estimator over a session, as the sensor runs it), :func:`replay_chunks` (the same over chunks,
     its trace streamed), :func:`replay_config`, :func:`replay_prior`,
     :func:`estimate_extras`.
@@ -57,6 +58,7 @@ Emulated sensor and the bench:
 
 from __future__ import annotations
 
+from hostlink.calibration.holdout import CrossValidation, cross_validate
 from hostlink.calibration.replay import (
     ReplayResult,
     estimate_extras,
@@ -196,6 +198,8 @@ __all__ = [
     # calibration
     "calibrate_session",
     "calibrate_archive",
+    "cross_validate",
+    "CrossValidation",
     "estimate_extras",
     "replay_config",
     "replay_prior",

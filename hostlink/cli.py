@@ -13,6 +13,7 @@ import importlib
 import os
 import re
 import sys
+import warnings
 
 from hostlink.errors import UserError
 
@@ -86,6 +87,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warning(command: str):  # noqa: ANN202 - a warnings.showwarning replacement
+    """Print a Python warning (an ERFA "dubious year" for a date past the leap-second table, say) as one line on
+    stderr, ``hostlink COMMAND: warning: CATEGORY: message``, instead of Python's two lines with a source path."""
+
+    def show(message, category, _filename, _lineno, _file=None, _line=None) -> None:  # noqa: ANN001
+        text = " ".join(f"{category.__name__}: {message}".split())
+        print(f"hostlink {command}: warning: {text}", file=sys.stderr)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -93,23 +105,51 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        code = args._run(args)
+        with warnings.catch_warnings():  # a library's warning is one line too, named like the command's errors
+            warnings.showwarning = _one_line_warning(args.command)
+            code = args._run(args)
     except UserError as exc:
         print(f"hostlink {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print(f"hostlink {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError as exc:
+        if not _stdout_closed():
+            return _internal_error(args.command, exc)
+        return 128 + 13  # the reader of stdout went away (`| head`): quiet, as a shell tool killed by SIGPIPE
     except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
         if os.environ.get("HOSTLINK_DEBUG"):
             raise
-        print(
-            f"hostlink {args.command}: internal error: {type(exc).__name__}: {exc} "
-            "(set HOSTLINK_DEBUG=1 for a traceback)",
-            file=sys.stderr,
-        )
-        return 1
+        return _internal_error(args.command, exc)
     return int(code or 0)
+
+
+def _internal_error(command: str, exc: BaseException) -> int:
+    print(
+        f"hostlink {command}: internal error: {type(exc).__name__}: {exc} (set HOSTLINK_DEBUG=1 for a traceback)",
+        file=sys.stderr,
+    )
+    return 1
+
+
+def _stdout_closed() -> bool:
+    """True when stdout's reader is gone (a pipe whose read end closed: poll reports an error on it); stdout is then
+    pointed at /dev/null so the interpreter's own flush at exit does not fail again."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+    except (AttributeError, OSError, ValueError):
+        return False
+    poller.register(fd, select.POLLOUT)
+    if not any(events & select.POLLERR for _, events in poller.poll(0)):
+        return False
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
+    return True
 
 
 if __name__ == "__main__":

@@ -67,6 +67,49 @@ def distortion_partials(u: np.ndarray, v: np.ndarray, theta: np.ndarray):
     return dx_u, dx_v, dy_u, dy_v
 
 
+def distortion_partials_applied_jacobian(
+    u: np.ndarray, v: np.ndarray, theta: np.ndarray, a: np.ndarray, b: np.ndarray
+) -> np.ndarray:
+    """d(P w)/d theta (N, 2, 10) for the matrix of distortion partials P = [[dx_u, dx_v], [dy_u, dy_v]]
+    (:func:`distortion_partials`) applied to a vector w = (a, b) held fixed, at measured offsets (u, v) [px].
+
+    The derivative of the whitening Jc^-1 = (I - P)^-1 of a residual: d(Jc^-1)/d theta_k d = Jc^-1 (dP/d theta_k) e
+    with d = Jc e. P is linear in k1..s2, so those columns are P at the unit coefficient; the principal point enters
+    through u = x - x0, v = y - y0, so d/dx0 = -d/du, d/dy0 = -d/dv (second derivatives of seed 000 eq. 7's
+    distortion); F does not enter (zero column). Written out term by term, in the dtype of the inputs."""
+    k1, k2, k3, p1, p2, s1, s2 = (theta[i] for i in range(3, 10))
+    two, three, four, six = (theta.dtype.type(c) for c in (2, 3, 4, 6))
+    g1, g2, g3, g4 = s1 + p1, s2 + p2, p1 + p1, p2 + p2
+    uu, uv, vv = u * u, u * v, v * v
+    r2 = uu + vv
+    r4 = r2 * r2
+    rd = k1 + r2 * (two * k2 + three * k3 * r2)  # d radial / d r2
+    rdd = two * k2 + six * k3 * r2  # d^2 radial / d r2^2
+    out = np.zeros((np.shape(u)[0], 2, 10), dtype=np.result_type(u, a))
+    # principal point: -d(P w)/du and -d(P w)/dv, with d rd/du = 2 u rdd, d radial/du = 2 u rd (same in v)
+    cross_u = two * v * rd + four * uv * u * rdd  # d dx_v/du = d dy_u/du less their g terms
+    cross_v = two * u * rd + four * uv * v * rdd  # d dx_v/dv = d dy_u/dv less their g terms
+    dxu_u = two * (g1 + g3) + six * u * rd + four * uu * u * rdd
+    dyv_v = two * (g2 + g4) + six * v * rd + four * vv * v * rdd
+    out[:, 0, 1] = -(dxu_u * a + (g4 + cross_u) * b)
+    out[:, 1, 1] = -((two * g2 + cross_u) * a + (g3 + cross_v) * b)
+    out[:, 0, 2] = -((g4 + cross_u) * a + (two * g1 + cross_v) * b)
+    out[:, 1, 2] = -((g3 + cross_v) * a + dyv_v * b)
+    # radial k1, k2, k3: radial = r2^n, rd = n r2^(n-1); dx_u = radial + 2 uu rd, dx_v = dy_u = 2 uv rd, ...
+    for col, radial, rd_n in ((3, r2, two), (4, r4, four * r2), (5, r4 * r2, six * r4)):
+        cross = uv * rd_n
+        out[:, 0, col] = (radial + uu * rd_n) * a + cross * b
+        out[:, 1, col] = cross * a + (radial + vv * rd_n) * b
+    # p1: g1 = 1, g3 = 2; p2: g2 = 1, g4 = 2; s1: g1 = 1; s2: g2 = 1
+    out[:, 0, 6] = six * u * a + two * v * b
+    out[:, 1, 6] = two * (v * a + u * b)
+    out[:, 0, 7] = two * (v * a + u * b)
+    out[:, 1, 7] = two * u * a + six * v * b
+    out[:, 0, 8] = two * (u * a + v * b)
+    out[:, 1, 9] = two * (u * a + v * b)
+    return out
+
+
 def ideal_offset_jacobians(
     x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -87,8 +87,9 @@ COEF_MAX_EXP = 62
 RSQRT_ITERATIONS = 3
 #: Table of 1/sqrt(alpha) in Q30 at the centre of each bin of alpha = a 2^-31, bins a >> 26 = 8..32:
 #: isqrt(2^66 / (2 i + 1)) = 2^30 sqrt(32 / (i + 1/2)), in [2^30, 2^31) (built with integers only).
-_RSQRT_TABLE = np.array([math.isqrt((1 << 66) // (2 * i + 1)) for i in range(8, 33)], dtype=np.int64)
-_RSQRT_TABLE_FIRST = 8
+RSQRT_TABLE = np.array([math.isqrt((1 << 66) // (2 * i + 1)) for i in range(8, 33)], dtype=np.int64)
+#: The bin a >> 26 of the table's first entry: the entry for a is RSQRT_TABLE[(a >> 26) - RSQRT_TABLE_FIRST].
+RSQRT_TABLE_FIRST = 8
 
 
 class FixedRangeError(ValueError):
@@ -255,7 +256,7 @@ def rsqrt_q30(n2):
     sh = length - Q - 1  # a in [2^30, 2^31)
     sh = sh + ((sh + 1) & 1)  # make sh odd (then a in [2^29, 2^30)): 31 + sh even
     a = rshift_round(n2, sh)  # in [2^29, 2^31]
-    y = _RSQRT_TABLE[((a >> 26) - _RSQRT_TABLE_FIRST).astype(np.intp)].astype(a.dtype)  # Q30, rel. error <= 3.1 %
+    y = RSQRT_TABLE[((a >> 26) - RSQRT_TABLE_FIRST).astype(np.intp)].astype(a.dtype)  # Q30, rel. error <= 3.1 %
     for _ in range(RSQRT_ITERATIONS):
         t1 = rshift_round(a * y, Q + 1)  # a y <= 2^31 1.031 2^31 < 2^63; t1 = alpha y in Q30
         t2 = rshift_round(t1 * y, Q)  # alpha y^2 ~ 1 in Q30; t1 y <= 2^31.1 2^31.1

@@ -123,7 +123,9 @@ def params_from_dict(data: dict, validate: bool = True) -> CameraParams:
     for key in ("focal_length_mm", "pixel_pitch_um", "principal_point_px", "image_size_px"):
         if key not in data:
             raise ParameterError(key, "missing")
-    dist_obj = data.get("distortion", {}) or {}
+    dist_obj = data.get("distortion")
+    if dist_obj is None:  # absent or null: no distortion (a 0, false, "" or [] is a wrong type, not "none")
+        dist_obj = {}
     if not isinstance(dist_obj, dict):
         raise ParameterError("distortion", f"expected an object with keys {' '.join(DISTORTION_NAMES)}")
     unknown = sorted(set(dist_obj) - set(DISTORTION_NAMES))

@@ -15,7 +15,13 @@ of two parameter sets (they alternate) and kills the emulator with SIGKILL at a 
 The emulator is then restarted on the same file and the active set is read back. Pass: its (generation, table) is
 the complete old set or the complete new one (generation + 1). Anything else is a failure (exit 1).
 
-Run (the acceptance run, 200 points; about 3 minutes on 2 cores)::
+Replays (issue 15: "replaying every recorded upload, in whole or in part, activates nothing"; serial transport): the
+bytes the host wrote to the line in every upload are recorded (whole uploads, and the ones a cut ended). After each
+restart, one recording drawn from all of them so far is sent again on the line, as another host would send it: whole,
+a random byte prefix, or a random subset of its frames in random order; then the active set is read again. Pass: it
+is unchanged (nothing activated). The first recording is a complete upload whose COMMIT went through.
+
+Run (the acceptance run, 200 points and 200 replays; about 3 minutes on 2 cores)::
 
     .venv/bin/python scripts/flash_power_cuts.py --trials 200 --seed 1
 
@@ -35,11 +41,14 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from hostlink.emulator.process import EmulatorProcess
 from hostlink.errors import LinkError, UserError
 from hostlink.links import open_link
 from hostlink.links.base import CommandRefused
 from hostlink.links.operations import safe_upload
+from onboard import banks
 from onboard.banks import BANK_RECORD_BYTES, SECTOR_BYTES, STAGE_RECORD_BYTES, WRITE_BYTES, params_to_table
 from onboard.params import CameraParams, Distortion
 
@@ -59,6 +68,9 @@ class Trial:
     index: int
     how: str  # "inside N" or "outside T s"
     outcome: str  # "old", "new" or a description of what else was found
+    replay: str = ""  # what was replayed after the restart ("" when none)
+    replay_outcome: str = ""  # "nothing activated" or what changed
+    replay_sessions: int = 0  # staging sessions the replay opened on the sensor (its persisted session counter)
 
 
 def read_active(link_string: str) -> tuple[int, bytes]:
@@ -67,18 +79,55 @@ def read_active(link_string: str) -> tuple[int, bytes]:
     return active.generation, bytes(active.table)
 
 
-def _upload(link_string: str, params: CameraParams) -> None:
+def _upload(link_string: str, params: CameraParams, recording: bytearray | None = None) -> None:
+    """A safe upload; with ``recording``, every byte the host writes to the serial line is appended to it."""
     try:
         with open_link(link_string, timeout_s=5.0) as link:
+            if recording is not None:
+                write = link._port.write  # the line itself: what a recorder on the wire would capture
+                link._port.write = lambda data: (recording.extend(data), write(data))[1]
             safe_upload(link, params)
     except (LinkError, CommandRefused, UserError, OSError):
         pass  # the sensor died under the host: expected
 
 
-def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial") -> list[Trial]:
+def replay_piece(rng: random.Random, recording: bytes) -> tuple[str, bytes]:
+    """What to send again of a recorded upload: the whole of it, a random byte prefix, or a random subset of its
+    frames (each with its 0x00 delimiter) in random order; with a description."""
+    frames = [f + b"\x00" for f in recording.split(b"\x00") if f]
+    kind = rng.randrange(3)
+    if kind == 0 or len(frames) < 2:
+        return f"whole ({len(recording)} bytes)", recording
+    if kind == 1:
+        n = rng.randrange(1, len(recording))
+        return f"prefix of {n} bytes", recording[:n]
+    subset = rng.sample(frames, rng.randrange(1, len(frames) + 1))
+    return f"{len(subset)} of {len(frames)} frames, shuffled", b"".join(subset)
+
+
+def replay_on_line(link_string: str, data: bytes) -> tuple[int, bytes]:
+    """Send recorded bytes on the sensor's line as they are, then read the active set on the same line (the sensor
+    answers in order, so the replay has been handled when READ_ACTIVE's reply arrives)."""
+    with open_link(link_string) as link:
+        link._port.write(data)
+        link._port.flush()
+        active = link.read_active()
+    return active.generation, bytes(active.table)
+
+
+def session_counter(flash: Path) -> int:
+    """The sensor's persisted staging-session counter, read from its flash image file as a boot would."""
+    return banks.boot(banks.RamFlash(np.fromfile(flash, dtype=np.uint8))).nonce_counter
+
+
+def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial", replays: bool = True) -> list[Trial]:
     """``n_trials`` power cuts on one flash file in ``workdir``; returns each trial's outcome. Reading the active set
-    writes nothing to flash, so the emulator restarted to check a trial is already armed for the next one."""
+    writes nothing to flash, so the emulator restarted to check a trial is already armed for the next one. With
+    ``replays`` (serial only), a recorded upload is sent again after each restart (module docstring)."""
     rng = random.Random(seed)
+    replay_rng = random.Random(seed + 1)  # its own stream: the cut points do not depend on whether replays run
+    replays = replays and transport == "serial"
+    recordings: list[bytes] = []
     flash = workdir / "flash.img"
     cut_units = [rng.randrange(UPLOAD_UNITS) if k % 2 == 0 else None for k in range(n_trials)]  # None: outside
 
@@ -90,14 +139,17 @@ def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial
     emulator = EmulatorProcess(transport, EMULATOR_ARGS, flash_path=flash)
     try:
         t0 = time.monotonic()
-        _upload(emulator.link, SET_B)  # a first, uncut upload: its duration scales the outside kills
+        first = bytearray()
+        _upload(emulator.link, SET_B, first if replays else None)  # uncut: its duration scales the outside kills
         delay_max_s = DELAY_FACTOR * (time.monotonic() - t0)
+        recordings.append(bytes(first))
         emulator.stop()
         emulator = start(0)
         before = read_active(emulator.link)
         for k in range(n_trials):
             target = SET_B if before[1] == params_to_table(SET_A) else SET_A
-            upload = threading.Thread(target=_upload, args=(emulator.link, target))
+            recording = bytearray()
+            upload = threading.Thread(target=_upload, args=(emulator.link, target, recording if replays else None))
             upload.start()
             if cut_units[k] is not None:  # inside: the armed hook cuts the power
                 how = f"inside {cut_units[k]} units"
@@ -117,7 +169,17 @@ def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial
                 outcome = "new"
             else:
                 outcome = f"MIXED: generation {after[0]} (was {before[0]})"
-            trials.append(Trial(k, how, outcome))
+            what, replay_outcome, opened = "", "", 0
+            if replays:
+                if recording:
+                    recordings.append(bytes(recording))
+                what, data = replay_piece(replay_rng, recordings[replay_rng.randrange(len(recordings))])
+                counter = session_counter(flash)
+                again = replay_on_line(emulator.link, data)
+                opened = session_counter(flash) - counter  # > 0: the replay reached the sensor and was acted on
+                replay_outcome = "nothing activated" if again == after else f"ACTIVATED: generation {again[0]}"
+                after = again
+            trials.append(Trial(k, how, outcome, what, replay_outcome, opened))
             before = after
     finally:
         emulator.stop()
@@ -129,9 +191,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--transport", default="serial", choices=("serial", "can", "modbus"))
+    parser.add_argument("--no-replays", action="store_true", help="power cuts only (replays need --transport serial)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        trials = run_trials(args.trials, args.seed, Path(tmp), args.transport)
+        trials = run_trials(args.trials, args.seed, Path(tmp), args.transport, not args.no_replays)
     counts = Counter(t.outcome if t.outcome in ("old", "new") else "other" for t in trials)
     for t in trials:
         if t.outcome not in ("old", "new"):
@@ -142,7 +205,23 @@ def main(argv: list[str] | None = None) -> int:
         f"{len(trials)} power cuts: {counts['old']} old set, {counts['new']} new set, {counts['other']} other "
         f"(inside: {dict(inside)}; outside: {dict(outside)})"
     )
-    return 0 if counts["other"] == 0 else 1
+    replayed = [t for t in trials if t.replay]
+    activated = [t for t in replayed if t.replay_outcome != "nothing activated"]
+    for t in activated:
+        print(f"trial {t.index}: replay of {t.replay}: {t.replay_outcome}")
+    if replayed:
+        kinds = Counter("whole" if t.replay.startswith("whole") else t.replay.split()[0] for t in replayed)
+        kinds = {
+            "whole": kinds["whole"],
+            "prefix": kinds["prefix"],
+            "frame subsets": len(replayed) - kinds["whole"] - kinds["prefix"],
+        }
+        acted = sum(t.replay_sessions > 0 for t in replayed)
+        print(
+            f"{len(replayed)} replays of recorded uploads {kinds}: {len(replayed) - len(activated)} activated nothing; "
+            f"{acted} reached the sensor's staging (it opened a session for their STAGE_BEGIN)"
+        )
+    return 0 if counts["other"] == 0 and not activated else 1
 
 
 if __name__ == "__main__":

@@ -4,11 +4,13 @@ completes.
 
     python scripts/link_faults.py                      # 2,000 streamed frames per transport, BER 1e-4, 1 % drops
     python scripts/link_faults.py --frames 200 --transports serial,can
+    python scripts/link_faults.py --both-directions    # the same faults on the host -> sensor line too
 
 One JSON line per transport (``hostlink.emulator.fault_run.FaultRunResult``), then a summary line; exit code 1 if any
 transport fails a check. "Streamed frames" are frames the sensor sent, counted by frame counter from the first frame
-the host received; the faults are applied sensor -> host (``--direction`` of ``python -m hostlink.emulator.fault_relay``
-offers both). Expect minutes per Modbus transport: each lost answer costs one response timeout (40 ms here).
+the host received; the faults are applied sensor -> host, and with ``--both-directions`` host -> sensor too (the
+commands and, on Modbus, every read request). Expect 15-30 minutes per Modbus transport: each lost answer costs one
+response timeout (40 ms here), and the sensor's stream window holds frames until the host has read them.
 """
 
 from __future__ import annotations
@@ -30,11 +32,22 @@ def main() -> int:
     parser.add_argument("--drop", type=float, default=0.01)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--transports", default=",".join(TRANSPORTS))
+    parser.add_argument("--both-directions", action="store_true", help="faults on the host -> sensor line too")
     args = parser.parse_args()
     ok = True
     for name in args.transports.split(","):
+        if name not in TRANSPORTS:
+            parser.error(f"unknown transport {name!r} (known: {', '.join(TRANSPORTS)})")
         transport, rtu = TRANSPORTS[name]
-        r = stream_through_faults(transport, args.frames, ber=args.ber, drop=args.drop, seed=args.seed, rtu=rtu)
+        r = stream_through_faults(
+            transport,
+            args.frames,
+            ber=args.ber,
+            drop=args.drop,
+            seed=args.seed,
+            rtu=rtu,
+            both_directions=args.both_directions,
+        )
         good = r.corrupt_accepted == 0 and r.reported_loss == r.true_loss and r.frames_spanned >= args.frames
         ok &= good
         print(json.dumps({**r.as_dict(), "pass": good}), flush=True)

@@ -63,6 +63,7 @@ def test_onboard_estimator_tracks_the_focal_drift(bench_report):
     _, summary, _ = bench_report
     track = summary["drift_tracking"]
     assert track["frames_streamed"] == 1500  # the replay's spare frames cover what is in flight between the phases
+    assert summary["success"] is True and track["complete"] is True and track["frames_expected"] == 1500
     # the sensor's budget gives every 1 s exposure to the estimator, however busy the host (issue 10: >= 90 %)
     assert track["estimator_updates"] == track["sensor_exposures"] >= 1500
     # issue 4's bar is 1 um RMS after 3000 frames; over this shorter 1500-frame run the drift detector switches on

@@ -6,8 +6,10 @@ from synthetic_sessions import synthetic_session
 from test_calibration_chunked import SEED004, SEED004_NOMINAL, _split, assert_same_camera
 
 from hostlink.calibration.distributed import DaskPasses, dask_client, map_sensors
-from hostlink.calibration.run import calibrate_chunks
+from hostlink.calibration.run import calibrate_archive, calibrate_chunks
 from hostlink.errors import UserError
+from hostlink.files.session import write_session
+from hostlink.sky.simulate import seed004_config, simulate
 
 pytest.importorskip("distributed")
 
@@ -41,3 +43,18 @@ def test_unreachable_scheduler_is_a_one_line_error():
     with pytest.raises(UserError, match="cannot reach the Dask scheduler"):
         with dask_client("tcp://127.0.0.1:9", timeout_s=1):
             pass
+
+
+def test_archive_on_a_local_cluster_of_two_processes_gives_the_camera_of_one_process(tmp_path):
+    """What ``hostlink calibrate FILES --dask`` runs: a LocalCluster of two worker processes (not threads: the
+    real path, ~5 s of start-up), the spooled chunks loaded on the workers from their file names; the results
+    added in chunk order, so bit for bit."""
+    session = simulate(seed004_config(frames=60, seed=43)).session
+    half = int(session.frame_starts[30])
+    files = [str(tmp_path / "night1.parquet"), str(tmp_path / "night2.parquet")]
+    write_session(files[0], session.select(np.arange(half)))
+    write_session(files[1], session.select(np.arange(half, len(session))))
+    one, _ = calibrate_archive(files, SEED004_NOMINAL, chunk_frames=20)
+    on_dask, _ = calibrate_archive(files, SEED004_NOMINAL, chunk_frames=20, dask="local", dask_workers=2)
+    np.testing.assert_array_equal(on_dask.theta, one.theta)
+    assert on_dask.rejected == one.rejected and len(on_dask.history) == len(one.history)

@@ -149,3 +149,43 @@ def test_radec_unit_vector_round_trip():
     np.testing.assert_allclose(ra2, ra, atol=1e-12)
     np.testing.assert_allclose(dec2, dec, atol=1e-12)
     np.testing.assert_allclose(radec_to_unit(np.array([0.0]), np.array([np.pi / 2]))[0], [0, 0, 1], atol=1e-15)
+
+
+@pytest.mark.parametrize("params", [FULL_WENG, SEED004], ids=["full-weng", "seed004"])
+def test_applied_distortion_partials_jacobian_matches_complex_step(params):
+    """d(P w)/d theta in closed form against the complex step of distortion_partials (Squire and Trapp 1998: no
+    subtraction, so exact to round-off for this polynomial; 1e-12 relative is ~1e4 unit round-offs of the sums)."""
+    from onboard.camera import distortion_partials, distortion_partials_applied_jacobian
+
+    x, y = _grid(params)
+    theta = params.model_vector()
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=x.size), rng.normal(size=x.size)
+    got = distortion_partials_applied_jacobian(x - theta[1], y - theta[2], theta, a, b)
+    h = 1e-30
+    for k in range(10):
+        step = np.zeros(10, dtype=complex)
+        step[k] = 1j * h * max(abs(theta[k]), 1e-30)
+        th = theta + step
+        dx_u, dx_v, dy_u, dy_v = distortion_partials(x - th[1], y - th[2], th)
+        want = np.stack([dx_u * a + dx_v * b, dy_u * a + dy_v * b], axis=1).imag / step[k].imag
+        scale = np.max(np.abs(want)) + 1e-300
+        np.testing.assert_allclose(got[:, :, k] / scale, want / scale, rtol=0, atol=1e-12, err_msg=f"column {k}")
+
+
+def test_applied_distortion_partials_jacobian_keeps_float32():
+    """The sensor's dtype in, the sensor's dtype out: float32 within 1e-5 relative of float64 (the columns are
+    sums of a few terms of mixed sign at the detector's corner: ~100 float32 round-offs of the largest term)."""
+    from onboard.camera import distortion_partials_applied_jacobian
+
+    x, y = _grid(FULL_WENG)
+    t64 = FULL_WENG.model_vector()
+    u, v = x - t64[1], y - t64[2]
+    ones = np.ones_like(u)
+    j64 = distortion_partials_applied_jacobian(u, v, t64, ones, -ones)
+    t32 = FULL_WENG.model_vector(np.float32)
+    f32 = np.float32
+    j32 = distortion_partials_applied_jacobian(u.astype(f32), v.astype(f32), t32, ones.astype(f32), -ones.astype(f32))
+    assert j32.dtype == np.float32
+    col_scale = np.maximum(np.max(np.abs(j64), axis=(0, 1)), 1e-300)  # F column: zero
+    np.testing.assert_allclose(j32 / col_scale, j64 / col_scale, rtol=0, atol=1e-5)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -16,9 +17,11 @@ from hostlink.cli import main
 
 #: Placeholders in the cases: {S} a valid session, {N} a valid nominal, {DEEP} 100,000 nested '[', {DEEPOBJ} nested
 #: objects, {BIGINT} an integer of 5,000 digits, {NOTJSON}, {BIN} bytes that are not UTF-8, {ARR} a JSON array,
-#: {BADCSV} a CSV without the required columns, {EMPTY} an empty file, {T} a fresh directory, {FILE} a regular file
-#: (so {FILE}/x is a path that cannot be created, even by root), {MISSING} a path that does not exist. A case may end
-#: with ``=> TEXT``: the one line must contain TEXT (the refusal is for the reason the case is about).
+#: {TYPE_F}, {TYPE_PP}, {TYPE_DIST}, {TYPE_SIZE}, {TYPE_SIGMA} parameter files with every key but one value of the
+#: wrong type, {BADCSV} a CSV without the required columns, {EMPTY} an empty file, {T} a fresh directory, {FILE} a
+#: regular file (so {FILE}/x is a path that cannot be created, even by root), {MISSING} a path that does not exist,
+#: {LONGNAME} a file name of 5,000 characters. A
+#: case may end with ``=> TEXT``: the one line must contain TEXT (the refusal is for the reason the case is about).
 IN_PROCESS = [
     # parameter files, every reader of them
     "simulate --camera {DEEP} --frames 2 --out {T}/o.csv => nested too deeply",
@@ -38,6 +41,15 @@ IN_PROCESS = [
     "upload --link serial:{MISSING}@9600 {BIGINT}",
     "upload --link serial:{MISSING}@9600 {ARR}",
     "upload --link serial:{MISSING}@9600 {MISSING}",
+    # the right keys with values of the wrong type: refused naming the field, never read as something else
+    "upload --link serial:{MISSING}@9600 {TYPE_F} => focal_length_mm: expected a number",
+    "upload --link serial:{MISSING}@9600 {TYPE_PP} => principal_point_px: expected a list of two numbers",
+    "upload --link serial:{MISSING}@9600 {TYPE_DIST} => distortion: expected an object",
+    "upload --link serial:{MISSING}@9600 {TYPE_SIZE} => image_size_px[0]: expected a number",
+    "upload --link serial:{MISSING}@9600 {TYPE_SIGMA} => sigma.focal_length_mm",
+    "replay --nominal {TYPE_DIST} --out {T}/o.json {S} => distortion: expected an object",
+    "simulate --camera {TYPE_F} --frames 2 --out {T}/o.csv => focal_length_mm: expected a number",
+    "attitude --params {TYPE_PP} --out {T}/o.csv {S} => principal_point_px",
     "bench --camera {DEEP} --quiet --out {T}/b",
     "bench --nominal {MISSING} --quiet --out {T}/b",
     # simulate: wrong types and values
@@ -55,6 +67,10 @@ IN_PROCESS = [
     "simulate --camera builtin:seed004_camera --frames 2 --site a,b,c --out {T}/o.csv",
     "simulate --camera builtin:seed004_camera --frames 2 --site 10,10,10 --weather 20,-5 --out {T}/o.csv",
     "simulate --camera builtin:seed004_camera --frames 2 --out {FILE}/o.csv",
+    "simulate --camera builtin:seed004_camera --frames 2 --seed -1 --out {T}/o.csv => --seed must be a whole number",
+    "simulate --camera builtin:seed004_camera --frames 2 --out {T}/{LONGNAME} => cannot write",
+    "replay --nominal {N} --out {T}/o.json --trace {T}/{LONGNAME} {S} => cannot write",
+    "bench --seed -1 --frames 2 --quiet --out {T}/b => --seed must be a whole number",
     # session readers
     "calibrate --nominal {N} --out {T}/o.json {MISSING}",
     "calibrate --nominal {N} --out {T}/o.json {BADCSV}",
@@ -118,6 +134,7 @@ SUBPROCESS = [
     "emulate --transport serial --replay {BADCSV}",
     "emulate --transport serial --replay {EMPTY}",
     "emulate --transport serial --sim-frames 0",
+    "emulate --transport serial --seed -1 => --seed must be a whole number",
     "emulate --transport serial --estimate focal",
     "emulate --transport serial --flash {FILE}/flash.bin",
     "emulate --transport serial --power-cut-after 3",
@@ -141,6 +158,16 @@ def files(tmp_path_factory) -> dict[str, str]:
         "BADCSV": "frame,when\n1,2\n",
         "EMPTY": "",
     }
+    good = '"focal_length_mm": 70.0, "pixel_pitch_um": 12.0, "principal_point_px": [511.5, 511.5]'
+    texts |= {
+        "TYPE_F": '{"focal_length_mm": "70", "pixel_pitch_um": 12.0, "principal_point_px": [511.5, 511.5], '
+        '"image_size_px": [1024, 1024]}',
+        "TYPE_PP": '{"focal_length_mm": 70.0, "pixel_pitch_um": 12.0, "principal_point_px": 511.5, '
+        '"image_size_px": [1024, 1024]}',
+        "TYPE_DIST": "{" + good + ', "image_size_px": [1024, 1024], "distortion": 0}',
+        "TYPE_SIZE": "{" + good + ', "image_size_px": ["1024", "1024"]}',
+        "TYPE_SIGMA": "{" + good + ', "image_size_px": [1024, 1024], "sigma": {"focal_length_mm": "0.1"}}',
+    }
     paths = {}
     for key, text in texts.items():
         path = d / (key.lower() + (".csv" if key in ("BADCSV", "EMPTY") else ".json"))
@@ -151,6 +178,7 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "regular_file").write_text("a file, not a folder\n")
     paths["FILE"] = str(d / "regular_file")
     paths["MISSING"] = str(d / "no_such_file")
+    paths["LONGNAME"] = "n" * 5000  # a file name longer than any file system takes (ENAMETOOLONG)
     paths["S"] = str(d / "session.csv")
     assert main(["simulate", "--camera", "builtin:seed004_camera", "--frames", "3", "--out", paths["S"]]) == 0
     paths["N"] = "builtin:seed004_nominal"
@@ -188,3 +216,35 @@ def test_bad_option_of_the_console_script_is_one_line(case, files, tmp_path):
         stdin=subprocess.DEVNULL,
     )
     _assert_one_line_refusal(out.returncode, out.stderr, case)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "--camera", "builtin:seed004_camera", "--frames", "2", "--out"],
+        ["replay", "--nominal", "builtin:seed004_nominal", "{S}", "--out"],
+        ["attitude", "--params", "builtin:seed004_camera", "{S}", "--out"],
+        ["calibrate", "--nominal", "builtin:seed004_nominal", "{S}", "--out"],
+        ["identify", "--nominal", "builtin:seed004_nominal", "{S}", "--out"],
+    ],
+    ids=lambda argv: argv[0],
+)
+@pytest.mark.parametrize("path", ["", "."])
+def test_an_output_path_that_names_no_file_is_one_line(argv, path, files, capsys):
+    try:
+        code = main([a.format(**files) for a in argv] + [path])
+    except SystemExit as exc:
+        code = exc.code
+    _assert_one_line_refusal(code, capsys.readouterr().err, f"{argv[0]} --out {path!r}")
+
+
+def test_a_library_warning_is_one_line_naming_the_command(files, tmp_path, capsys):
+    """A session dated 2900 is read (UTC is defined then), but ERFA warns that no leap-second table reaches it: the
+    warning is one line like the command's errors, not Python's two lines with a source path."""
+    late = tmp_path / "late.csv"
+    late.write_text(Path(files["S"]).read_text().replace("2026-", "2900-"))
+    code = main(["replay", "--nominal", files["N"], "--out", str(tmp_path / "r.json"), str(late)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 0
+    assert len(lines) == 1 and lines[0].startswith("hostlink replay: warning: ErfaWarning: ")
+    assert "dubious year" in lines[0]

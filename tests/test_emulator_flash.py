@@ -2,14 +2,12 @@
 same file boots the last committed set; a kill -9 at any point of an upload leaves the complete old or complete new
 set; recorded serial upload bytes replayed after a restart activate nothing; bad --flash use is a one-line error."""
 
-import importlib.util
 import signal
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from emulator_fixtures import hostlink
+from scripts_loader import load_script
 
 from hostlink.emulator.flash import FileFlash
 from hostlink.emulator.process import EmulatorProcess
@@ -23,15 +21,6 @@ from onboard.params import CameraParams
 NOMINAL = CameraParams(70.0, 12.0, (511.5, 511.5), (1024, 1024))
 CAMERA = seed004_camera()
 FAST = ("--no-estimator", "--sim-frames", "5")  # the banks matter here, not the frames
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "flash_power_cuts.py"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("flash_power_cuts", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass resolves annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path):
@@ -98,11 +87,15 @@ def test_recorded_serial_upload_bytes_replayed_after_a_restart_activate_nothing(
 
 
 def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path):
-    """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times.
-    The 200-point acceptance run is ``scripts/flash_power_cuts.py --trials 200`` (docs/hardware.md)."""
-    trials = load_script().run_trials(20, seed=15, workdir=tmp_path)
+    """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times;
+    after each restart a recorded upload (whole, a prefix or some of its frames) is replayed on the line and activates
+    nothing. The 200-point acceptance run is ``scripts/flash_power_cuts.py --trials 200`` (docs/hardware.md)."""
+    trials = load_script("flash_power_cuts.py").run_trials(20, seed=15, workdir=tmp_path)
     assert [t.outcome for t in trials if t.outcome not in ("old", "new")] == []
     assert len(trials) == 20 and sum(t.how.startswith("inside") for t in trials) == 10
+    assert [t.replay_outcome for t in trials if t.replay_outcome != "nothing activated"] == []
+    # the replays were handled by the sensor (each opened a staging session), not lost on the way
+    assert sum(t.replay_sessions > 0 for t in trials) >= 10
 
 
 def test_the_power_cut_hook_kills_the_emulator_mid_commit(tmp_path):

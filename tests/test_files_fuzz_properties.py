@@ -7,36 +7,26 @@ and the long run judge alike.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from scripts_loader import load_script
 
 from hostlink.errors import UserError
 from hostlink.files.params import params_from_text
 from hostlink.files.session import read_session
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "fuzz.py"
 #: Examples per property: the generators' every branch many times over, about a second each in CI.
 EXAMPLES = 300
 _settings = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-def _load_fuzz():
-    spec = importlib.util.spec_from_file_location("hostlink_fuzz_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-fuzz = _load_fuzz()
+fuzz = load_script("fuzz.py")
 
 json_values = st.recursive(
     st.none()

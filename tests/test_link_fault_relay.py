@@ -6,11 +6,15 @@ Short runs (the sensor streams 200 frames on serial and CAN, 15 on each Modbus f
 costs a response timeout); the 2,000-frame acceptance run is ``python scripts/link_faults.py``.
 """
 
+import os
+import socket
+import time
+
 import numpy as np
 import pytest
 from emulator_fixtures import hostlink, running_emulator
 
-from hostlink.emulator.fault_relay import FaultModel, relay_link
+from hostlink.emulator.fault_relay import FaultModel, TcpRelay, relay_link
 from hostlink.emulator.fault_run import stream_through_faults
 from hostlink.files.session import write_session
 from hostlink.links import open_link
@@ -53,6 +57,42 @@ def test_a_noisy_line_delivers_no_corrupt_centroid_and_counts_its_loss_exactly(t
     assert r.corrupt_accepted == 0
     assert r.reported_loss == r.true_loss
     assert r.frames_spanned >= frames and r.frames_received >= 2  # the stream went on to the end
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="counts open file descriptors in Linux /proc")
+def test_the_tcp_relay_closes_each_connection_it_relayed():
+    """A Modbus host reconnects after every few failed exchanges: thousands of connections in a 2,000-frame run. The
+    relay must close both sockets of each ended connection (it once kept them open until the process ran out of file
+    descriptors, and then closed every new connection at once)."""
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(5.0)
+    relay = TcpRelay(server.getsockname(), FaultModel(), FaultModel())
+    open_fds = lambda: len(os.listdir("/proc/self/fd"))  # noqa: E731
+    try:
+        before = open_fds()
+        for _ in range(200):
+            host = socket.create_connection(("127.0.0.1", relay.port), timeout=5.0)
+            sensor, _ = server.accept()  # the relay's upstream connection
+            host.sendall(b"x")
+            assert sensor.recv(1) == b"x"
+            host.close()
+            sensor.close()
+        deadline = time.monotonic() + 30.0  # the relay's pumps notice the ends within their poll period
+        while open_fds() > before + 4 and time.monotonic() < deadline:
+            time.sleep(0.05)  # polling an observable count with a deadline, not a synchronisation by sleep
+        assert open_fds() <= before + 4  # at most the last connection's pair still closing
+    finally:
+        relay.close()
+        server.close()
+
+
+@pytest.mark.slow
+def test_faults_on_the_requests_too_still_deliver_no_corrupt_centroid_on_modbus():
+    """Both directions noisy: on Modbus the host -> sensor line carries every read request (several per frame), so a
+    garbled or truncated request must be answered by nothing the host would take for a snapshot."""
+    r = stream_through_faults("modbus", 15, ber=1e-4, drop=0.01, seed=5, both_directions=True)
+    assert r.up["bytes_dropped"] > 0  # requests were hit
+    assert r.corrupt_accepted == 0 and r.reported_loss == r.true_loss and r.frames_spanned >= 15
 
 
 @pytest.mark.slow

@@ -201,3 +201,37 @@ def test_a_stream_that_starts_the_moment_the_sensor_acknowledges_loses_no_frame(
     result = stream_frames(_EagerSensorLink(), None)
     assert [f.frame for f in result.frames] == [0, 1, 2]
     assert (result.lost_messages, result.corrupt_frames) == (0, 0)
+
+
+def _drop_estimate_reads_while(state: dict):
+    """A tamper hook: READ_ESTIMATE commands (every resend too) vanish on the line while ``state["drop"]``."""
+    from protocol.messages import MsgType, decode
+
+    def tamper(data: bytes) -> bytes | None:
+        return None if state["drop"] and decode(data).TYPE == MsgType.READ_ESTIMATE else data
+
+    return tamper
+
+
+@pytest.mark.parametrize("allowed, completes", [(2, True), (1, False)])
+def test_a_stream_goes_on_through_the_allowed_run_of_unanswered_polls(allowed, completes):
+    """Polls after frames 10 and 15 get no reply (their commands are lost, whatever the host's speed): with 2 misses
+    allowed the stream completes and reports them as unanswered; with 1 the second miss ends it with the LinkError."""
+    from hostlink.links.operations import StreamResult, stream_frames
+
+    state = {"drop": False}
+    link = LoopbackLink(_sensor(40), timeout_s=0.05, tamper=_drop_estimate_reads_while(state))
+
+    def on_frame(_frame) -> None:
+        state["drop"] = 9 <= result.frames_received < 19  # frames_received counts up to the frame just in hand
+
+    result = StreamResult()
+    if completes:
+        stream_frames(link, 30, result=result, on_frame=on_frame, poll_every_frames=5, missed_polls_allowed=allowed)
+        assert [p.answered for p in result.polls] == [True, False, False, True, True, True]
+        assert result.frames_received == 30 and not result.polls[1].estimate
+        assert "no reply to READ_ESTIMATE" in result.polls[1].reason
+    else:
+        with pytest.raises(LinkError, match="no reply to READ_ESTIMATE"):
+            stream_frames(link, 30, result=result, on_frame=on_frame, poll_every_frames=5, missed_polls_allowed=allowed)
+        assert [p.answered for p in result.polls] == [True, False] and result.frames_received == 15

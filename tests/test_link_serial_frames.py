@@ -46,6 +46,19 @@ def test_gaps_and_corruption_are_counted_and_frames_still_arrive():
     link.close()
 
 
+def test_a_reply_lost_mid_stream_is_not_counted_as_a_lost_frame():
+    """Stream messages are numbered apart from replies: a reply lost on the line between two consecutive frames
+    (the host times out and resends) leaves no gap in the stream's numbers; a reply that arrives counts nothing."""
+    link = open_link("serial:loop://", timeout_s=0.5)
+    ack = m.Ack(tag=7, command=int(m.MsgType.READ_ESTIMATE), value=0)
+    wire = [encode_frame(0, m.encode(frame(0))), encode_frame(40, m.encode(ack)), encode_frame(1, m.encode(frame(1)))]
+    wire.append(encode_frame(2, m.encode(frame(2))))  # between 1 and 2 the reply numbered 41 is lost: not on the wire
+    link._port.write(b"".join(wire))
+    assert [link.recv_frame().frame for _ in range(3)] == [0, 1, 2]
+    assert link.stats.lost_messages == 0
+    link.close()
+
+
 def test_end_of_stream_ends_recv_frame():
     link = open_link("serial:loop://", timeout_s=0.5)
     link._port.write(encode_frame(0, m.encode(frame(0))) + encode_frame(1, m.encode(m.EndOfStream(frames_sent=1))))

@@ -8,7 +8,7 @@ import pytest
 
 from hostlink.portkit import costs
 from hostlink.portkit.costs import Ops, count_operations, counted
-from onboard import fixedpoint, interstar, ud
+from onboard import apparent, fixedpoint, interstar, refraction, ud
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
 from onboard.recursive import RecursiveConfig, update_cost_flops
 
@@ -17,9 +17,16 @@ def test_the_instrumented_counter_counts_a_known_expression_and_restores_numpy()
     a, b, c = (counted(np.arange(6, dtype=np.float32)) for _ in range(3))
     ops = count_operations(lambda: np.sqrt(a * b + c) / np.float32(2) + np.sum(a))
     assert ops == Ops(mul=6, add=6 + 5 + 6, div=6, sqrt=6)  # a b + c, the sum (5 additions), the final + (6)
-    zeros = np.zeros
+    zeros, asarray = np.zeros, np.asarray
     count_operations(lambda: np.zeros(3))
-    assert np.zeros is zeros  # the constructors are restored after counting
+    assert np.zeros is zeros and np.asarray is asarray  # the wrapped numpy functions are restored after counting
+
+
+def test_the_counter_sees_work_behind_np_asarray():
+    # onboard functions begin with r = np.asarray(r); that must not hide the rest of their work from the count
+    a = counted(np.arange(4, dtype=np.int64))
+    assert count_operations(lambda x: np.asarray(x) * 3 + 1, a) == Ops(mul=4, add=4)
+    assert count_operations(lambda: np.asarray(np.arange(4)) * 3) == Ops()  # plain inputs stay plain
 
 
 @pytest.mark.parametrize("n_stars", [3, 7, 32])
@@ -83,3 +90,39 @@ def test_cost_table_reuses_the_estimators_own_budget_model():
     assert "N = 24 stars, P = 45 pairs, K = 6 states" in text
     with pytest.raises(ValueError, match="at least 3 stars"):
         costs.cost_table(2)
+
+
+@pytest.mark.parametrize("n_stars", [3, 7, 32])
+def test_counted_fixed_point_site_correction_and_apparent_place_equal_an_instrumented_run(n_stars):
+    from onboard.site import Weather
+    from onboard.timescale import make_time
+
+    _, _, r = costs._stars(n_stars, np.float64)
+    coef = refraction.fixed_refraction(Weather(10.0, 1013.25, 0.5))
+    zenith = fixedpoint.quantise_unit_q30(np.array([0.0, 0.6, 0.8]))
+    beta = refraction.beta_q48(np.array([210.0, -340.0, 120.0]))
+    got = count_operations(
+        refraction.topocentric_observed_q30, counted(fixedpoint.quantise_unit_q30(r)), zenith, beta, coef
+    )
+    assert got == costs.refraction_fixed_ops(n_stars)
+    rng = np.random.default_rng(n_stars)
+    pm = rng.normal(0.0, 1e-6, (n_stars, 3))
+    r0, pm_q, plx_q = apparent.fixed_catalogue(r, pm, rng.uniform(0.0, 300.0, n_stars))
+    inst = apparent.fixed_instant(make_time(9497, 1 << 31), apparent.EPOCH_HIPPARCOS_JYEAR)
+    got = count_operations(apparent.apparent_place_vectors_q30, counted(r0), counted(pm_q), counted(plx_q), inst)
+    assert got == costs.apparent_place_fixed_ops(n_stars)
+
+
+def test_bank_record_row_counts_the_generated_c_crc_loop():
+    from hostlink.portkit.export_c import generate_c
+    from onboard.banks import BANK_RECORD_BYTES
+
+    source = "".join(generate_c().values())
+    assert source.count(costs.CRC32_BYTE_STEP_C) == 1  # the one CRC loop the formula counts, as generated
+    ops = costs.bank_record_verify_ops()
+    assert ops.shift == 4 * (BANK_RECORD_BYTES - 4) + 1  # 2 XOR, mask, shift per byte before the CRC; final XOR
+    rows = {(r.function, r.precision): r for r in costs.cost_table(8, 10)}
+    assert rows[("bank_record_verify", "bytes")].ops == ops
+    assert rows[("apparent_place_instant", "float64")].ops == costs.apparent_instant_ops()  # once per frame
+    assert rows[("apparent_place", "fixed")].ops == costs.apparent_place_fixed_ops(8)
+    assert rows[("refraction_by_addition", "fixed")].ops == costs.refraction_fixed_ops(8)

@@ -297,3 +297,61 @@ def test_stream_and_simulate_write_parquet_holding_what_they_write_as_csv(tmp_pa
     csv, parquet = read_session(tmp_path / "s.csv"), read_session(tmp_path / "s.parquet")
     assert np.max(np.abs(csv.x_px - parquet.x_px)) <= 5e-7  # simulate's CSV: 6 decimals; Parquet: float64 as is
     assert (tmp_path / "s.truth.json").exists() and list(csv.t_utc) == list(parquet.t_utc)
+
+
+def test_reading_in_chunks_holds_one_chunk_whatever_the_length_of_the_file(tmp_path, monkeypatch, fmt):
+    import tracemalloc
+
+    monkeypatch.setattr(session_module, "CSV_BLOCK_BYTES", 4096)  # small reader blocks, so that a file of a few
+    monkeypatch.setattr(columnar, "READ_BATCH_ROWS", 64)  # thousand rows is read in many of them
+
+    def peak_bytes(path, whole: bool) -> int:
+        tracemalloc.start()
+        if whole:
+            assert len(read_session(path))
+        else:
+            for chunk in read_session_chunks(path, 10):
+                assert chunk.n_frames <= 10
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        return peak
+
+    paths = {}
+    for n_frames in (100, 1000):
+        paths[n_frames] = tmp_path / f"s{n_frames}.{fmt}"
+        write_session(paths[n_frames], _session(n_frames, seed=n_frames))
+    peak_bytes(paths[100], whole=False)  # the first read imports pyarrow's modules: not the reader's memory
+    small, large = peak_bytes(paths[100], whole=False), peak_bytes(paths[1000], whole=False)
+    grown_whole = peak_bytes(paths[1000], whole=True) - peak_bytes(paths[100], whole=True)
+    # the whole session in memory grows by ~0.8 kB a frame (measured: ~800 kB for the 900 more frames); in chunks
+    # the reader holds a block and a chunk (measured: the same peak, ~56 kB, for both files). Allowed: 100 kB, an
+    # eighth of what holding the file would add
+    assert grown_whole > 500_000, grown_whole
+    assert large - small < 100_000, (small, large)
+
+
+def test_many_time_stamps_parse_in_one_pass_to_the_same_bits_as_one_at_a_time():
+    from hostlink.files.times import VECTOR_PARSE_FROM, parse_iso_utc, parse_iso_utc_many
+
+    rng = np.random.default_rng(5)
+    texts = []
+    for k in range(300):
+        decimals = "".join(str(d) for d in rng.integers(0, 10, size=int(rng.integers(0, 13))))
+        second = f"{int(rng.integers(0, 60)):02d}" + (f".{decimals}" if decimals else "")
+        zone = ["Z", "+00:00", "-0000", ""][k % 4]
+        texts.append(
+            f"{2000 + k % 25}-{1 + k % 12:02d}-{1 + k % 28:02d}{'T '[k % 2]}{k % 24:02d}:{k % 60:02d}:{second}{zone}"
+        )
+    texts += [
+        " 2016-12-31T23:59:60.500Z ",
+        "2026-03-14T02:10:00.125Z\n",
+        "٢٠٢٦-03-14T02:10:00Z",
+    ]  # leap second, blanks,
+    # Arabic-Indic digits (Python's \d takes them; RE2's does not: the one-at-a-time parser decides)
+    assert len(texts) >= VECTOR_PARSE_FROM
+    jd1, jd2 = parse_iso_utc_many(texts)
+    one1, one2 = zip(*(parse_iso_utc_many([t]) for t in texts), strict=True)
+    assert np.array_equal(jd1, np.concatenate(one1)) and np.array_equal(jd2, np.concatenate(one2))
+    assert parse_iso_utc(texts[-1]) == (2026, 3, 14, 2, 10, 0.0)
+    with pytest.raises(ValueError, match=r"not an ISO 8601 UTC time: '2026-03-14T02:10'"):
+        parse_iso_utc_many([*texts, "2026-03-14T02:10"])

@@ -26,18 +26,27 @@ Robustness: interstar voting before the fit, Huber weights during it, gating aft
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData, frame_chunks, measured_directions
 from hostlink.calibration.frames import apply_attitude_increment, per_frame_products, triad_attitudes, wahba_svd
 from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_cost, huber_weights, vote_consistent_stars
-from onboard.camera import distortion_partials, ideal_offset_jacobians, ideal_offsets
+from onboard.camera import (
+    distortion_partials,
+    distortion_partials_applied_jacobian,
+    ideal_offset_jacobians,
+    ideal_offsets,
+    offsets_to_unit,
+)
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
-#: Most stars processed at once in a pass over the data: bounds the working arrays (~1.5 kB per star, ~30 MB per pass).
-DEFAULT_CHUNK_OBS = 20_000
+#: Most stars processed at once in a pass over the data: bounds the working arrays (~1.5 kB per star, ~8 MB per pass).
+#: Small enough that each temporary (~1 MB) stays in cache and is reused by the allocator rather than mapped afresh
+#: and page-faulted in: a pass at 5000 stars costs ~0.6 of one at 20 000 (measured at 10^4 frames; 4000-10 000 are
+#: all within 10 % of it), large enough that numpy's per-call overhead stays small.
+DEFAULT_CHUNK_OBS = 5_000
 
 
 @dataclass(frozen=True)
@@ -51,7 +60,11 @@ class BundleOptions:
     screen: bool = True  # interstar voting before the fit
     chunk_obs: int = DEFAULT_CHUNK_OBS
     ftol: float = 1e-12  # stop when the relative cost decrease of an accepted step is below this, or
-    step_tol: float = 1e-4  # when a step moves the camera by less than this many standard deviations
+    # when a step moves the camera by less than this many standard deviations (the step is applied: Gauss-Newton
+    # here shrinks each step ~50-fold, so <= 4e-4 sigma is left, 1.4e-4 measured at 10^4 frames;
+    # tests/test_calibration_chunked.py checks 1e-3). 0.02 rather than 0.01: the first step after a few stars are
+    # gated is ~0.015 sigma, and it then ends the round on the gating pass's sums, without a pass of its own
+    step_tol: float = 2e-2
     progress: Callable[[dict], None] | None = None
 
 
@@ -106,8 +119,34 @@ def _inverse_2x2(jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     return jc[:, 1, 1] / det, -jc[:, 0, 1] / det, -jc[:, 1, 0] / det, jc[:, 0, 0] / det
 
 
+@dataclass(frozen=True)
+class CameraTerms:
+    """What the camera ``theta`` gives every star of a block, whatever its frame's attitude: the ideal offsets q
+    (n, 2) [px], their Jacobian dq/dtheta (n, 2, 10), the entries (i00, i01, i10, i11) of the whitening Jc^-1 and
+    the measured offsets (u, v) from the principal point [px]. Computed once per block and camera
+    (:func:`camera_terms`), shared by the attitude steps and the camera's normal equations of a pass."""
+
+    q: np.ndarray
+    jq_theta: np.ndarray
+    jc_inv: tuple
+    u: np.ndarray
+    v: np.ndarray
+
+
+def camera_terms(x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray) -> CameraTerms:
+    """:class:`CameraTerms` of the centroids (x, y) [px] at the camera ``theta`` (``onboard.camera``)."""
+    q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
+    return CameraTerms(q, jq_theta, _inverse_2x2(jc), x_px - theta[1], y_px - theta[2])
+
+
 def observation_terms(
-    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray, cols: np.ndarray
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    attitude_obs: np.ndarray,
+    theta: np.ndarray,
+    cols: np.ndarray,
+    cam: CameraTerms | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whitened residuals and their Jacobians for a block of stars.
 
@@ -116,22 +155,24 @@ def observation_terms(
     increment. J_theta is the exact derivative of e, including that of the whitening Jc^-1 (which depends on the
     principal point and the distortion): with the whitening held fixed, the Gauss-Newton fixed point is not the
     minimum of sum |e|^2 and, along the weak principal-point/decentering/attitude direction, lies many standard
-    deviations from it (:func:`whitening_jacobian`).
+    deviations from it (:func:`whitening_jacobian`). ``cam``: the block's :func:`camera_terms` at ``theta`` when
+    already computed.
     """
-    q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
+    cam = cam if cam is not None else camera_terms(x_px, y_px, theta)
+    q, jq_theta = cam.q, cam.jq_theta
     focal_px = theta[0]
     s, p, inv_z = _projection(r, attitude_obs, focal_px)
-    i00, i01, i10, i11 = _inverse_2x2(jc)
+    i00, i01, i10, i11 = cam.jc_inv
     d = q - p
     e = np.stack([i00 * d[:, 0] + i01 * d[:, 1], i10 * d[:, 0] + i11 * d[:, 1]], axis=1)
     jt = jq_theta[:, :, cols]
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
         jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
-    j_theta = np.stack(
-        [i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1], i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]], axis=1
-    )
-    j_theta += whitening_jacobian(x_px - theta[1], y_px - theta[2], theta, cols, e, (i00, i01, i10, i11))
+    jt += whitening_jacobian(cam.u, cam.v, theta, cols, e, (i00, i01, i10, i11), whitened=False)
+    j_theta = np.empty_like(jt)
+    j_theta[:, 0] = i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1]
+    j_theta[:, 1] = i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]
     return e, j_theta, _attitude_jacobian(s, p, inv_z, focal_px, (i00, i01, i10, i11))
 
 
@@ -144,21 +185,35 @@ def _attitude_jacobian(s: np.ndarray, p: np.ndarray, inv_z: np.ndarray, focal_px
     fz = focal_px * inv_z
     a0z, a1z = -p[:, 0] * inv_z, -p[:, 1] * inv_z
     sx, sy, sz = s[:, 0], s[:, 1], s[:, 2]
-    c0 = np.stack([-a0z * sy, a0z * sx - fz * sz, fz * sy], axis=1)
-    c1 = np.stack([fz * sz - a1z * sy, a1z * sx, -fz * sx], axis=1)
-    return -np.stack([i00[:, None] * c0 + i01[:, None] * c1, i10[:, None] * c0 + i11[:, None] * c1], axis=1)
+    out = np.empty((s.shape[0], 2, 3))
+    # column by column (no stacked temporaries): c0 = (dp_0/ds) x s, c1 = (dp_1/ds) x s, then -Jc^-1 (c0, c1)
+    for j, (c0, c1) in enumerate(
+        ((-a0z * sy, fz * sz - a1z * sy), (a0z * sx - fz * sz, a1z * sx), (fz * sy, -fz * sx))
+    ):
+        out[:, 0, j] = -(i00 * c0 + i01 * c1)
+        out[:, 1, j] = -(i10 * c0 + i11 * c1)
+    return out
 
 
 def attitude_terms(
-    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    attitude_obs: np.ndarray,
+    theta: np.ndarray,
+    cam: CameraTerms | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Whitened residuals e (n, 2) and their attitude Jacobian J_phi (n, 2, 3) alone (the camera held): the
-    per-frame attitude steps of :func:`frame_attitudes`. Same e and J_phi as :func:`observation_terms`."""
-    q_u, q_v = ideal_offsets(x_px, y_px, theta)
-    dx_u, dx_v, dy_u, dy_v = distortion_partials(x_px - theta[1], y_px - theta[2], theta)
+    per-frame attitude steps of :func:`frame_attitudes`. Same e and J_phi as :func:`observation_terms`; ``cam``:
+    the block's :func:`camera_terms` when already computed (else only what e needs is)."""
+    if cam is None:
+        q_u, q_v = ideal_offsets(x_px, y_px, theta)
+        dx_u, dx_v, dy_u, dy_v = distortion_partials(x_px - theta[1], y_px - theta[2], theta)
+        jc = np.stack([np.stack([1 - dx_u, -dx_v], axis=-1), np.stack([-dy_u, 1 - dy_v], axis=-1)], axis=-2)
+        jc_inv = _inverse_2x2(jc)
+    else:
+        q_u, q_v, jc_inv = cam.q[:, 0], cam.q[:, 1], cam.jc_inv
     s, p, inv_z = _projection(r, attitude_obs, theta[0])
-    jc = np.stack([np.stack([1 - dx_u, -dx_v], axis=-1), np.stack([-dy_u, 1 - dy_v], axis=-1)], axis=-2)
-    jc_inv = _inverse_2x2(jc)
     i00, i01, i10, i11 = jc_inv
     d0, d1 = q_u - p[:, 0], q_v - p[:, 1]
     e = np.stack([i00 * d0 + i01 * d1, i10 * d0 + i11 * d1], axis=1)
@@ -166,33 +221,28 @@ def attitude_terms(
 
 
 def whitening_jacobian(
-    u: np.ndarray, v: np.ndarray, theta: np.ndarray, cols: np.ndarray, e: np.ndarray, jc_inv: tuple
+    u: np.ndarray,
+    v: np.ndarray,
+    theta: np.ndarray,
+    cols: np.ndarray,
+    e: np.ndarray,
+    jc_inv: tuple,
+    whitened: bool = True,
 ) -> np.ndarray:
     """d(Jc^-1) / d theta applied to d = Jc e: the part of de/dtheta that comes from the whitening (n, 2, K).
 
     Jc = I - P with P the distortion partials (``onboard.camera.distortion_partials``), so
-    d(Jc^-1)/dtheta_k d = Jc^-1 (dP/dtheta_k) e. P is linear in the coefficients k1..s2, so dP/dtheta_k is P at
-    the unit coefficient vector; for the principal point, dP/dx0 = -dP/du and dP/dy0 = -dP/dv, taken by the
-    complex step (Squire and Trapp 1998: Im P(u + i h) / h, exact to round-off for this polynomial). F: zero.
-    """
+    d(Jc^-1)/dtheta_k d = Jc^-1 (dP/dtheta_k) e, with (dP/dtheta_k) e in closed form
+    (``onboard.camera.distortion_partials_applied_jacobian``: P at the unit coefficient for k1..s2, minus its
+    derivative in u or v for the principal point, zero for F). ``whitened=False``: (dP/dtheta_k) e alone, before
+    the product with Jc^-1 (the caller applies Jc^-1 once to the sum with dq/dtheta)."""
+    pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1])[:, :, cols]
+    if not whitened:
+        return pe
     i00, i01, i10, i11 = jc_inv
-    out = np.zeros((u.shape[0], 2, cols.size))
-    h = 1e-30
-    for c, k in enumerate(cols):
-        if k == 0:
-            continue
-        if k in (1, 2):
-            du, dv = (-1j * h, 0.0) if k == 1 else (0.0, -1j * h)
-            dp = [part.imag / h for part in distortion_partials(u + du, v + dv, theta)]
-        else:
-            unit = np.zeros(10)
-            unit[k] = 1.0
-            dp = distortion_partials(u, v, unit)
-        p_e0 = dp[0] * e[:, 0] + dp[1] * e[:, 1]  # (dP/dtheta_k) e
-        p_e1 = dp[2] * e[:, 0] + dp[3] * e[:, 1]
-        out[:, 0, c] = i00 * p_e0 + i01 * p_e1
-        out[:, 1, c] = i10 * p_e0 + i11 * p_e1
-    return out
+    return np.stack(
+        [i00[:, None] * pe[:, 0] + i01[:, None] * pe[:, 1], i10[:, None] * pe[:, 0] + i11[:, None] * pe[:, 1]], axis=1
+    )
 
 
 def observation_residuals(
@@ -322,6 +372,10 @@ def initial_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
     return wahba_svd(measured_directions(data, theta), data.r, data.frame_starts)
 
 
+#: A trial step below this many standard deviations asks its pass for the final sums as well (``fit_round``): the
+#: steps here shrink ~50-fold each, so the next one is then most likely below ``BundleOptions.step_tol`` and the
+#: pass ends the round; the unit-weight normal matrix costs ~20 % of a pass, a separate final pass 100 %.
+FINAL_STEP_SIGMAS = 0.5
 #: Gauss-Newton steps of each frame's attitude at a fixed camera, from the closed-form TRIAD start
 #: (:func:`frame_attitudes`): the start is within ~2e-4 rad (centroid noise over the lever arm of one star) and one
 #: step of this nearly linear 3-parameter problem squares the error (to ~1e-8 rad, 1e-3 of the attitude noise). The
@@ -374,6 +428,11 @@ def robust_sigma_from_histogram(hist: np.ndarray) -> float:
     return float(np.exp(lo + (k + frac) * width) / RAYLEIGH_MEDIAN)
 
 
+def _lengths(e: np.ndarray) -> np.ndarray:
+    """|e| of residuals (n, 2): np.linalg.norm(e, axis=1)'s numbers without its per-call overhead."""
+    return np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1])
+
+
 def _weights(norm: np.ndarray, sigma_px: float, huber_k: float) -> np.ndarray:
     return np.ones_like(norm) if not np.isfinite(sigma_px) else huber_weights(norm, sigma_px, huber_k)
 
@@ -383,7 +442,11 @@ def _cost(norm: np.ndarray, sigma_px: float, huber_k: float) -> float:
 
 
 def frame_attitudes(
-    data: CalibrationData, theta: np.ndarray, sigma_px: float = np.inf, huber_k: float = 3.0
+    data: CalibrationData,
+    theta: np.ndarray,
+    sigma_px: float = np.inf,
+    huber_k: float = 3.0,
+    cam: CameraTerms | None = None,
 ) -> np.ndarray:
     """The attitude of every frame (M, 3, 3) that minimises its robust whitened cost at the camera ``theta``:
     TRIAD from the measured directions (:func:`hostlink.calibration.frames.triad_attitudes`), then
@@ -391,12 +454,14 @@ def frame_attitudes(
     weights of scale ``sigma_px`` (inf: plain least squares). A function of each frame alone, so the same for any
     split of the frames into chunks. With the attitudes eliminated this way the camera is fitted on the reduced
     cost sum_f min_C_f rho(e_f) (variable projection, Golub and Pereyra 1973), whose Gauss-Newton matrix is the Schur
-    complement of :func:`reduced_normal`."""
-    att = triad_attitudes(measured_directions(data, theta), data.r, data.frame_starts)
+    complement of :func:`reduced_normal`. ``cam``: the stars' :func:`camera_terms` at ``theta`` when already
+    computed (the directions are then (q, F) normalised, the same numbers as ``measured_directions``)."""
+    b = measured_directions(data, theta) if cam is None else offsets_to_unit(cam.q[:, 0], cam.q[:, 1], theta[0])
+    att = triad_attitudes(b, data.r, data.frame_starts)
     for _ in range(ATTITUDE_STEPS):
         att_obs = np.repeat(att, data.counts, axis=0)
-        e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta)
-        w = _weights(np.linalg.norm(e, axis=1), sigma_px, huber_k)
+        e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta, cam)
+        w = _weights(_lengths(e), sigma_px, huber_k)
         prod = per_frame_products(np.concatenate([jp, e[:, :, None]], axis=2), jp, w, data.frame_starts)
         att = apply_attitude_increment(att, -np.linalg.solve(prod[:, :3, :], prod[:, 3, :, None])[:, :, 0])
     return att
@@ -419,10 +484,15 @@ class PassSums:
     max_e_px: float = 0.0
     s_unit: np.ndarray | None = None  # final pass: S with unit weights, unscaled columns (the covariance)
     u_diag_unit: np.ndarray | None = None
+    #: final pass: the (non-final) sums of the same pass without the stars in ``over_gate`` (and the frames they
+    #: leave with fewer than three stars), i.e. the pass that starts the next round after gating, without a pass
+    regated: PassSums | None = None
 
     def merge(self, other: PassSums) -> PassSums:
         def add(a, b):
             return None if a is None or b is None else a + b
+
+        regated = None if self.regated is None or other.regated is None else self.regated.merge(other.regated)
 
         return PassSums(
             self.s + other.s,
@@ -437,12 +507,16 @@ class PassSums:
             max(self.max_e_px, other.max_e_px),
             add(self.s_unit, other.s_unit),
             add(self.u_diag_unit, other.u_diag_unit),
+            regated,
         )
 
 
-def empty_pass(k: int, final: bool = False) -> PassSums:
+def empty_pass(k: int, final: bool = False, regated: bool = True) -> PassSums:
+    """Zero sums of K camera columns; ``final``: with the unit-weight sums and (``regated``) the sums without the
+    gated stars, themselves final ones (:func:`chunk_pass`)."""
     z = np.zeros(0, dtype=np.int64)
-    unit = (np.zeros((k, k)), np.zeros(k)) if final else (None, None)
+    after = empty_pass(k, True, False) if regated else None
+    unit = (np.zeros((k, k)), np.zeros(k), after) if final else (None, None, None)
     return PassSums(
         np.zeros((k, k)), np.zeros(k), np.zeros(k), 0.0, 0.0, 0, 0, np.zeros(SCALE_HIST_BINS, np.int64), z, 0.0, *unit
     )
@@ -501,23 +575,43 @@ def chunk_pass(data: CalibrationData, req: PassRequest) -> PassSums:
         sub = without_rows(frames_of(data, f0, f1), req.excluded_rows)
         if sub.n_frames == 0:
             continue
-        try:
-            with np.errstate(all="ignore"):  # a trial camera far off can make a frame's terms non-finite
-                part = _sub_chunk_sums(sub, req)
-        except np.linalg.LinAlgError:
-            part = None
-        if part is None or not (np.isfinite(part.cost) and np.all(np.isfinite(part.s))):
+        part = _checked_sums(sub, req)
+        if part is None:
             out.cost = np.inf  # a camera some frame cannot be fitted with: the step is rejected
             return out
+        if req.final:
+            # the next round's first pass, after gating, for this sub-chunk: the same sums when no star of it is
+            # beyond the gate, else the sub-chunk again without those stars (exactly what that pass computes). It is
+            # a final pass too (unit-weight sums, stars beyond the same gate): when the next round's first step is
+            # already below the tolerance, it ends that round without a pass of its own
+            part.regated = replace(part) if part.over_gate.size == 0 else empty_pass(req.cols.size, True, False)
+            if part.over_gate.size:
+                left = without_rows(sub, np.sort(part.over_gate))
+                again = _checked_sums(left, req) if left.n_frames else None
+                if again is not None:
+                    part.regated = again
+                elif left.n_frames:
+                    part.regated.cost = np.inf
         out = out.merge(part)
     return out
 
 
+def _checked_sums(sub: CalibrationData, req: PassRequest) -> PassSums | None:
+    """:func:`_sub_chunk_sums`, or None when some frame's terms are not finite at the request's camera."""
+    try:
+        with np.errstate(all="ignore"):  # a trial camera far off can make a frame's terms non-finite
+            part = _sub_chunk_sums(sub, req)
+    except np.linalg.LinAlgError:
+        return None
+    return part if np.isfinite(part.cost) and np.all(np.isfinite(part.s)) else None
+
+
 def _sub_chunk_sums(sub: CalibrationData, req: PassRequest) -> PassSums:
-    att = frame_attitudes(sub, req.theta, req.sigma_px, req.huber_k)
+    cam = camera_terms(sub.x_px, sub.y_px, req.theta)
+    att = frame_attitudes(sub, req.theta, req.sigma_px, req.huber_k, cam)
     att_obs = np.repeat(att, sub.counts, axis=0)
-    e, jt, jp = observation_terms(sub.x_px, sub.y_px, sub.r, att_obs, req.theta, req.cols)
-    norm = np.linalg.norm(e, axis=1)
+    e, jt, jp = observation_terms(sub.x_px, sub.y_px, sub.r, att_obs, req.theta, req.cols, cam)
+    norm = _lengths(e)
     w = _weights(norm, req.sigma_px, req.huber_k)
     u, g, a, b, g_phi = normal_blocks(e, jt * req.col_scale[None, None, :], jp, w, sub.frame_starts)
     s, rhs, _ = reduced_normal(NormalBlocks(u, g, a, b, g_phi, e), 0.0)
@@ -608,10 +702,14 @@ def bundle_adjust_chunks(
     Each pass eliminates every frame's attitude at the pass's camera (:func:`frame_attitudes`) and sums the reduced
     normal equations (Schur complement) with Huber weights of a fixed robust scale. The first round is plain least
     squares to :data:`ROUGH_STEP_SIGMAS` (on ``warm_start``, a sample of the frames held in memory, when given). A
-    round ends at convergence with a final pass (also unit weights: the covariance; and the stars beyond
-    ``options.gate`` robust sigmas), which starts the next round at the new robust scale; the fit ends when no star
-    was gated and the scale moved by at most :data:`SCALE_ROUND_TOL`. ``options.screen`` is not used here (voting
-    is the caller's: ``excluded_rows``). Raises ValueError when no frame with three stars is left."""
+    round ends at convergence with a final pass (also unit weights: the covariance; the stars beyond
+    ``options.gate`` robust sigmas; the sums without them): the last trial pass when its step was below
+    :data:`FINAL_STEP_SIGMAS` (it was asked for them), else a pass of its own. Stars gated, the next round starts
+    from the final pass's sums without them (final sums too: a first step already below ``options.step_tol`` ends
+    that round on them); the fit ends when no star was gated and the scale moved by at most
+    :data:`SCALE_ROUND_TOL`. Typically three or four passes over the frames after a warm start (two final ones).
+    ``options.screen`` is not used here (voting is the caller's: ``excluded_rows``). Raises ValueError when no frame
+    with three stars is left."""
     opt = options or BundleOptions()
     cols = parameter_columns(opt.estimate)
     if cols.size == 0:
@@ -628,8 +726,11 @@ def bundle_adjust_chunks(
         return PassRequest(th, sig, cols, scale, drop, opt.huber_k, opt.chunk_obs, fin, gate_px)
 
     def fit_round(src, theta, cur, sigma, step_tol):
-        """LM iterations at a fixed robust scale from ``cur`` (the pass at ``theta``); returns theta, the pass
-        at it and whether it converged."""
+        """LM iterations at a fixed robust scale from ``cur`` (the pass at ``theta``); returns theta, the last
+        pass, the camera of that pass (theta less the last, tiny step when converged) and whether it converged.
+        A trial step below :data:`FINAL_STEP_SIGMAS` asks its pass for the final sums too (the covariance, the
+        gate and the sums without the gated stars): the next step will most likely end the round, and that pass
+        then serves as the round's final one."""
         # Gauss-Newton on the reduced cost, Marquardt's damping only after a step that fails; the first round
         # starts damped (from a nominal camera the full step can leave every star off the detector)
         damping = 1e-6 if not np.isfinite(sigma) else 0.0
@@ -647,17 +748,19 @@ def bundle_adjust_chunks(
                 # the step's size in standard deviations of the camera: sqrt(dx^T S dx) / sigma
                 step_sigmas = float(np.sqrt(max(dx @ cur.rhs, 0.0))) / noise
                 if step_sigmas < step_tol:
-                    return theta_new, cur, True  # converged: the final pass evaluates this last, tiny step
-                new = run_pass(src, request(theta_new, sigma))
+                    return theta_new, cur, theta, True  # converged: this last, tiny step is applied unevaluated
+                ask_final = bool(np.isfinite(sigma)) and src is source and step_sigmas < FINAL_STEP_SIGMAS
+                # the gate at the robust scale of the pass at theta (that of the pass itself is not known before it)
+                new = run_pass(src, request(theta_new, sigma, ask_final, opt.gate * noise if ask_final else np.inf))
                 # accepted when the cost does not rise beyond the rounding of its sum (a step at the minimum)
                 if np.isfinite(new.cost) and new.cost <= cur.cost * (1.0 + COST_ROUNDING):
                     accepted = True
                     break
                 if step_sigmas < SMALL_STEP_SIGMAS:
-                    return theta, cur, True  # a step this small that does not lower the cost: at the minimum
+                    return theta, cur, theta, True  # a step this small that does not lower the cost: at the minimum
                 damping = max(10.0 * damping, 1e-6)
             if not accepted:
-                return theta, cur, True  # no descent direction left at any damping: at the minimum to round-off
+                return theta, cur, theta, True  # no descent direction left at any damping: at the minimum
             decrease = (cur.cost - new.cost) / max(cur.cost, 1e-300)
             theta, cur = theta_new, new
             damping = damping / 10.0 if damping > 1e-12 else 0.0
@@ -674,8 +777,8 @@ def bundle_adjust_chunks(
             if opt.progress:
                 opt.progress(entry)
             if decrease < opt.ftol:
-                return theta, cur, True
-        return theta, cur, False
+                return theta, cur, theta, True
+        return theta, cur, theta, False
 
     def check(p: PassSums, first: bool) -> PassSums:
         if p.n_frames == 0 or not np.isfinite(p.cost):
@@ -690,26 +793,34 @@ def bundle_adjust_chunks(
     if warm_start is not None:
         warm = in_memory_source(warm_start)
         cur = check(run_pass(warm, request(theta, sigma)), True)
-        theta, cur, _ = fit_round(warm, theta, cur, sigma, ROUGH_STEP_SIGMAS)
+        theta, cur, _, _ = fit_round(warm, theta, cur, sigma, ROUGH_STEP_SIGMAS)
         sigma = robust_sigma_from_histogram(cur.hist)
     cur = check(run_pass(source, request(theta, sigma)), True)
     final = None
     converged = False
     for _round in range(opt.max_gate_rounds + 3):
         step_tol = opt.step_tol if np.isfinite(sigma) else ROUGH_STEP_SIGMAS
-        theta, last, converged = fit_round(source, theta, cur, sigma, step_tol)
+        theta, last, theta_last, converged = fit_round(source, theta, cur, sigma, step_tol)
         sigma_new = robust_sigma_from_histogram(last.hist)
-        final = check(run_pass(source, request(theta, sigma_new, True, opt.gate * sigma_new)), False)
+        if last.s_unit is not None:  # the round's last pass was also its final one (at the round's scale)
+            final, final_theta, final_scale = last, theta_last, sigma
+        else:
+            final = check(run_pass(source, request(theta, sigma_new, True, opt.gate * sigma_new)), False)
+            final_theta, final_scale = theta, sigma_new
         newly = np.setdiff1d(final.over_gate, gated)
         stable = np.isfinite(sigma) and abs(sigma_new / sigma - 1.0) <= SCALE_ROUND_TOL
-        sigma = sigma_new
         if newly.size and _round < opt.max_gate_rounds:
             gated = np.union1d(gated, newly)
-            cur = check(run_pass(source, request(theta, sigma)), False)
+            # the final pass's sums without the gated stars: the next round's first pass, without a pass (a final
+            # pass that was itself such sums has none: then a pass)
+            again = final.regated or run_pass(source, request(final_theta, final_scale))
+            theta, cur, sigma = final_theta, check(again, False), final_scale
             continue
         if stable or not converged or state["iteration"] >= opt.max_iter:
             break
-        cur = final  # its weighted sums are at the new scale: the next round starts from them
+        # the next round at the new scale starts from the final pass when it was made at that scale
+        cur = final if final_scale == sigma_new else check(run_pass(source, request(theta, sigma_new)), False)
+        sigma = sigma_new
     assert final is not None
     dof = max(2 * final.n_obs - cols.size - 3 * final.n_frames, 1)
     sigma_est = float(np.sqrt(final.sum_e2 / dof))

@@ -263,10 +263,46 @@ def padded_frames(data: CalibrationData, b: np.ndarray, f0: int, f1: int) -> Pad
     return PaddedFrames(pb, pr, valid, rows, frame, slot)
 
 
-def pair_angles_rad(v: np.ndarray) -> np.ndarray:
-    """Angles between all vectors of each padded frame (m, n, 3) -> (m, n, n) [rad], from the chord
-    |a - b|^2 = 2 - 2 a.b. In float64 the angle's error is ~1e-16 / angle rad (1e-13 rad at 1 mrad), far below
-    the voting tolerance and the interstar RMS of any real sensor; a batched matrix product keeps it fast."""
+def angle_from_dot_rad(dot: np.ndarray) -> np.ndarray:
+    """The angle [rad] between two unit vectors from their dot product, through the chord sqrt(2 - 2 a.b) (accurate
+    at small angles, where arccos is not). Monotone: the largest angle is that of the smallest dot product."""
+    # in place on one temporary: 2 - 2 a.b, then chord / 2 (>= 0), clipped at 1, arcsin, doubled (exact scalings)
+    x = np.array(dot, dtype=np.float64)  # a copy, also of a scalar (0-d: the in-place steps need an array)
+    x *= -2.0
+    x += 2.0
+    np.maximum(x, 0.0, out=x)
+    np.sqrt(x, out=x)
+    x *= 0.5
+    np.minimum(x, 1.0, out=x)
+    np.arcsin(x, out=x)
+    x *= 2.0
+    return x
+
+
+def upper_pairs(nmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """Slots (i, j), i < j, of every pair of a padded frame of ``nmax`` stars (numpy's upper-triangle order)."""
+    return np.triu_indices(nmax, 1)
+
+
+def pair_angles_upper_rad(
+    v: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], where: np.ndarray | None = None
+) -> np.ndarray:
+    """Angles [rad] between the vectors of each pair (:func:`upper_pairs`) of each padded frame (m, n, 3) ->
+    (m, P), from the chord |a - b|^2 = 2 - 2 a.b (:func:`angle_from_dot_rad`). In float64 the angle's error is
+    ~1e-16 / angle rad (1e-13 rad at 1 mrad), far below the voting tolerance and the interstar RMS of any real
+    sensor; a batched matrix product keeps it fast. ``where`` (m, P): only those pairs (the frames' real ones) get
+    their angle, the rest 0 (padding costs no arcsine)."""
     gram = v @ v.transpose(0, 2, 1)
-    chord = np.sqrt(np.maximum(2.0 - 2.0 * gram, 0.0))
-    return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
+    if where is None:
+        return angle_from_dot_rad(gram[:, pairs[0], pairs[1]])
+    out = np.zeros(where.shape)
+    out[where] = angle_from_dot_rad(gram.reshape(-1)[gram_positions(where, pairs, v.shape[1])])
+    return out
+
+
+def gram_positions(where: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], nmax: int) -> np.ndarray:
+    """Flat positions in the stacked (m, nmax, nmax) Gram matrices of the pairs (:func:`upper_pairs`) selected by
+    ``where`` (m, P), in the order of ``x[where]`` (frame by frame, pairs in order): one gather instead of two."""
+    mask = np.zeros((where.shape[0], nmax, nmax), dtype=bool)
+    mask[:, pairs[0], pairs[1]] = where
+    return np.flatnonzero(mask)  # row-major: frame by frame, pairs in upper-triangle order

@@ -42,7 +42,11 @@ def dask_client(
     try:
         if address == "local":
             cluster = LocalCluster(
-                n_workers=n_workers, threads_per_worker=1, processes=processes, dashboard_address=None
+                # the scheduler's HTTP endpoint on a free port: never a clash with another cluster on the machine
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=processes,
+                dashboard_address=":0",
             )
             client = Client(cluster)
         else:

@@ -19,9 +19,11 @@ plate solver's own calibration) is judged by exactly the same rule.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
+from hostlink.errors import UserError
 from hostlink.files.session import Session
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 
@@ -62,3 +64,94 @@ def held_out_residuals_rad(
                 continue
             out[row] = residuals_rad(b[row : row + 1], r[row : row + 1], c)[0]
     return out
+
+
+@dataclass(frozen=True)
+class CrossValidation:
+    """The held-out figure of a calibration (module docstring): ``folds`` fits, each without one fold of the frames,
+    each judged on the stars of its left-out frames.
+
+    rms_px: RMS over every judged star of the held-out angle [px, at each fold's focal length]; the figure to compare
+    two calibrations by. fit_rms_px: the in-fit residual RMS of the same folds' fits [px], for contrast (a model that
+    flatters itself shows fit_rms_px well below rms_px). focal_length_mm: each fold's fitted focal length [mm] (their
+    spread shows how much one fold's frames move the camera)."""
+
+    folds: int
+    n_stars: int
+    n_frames: int
+    rms_px: float
+    median_px: float
+    fit_rms_px: float
+    per_fold_rms_px: tuple[float, ...]
+    focal_length_mm: tuple[float, ...]
+
+    def as_dict(self) -> dict:
+        return {
+            "folds": self.folds,
+            "stars": self.n_stars,
+            "frames": self.n_frames,
+            "rms_px": self.rms_px,
+            "median_px": self.median_px,
+            "fit_rms_px": self.fit_rms_px,
+            "per_fold_rms_px": list(self.per_fold_rms_px),
+            "focal_length_mm": list(self.focal_length_mm),
+        }
+
+
+def cross_validate(
+    session: Session,
+    nominal,
+    folds: int = 3,
+    site=None,
+    weather=None,
+    dut1_s: float = 0.0,
+    **calibrate_options,
+) -> CrossValidation:
+    """k-fold held-out judgement of :func:`hostlink.calibration.run.calibrate_session` on ``session`` from
+    ``nominal`` (a :class:`onboard.params.CameraParams`; ``site``, ``weather``, ``dut1_s`` and ``calibrate_options``
+    as for ``calibrate_session``): each fold's frames (:func:`hold_out_frames`) are left out of one fit and judged
+    by :func:`held_out_residuals_rad` through that fit's camera. Raises :class:`UserError` (one line) when a fold's
+    fit fails or fewer than 3 frames have identified stars."""
+    from hostlink.calibration.data import calibration_data_from_session
+    from hostlink.calibration.run import calibrate_session
+    from onboard.camera import pixels_to_unit
+
+    if folds < 2:
+        raise UserError(f"--hold-out {folds}: expected at least 2 folds")
+    _, references = calibration_data_from_session(session, site, weather, dut1_s)
+    r, usable = references.r, references.usable
+    n_frames = sum(1 for rows in session.frame_slices() if usable[rows].any())
+    if n_frames < folds:
+        raise UserError(f"--hold-out {folds}: only {n_frames} frames have identified stars; need one per fold")
+    judged: list[np.ndarray] = []
+    per_fold: list[float] = []
+    fit_rms: list[float] = []
+    focal_mm: list[float] = []
+    for fold in range(folds):
+        held = hold_out_frames(session, usable, folds, fold)
+        try:
+            outcome, _ = calibrate_session(
+                session.select(~held), nominal, site=site, weather=weather, dut1_s=dut1_s, **calibrate_options
+            )
+        except UserError as exc:
+            raise UserError(f"held-out fold {fold + 1} of {folds}: {exc}") from None
+        theta = outcome.params.model_vector()
+        res_rad = held_out_residuals_rad(session, lambda x, y, t=theta: pixels_to_unit(x, y, t), r, usable, held)
+        res_px = res_rad[np.isfinite(res_rad)] * float(theta[0])
+        judged.append(res_px)
+        per_fold.append(float(np.sqrt(np.mean(res_px**2))) if res_px.size else float("nan"))
+        fit_rms.append(float(outcome.after["rms_px"]))
+        focal_mm.append(float(outcome.params.focal_length_mm))
+    every = np.concatenate(judged)
+    if every.size == 0:
+        raise UserError("held-out judgement: no held-out star has two other stars in its frame to fix its attitude")
+    return CrossValidation(
+        folds=folds,
+        n_stars=int(every.size),
+        n_frames=n_frames,
+        rms_px=float(np.sqrt(np.mean(every**2))),
+        median_px=float(np.median(every)),
+        fit_rms_px=float(np.sqrt(np.mean(np.square(fit_rms)))),
+        per_fold_rms_px=tuple(per_fold),
+        focal_length_mm=tuple(focal_mm),
+    )

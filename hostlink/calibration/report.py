@@ -15,7 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostlink.calibration.bundle import residuals
-from hostlink.calibration.data import CalibrationData, frame_chunks, padded_frames, pair_angles_rad
+from hostlink.calibration.data import (
+    CalibrationData,
+    angle_from_dot_rad,
+    frame_chunks,
+    gram_positions,
+    padded_frames,
+    upper_pairs,
+)
 from hostlink.calibration.frames import wahba_svd
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
@@ -108,17 +115,29 @@ def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int =
 
 def interstar_sums(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> tuple[float, int]:
     """(sum of squared interstar angle differences [rad^2], number of pairs) of :func:`interstar_rms_rad`."""
-    b_all = pixels_to_unit(data.x_px, data.y_px, theta)
-    total, count = 0.0, 0
+    return interstar_sums_at(data, [theta], chunk_obs)[0]
+
+
+def interstar_sums_at(
+    data: CalibrationData, thetas: list[np.ndarray], chunk_obs: int = 20_000
+) -> list[tuple[float, int]]:
+    """:func:`interstar_sums` for each camera of ``thetas``, the catalogue angles computed once."""
+    bs = [pixels_to_unit(data.x_px, data.y_px, theta) for theta in thetas]
+    out = [(0.0, 0) for _ in thetas]
     starts = data.frame_starts
     for f0, f1 in frame_chunks(starts, chunk_obs):
-        pf = padded_frames(data, b_all, f0, f1)
-        nmax = pf.valid.shape[1]
-        upper = np.triu(np.ones((nmax, nmax), dtype=bool), 1)[None] & pf.valid[:, :, None] & pf.valid[:, None, :]
-        d = (pair_angles_rad(pf.b) - pair_angles_rad(pf.r))[upper]
-        total += float(np.sum(d * d))
-        count += d.size
-    return total, count
+        pf = padded_frames(data, data.r, f0, f1)
+        pairs = upper_pairs(pf.valid.shape[1])
+        use = pf.valid[:, pairs[0]] & pf.valid[:, pairs[1]]
+        pos = gram_positions(use, pairs, pf.valid.shape[1])
+        gram = np.empty(pf.valid.shape + pf.valid.shape[1:])  # one buffer for the three Gram matrices
+        ang_r = angle_from_dot_rad(np.matmul(pf.r, pf.r.transpose(0, 2, 1), out=gram).reshape(-1)[pos])
+        pb = np.zeros_like(pf.b)  # the same slots for every camera: the padding stays zero
+        for k, b_all in enumerate(bs):
+            pb[pf.frame, pf.slot] = b_all[pf.rows]
+            d = angle_from_dot_rad(np.matmul(pb, pb.transpose(0, 2, 1), out=gram).reshape(-1)[pos]) - ang_r
+            out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
+    return out
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:
@@ -315,7 +334,9 @@ def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = 20_000) -> float:
     for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
         pf = padded_frames(data, data.r, f0, f1)
         pair_ok = pf.valid[:, :, None] & pf.valid[:, None, :]
-        best = max(best, float(np.max(np.where(pair_ok, pair_angles_rad(pf.r), 0.0), initial=0.0)))
+        # the angle is monotone in the dot product: the largest is that of the smallest dot product
+        dot = np.min(np.where(pair_ok, pf.r @ pf.r.transpose(0, 2, 1), 1.0), initial=1.0)
+        best = max(best, float(angle_from_dot_rad(np.float64(dot))))
     return best
 
 

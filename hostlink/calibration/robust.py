@@ -19,7 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.data import CalibrationData, frame_chunks, padded_frames, pair_angles_rad
+from hostlink.calibration.data import (
+    CalibrationData,
+    frame_chunks,
+    padded_frames,
+    pair_angles_upper_rad,
+    upper_pairs,
+)
 from onboard.camera import pixels_to_unit
 
 #: median |e| of a 2-D isotropic Gaussian with unit sigma per axis (Rayleigh median sqrt(2 ln 2)).
@@ -49,13 +55,17 @@ def vote_consistent_stars(
         if nmax < 2:
             continue
         valid, rows, frame_local, slot = pf.valid, pf.rows, pf.frame, pf.slot
-        ang_b = pair_angles_rad(pf.b)
-        ang_r = pair_angles_rad(pf.r)
-        pair_ok = valid[:, :, None] & valid[:, None, :]
-        pair_ok &= ~np.eye(nmax, dtype=bool)[None]
+        pairs = upper_pairs(nmax)
+        pair_ok = valid[:, pairs[0]] & valid[:, pairs[1]]
+        ang_b = pair_angles_upper_rad(pf.b, pairs, pair_ok)
+        ang_r = pair_angles_upper_rad(pf.r, pairs, pair_ok)
         agree = (np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad) & pair_ok
-        others = np.maximum(pair_ok.sum(axis=2), 1)
-        frac = agree.sum(axis=2) / others
+        # each star's agreeing pairs: pair p counts for both its stars (0/1 sums, exact in floating point)
+        incidence = np.zeros((pairs[0].size, nmax))
+        incidence[np.arange(pairs[0].size), pairs[0]] = 1.0
+        incidence[np.arange(pairs[0].size), pairs[1]] = 1.0
+        others = np.maximum(valid.sum(axis=1) - 1, 1)
+        frac = (agree.astype(np.float64) @ incidence) / others[:, None]
         keep[rows] = frac[frame_local, slot] >= min_agreement
     return keep
 
@@ -140,11 +150,12 @@ def _pair_log_ratios(data: CalibrationData, b: np.ndarray, chunk_obs: int) -> np
         nmax = pf.valid.shape[1]
         if nmax < 2:
             continue
-        ang_b = pair_angles_rad(pf.b)
-        ang_r = pair_angles_rad(pf.r)
-        upper = np.triu(np.ones((nmax, nmax), dtype=bool), 1)[None] & pf.valid[:, :, None] & pf.valid[:, None, :]
-        longest = np.max(np.where(upper, ang_r, 0.0), axis=(1, 2))
-        use = upper & (ang_r >= SCALE_MIN_PAIR_FRACTION * longest[:, None, None]) & (ang_r > 0) & (ang_b > 0)
+        pairs = upper_pairs(nmax)
+        upper = pf.valid[:, pairs[0]] & pf.valid[:, pairs[1]]
+        ang_b = pair_angles_upper_rad(pf.b, pairs, upper)
+        ang_r = pair_angles_upper_rad(pf.r, pairs, upper)
+        longest = np.max(np.where(upper, ang_r, 0.0), axis=1)
+        use = upper & (ang_r >= SCALE_MIN_PAIR_FRACTION * longest[:, None]) & (ang_r > 0) & (ang_b > 0)
         out.append(np.log(ang_b[use] / ang_r[use]))
     return np.concatenate(out) if out else np.zeros(0)
 

@@ -10,12 +10,14 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.calibration.bundle import (
+    DEFAULT_CHUNK_OBS,
     BundleOptions,
     ChunkSource,
     PassRunner,
     bundle_adjust_chunks,
     covariance_from_normal,
     frame_attitudes,
+    frames_of,
     in_memory_source,
     residuals,
     serial_pass,
@@ -26,6 +28,7 @@ from hostlink.calibration.data import (
     CalibrationData,
     calibration_data_from_session,
     concatenate_data,
+    frame_chunks,
     load_chunk,
     measured_directions,
     save_chunk,
@@ -38,7 +41,7 @@ from hostlink.calibration.report import (
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
-    interstar_sums,
+    interstar_sums_at,
     max_pair_angle_rad,
     merge_sums,
     rejected_stars,
@@ -296,21 +299,26 @@ class _Screened:
 
 
 def _vote_chunk(data: CalibrationData, theta: np.ndarray) -> _Screened:
-    consistent = vote_consistent_stars(data, measured_directions(data, theta))
+    consistent = vote_consistent_stars(data, measured_directions(data, theta), chunk_obs=DEFAULT_CHUNK_OBS)
     rows = data.source_rows()[~consistent]
     return _Screened(rows.astype(np.int64), data.n_obs, data.n_frames, max_pair_angle_rad(data))
 
 
 def _stats_chunk(data, theta0, theta, excluded, sigma_px, huber_k) -> tuple[dict, dict, tuple, tuple]:
-    """Residual and interstar sums of one chunk's inliers, before (nominal, SVD attitudes) and after the fit."""
+    """Residual and interstar sums of one chunk's inliers, before (nominal, SVD attitudes) and after the fit, added
+    up over sub-chunks of the bundle's working size (``DEFAULT_CHUNK_OBS`` stars: small temporaries)."""
     fit = without_rows(data, excluded)
-    att = frame_attitudes(fit, theta, sigma_px, huber_k)
-    return (
-        residual_sums(fit, theta0, fitted_attitudes(fit, theta0)),
-        residual_sums(fit, theta, att),
-        interstar_sums(fit, theta0),
-        interstar_sums(fit, theta),
-    )
+    out = None
+    for f0, f1 in frame_chunks(fit.frame_starts, DEFAULT_CHUNK_OBS) or [(0, 0)]:
+        sub = frames_of(fit, f0, f1)
+        att = frame_attitudes(sub, theta, sigma_px, huber_k)
+        ib, ia = interstar_sums_at(sub, [theta0, theta])
+        before, after = residual_sums(sub, theta0, fitted_attitudes(sub, theta0)), residual_sums(sub, theta, att)
+        if out is not None:
+            before, after = merge_sums(out[0], before), merge_sums(out[1], after)
+            ib, ia = (out[2][0] + ib[0], out[2][1] + ib[1]), (out[3][0] + ia[0], out[3][1] + ia[1])
+        out = (before, after, ib, ia)
+    return out
 
 
 def sample_frames(source: ChunkSource, frames: np.ndarray) -> CalibrationData:
@@ -553,12 +561,14 @@ def spool_session(
     site: Site | None = None,
     weather: Weather | None = None,
     dut1_s: float = 0.0,
+    on_frames: Callable[[int], None] | None = None,
 ) -> tuple[ChunkSource, ReferencesSummary]:
     """Read the session of ``source`` (paths, a glob, .csv or .parquet: :func:`hostlink.files.session.
     read_session_chunks`) ``chunk_frames`` frames at a time, turn each chunk into calibration data with its
     reference directions (:func:`hostlink.calibration.data.session_chunk_data`) and write it to ``directory``
     (:func:`hostlink.calibration.data.save_chunk`), so every later pass reads arrays at disk speed and computes no
-    reference twice. Memory: one chunk. Raises UserError as :func:`calibrate_session` does."""
+    reference twice. Memory: one chunk. ``on_frames`` gets the number of frames read so far after each chunk (a
+    progress bar). Raises UserError as :func:`calibrate_session` does."""
     from hostlink.files.session import read_session_chunks
 
     files: list[str] = []
@@ -567,7 +577,11 @@ def spool_session(
     n_unidentified = 0
     unknown: list[np.ndarray] = []
     sources, refraction, time_known = set(), "none", True
+    frames_read = 0
     for k, chunk in enumerate(read_session_chunks(source, chunk_frames)):
+        frames_read += chunk.n_frames
+        if on_frames is not None:
+            on_frames(frames_read)
         check_on_detector(chunk, nominal.image_size_px, "the session", "the nominal parameters")
         n_identified += int(np.count_nonzero(chunk.star_id))
         data, refs = session_chunk_data(chunk, site, weather, dut1_s, offset)
@@ -608,6 +622,7 @@ def calibrate_archive(
     dask: str | None = None,
     dask_workers: int | None = None,
     spool_dir: str | Path | None = None,
+    on_frames: Callable[[int], None] | None = None,
 ) -> tuple[CalibrationOutcome, ReferencesSummary]:
     """Bundle calibration of a session of any length in bounded memory: ``source`` is what
     :func:`hostlink.files.session.read_session_chunks` reads (a path, a glob, several files; CSV or Parquet),
@@ -615,7 +630,8 @@ def calibrate_archive(
     temporary directory (in ``spool_dir`` when given) by :func:`spool_session`, then :func:`calibrate_chunks`:
     memory O(K^2 + one chunk), time linear in the frames. ``dask``: None (this process), ``"local"`` (a
     LocalCluster of ``dask_workers`` workers, default 2) or a scheduler address (``tcp://host:port``; its workers
-    must see ``spool_dir``). Other arguments, the checks and the failure rule as :func:`calibrate_session`; the
+    must see ``spool_dir``). ``on_frames``: frames read so far, after each chunk of the reading pass
+    (:func:`spool_session`). Other arguments, the checks and the failure rule as :func:`calibrate_session`; the
     outcome has no in-memory data (``data`` None; its counts in ``n_stars_used``/``n_frames_used``)."""
     import tempfile
 
@@ -629,7 +645,7 @@ def calibrate_archive(
     if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
         raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")
     with tempfile.TemporaryDirectory(prefix="hostlink-calibrate-", dir=spool_dir) as tmp:
-        chunks, references = spool_session(source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s)
+        chunks, references = spool_session(source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s, on_frames)
         try:
             if dask is None:
                 outcome = calibrate_chunks(chunks, nominal, estimate, noise_px, max_iter, progress)

@@ -86,15 +86,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--dask",
+        nargs="?",
+        const="local",
         metavar="ADDRESS",
-        help="map the chunks' normal equations over a Dask cluster: 'local' (a local cluster, --dask-workers "
-        "workers) or a scheduler address such as tcp://host:8786 (its workers must see --spool-dir)",
+        help="map the chunks' normal equations over a Dask cluster: without ADDRESS (or 'local') a local cluster of "
+        "--dask-workers processes; else a scheduler address such as tcp://host:8786 (its workers must see "
+        "--spool-dir)",
     )
     parser.add_argument("--dask-workers", type=int, metavar="N", help="workers of the --dask local cluster (default 2)")
     parser.add_argument(
         "--spool-dir",
         metavar="DIR",
         help="directory for the chunked path's temporary arrays (default: the system's temporary directory)",
+    )
+    parser.add_argument(
+        "--hold-out",
+        type=int,
+        metavar="K",
+        help="also judge the calibration on stars it did not see: K more fits, each without one K-th of the frames, "
+        "each judged on the stars of the frames it left out (attitude from the frame's other stars); reports their "
+        "RMS [px] beside the fit's own residual, the figure to compare calibrations of the same images by "
+        "(K >= 2; one CSV read whole)",
     )
     add_site_arguments(parser)
 
@@ -112,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--estimate {args.estimate!r}: {exc}") from None
     site, weather = site_and_weather(args)
     nominal = load_params(args.nominal)
+    if args.hold_out is not None and (args.hold_out < 2 or _chunked(args)):
+        raise UserError(f"--hold-out {args.hold_out}: expected K >= 2 folds and one CSV read whole")
     calibrate = _calibrate_chunks if _chunked(args) else _calibrate_whole
     outcome, references = calibrate(args, nominal, estimate, site, weather)
     failure = outcome.failure()
@@ -121,7 +135,12 @@ def run(args: argparse.Namespace) -> int:
         write_rejected(args.rejected, outcome.rejected_stars)
     if failure and not args.keep_failed:
         raise UserError(f"calibration failed: {failure}; nothing written (--keep-failed writes it anyway)")
-    save_params(args.out, outcome.params, result_extras(outcome, references))
+    extras = result_extras(outcome, references)
+    held_out = None
+    if args.hold_out is not None and not failure:
+        held_out = _held_out(args, nominal, estimate, site, weather)
+        extras["held_out"] = held_out.as_dict()
+    save_params(args.out, outcome.params, extras)
     if not args.quiet:
         unknown = references.unknown_rows
         ignored = references.n_unidentified - unknown.size
@@ -134,6 +153,12 @@ def run(args: argparse.Namespace) -> int:
             lines = ", ".join(str(int(k) + 2) for k in unknown[:10]) + (", ..." if unknown.size > 10 else "")
             print(f"skipped {unknown.size} star_id(s) not in the Hipparcos catalogue on line(s) {lines}")
         _print_report(outcome, args.out, outcome.time_note)
+        if held_out is not None:
+            print(
+                f"held out: {held_out.n_stars} stars of {held_out.n_frames} frames, each judged by a fit without its "
+                f"frame ({held_out.folds} folds): RMS {held_out.rms_px:.4g} px (those fits' own residual "
+                f"{held_out.fit_rms_px:.4g} px)"
+            )
     if args.plot:
         from hostlink.calibration.plots import write_calibration_plots
 
@@ -159,7 +184,7 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
 
     def progress(entry: dict) -> None:
         if not args.quiet and large:
-            print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
+            print(_iteration_line(entry), flush=True)
 
     return calibrate_session(
         session,
@@ -176,6 +201,33 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
     )
 
 
+def _held_out(args: argparse.Namespace, nominal, estimate, site, weather):
+    """k-fold held-out judgement of the same calibration (hostlink.calibration.holdout.cross_validate)."""
+    from hostlink.calibration.holdout import cross_validate
+    from hostlink.files.session import read_session
+
+    return cross_validate(
+        read_session(args.session[0]),
+        nominal,
+        args.hold_out,
+        site,
+        weather,
+        args.dut1,
+        method=args.method,
+        estimate=estimate,
+        noise_px=args.noise_px,
+        max_iter=args.max_iter,
+    )
+
+
+def _iteration_line(entry: dict) -> str:
+    """One line of progress per iteration of the fit (its history record)."""
+    line = f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}"
+    if "step_sigmas" in entry:
+        line += f", {entry['n_obs']} stars, step {entry['step_sigmas']:.3g} sigma"
+    return line
+
+
 def _chunked(args: argparse.Namespace) -> bool:
     """The chunked path: asked for, or a source only it reads (several files, a glob, Parquet)."""
     one = args.session[0]
@@ -186,6 +238,7 @@ def _chunked(args: argparse.Namespace) -> bool:
 def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather):
     """Any number of files, chunk by chunk (bundle only; no per-star output)."""
     from hostlink.calibration.run import calibrate_archive
+    from hostlink.progress import progress_bar
 
     if args.method != "bundle":
         raise UserError(
@@ -201,24 +254,26 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
 
     def progress(entry: dict) -> None:
         if not args.quiet:
-            print(f"  iteration {entry['iteration']}: cost {entry['cost']:.6g}", flush=True)
+            print(_iteration_line(entry), flush=True)
 
-    return calibrate_archive(
-        args.session[0] if len(args.session) == 1 else args.session,
-        nominal,
-        args.chunk_frames,
-        estimate,
-        args.noise_px,
-        args.max_iter,
-        site,
-        weather,
-        args.dut1,
-        progress,
-        keep_failed=True,  # the failure is reported here, as for the whole session
-        dask=args.dask,
-        dask_workers=args.dask_workers,
-        spool_dir=args.spool_dir,
-    )
+    with progress_bar("reading session (frames)", None, enabled=not args.quiet) as advance:
+        return calibrate_archive(
+            args.session[0] if len(args.session) == 1 else args.session,
+            nominal,
+            args.chunk_frames,
+            estimate,
+            args.noise_px,
+            args.max_iter,
+            site,
+            weather,
+            args.dut1,
+            progress,
+            keep_failed=True,  # the failure is reported here, as for the whole session
+            dask=args.dask,
+            dask_workers=args.dask_workers,
+            spool_dir=args.spool_dir,
+            on_frames=advance,
+        )
 
 
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:

@@ -6,11 +6,16 @@ import argparse
 
 from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
+#: Polls in a row whose reply may be lost while the stream keeps delivering frames (a busy host or bus); one more,
+#: or a stream that stops, ends the monitor with the link error (exit 3).
+MISSED_POLLS_ALLOWED = 3
+
 HELP = "watch the onboard estimate (values, 1-sigma, updates) while the sensor runs"
 DESCRIPTION = (
     "Polls the sensor's onboard recursive estimate every --interval seconds (or every --every-frames frames) and "
     "prints one line per poll: frames received, the frame of the estimate's last update, updates, and each estimated "
     "parameter with its 1-sigma (f in mm, x0/y0 in px); 'no estimate' until the estimator has processed a frame. "
+    "A poll whose reply is lost while frames keep arriving is reported and the monitor goes on (up to 3 in a row). "
     "By default it keeps the centroid stream on (an emulated sensor only takes exposures while streaming) and "
     "discards the frames."
 )
@@ -49,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         record = estimate_record(poll)
         if args.json:
             print(json.dumps(record), flush=True)
+        elif not poll.answered:
+            print(f"frames {poll.frames_received} poll not answered (the stream goes on): {poll.reason}", flush=True)
         elif poll.estimate is None:
             print(f"frames {poll.frames_received} no estimate: {poll.reason}", flush=True)
         else:
@@ -73,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
                 max_polls=max_polls,
                 on_poll=show,
                 keep_polls=False,  # shown, not kept: a monitor left running must not grow
+                missed_polls_allowed=MISSED_POLLS_ALLOWED,
             )
     return 0
 

@@ -1,6 +1,7 @@
 """``hostlink simulate``: simulated observations of the real sky through a given camera (INTERFACES.md).
 
-Writes SESSION.csv (with ra_deg, dec_deg: geocentric apparent place) and SESSION.truth.json beside it.
+Writes SESSION.csv or SESSION.parquet (with ra_deg, dec_deg: geocentric apparent place) and SESSION.truth.json
+beside it.
 The simulation itself is ``hostlink.sky.simulate``.
 """
 
@@ -15,15 +16,15 @@ from hostlink.errors import UserError
 
 HELP = "simulate a session of real-sky (Hipparcos) observations through a camera, with its truth"
 DESCRIPTION = (
-    "Simulate a session of star observations: Hipparcos stars at their geocentric apparent place at each frame's "
-    "time (pyerfa), random or scripted attitudes, the true camera with full Weng distortion and Gaussian centroid "
-    "noise. Writes SESSION.csv (with ra_deg,dec_deg) and SESSION.truth.json (camera, per-frame attitude C with "
-    "b = C r, per-frame focal length, misidentified and false rows). With --site the observed directions get the "
+    "Simulate a session of star observations: Hipparcos stars at their geocentric apparent place at each frame's time "
+    "(pyerfa), random or scripted attitudes, the true camera with full Weng distortion and Gaussian centroid noise. "
+    "Writes SESSION.csv or SESSION.parquet (with ra_deg,dec_deg) and SESSION.truth.json (camera, per-frame attitude C "
+    "with b = C r, per-frame focal length, misidentified and false rows). With --site the observed directions get the "
     "diurnal aberration of the site's rotation (up to 0.32\"), and with --weather also ERFA's refraction (the "
     "observed place of erfa.atco13), while ra_deg,dec_deg stay the geocentric apparent place. --preset seed004 "
-    "reproduces seed 004's simulation setup: a 1024 x 1024 px, 12 um, 10 deg camera with f 70.2262 mm, principal "
-    "point (500, 530) px and radial distortion (the true-camera.json of `hostlink example`), Hp <= 6, >= 10 stars, "
-    "0.05 px, 1000 frames."
+    "reproduces seed 004's simulation setup: a 1024 x 1024 px, 12 um, 10 deg camera with f 70.2262 mm, principal point "
+    "(500, 530) px and radial distortion (the true-camera.json of `hostlink example`), Hp <= 6, >= 10 stars, 0.05 px, "
+    "1000 frames."
 )
 
 PRESETS = ("seed004",)

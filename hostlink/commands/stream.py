@@ -6,12 +6,13 @@ import argparse
 
 from hostlink.commands.linkopts import add_link_arguments, open_link_from_args
 
-HELP = "record N centroid frames from a sensor into a session CSV"
+HELP = "record N centroid frames from a sensor into a session file (CSV or Parquet)"
 DESCRIPTION = (
     "Starts the sensor's centroid stream, records --frames frames with a progress bar, stops the stream and writes "
-    "SESSION.csv (frame, t_utc, star_id, x_px, y_px, mag), frame by frame as they arrive (into SESSION.csv.partial, "
-    "renamed at the end; after Ctrl-C or a dropped link the frames received are kept). Lost messages are counted "
-    "from sequence numbers and reported. Centroids arrive in fixed point (2^-10 px) and are written exactly."
+    "SESSION.csv (frame, t_utc, star_id, x_px, y_px, mag), or SESSION.parquet, frame by frame as they arrive (into "
+    "SESSION.csv.partial, renamed at the end; after Ctrl-C or a dropped link the frames received are kept). Lost "
+    "messages are counted from sequence numbers and reported. Centroids arrive in fixed point (2^-10 px) and are "
+    "written exactly."
 )
 
 

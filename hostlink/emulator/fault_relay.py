@@ -142,13 +142,24 @@ class TcpRelay:
                 s.settimeout(_POLL_S)
             with self._lock:
                 self._sockets += [client, upstream]
+                self._threads = [t for t in self._threads if t.is_alive()]  # the pumps of connections that ended
+            pumps_left = [2]  # the pump that ends last closes the pair (its file descriptors; a host that
+            # reconnects after every few failed exchanges opens thousands of connections in a long run)
 
-            def end(pair: tuple[socket.socket, ...] = (client, upstream)) -> None:
+            def end(pair: tuple[socket.socket, ...] = (client, upstream), left: list[int] = pumps_left) -> None:
                 for s in pair:  # this connection is over (either side closed it); the relay goes on
                     try:
                         s.shutdown(socket.SHUT_RDWR)
                     except OSError:
                         pass
+                with self._lock:
+                    left[0] -= 1
+                    if left[0] > 0:
+                        return
+                    for s in pair:
+                        s.close()
+                        if s in self._sockets:
+                            self._sockets.remove(s)
 
             for src, dst, model in ((upstream, client, self.down), (client, upstream, self.up)):
                 t = threading.Thread(

@@ -94,14 +94,15 @@ def stream_through_faults(
     frame_timeout_s: float = 20.0,
     command_timeout_s: float = 10.0,
     emulator_args: tuple[str, ...] = (),
+    both_directions: bool = False,
 ) -> FaultRunResult:
     """Stream from an emulated sensor through a relay with ``ber`` bit errors and ``drop`` byte drops in the sensor ->
     host direction until the sensor has streamed ``n_frames`` frames from the first one received (frame counters);
-    score them (see the module docstring). ``rtu``: Modbus RTU (over TCP). A link error (the stream did not complete)
-    propagates."""
+    score them (see the module docstring). ``rtu``: Modbus RTU (over TCP). ``both_directions``: the same faults on the
+    host -> sensor line too (its own seed). A link error (the stream did not complete) propagates."""
     args = ("--sim-frames", str(sim_frames), "--seed", str(seed), "--no-estimator", *emulator_args)
     down = FaultModel(ber=ber, drop=drop, seed=seed)
-    up = FaultModel(seed=seed + 1)
+    up = FaultModel(ber=ber, drop=drop, seed=seed + 1) if both_directions else FaultModel(seed=seed + 1)
     with EmulatorProcess(transport, args) as emulator:
         link_string = emulator.info["link_rtu"] if rtu else emulator.link
         if transport == "modbus":

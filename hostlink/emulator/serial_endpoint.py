@@ -37,13 +37,18 @@ class _PtyLine:
         self.stop = stop
         self.pacer = Pacer(baud)  # baud = bits per second on the line; a byte takes BITS_PER_BYTE of them
         self.splitter = FrameSplitter()
-        self.tx_seq = 0
+        self.tx_seq = 0  # replies
+        self.stream_seq = 0  # stream messages: their own sequence, so the host counts lost frames, not lost replies
         self.drop_every = drop_every
         self.stream_count = 0
 
     def send(self, msg: Message, stream: bool = False) -> None:
-        data = encode_frame(self.tx_seq, encode(msg))
-        self.tx_seq = (self.tx_seq + 1) & 0xFFFF
+        if stream:
+            data = encode_frame(self.stream_seq, encode(msg))
+            self.stream_seq = (self.stream_seq + 1) & 0xFFFF
+        else:
+            data = encode_frame(self.tx_seq, encode(msg))
+            self.tx_seq = (self.tx_seq + 1) & 0xFFFF
         if stream:
             self.stream_count += 1
             if self.drop_every and self.stream_count % self.drop_every == 0:

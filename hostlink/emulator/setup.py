@@ -17,7 +17,7 @@ DEFAULT_CAMERA = "builtin:seed004_camera"
 
 
 def _tcp_port(text: str) -> int:
-    if not (text.isdigit() and int(text) < 65536):
+    if not (text.isascii() and text.isdigit() and int(text) < 65536):  # ASCII: "５０２".isdigit() too
         raise ValueError("expected a TCP port number 0..65535 (0: a free one)")
     return int(text)
 

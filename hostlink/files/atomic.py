@@ -21,6 +21,15 @@ from typing import IO, Any
 from hostlink.errors import UserError
 
 
+def file_path(path: str | Path) -> Path:
+    """``path`` as a Path, refused in one line (:class:`UserError`) when it names no file: empty, ``.``, ``..`` or a
+    root (an empty ``--out ""`` would otherwise reach pathlib's ValueError)."""
+    p = Path(path)
+    if not str(path) or p.name in ("", ".", ".."):
+        raise UserError(f"{str(path)!r}: not a file name")
+    return p
+
+
 def cannot_write(path: str | Path, exc: OSError) -> UserError:
     """The one-line error for a file that cannot be written."""
     return UserError(f"{path}: cannot write ({exc.strerror or exc})")
@@ -44,7 +53,7 @@ class AtomicFile:
         newline: str | None = None,
         keep_on_error: bool = False,
     ) -> None:
-        self.path = Path(path)
+        self.path = file_path(path)
         self.temporary = (
             Path(temporary) if temporary is not None else self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
         )
@@ -91,7 +100,10 @@ class AtomicFile:
             except OSError:
                 pass  # the write is abandoned anyway; the error that got us here is the one to report
         if not keep:
-            self.temporary.unlink(missing_ok=True)
+            try:
+                self.temporary.unlink(missing_ok=True)
+            except OSError:
+                pass  # never created (a name too long, a folder not writable): the error that got us here stands
 
     def __enter__(self) -> IO:
         return self.open()

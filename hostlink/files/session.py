@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.atomic import AtomicFile, cannot_write
+from hostlink.files.atomic import AtomicFile, cannot_write, file_path
 from hostlink.files.times import parse_iso_utc_many
 
 REQUIRED_COLUMNS = ("frame", "t_utc", "star_id", "x_px", "y_px")
@@ -622,7 +622,7 @@ class SessionWriter:
     def __init__(self, path: str | Path, float_format: str = "%.6f") -> None:
         from hostlink.files.columnar import is_parquet
 
-        self.path = Path(path)
+        self.path = file_path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.float_format = float_format
         self.rows = 0

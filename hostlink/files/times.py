@@ -39,12 +39,22 @@ def parse_iso_utc(text: str) -> tuple[int, int, int, int, int, float]:
     return y, mo, d, h, mi, float(f"{m.group(6)}.{m.group(7) or '0'}")
 
 
+#: From this many time stamps on, :func:`parse_iso_utc_many` parses them in one pass of pyarrow's RE2 (the same
+#: pattern as :data:`_ISO`) instead of one Python regex match each (measured on a 10^5-frame session: reading it takes
+#: 0.31 s of CPU instead of 0.45 s from Parquet, 0.64 s instead of 0.82 s from CSV).
+VECTOR_PARSE_FROM = 64
+
+
 def parse_iso_utc_many(texts: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
-    """ISO strings -> UTC quasi Julian dates (jd1, jd2) as ERFA expects them (dtf2d, scale "UTC")."""
-    fields = [parse_iso_utc(t) for t in texts]
-    if not fields:
+    """ISO strings -> UTC quasi Julian dates (jd1, jd2) as ERFA expects them (dtf2d, scale "UTC"). The same fields
+    as :func:`parse_iso_utc` of each (a text it refuses is its ValueError)."""
+    texts = list(texts)
+    if not texts:
         return np.zeros(0), np.zeros(0)
-    arr = np.array(fields, dtype=np.float64)
+    if len(texts) >= VECTOR_PARSE_FROM:
+        arr = _iso_fields_vectorised(texts)
+    else:
+        arr = np.array([parse_iso_utc(t) for t in texts], dtype=np.float64)
     try:
         jd1, jd2 = erfa.dtf2d(
             "UTC",
@@ -58,6 +68,33 @@ def parse_iso_utc_many(texts: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
     except (erfa.ErfaError, ValueError) as exc:
         raise ValueError(f"invalid date or time ({exc})") from None
     return np.atleast_1d(jd1), np.atleast_1d(jd2)
+
+
+def _iso_fields_vectorised(texts: list) -> np.ndarray:
+    """(n, 6) float64 fields (year, month, day, hour, minute, seconds) of ``texts``, as :func:`parse_iso_utc` gives
+    them: matched by pyarrow (RE2, ASCII digits) in one pass; a text it does not match (another kind of digit, or
+    not a time) goes through :func:`parse_iso_utc`, which parses or refuses it."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    pattern = _ISO.pattern
+    for name in ("y", "mo", "d", "h", "mi", "s", "frac"):  # RE2 extracts named groups only
+        pattern = pattern.replace("(\\d", f"(?P<{name}>\\d", 1)
+    pattern = pattern.replace("(Z|", "(?:Z|")  # the zone: matched, not extracted
+    cells = pc.ascii_trim_whitespace(pa.array([str(t) for t in texts], type=pa.string()))
+    unmatched = pc.invert(pc.match_substring_regex(cells, pattern)).to_numpy(zero_copy_only=False)
+    if unmatched.any():  # parsed one at a time below; a valid stand-in keeps the columns' casts total
+        cells = pc.if_else(pa.array(unmatched), "2000-01-01T00:00:00", cells)
+    parts = pc.extract_regex(cells, pattern)
+    fields = np.empty((len(texts), 6), dtype=np.float64)
+    for k, name in enumerate(("y", "mo", "d", "h", "mi")):
+        fields[:, k] = pc.cast(parts.field(name), pa.float64()).to_numpy(zero_copy_only=False)
+    frac = parts.field("frac")  # "" when the time has no decimals
+    seconds = pc.binary_join_element_wise(parts.field("s"), pc.if_else(pc.equal(frac, ""), "0", frac), ".")
+    fields[:, 5] = pc.cast(seconds, pa.float64()).to_numpy(zero_copy_only=False)
+    for k in np.flatnonzero(unmatched):
+        fields[k] = parse_iso_utc(texts[k])
+    return fields
 
 
 def fixed_time_from_iso(text: str):

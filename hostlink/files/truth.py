@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.atomic import write_json
+from hostlink.files.atomic import file_path, write_json
 from onboard.params import ParameterError, params_from_dict
 
 TRUTH_FORMAT = "startracker-companion simulation truth"
@@ -23,7 +23,7 @@ _ROW_LISTS = ("misidentified_rows", "misidentified_true_star_id", "false_rows")
 
 def truth_path_for(session_path: str | Path) -> Path:
     """``SESSION.csv`` -> ``SESSION.truth.json`` (beside it)."""
-    p = Path(session_path)
+    p = file_path(session_path)
     stem = p.name[: -len(p.suffix)] if p.suffix else p.name
     return p.with_name(stem + ".truth.json")
 

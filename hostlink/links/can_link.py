@@ -232,6 +232,13 @@ class IsoTpChannel:
                 out.append(bytes(self._stack.recv()))
             return out
 
+    def reset(self) -> None:
+        """Back to idle: frames not yet processed and any partial message in either direction are dropped (as
+        after a power cycle of the node; constructing a channel costs milliseconds in can-isotp's checks)."""
+        with self._lock:
+            self._rx.clear()
+            self._stack.reset()
+
     @property
     def busy(self) -> bool:
         with self._lock:

@@ -356,8 +356,33 @@ class ModbusLink(Link):
         timeout_s = self.timeout_s if timeout_s is None else float(timeout_s)
         deadline = time.monotonic() + timeout_s
         base = self._window_first
-        block = self._window_block
         head_count = (self._star_first - base) + self._stars_in_head * self._star_stride
+        while True:
+            head, words, state, n = self._read_window(base, head_count, deadline, timeout_s)
+            seq = int(self._get(head, base, "window_seq"))
+            if seq != self._last_seq or state == _WINDOW_END:
+                break
+            # the window delivered last time, again: our release did not take (Modbus TCP has no checksum, so a
+            # release whose value was corrupted on the way up is answered like a good one). Release it again; the
+            # frame is not delivered twice, nor counted as 2**32 - 1 lost.
+            self.stats.corrupt_frames += 1
+            self._release(seq, deadline)
+        if state == _WINDOW_END:
+            self._release(seq, deadline)
+            self._count_loss(seq)
+            self._ended = True
+            return None
+        self._release(seq, deadline)
+        # counted only once the window is released: if a read or the release fails, the next poll sees the same
+        # window_seq again, and that is the same message, not 2**32 - 1 lost ones
+        self._count_loss(seq)
+        frame = self._decode_frame(np.asarray(words, dtype=np.int64), base, n)
+        self.stats.rx_messages += 1
+        return frame
+
+    def _read_window(self, base: int, head_count: int, deadline: float, timeout_s: float) -> tuple:
+        """The stream window, read until intact (a frame or the end of the stream): (head, words, state, n)."""
+        block = self._window_block
         while True:
             head = self._read("input", base, head_count, deadline)
             state = self._get(head, base, "window_state")
@@ -376,19 +401,7 @@ class ModbusLink(Link):
                 time.sleep(_POLL_S)
             if time.monotonic() >= deadline:
                 raise LinkError(f"{self.name}: no intact centroid frame within {timeout_s:g} s")
-        seq = int(self._get(head, base, "window_seq"))
-        if state == _WINDOW_END:
-            self._release(seq, deadline)
-            self._count_loss(seq)
-            self._ended = True
-            return None
-        self._release(seq, deadline)
-        # counted only once the window is released: if a read or the release fails, the next poll sees the same
-        # window_seq again, and that is the same message, not 2**32 - 1 lost ones
-        self._count_loss(seq)
-        frame = self._decode_frame(np.asarray(words, dtype=np.int64), base, n)
-        self.stats.rx_messages += 1
-        return frame
+        return head, words, state, n
 
     def _count_loss(self, seq: int) -> None:
         if self._last_seq is not None:

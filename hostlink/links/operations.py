@@ -58,6 +58,8 @@ class EstimatePoll:
     frames_received: int
     estimate: Estimate | None
     reason: str = ""
+    #: False when the sensor's reply never came (a tolerated miss of :func:`stream_frames`, ``reason`` says why)
+    answered: bool = True
 
 
 @dataclass
@@ -107,6 +109,7 @@ def stream_frames(
     max_polls: int | None = None,
     on_poll: Callable[[EstimatePoll], None] | None = None,
     keep_polls: bool = True,
+    missed_polls_allowed: int = 0,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
 ) -> StreamResult:
@@ -118,7 +121,9 @@ def stream_frames(
     ``poll_every_s`` seconds; each poll goes to ``on_poll`` and, if ``keep_polls``, ``result.polls`` (a loop that runs
     until interrupted keeps neither frames nor polls, so its memory stays flat). After the source ended, time-based
     polls go on (the estimate is still readable) until ``max_polls``. Everything received is in ``result`` (pass your
-    own to keep it when a LinkError or Ctrl-C interrupts the loop)."""
+    own to keep it when a LinkError or Ctrl-C interrupts the loop). Up to ``missed_polls_allowed`` polls in a row
+    may go unanswered (a reply lost on a busy link): such a poll is reported with ``answered`` False and the stream
+    goes on; one more raises the LinkError, and a link that is really gone ends the loop at the next frame anyway."""
     result = StreamResult() if result is None else result
     if poll_every_frames < 0 or poll_every_s < 0:
         raise ValueError("poll intervals must be >= 0")
@@ -126,10 +131,18 @@ def stream_frames(
     next_poll_t = clock() + poll_every_s
 
     n_polls = len(result.polls)
+    missed_in_a_row = 0
 
     def poll() -> None:
-        nonlocal n_polls
-        p = poll_estimate(link, result.frames_received)
+        nonlocal n_polls, missed_in_a_row
+        try:
+            p = poll_estimate(link, result.frames_received)
+            missed_in_a_row = 0
+        except LinkError as exc:
+            missed_in_a_row += 1
+            if missed_in_a_row > missed_polls_allowed:
+                raise
+            p = EstimatePoll(result.frames_received, None, str(exc), answered=False)
         n_polls += 1
         if keep_polls:
             result.polls.append(p)
@@ -265,7 +278,8 @@ def estimate_record(poll: EstimatePoll) -> dict:
     keyed by ``protocol.messages.ESTIMATE_FIELDS`` names (f in mm, x0/y0 in px)."""
     est = poll.estimate
     if est is None:
-        return {"frames_received": poll.frames_received, "estimate": None, "reason": poll.reason}
+        record = {"frames_received": poll.frames_received, "estimate": None, "reason": poll.reason}
+        return record if poll.answered else {**record, "answered": False}
     names = [n for i, n in enumerate(ESTIMATE_FIELDS) if est.estimated_mask >> i & 1]
     return {
         "frames_received": poll.frames_received,

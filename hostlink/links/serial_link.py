@@ -3,8 +3,10 @@ port pyserial's ``serial_for_url`` opens (a UART, a pty, ``rfc2217://``, ``socke
 
 Link string: ``serial:PORT_OR_URL[@BAUD]`` (default 921600 baud), e.g. ``serial:/dev/ttyUSB0@115200``,
 ``serial:/dev/pts/7@921600`` (what ``hostlink emulate --transport serial`` prints), ``serial:rfc2217://host:4000``.
-Lost messages are counted from gaps in the sensor's sequence numbers; frames failing COBS or CRC are counted as
-corrupt and skipped (the receiver resynchronises at the next 0x00).
+Lost stream messages are counted from gaps in the sensor's sequence numbers, which number its stream messages
+(centroid frames, end of stream) apart from its replies, so a reply lost mid-stream (a timeout the host resends
+after) is not taken for a lost frame; frames failing COBS or CRC are counted as corrupt and skipped (the receiver
+resynchronises at the next 0x00).
 """
 
 from __future__ import annotations
@@ -90,12 +92,12 @@ class SerialLink(MessageLink):
             except (FramingError, DecodeError):
                 self.stats.corrupt_frames += 1
                 continue
-            if self._rx_seq is not None:
-                self.stats.lost_messages += seq_gap(self._rx_seq, frame.seq)
-                self._rx_seq = frame.seq
-            elif isinstance(msg, (CentroidFrame, EndOfStream)):
-                # after a (re)start, loss is counted from the first stream message received, as on CAN and Modbus
-                # (whose frame counters are all the host has): frames lost before it are not known to be lost
+            if isinstance(msg, (CentroidFrame, EndOfStream)):
+                # stream messages have their own sequence (replies are numbered apart); after a (re)start, loss is
+                # counted from the first stream message received, as on CAN and Modbus: frames lost before it are
+                # not known to be lost
+                if self._rx_seq is not None:
+                    self.stats.lost_messages += seq_gap(self._rx_seq, frame.seq)
                 self._rx_seq = frame.seq
             self.stats.rx_messages += 1
             self._ready.append(msg)

@@ -30,10 +30,10 @@ class BenchConfig:
     transport: str = "serial"
     cal_frames: int = 600
     drift_frames: int = 3000
-    #: exposures the sensor's replay holds beyond the two phases: a sensor keeps taking exposures until the host's
-    #: "stop streaming" reaches it, so the frames in flight then (a few on serial, up to ~100 in a CAN hub's queues)
-    #: are consumed between the phases; the spare frames keep the drift phase at its full length
-    spare_frames: int = 256
+    #: exposures the sensor's replay holds beyond the two phases (None: :func:`spare_frames` decides): a sensor keeps
+    #: taking exposures until the host's "stop streaming" reaches it, so the frames in flight then are consumed
+    #: between the phases, as are frames lost on the link; the spare frames keep the drift phase at its full length
+    spare_frames: int | None = None
     noise_px: float = 0.05
     misid_fraction: float = 0.0
     drift_um: float = 6.0
@@ -50,6 +50,10 @@ class BenchConfig:
     poll_every_frames: int = 25
     #: the sensor's arithmetic (``onboard.firmware.PRECISIONS``): "float32" (an FPU) or "fixed" (no FPU)
     precision: str = "float32"
+    #: how long the host waits for the emulated sensor's reply or next frame [s]: longer than a link's default 2 s,
+    #: since the sensor is a process on the same machine, which a loaded machine can stall for seconds (the bench
+    #: measures the mission, not the machine's scheduling)
+    link_timeout_s: float = 10.0
     #: further ``hostlink emulate`` options for the sensor
     emulator_args: tuple[str, ...] = ()
     t0_iso: str = "2026-03-14T02:10:00.000Z"
@@ -73,3 +77,16 @@ def bench_nominal(cfg: BenchConfig) -> CameraParams:
     if nominal.image_size_px != camera.image_size_px or nominal.pixel_pitch_um != camera.pixel_pitch_um:
         raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
     return nominal
+
+
+def spare_frames(cfg: BenchConfig) -> int:
+    """Frames the sensor's replay holds beyond the two phases: ``cfg.spare_frames``, or max(256, 2 cal_frames).
+
+    They pay for the frames the sensor takes that never count for the drift phase: those in flight when the host
+    stops the calibration stream (dropped when the drift stream starts) and those lost on the link. The frames in
+    flight are the host's backlog: the emulated sensor exposes as fast as its link carries frames, and a host that
+    reads at a fraction q of that rate is cal_frames (1/q - 1) frames behind when it has its cal_frames (on CAN the
+    host's receive queue holds them all: nothing is lost, they are late). 2 cal_frames spare frames cover q >= 1/3; 256
+    cover a host that keeps up. A run that still runs out says so and fails
+    (``hostlink.mission.summary.incomplete_reason``)."""
+    return int(cfg.spare_frames) if cfg.spare_frames is not None else max(256, 2 * int(cfg.cal_frames))

@@ -26,8 +26,8 @@ from hostlink.emulator.process import EmulatorProcess
 from hostlink.errors import LinkError, UserError
 from hostlink.files.params import save_params
 from hostlink.files.session import Session, write_session
-from hostlink.mission.config import BenchConfig, bench_nominal
-from hostlink.mission.summary import BenchRun, EstimatorWork, Phase
+from hostlink.mission.config import BenchConfig, bench_nominal, spare_frames
+from hostlink.mission.summary import BenchRun, EstimatorWork, Phase, StreamCount
 from hostlink.progress import progress_bar
 from onboard.site import Site, Weather
 
@@ -39,7 +39,9 @@ if TYPE_CHECKING:
 
 def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progress: bool = True) -> dict:
     """Run the whole bench; returns the summary (also written to ``out_dir/summary.json``, beside the plots).
-    ``say`` gets one line per phase; ``show_progress`` draws a progress bar while frames stream."""
+    ``say`` gets one line per phase; ``show_progress`` draws a progress bar while frames stream. A drift phase that
+    received fewer frames than it asked for (the sensor's replay ran out) is not a success: the report is written
+    (``success`` false, the counts and ``incomplete_because``), then a :class:`LinkError` says why."""
     from hostlink.files.atomic import write_json
     from hostlink.links import open_link
     from hostlink.links.operations import read_active_params
@@ -61,18 +63,20 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     flash.unlink(missing_ok=True)
     with EmulatorProcess(cfg.transport, [*args, *cfg.emulator_args], flash_path=flash) as emulator:
         say(f"[2/6] emulated {cfg.precision} sensor on {emulator.link}")
-        with open_link(emulator.link) as link:
+        with open_link(emulator.link, cfg.link_timeout_s) as link:
             generation_before = read_active_params(link).generation
             streamed = stream_calibration_phase(run, link, t, out, say, show_progress)
             calibrate_phase(run, streamed, out, say)
             upload_phase(run, link, generation_before, say)
             track_phase(run, link, say, show_progress)
-            run.lost_messages = int(link.stats.lost_messages)
 
     summary = summarise(run)
     summary["elapsed_s"] = time.perf_counter() - t_start
     write_plots(out, run, summary)
     write_json(out / "summary.json", nan_to_null(summary), default=json_default)
+    if not summary["success"]:  # the figures are written for diagnosis; the run is not a success
+        reason = summary["drift_tracking"]["incomplete_because"]
+        raise LinkError(f"the drift phase is incomplete: {reason}; the report in {out} has the counts")
     return summary
 
 
@@ -88,8 +92,9 @@ def simulate_phase(cfg: BenchConfig, out: Path, say: Callable[[str], None]) -> t
     write_session(replay_path, sensor_reference_session(replay, cfg.site, cfg.weather, cfg.precision))
     save_params(out / "true-camera.json", cfg.camera)
     save_params(nominal_path, nominal)
-    run = BenchRun(cfg=cfg, nominal=nominal, cal_sim=cal_sim, drift_sim=drift_sim)
-    detail = f"{cfg.cal_frames} + {cfg.drift_frames} frames, {len(replay)} stars"
+    run = BenchRun(cfg=cfg, nominal=nominal, cal_sim=cal_sim, drift_sim=drift_sim, spare_frames=spare_frames(cfg))
+    run.replay_frames = int(np.unique(replay.frame).size)
+    detail = f"{cfg.cal_frames} + {cfg.drift_frames} (+ {run.spare_frames} spare) frames, {len(replay)} stars"
     run.phases.append(Phase("simulate", time.perf_counter() - t, detail))
     say(f"[1/6] simulated {cfg.cal_frames} calibration + {cfg.drift_frames} drift frames ({len(replay)} stars)")
     return run, replay_path, nominal_path
@@ -104,10 +109,15 @@ def stream_calibration_phase(
 
     cfg = run.cfg
     with progress_bar("streaming calibration frames", cfg.cal_frames, show_progress) as advance:
-        frames, run.cal_estimates, _ = stream_phase(link, cfg.cal_frames, cfg.poll_every_frames, advance)
-    lost = link.stats.lost_messages
-    if len(frames) < cfg.cal_frames:
-        raise LinkError(f"the sensor sent {len(frames)} of {cfg.cal_frames} calibration frames")
+        frames, run.cal_estimates, _, run.cal_stream = stream_phase(
+            link, cfg.cal_frames, cfg.poll_every_frames, advance, run.replay_frames
+        )
+    lost = run.cal_stream.lost_on_link
+    if not run.cal_stream.complete:
+        raise LinkError(
+            f"the sensor sent {len(frames)} of {cfg.cal_frames} calibration frames ({lost} lost on the link"
+            f"{', then its replay ran out' if run.cal_stream.ended_early else ''})"
+        )
     streamed = frames_to_session(frames)
     write_session(out / "session.csv", streamed)
     detail = f"{len(frames)} frames, {len(streamed)} stars, {lost} lost"
@@ -157,21 +167,23 @@ def track_phase(run: BenchRun, link: Link, say: Callable[[str], None], show_prog
     t = time.perf_counter()
     cfg = run.cfg
     with progress_bar("streaming drift frames", cfg.drift_frames, show_progress) as advance:
-        frames, run.drift_estimates, run.drift_work = stream_phase(
-            link, cfg.drift_frames, cfg.poll_every_frames, advance
+        frames, run.drift_estimates, run.drift_work, run.drift_stream = stream_phase(
+            link, cfg.drift_frames, cfg.poll_every_frames, advance, run.replay_frames
         )
-    run.n_drift_streamed = len(frames)
-    run.phases.append(Phase("track", time.perf_counter() - t, f"{len(frames)} frames"))
+    count = run.drift_stream
+    run.phases.append(Phase("track", time.perf_counter() - t, f"{count.received} of {count.expected} frames"))
+    ran_out = ", then the sensor's replay ran out" if count.ended_early else ""
     say(
-        f"[5/6] {len(frames)} drift frames streamed; the onboard estimator updated on {run.drift_work.updates} of "
-        f"the {run.drift_work.exposures} exposures the sensor took ({len(run.drift_estimates)} estimates read)"
+        f"[5/6] {count.received} of {count.expected} drift frames streamed ({count.lost_on_link} lost on the link"
+        f"{ran_out}); the onboard estimator updated on {run.drift_work.updates} of the {run.drift_work.exposures} "
+        f"exposures the sensor took ({len(run.drift_estimates)} estimates read)"
     )
 
 
 # ------------------------------------------------------------------------------------------------- the pieces
 def simulate_phases(cfg: BenchConfig) -> tuple[SimResult, SimResult]:
     """Calibration phase (static camera) + drift phase (sinusoidal focal drift), one continuous session: two
-    ``SimResult`` (the drift phase starts ``cfg.cal_frames`` s later and holds ``cfg.spare_frames`` more frames)."""
+    ``SimResult`` (the drift phase starts ``cfg.cal_frames`` s later and holds :func:`spare_frames` more frames)."""
     from hostlink.files.times import iso_plus_seconds
     from hostlink.sky.simulate import SimConfig, simulate
 
@@ -189,7 +201,7 @@ def simulate_phases(cfg: BenchConfig) -> tuple[SimResult, SimResult]:
     cal = simulate(SimConfig(frames=cfg.cal_frames, seed=cfg.seed, t0_iso=cfg.t0_iso, **common))
     drift = simulate(
         SimConfig(
-            frames=cfg.drift_frames + cfg.spare_frames,
+            frames=cfg.drift_frames + spare_frames(cfg),
             seed=cfg.seed + 1000,
             t0_iso=iso_plus_seconds(cfg.t0_iso, float(cfg.cal_frames)),
             focal_drift_um=cfg.drift_um,
@@ -240,13 +252,15 @@ def sensor_reference_session(
 
 
 def stream_phase(
-    link: Link, n_frames: int, poll_every: int, progress: Callable[[int], None]
-) -> tuple[list[CentroidFrame], list[tuple[int, Estimate]], EstimatorWork]:
+    link: Link, n_frames: int, poll_every: int, progress: Callable[[int], None], source_frames: int | None = None
+) -> tuple[list[CentroidFrame], list[tuple[int, Estimate]], EstimatorWork, StreamCount]:
     """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading
     the onboard estimate every ``poll_every`` frames and once more at the end of the phase.
 
-    Returns (frames, estimates, work) where estimates are (frame counter of the estimate's last update, Estimate)
-    and ``work`` (:class:`EstimatorWork`) counts the phase's exposures and estimator updates (from the status)."""
+    Returns (frames, estimates, work, count) where estimates are (frame counter of the estimate's last update,
+    Estimate), ``work`` (:class:`EstimatorWork`) counts the phase's exposures and estimator updates (from the status)
+    and ``count`` (:class:`StreamCount`) where the frames went; ``source_frames``, the frames of the sensor's replay,
+    gives how many it still held at the start."""
     from hostlink.links.operations import poll_estimate, stream_frames
 
     before = link.status()
@@ -260,4 +274,12 @@ def stream_phase(
     exposures = int(after.frames_processed - before.frames_processed)
     same_estimator = after.active_generation == before.active_generation  # no commit restarted it meanwhile
     updates = int(after.estimator_updates - (before.estimator_updates if same_estimator else 0))
-    return result.frames, estimates, EstimatorWork(exposures=exposures, updates=updates)
+    count = StreamCount(
+        expected=int(n_frames),
+        received=int(result.frames_received),
+        lost_on_link=int(result.lost_messages),
+        exposures=exposures,
+        held_at_start=None if source_frames is None else int(source_frames) - int(before.frames_processed),
+        ended_early=bool(result.ended),
+    )
+    return result.frames, estimates, EstimatorWork(exposures=exposures, updates=updates), count

@@ -42,6 +42,71 @@ class EstimatorWork:
     updates: int
 
 
+@dataclass(frozen=True)
+class StreamCount:
+    """Where a streaming phase's frames went, from the host's stream loop and the sensor's status read before and
+    after the phase.
+
+    ``expected``: frames the phase asks for; ``received``: frames the host got; ``lost_on_link``: frames missing
+    between received ones (gaps in their frame counters: ``link.stats``); ``exposures``: frames the sensor took from
+    its source in the phase; ``held_at_start``: frames its source still held when the phase began (None: unknown);
+    ``ended_early``: the sensor reported the end of its source (END_OF_STREAM) before ``expected`` frames arrived."""
+
+    expected: int
+    received: int
+    lost_on_link: int
+    exposures: int
+    held_at_start: int | None = None
+    ended_early: bool = False
+
+    @property
+    def in_flight_at_stop(self) -> int:
+        """Frames the sensor sent but the host neither received nor saw missing: on their way (line, adapter, the
+        host's buffers) when the host stopped the stream; a restarted stream drops them (``Link.set_streaming``)."""
+        return max(self.exposures - self.received - self.lost_on_link, 0)
+
+    @property
+    def complete(self) -> bool:
+        """The rule: a phase is complete when the host received every frame it asked for (the stream loop goes on
+        past frames lost on the link, so it falls short only when the sensor's source ends first)."""
+        return self.received >= self.expected
+
+    def as_dict(self) -> dict:
+        return {
+            "frames_expected": self.expected,
+            "frames_received": self.received,
+            "frames_lost_on_link": self.lost_on_link,
+            "frames_in_flight_at_stop": self.in_flight_at_stop,
+            "sensor_exposures": self.exposures,
+            "sensor_frames_held_at_start": self.held_at_start,
+            "stream_ended_early": self.ended_early,
+            "complete": self.complete,
+        }
+
+
+def incomplete_reason(drift: StreamCount, calibration: StreamCount | None, spare_frames: int) -> str | None:
+    """Why the drift phase fell short of its frames, from the counts (None when it did not): the sensor's replay holds
+    the two phases and ``spare_frames`` more; what the calibration phase consumed beyond its frames (in flight when
+    its stream stopped, or lost on the link) and the drift phase's own losses come out of the spare."""
+    if drift.complete:
+        return None
+    text = f"the sensor sent {drift.received} of the {drift.expected} drift frames"
+    if drift.ended_early:
+        used = []
+        if calibration is not None:
+            used.append(f"{calibration.in_flight_at_stop} in flight when the calibration stream stopped")
+            if calibration.lost_on_link:
+                used.append(f"{calibration.lost_on_link} lost on the link while calibrating")
+        if drift.lost_on_link:
+            used.append(f"{drift.lost_on_link} lost on the link in the drift phase")
+        detail = f": {', '.join(used)}" if used else ""
+        text += (
+            f" before its replay ran out ({spare_frames} spare frames; the sensor took frames the host never got"
+            f"{detail}; a host that reads slower than the link delivers falls behind)"
+        )
+    return text
+
+
 @dataclass
 class BenchRun:
     """Everything a bench run produced, as the report needs it.
@@ -50,7 +115,8 @@ class BenchRun:
     streaming phase; ``cal_sim`` / ``drift_sim``: the simulator's results (session and truth) of the two phases;
     ``data`` and ``ref_info``: the calibration data built from the streamed session and where its reference
     directions came from; ``outcome``: the host calibration; ``uploaded`` / ``active``: the safe upload's result and
-    the set read back afterwards."""
+    the set read back afterwards; ``cal_stream`` / ``drift_stream``: where each streaming phase's frames went;
+    ``spare_frames``: frames the sensor's replay holds beyond the two phases, ``replay_frames`` all its frames."""
 
     cfg: BenchConfig
     nominal: CameraParams
@@ -64,9 +130,11 @@ class BenchRun:
     upload_steps: list[str] = field(default_factory=list)
     cal_estimates: list[tuple[int, Estimate]] = field(default_factory=list)
     drift_estimates: list[tuple[int, Estimate]] = field(default_factory=list)
-    n_drift_streamed: int = 0
+    cal_stream: StreamCount | None = None
+    drift_stream: StreamCount = StreamCount(0, 0, 0, 0)
     drift_work: EstimatorWork = EstimatorWork(0, 0)
-    lost_messages: int = 0
+    spare_frames: int = 0
+    replay_frames: int | None = None
     phases: list[Phase] = field(default_factory=list)
 
 
@@ -138,6 +206,20 @@ def drift_frame_index(cfg: BenchConfig, drift_sim: SimResult, frames: np.ndarray
     return frames - cfg.cal_frames - int(drift_sim.session.frame[0])
 
 
+def replay_truth_attitudes(
+    cfg: BenchConfig, cal_sim: SimResult, drift_sim: SimResult, frames: np.ndarray
+) -> np.ndarray:
+    """The true attitude (n, 3, 3) of each sensor frame counter in ``frames``: the calibration phase's frames, then
+    the drift phase's from ``cfg.cal_frames`` on (a calibration stream that lost frames on the link goes on into
+    those)."""
+    frames = np.asarray(frames, dtype=np.int64)
+    in_cal = frames < cfg.cal_frames
+    out = np.empty((frames.size, 3, 3))
+    out[in_cal] = truth_attitudes(cal_sim)[frames[in_cal] - int(cal_sim.session.frame[0])]
+    out[~in_cal] = truth_attitudes(drift_sim)[drift_frame_index(cfg, drift_sim, frames[~in_cal])]
+    return out
+
+
 # ------------------------------------------------------------------------------------------------- the summary
 def summarise(run: BenchRun) -> dict:
     """The run's summary (the content of ``summary.json``, docs/commands.md ``bench``)."""
@@ -146,8 +228,8 @@ def summarise(run: BenchRun) -> dict:
 
     cfg, nominal, outcome, data = run.cfg, run.nominal, run.outcome, run.data
     # attitude against truth, for the frames the calibration used
-    frame_index = data.frame_number - int(run.cal_sim.session.frame[0])
-    truth_c = truth_attitudes(run.cal_sim)
+    truth_c = replay_truth_attitudes(cfg, run.cal_sim, run.drift_sim, data.frame_number)
+    frame_index = np.arange(truth_c.shape[0])
     att_before = attitude_error_summary(
         attitude_error_vectors_arcsec(data, nominal.model_vector(), truth_c, frame_index)
     )
@@ -206,13 +288,18 @@ def summarise(run: BenchRun) -> dict:
             "sigma_prior_parameters": int(np.count_nonzero(np.isfinite(active.sigma) & (active.sigma > 0))),
             "steps": run.upload_steps,
         },
-        "link": {"lost_messages": int(run.lost_messages)},
+        "success": run.drift_stream.complete,
+        "link": {
+            "lost_messages": int(run.drift_stream.lost_on_link + (run.cal_stream.lost_on_link if run.cal_stream else 0))
+        },
+        "calibration_stream": run.cal_stream.as_dict() if run.cal_stream else None,
         "drift_tracking": {
             "amplitude_um": cfg.drift_um,
             "period_frames": cfg.drift_period_frames,
-            "frames_streamed": run.n_drift_streamed,
+            "frames_streamed": run.drift_stream.received,
+            **run.drift_stream.as_dict(),
+            "incomplete_because": incomplete_reason(run.drift_stream, run.cal_stream, run.spare_frames),
             "estimates_read": int(est["frame"].size),
-            "sensor_exposures": run.drift_work.exposures,
             "estimator_updates": run.drift_work.updates,
             "focal_error_rms_um_converged": rms(err_um[settled]) if np.any(settled) else None,
             "focal_error_rms_um_all": rms(err_um) if err_um.size else None,
@@ -341,6 +428,12 @@ def summary_table(summary: dict) -> list[tuple[str, str, str]]:
             "focal drift tracking (um RMS)",
             f"{track['focal_true_rms_deviation_um']:.2f} (the drift itself)",
             tracking_text(summary),
+        ),
+        (
+            "drift frames received",
+            "",
+            f"{track['frames_received']} of {track['frames_expected']} ({track['frames_lost_on_link']} lost on the "
+            f"link){'' if track['complete'] else ': INCOMPLETE'}",
         ),
         (
             "onboard estimator updates, drift phase",

@@ -7,11 +7,16 @@ Where the counts come from:
 * Counted formulas, written from the code line by line (each function below names the lines it counts):
   :func:`pixel_to_direction_ops` (``onboard.camera.pixels_to_unit``), :func:`pixel_to_direction_fixed_ops`
   (``onboard.fixedpoint.pixels_to_unit_q30``), :func:`interstar_residual_ops` (``onboard.interstar
-  .difference_residuals`` and its Q61 twin), :func:`interstar_jacobian_ops` (``difference_jacobian``) and
-  :func:`bierman_update_ops` (``onboard.ud.bierman_update``). ``tests/test_portkit_costs.py`` holds each against
-  an instrumented run of the code (:func:`count_operations`, a numpy array subclass that counts every element of
-  every ufunc it goes through).
-* Measured: functions whose structure is long (camera Jacobians, refraction, apparent place, attitude) are counted
+  .difference_residuals`` and its Q61 twin), :func:`interstar_jacobian_ops` (``difference_jacobian``),
+  :func:`bierman_update_ops` (``onboard.ud.bierman_update``), :func:`refraction_fixed_ops` (``onboard.refraction
+  .topocentric_observed_q30``) and :func:`apparent_place_fixed_ops` (``onboard.apparent
+  .apparent_place_vectors_q30``); the fixed-point ones are built from the costs of the integer primitives of
+  ``onboard.fixedpoint`` (``_ROUND``, ``_DIV_ROUND``, ``_BIT_LENGTH``, :func:`_rsqrt_q30_ops`, ...).
+  ``tests/test_portkit_costs.py`` holds each against an instrumented run of the code (:func:`count_operations`, a
+  numpy array subclass that counts every element of every ufunc it goes through). :func:`bank_record_verify_ops`
+  counts the CRC loop of the generated C (the test pins that line).
+* Measured: functions whose structure is long (float32 camera Jacobians, refraction, apparent place, the fixed
+  point's once-per-frame instant quantities, attitude) are counted
   by running the reference code on N stars through :func:`count_operations`; the count is exact for the code as
   written (LAPACK calls inside ``np.linalg``, i.e. the attitude's one 3 x 3 SVD and 3 x 3 solve, are not seen and
   are listed as a constant).
@@ -20,9 +25,9 @@ Where the counts come from:
 
 Operations are counted as the reference code performs them (numpy on whole arrays): a C port that exploits the unit
 upper-triangular U in the U-D update, or replaces a division by 2 with a multiplication, does less. ``add`` counts
-additions and subtractions, ``cmp`` comparisons and selections, ``shift`` integer shifts and masks (fixed point),
+additions and subtractions, ``cmp`` comparisons and selections, ``shift`` integer shifts, masks and XORs,
 ``trig`` sin/cos/tan/atan2/asin. Memory is the working buffers one call needs (inputs, outputs, intermediates the
-code keeps), in bytes: float32 4, int64 8 (fixed point's Q30/Q61 values), int32 4 (Q10 centroids).
+code keeps), in bytes: float32 4, float64 and int64 8 (fixed point's Q30/Q61 values), int32 4 (Q10 centroids).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from onboard.banks import BANK_RECORD_BYTES
 from onboard.recursive import RecursiveConfig, update_cost_flops
 
 #: Categories of :class:`Ops`, in table order.
@@ -60,6 +66,7 @@ _UFUNC_CATEGORY = {
     "left_shift": "shift",
     "bitwise_and": "shift",
     "bitwise_or": "shift",
+    "bitwise_xor": "shift",
     "maximum": "cmp",
     "minimum": "cmp",
     "greater": "cmp",
@@ -182,6 +189,10 @@ def _ufunc_ops(ufunc, method: str, args, result) -> dict[str, int]:
 #: numpy constructors that take no array (so no dispatch): instrumented while counting, so buffers a function
 #: allocates inside itself count too.
 _CONSTRUCTORS = ("zeros", "empty", "ones", "eye", "full")
+#: numpy converters that would turn an instrumented input into a plain array (``np.asarray`` does not dispatch):
+#: while counting, an instrumented input stays instrumented through them (``r = np.asarray(r)`` at the top of a
+#: function would otherwise hide all its work).
+_CONVERTERS = ("asarray",)
 
 
 def counted(array: np.ndarray) -> np.ndarray:
@@ -193,21 +204,31 @@ def count_operations(fn: Callable, *args, **kwargs) -> Ops:
     """Operations one call ``fn(*args, **kwargs)`` performs on arrays (pass the inputs through :func:`counted`):
     every element of every ufunc, matmul/dot/einsum/cross as their multiplications and additions, reductions as
     their additions. Buffers the function allocates (np.zeros, np.empty, ...) are instrumented for the duration of
-    the call (the numpy constructors are wrapped, then restored). Not seen: work on Python or numpy scalars
+    the call, and ``np.asarray`` of an instrumented input stays instrumented (the numpy functions are wrapped, then
+    restored). Not seen: work on Python or numpy scalars
     (per-call constants) and LAPACK calls (np.linalg)."""
-    saved = {name: getattr(np, name) for name in _CONSTRUCTORS}
+    saved = {name: getattr(np, name) for name in _CONSTRUCTORS + _CONVERTERS}
 
     def instrumented(constructor):
         return lambda *a, **k: constructor(*a, **k).view(_Counted)
 
+    def keeps_instrumented(converter):
+        def convert(a, *rest, **k):
+            result = converter(a, *rest, **k)
+            return result.view(_Counted) if isinstance(a, _Counted) else result
+
+        return convert
+
     _Counted.tally = Counter()
     try:
-        for name, constructor in saved.items():
-            setattr(np, name, instrumented(constructor))
+        for name in _CONSTRUCTORS:
+            setattr(np, name, instrumented(saved[name]))
+        for name in _CONVERTERS:
+            setattr(np, name, keeps_instrumented(saved[name]))
         fn(*args, **kwargs)
     finally:
-        for name, constructor in saved.items():
-            setattr(np, name, constructor)
+        for name, original in saved.items():
+            setattr(np, name, original)
     tally = _Counted.tally
     return Ops(**{c: int(tally.get(c, 0)) for c in CATEGORIES})
 
@@ -220,6 +241,47 @@ def pixel_to_direction_ops(n_stars: int) -> Ops:
     The 4 additions g1..g4 of the coefficients are per call."""
     n = int(n_stars)
     return Ops(mul=22 * n, add=15 * n, div=3 * n, sqrt=n)
+
+
+# Integer primitives of onboard.fixedpoint, per value (the fixed-point formulas below are built from them).
+#: ``rshift_round(a, n)`` by a constant n: a + 2^(n-1) (the power is per call), then >>.
+_ROUND = Ops(add=1, shift=1)
+#: ``rshift_round(a, k)`` by a per-value k: also k - 1 and 1 << (k - 1).
+_ROUND_BY_VALUE = Ops(add=2, shift=2)
+#: ``div_round(a, b)`` by a per-value b > 0: b >> 1, a + that, the floor division.
+_DIV_ROUND = Ops(add=1, shift=1, div=1)
+#: ``div_round(a, d)`` by a constant d (d >> 1 is per call).
+_DIV_ROUND_BY_CONSTANT = Ops(add=1, div=1)
+#: ``bit_length``: 6 steps of (y >> k) > 0, n + where(big, k, 0), where(big, y >> k, y); then n + (y > 0).
+_BIT_LENGTH = Ops(add=6 + 1, shift=2 * 6, cmp=6 + 1)
+
+
+def _rsqrt_q30_ops() -> Ops:
+    """``onboard.fixedpoint.rsqrt_q30`` per value: the bit length; sh = length - Q - 1 (2 add); made odd
+    sh + ((sh + 1) & 1) (2 add, 1 mask); a = n2 rounded by sh (per value); the table index (a >> 26) - first
+    (1 shift, 1 add); per Newton step (RSQRT_ITERATIONS): t1 = a y and t2 = t1 y rounded (2 mul, 2 roundings),
+    3 2^30 - t2 (1 add), y times it rounded (1 mul, 1 rounding); k = (Q + 1 + sh) >> 1 (1 add, 1 shift)."""
+    from onboard.fixedpoint import RSQRT_ITERATIONS
+
+    newton = (Ops(mul=3, add=1) + _ROUND.scaled(3)).scaled(RSQRT_ITERATIONS)
+    return _BIT_LENGTH + Ops(add=2 + 2 + 1 + 1, shift=1 + 1 + 1) + _ROUND_BY_VALUE + newton
+
+
+def _isqrt_ops() -> Ops:
+    """``onboard.fixedpoint.isqrt`` per value: the bit length, x0 = max(1 << ((bits + 1) >> 1), 1) (1 add,
+    2 shift, 1 cmp); per Newton step (ISQRT_ITERATIONS): min(x, max((x + n // x) >> 1, 1)) (1 div, 1 add,
+    1 shift, 2 cmp); the final where(n > 0, x, 0) (1 cmp)."""
+    from onboard.fixedpoint import ISQRT_ITERATIONS
+
+    step = Ops(div=1, add=1, shift=1, cmp=2)
+    return _BIT_LENGTH + Ops(add=1, shift=2, cmp=1) + step.scaled(ISQRT_ITERATIONS) + Ops(cmp=1)
+
+
+def _normalise_q30_ops() -> Ops:
+    """``onboard.fixedpoint.normalise_q30`` per vector: |w|^2 (3 mul, 2 add), the reciprocal square root, w y
+    (3 mul) rounded by the per-vector k broadcast over the 3 components (k - 1 and its power once: 1 add, 1 shift;
+    then 3 add, 3 shift)."""
+    return Ops(mul=3 + 3, add=2 + 1 + 3, shift=1 + 3) + _rsqrt_q30_ops()
 
 
 def pixel_to_direction_fixed_ops(n_stars: int) -> Ops:
@@ -238,8 +300,7 @@ def pixel_to_direction_fixed_ops(n_stars: int) -> Ops:
     Subtotal 14 mul, 37 add, 34 shift, 7 cmp."""
     n = int(n_stars)
     ideal = Ops(mul=18, add=33, shift=19, cmp=4)
-    rsqrt = Ops(mul=9, add=7 + 2 + 2 + 2 + 1 + 12 + 1, shift=12 + 1 + 2 + 1 + 9 + 1, cmp=7)
-    to_unit = Ops(mul=2 + 3, add=2 + 2 + 6, shift=2 + 6) + rsqrt
+    to_unit = Ops(mul=2 + 3, add=2 + 2 + 6, shift=2 + 6) + _rsqrt_q30_ops()
     return (ideal + to_unit).scaled(n)
 
 
@@ -256,6 +317,92 @@ def interstar_jacobian_ops(n_pairs: int, n_states: int) -> Ops:
     the contraction -(b_i - b_j)^T (J_i - J_j) (3K mul, 2K add)."""
     p, k = int(n_pairs), int(n_states)
     return Ops(mul=3 * k * p, add=(3 + 5 * k) * p)
+
+
+def _cos_sin_q30_ops() -> Ops:
+    """``onboard.refraction._cos_sin_q30`` per value: R to Q30, R^2, R^4 (2 mul, 3 roundings); cos R = 2^30 -
+    R^2 / 2 + R^4 / 24 (1 rounding, 2 add, a division by a constant); sin R = R - R^3 / 6 (1 mul, 1 rounding,
+    1 add, a division by a constant)."""
+    return Ops(mul=3, add=2 + 1) + _ROUND.scaled(5) + _DIV_ROUND_BY_CONSTANT.scaled(2)
+
+
+def refraction_fixed_ops(n_stars: int) -> Ops:
+    """``onboard.refraction.topocentric_observed_q30`` (diurnal aberration, then refraction by addition) for N
+    directions, int64 arithmetic. Per direction:
+
+    aberration: r . beta (3 mul, 2 add) rounded; r << 18 (3 shift), + beta (3 add), (r.beta) r (3 mul) rounded,
+    the difference (3 add), rounded to Q30 (3); 6 mul, 15 add, 10 shift.
+    geometry: cos z = r . U (3 mul, 2 add) rounded; t = U - cos z r (3 mul, 3 roundings, 3 add); |t|^2 (3 mul,
+    2 add) and its integer square root; the ratio sin R / sin z = where(sin z > 0, div_round(sin R << 30,
+    max(sin z, 1)), 0) (2 cmp, 1 shift, 1 division); r cos R + t ratio (6 mul, 3 add) rounded (3).
+    R: ``refraction_from_true_zenith_q36``, TRUE_ZENITH_NEWTON_STEPS steps of: cos R, sin R; cos(z - R) (2 mul,
+    1 add, 1 rounding, 1 cmp for the clamp) and sin(z - R) (2 mul, 1 add, 1 rounding); tan = div_round(s << 24,
+    c) (1 shift, 1 division); tan^2, B tan^2 (2 mul, 2 roundings); k = A + B tan^2 (1 add); f = k tan (1 mul,
+    2 roundings); g = R - f (1 add); cos^2 (1 mul, 1 rounding); the derivative 2^30 + div_round((A + 3 B tan^2)
+    << 4, cos^2) (1 mul, 2 add, 1 shift, 1 division); R - div_round(g << 30, derivative) (1 shift, 1 division,
+    1 add). Then cos R, sin R of the result once more."""
+    from onboard.refraction import TRUE_ZENITH_NEWTON_STEPS
+
+    n = int(n_stars)
+    aberration = Ops(mul=6, add=2 + 3 + 3, shift=3) + _ROUND.scaled(1 + 3 + 3)
+    geometry = (
+        Ops(mul=3 + 3 + 3 + 6, add=2 + 3 + 2 + 3, shift=1, cmp=2)
+        + _ROUND.scaled(1 + 3 + 3)
+        + _isqrt_ops()
+        + _DIV_ROUND
+        + _cos_sin_q30_ops()
+    )
+    step = (
+        _cos_sin_q30_ops()
+        + Ops(mul=2 + 2 + 2 + 1 + 1 + 1, add=1 + 1 + 1 + 1 + 2 + 1, shift=1 + 1 + 1, cmp=1)
+        + _ROUND.scaled(1 + 1 + 2 + 2 + 1)
+        + _DIV_ROUND.scaled(3)
+    )
+    return (aberration + geometry + step.scaled(TRUE_ZENITH_NEWTON_STEPS)).scaled(n)
+
+
+def apparent_place_fixed_ops(n_stars: int) -> Ops:
+    """``onboard.apparent.apparent_place_vectors_q30`` for N stars at one instant, int64 arithmetic (the instant's
+    quantities, ``apparent.fixed_instant``, are inputs: see :func:`apparent_instant_ops`). Per star:
+
+    space motion c1 = years pm (3 mul, 3 roundings) - parallax E_b (3 mul, 3 roundings, 3 add); p = r0 + c1 in
+    Q30 (3 shift, 3 add, 3 roundings); p . e (3 mul, 2 add) rounded; max(2^30 + p.e, clamp) (1 add, 1 cmp);
+    q = div_round(k, 1 + p.e) (a per-star division); c2 = c1 + q (e - (p.e) p) (6 mul, 6 roundings, 6 add);
+    p = normalise(r0 + c2) (3 shift, 3 add, 3 roundings, the normalisation); p . v (3 mul, 2 add) rounded;
+    m = p.v - (p.v)^2 + v^2 / 2 (1 mul, 1 rounding, 2 add; v^2 is per call); the aberration change v - (p.v) v / 2
+    - m p (6 mul, 6 roundings, 6 add); c3 = c2 + (ab << 4) (3 shift, 3 add); p = normalise(r0 + c3) (as before);
+    p M^T (9 mul, 6 add) rounded (3)."""
+    n = int(n_stars)
+    to_q30 = Ops(shift=3, add=3) + _ROUND.scaled(3)  # r0 << 18 + change, rounded to Q30
+    parts = (
+        Ops(mul=3 + 3, add=3) + _ROUND.scaled(3 + 3),  # c1
+        to_q30,
+        Ops(mul=3, add=2 + 1, cmp=1) + _ROUND + _DIV_ROUND,  # p.e, 1 + p.e, q
+        Ops(mul=6, add=6) + _ROUND.scaled(6),  # c2
+        to_q30 + _normalise_q30_ops(),
+        Ops(mul=3 + 1, add=2 + 2) + _ROUND.scaled(1 + 1),  # p.v, m
+        Ops(mul=6, add=6) + _ROUND.scaled(6),  # aberration change
+        Ops(shift=3, add=3),  # c3
+        to_q30 + _normalise_q30_ops(),
+        Ops(mul=9, add=6) + _ROUND.scaled(3),  # rotation to TOD
+    )
+    per_star = Ops()
+    for part in parts:
+        per_star = per_star + part
+    return per_star.scaled(n)
+
+
+#: The line of the generated C (``hostlink export-c``, st_protocol.c) that :func:`bank_record_verify_ops` counts.
+CRC32_BYTE_STEP_C = "crc = st_crc32_table[(crc ^ p[i]) & 0xFFu] ^ (crc >> 8);"
+
+
+def bank_record_verify_ops() -> Ops:
+    """Verifying one bank record (``onboard.banks.decode_bank_record``; ``st_crc32`` of ``hostlink export-c``):
+    the CRC-32 over the record's bytes before its CRC, one :data:`CRC32_BYTE_STEP_C` per byte (2 XOR, 1 mask,
+    1 shift, and one look-up in the 1 KiB table), the final XOR, and two comparisons (magic, CRC). Not per frame:
+    at boot for each bank, and once per upload."""
+    body = BANK_RECORD_BYTES - 4
+    return Ops(shift=4 * body + 1, cmp=2)
 
 
 def bierman_update_ops(n_states: int) -> Ops:
@@ -315,6 +462,17 @@ def apparent_place_ops(n_stars: int) -> Ops:
     t = make_time(9497, 1 << 31)
     t = type(t)(counted(t.day), counted(t.frac))  # the per-instant part (Earth state, matrix) counts too
     return count_operations(apparent_place_vectors, counted(r), counted(pm), counted(plx), 1991.25, t)
+
+
+def apparent_instant_ops() -> Ops:
+    """``onboard.apparent.fixed_instant``, the once-per-frame quantities of the fixed-point apparent place (Earth
+    state, years, deflection, velocity, GCRS -> TOD matrix), instrumented: soft float64 on a sensor without an FPU.
+    Arithmetic on Python floats (a handful of scalar steps) is not seen."""
+    from onboard.apparent import EPOCH_HIPPARCOS_JYEAR, fixed_instant
+    from onboard.timescale import make_time
+
+    t = make_time(9497, 1 << 31)
+    return count_operations(fixed_instant, type(t)(counted(t.day), counted(t.frac)), EPOCH_HIPPARCOS_JYEAR)
 
 
 def attitude_ops(n_stars: int) -> Ops:
@@ -418,12 +576,41 @@ def cost_table(n_stars: int = 32, n_states: int = 10, config: RecursiveConfig | 
             "directions in and out, tangential vectors, cos/sin z",
         ),
         CostRow(
+            "refraction_by_addition",
+            "fixed",
+            refraction_fixed_ops(n),
+            i64 * (4 * 3 * n + 6 * n + 8),
+            "topocentric_observed_q30: diurnal aberration then refraction by addition, Q30 directions in and out",
+        ),
+        CostRow(
             "apparent_place",
             "float32",
             apparent_place_ops(n),
             f32 * (3 * n * 4 + n + 9 + 9),
             "catalogue vector, proper motion, parallax in; change accumulator, TOD direction out; includes the "
             "once-per-instant Earth state and precession-nutation matrix",
+        ),
+        CostRow(
+            "apparent_place",
+            "fixed",
+            apparent_place_fixed_ops(n),
+            i64 * (5 * 3 * n + n + 4 * n + 20),
+            "apparent_place_vectors_q30 per star; the instant's quantities are the apparent_place_instant row",
+        ),
+        CostRow(
+            "apparent_place_instant",
+            "float64",
+            apparent_instant_ops(),
+            8 * (3 * 3 + 9) + i64 * 20,
+            "fixed_instant: once per frame, independent of N, soft float64 on a sensor without an FPU",
+        ),
+        CostRow(
+            "bank_record_verify",
+            "bytes",
+            bank_record_verify_ops(),
+            BANK_RECORD_BYTES + 4 * 256,
+            "not per frame: at boot per bank and once per upload; CRC-32 by the 1 KiB table of export-c, one "
+            "table look-up per byte besides the operations counted",
         ),
         CostRow(
             "attitude",

@@ -241,8 +241,8 @@ def _front_end_constants() -> dict:
     """The fixed-point front end's constants: the reciprocal-square-root table (Q30, bins a >> 26 from the first
     bin on) and its Newton iterations, the fractional bits of the formats (onboard/fixedpoint.py)."""
     return {
-        "rsqrt_table_q30": np.asarray(fixedpoint._RSQRT_TABLE, dtype=np.int64),
-        "rsqrt_table_first_bin": np.array(fixedpoint._RSQRT_TABLE_FIRST, dtype=np.int64),
+        "rsqrt_table_q30": np.asarray(fixedpoint.RSQRT_TABLE, dtype=np.int64),
+        "rsqrt_table_first_bin": np.array(fixedpoint.RSQRT_TABLE_FIRST, dtype=np.int64),
         "rsqrt_iterations": np.array(fixedpoint.RSQRT_ITERATIONS, dtype=np.int64),
         "q": np.array(fixedpoint.Q, dtype=np.int64),
         "centroid_frac_bits": np.array(fixedpoint.CENTROID_FRAC_BITS, dtype=np.int64),

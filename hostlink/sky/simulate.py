@@ -143,6 +143,8 @@ def _check_config(cfg: SimConfig) -> None:
     bad = UserError
     if not isinstance(cfg.frames, (int, np.integer)) or cfg.frames < 1:
         raise bad(f"frames must be a whole number >= 1, got {cfg.frames!r}")
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, (int, np.integer)) or cfg.seed < 0:
+        raise bad(f"--seed must be a whole number >= 0, got {cfg.seed!r}")  # numpy's generators take no other
     if not (math.isfinite(cfg.noise_px) and cfg.noise_px >= 0):
         raise bad(f"noise must be a finite number >= 0 px, got {cfg.noise_px!r}")
     if not (1 <= cfg.min_stars <= cfg.max_stars):
