@@ -26,6 +26,8 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.files.session import Session
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
+from onboard.params import CameraParams
+from onboard.site import Site, Weather
 
 #: pixels (x_px, y_px) -> sensor-frame unit vectors (N, 3)
 PixelsToUnit = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -100,12 +102,12 @@ class CrossValidation:
 
 def cross_validate(
     session: Session,
-    nominal,
+    nominal: CameraParams,
     folds: int = 3,
-    site=None,
-    weather=None,
+    site: Site | None = None,
+    weather: Weather | None = None,
     dut1_s: float = 0.0,
-    **calibrate_options,
+    **calibrate_options: object,
 ) -> CrossValidation:
     """k-fold held-out judgement of :func:`hostlink.calibration.run.calibrate_session` on ``session`` from
     ``nominal`` (a :class:`onboard.params.CameraParams`; ``site``, ``weather``, ``dut1_s`` and ``calibrate_options``
