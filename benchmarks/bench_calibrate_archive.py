@@ -62,6 +62,7 @@ from hostlink.calibration.bundle import (  # noqa: E402
 from hostlink.calibration.data import (  # noqa: E402
     CalibrationData,
     build_data,
+    chunk_frame_count,
     concatenate_data,
     load_chunk,
     save_chunk,
@@ -141,7 +142,7 @@ def run_archive(folder: Path) -> np.ndarray:
 def run_chunked(folder: Path) -> np.ndarray:
     from hostlink.calibration.run import calibrate_chunks
 
-    return calibrate_chunks(ChunkSource(chunk_files(folder), load_chunk), NOMINAL).theta
+    return calibrate_chunks(ChunkSource(chunk_files(folder), load_chunk, chunk_frame_count), NOMINAL).theta
 
 
 def run_in_memory(folder: Path) -> np.ndarray:

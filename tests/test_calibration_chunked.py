@@ -232,14 +232,16 @@ def test_dask_option_without_address_is_a_local_cluster():
     assert parser.parse_args(base).dask is None
 
 
-def test_round_tolerance_leaves_the_camera_within_a_thousandth_of_a_sigma_of_the_minimum(dirty):
-    """A round stops at a step below BundleOptions.step_tol = 0.02 sigma and applies it; Gauss-Newton on the reduced
-    cost shrinks each step ~50-fold here, so the camera is <= 4e-4 sigma from where a 1e-7 sigma tolerance ends.
-    Bound 1e-3 sigma: 2.5 times that, and ten times below the 0.01 sigma the issue allows between two paths."""
+def test_round_tolerances_leave_the_camera_within_their_remainder_of_the_minimum(dirty):
+    """A round stops at a step below BundleOptions.step_tol = 0.02 sigma, or at one whose product with the contraction
+    measured between the fit's steps is below remainder_tol = 0.005 sigma, and applies it: what is left is at most
+    that product while the contraction does not grow (Gauss-Newton here converges superlinearly, so it shrinks).
+    Bound 5e-3 sigma: remainder_tol itself (step_tol leaves ~4e-4 at the ~50-fold contraction seen here); half the
+    0.01 sigma the issue allows between two paths."""
     ss, _ = dirty
     loose = bundle_adjust(ss.data, SEED004_NOMINAL)
-    tight = bundle_adjust(ss.data, SEED004_NOMINAL, BundleOptions(step_tol=1e-7))
+    tight = bundle_adjust(ss.data, SEED004_NOMINAL, BundleOptions(step_tol=1e-7, remainder_tol=0.0))
     cols = [ESTIMATE_NAMES.index(n) for n in tight.estimate]
     sigma = np.sqrt(np.diag(tight.covariance))
-    assert np.max(np.abs(loose.theta - tight.theta)[cols] / sigma) < 1e-3
-    assert len(loose.history) < len(tight.history)  # the looser tolerance saves passes
+    assert np.max(np.abs(loose.theta - tight.theta)[cols] / sigma) < 5e-3
+    assert len(loose.history) < len(tight.history)  # the looser tolerances save passes

@@ -12,7 +12,7 @@ from synthetic_sessions import synthetic_session
 
 from hostlink.calibration.data import build_data
 from hostlink.calibration.report import REASON_GATING, REASON_UNKNOWN_ID, REASON_VOTING
-from hostlink.calibration.robust import estimate_scale
+from hostlink.calibration.robust import estimate_scale, triple_handedness
 from hostlink.calibration.run import calibrate, calibrate_session
 from hostlink.cli import main
 from hostlink.errors import UserError
@@ -75,6 +75,25 @@ def test_scale_prepass_survives_forty_percent_misidentified_stars():
     scale, n_pairs = estimate_scale(ss.data, theta)
     assert scale * 1.08 == pytest.approx(1.0, abs=1e-3)
     assert n_pairs > 1000
+
+
+def test_parity_skips_the_triples_of_a_star_identified_twice():
+    """Two stars of a three-star frame identified as the same catalogue star span no volume on the sky: the sign of
+    that triple's rounding-level product is noise, so it must not vote on the parity; the same frames with distinct
+    identifications all vote, and none is mirrored (an identity attitude: r = b)."""
+    from onboard.camera import pixels_to_unit
+
+    rng = np.random.default_rng(2)
+    m = 200
+    x, y = rng.uniform(0, TRUTH.image_size_px[0] - 1, 3 * m), rng.uniform(0, TRUTH.image_size_px[1] - 1, 3 * m)
+    b = pixels_to_unit(x, y, TRUTH.model_vector())
+    frames = np.repeat(np.arange(m), 3)
+    everyone = np.ones(3 * m, dtype=bool)
+    opposite, total = triple_handedness(build_data(x, y, b, frames), b, everyone)
+    assert opposite == 0 and total > 0
+    twice = b.copy()
+    twice[1::3] = twice[0::3]
+    assert triple_handedness(build_data(x, y, twice, frames), b, everyone) == (0, 0)
 
 
 def test_mirrored_detector_is_a_one_line_error_naming_the_parity_and_the_fix(sim_session, tmp_path, capsys):

@@ -14,20 +14,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.bundle import residuals
+from hostlink.calibration.bundle import angle_arcsec, residuals
 from hostlink.calibration.data import (
     CalibrationData,
     angle_from_dot_rad,
     frame_chunks,
     gram_positions,
     padded_frames,
+    pair_angles_at_rad,
     upper_pairs,
 )
 from hostlink.calibration.frames import wahba_svd
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
-ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
 #: Correlations beyond this are reported as degeneracies.
 CORRELATION_LIMIT = 0.95
 #: Fraction of a parameter's information taken by the attitudes beyond which it is reported as traded off.
@@ -37,12 +37,6 @@ ATTITUDE_LIMIT = 0.95
 def fitted_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
     """Per-frame SVD attitude for a camera (methods without attitudes of their own, and the 'before' state)."""
     return wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta), data.r, data.frame_starts)
-
-
-def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle [arcsec] between unit vectors a and b (N, 3), from the chord: 2 arcsin(|a - b| / 2) (accurate at any
-    angle, unlike arccos near 0)."""
-    return 2.0 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=1) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
 
 
 def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray) -> dict:
@@ -131,11 +125,11 @@ def interstar_sums_at(
         use = pf.valid[:, pairs[0]] & pf.valid[:, pairs[1]]
         pos = gram_positions(use, pairs, pf.valid.shape[1])
         gram = np.empty(pf.valid.shape + pf.valid.shape[1:])  # one buffer for the three Gram matrices
-        ang_r = angle_from_dot_rad(np.matmul(pf.r, pf.r.transpose(0, 2, 1), out=gram).reshape(-1)[pos])
+        ang_r = pair_angles_at_rad(pf.r, pos, gram)
         pb = np.zeros_like(pf.b)  # the same slots for every camera: the padding stays zero
         for k, b_all in enumerate(bs):
             pb[pf.frame, pf.slot] = b_all[pf.rows]
-            d = angle_from_dot_rad(np.matmul(pb, pb.transpose(0, 2, 1), out=gram).reshape(-1)[pos]) - ang_r
+            d = pair_angles_at_rad(pb, pos, gram) - ang_r
             out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
     return out
 

@@ -21,23 +21,93 @@ import numpy as np
 
 from hostlink.calibration.data import (
     CalibrationData,
+    angle_from_dot_rad,
     frame_chunks,
-    padded_frames,
-    pair_angles_upper_rad,
-    upper_pairs,
+    frame_slots,
+    gram_matrices,
+    pair_angles_at_rad,
 )
 from onboard.camera import pixels_to_unit
+
+#: Voting (:func:`vote_consistent_stars`): a pair agrees when |angle_b - angle_r| <= VOTE_REL_TOL * angle_r +
+#: VOTE_ABS_TOL_RAD, and a star is consistent when it agrees with at least VOTE_MIN_AGREEMENT of the others.
+VOTE_REL_TOL = 0.03
+VOTE_ABS_TOL_RAD = 1e-3
+VOTE_MIN_AGREEMENT = 0.5
 
 #: median |e| of a 2-D isotropic Gaussian with unit sigma per axis (Rayleigh median sqrt(2 ln 2)).
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
 
+@dataclass(frozen=True)
+class _FramePairs:
+    """The real star pairs (i < j) of the frames [f0, f1) of a data set, with all that does not depend on the
+    camera: built once per chunk by :func:`_frame_pairs`, reused for every camera a pass tries. Pairs go frame by
+    frame, and within a frame by second star, then first: (0, 1), (0, 2), (1, 2), (0, 3), ..., so the pairs of a
+    frame of c stars are the first c (c - 1) / 2 of one list. Every use of them is a per-pair test, a count, a
+    maximum or a sort, none of which depends on that order."""
+
+    rows: slice  # the chunk's data rows
+    slots: np.ndarray  # (n,) flat slot of each row in the padded (m * nmax) layout (frame * nmax + slot)
+    counts: np.ndarray  # (m,) stars per frame
+    pairs_per_frame: np.ndarray  # (m,) c (c - 1) / 2
+    positions: np.ndarray  # (P,) flat positions of the pairs in the stacked (m, nmax, nmax) Gram matrices
+    r: np.ndarray  # (m, nmax, 3) padded reference directions
+    ang_r_rad: np.ndarray  # (P,) catalogue angles
+    min_dot_r: float  # smallest catalogue dot product of two stars of one frame, the star itself included (<= 1)
+
+    @property
+    def nmax(self) -> int:
+        return int(self.r.shape[1])
+
+
+def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
+    """The :class:`_FramePairs` of frames [f0, f1) of ``data``: the padded layout of
+    :func:`hostlink.calibration.data.padded_frames` and the catalogue angles of its real pairs (their Gram matrix
+    entries, :func:`hostlink.calibration.data.pair_angles_at_rad`)."""
+    _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
+    m = f1 - f0
+    rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
+    counts = np.diff(data.frame_starts[f0 : f1 + 1])
+    slots = frame * nmax + slot
+    second_slot, first_slot = np.tril_indices(nmax, -1)  # (1, 0), (2, 0), (2, 1), (3, 0), ...: by second star
+    per_frame = counts * (counts - 1) // 2
+    k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
+    positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + (first_slot * nmax + second_slot)[k]
+    r = _padded(slots, data.r[rows], m, nmax)
+    gram = gram_matrices(r).reshape(-1)
+    dots = gram[positions]
+    diagonal = gram[slots * nmax + slot]
+    return _FramePairs(
+        rows=rows,
+        slots=slots,
+        counts=counts,
+        pairs_per_frame=per_frame,
+        positions=positions,
+        r=r,
+        ang_r_rad=angle_from_dot_rad(dots),
+        min_dot_r=min(1.0, float(np.min(dots, initial=1.0)), float(np.min(diagonal, initial=1.0))),
+    )
+
+
+def _padded(slots: np.ndarray, v: np.ndarray, m: int, nmax: int) -> np.ndarray:
+    """Rows ``v`` (n, 3) at their flat ``slots`` of an (m, nmax, 3) array of zeros (the padding)."""
+    out = np.zeros((m * nmax, 3))
+    out[slots] = v
+    return out.reshape(m, nmax, 3)
+
+
+def _padded_directions(pairs: _FramePairs, b: np.ndarray) -> np.ndarray:
+    """The chunk's measured directions (rows of ``b`` (N, 3), the whole data set's) in the padded layout."""
+    return _padded(pairs.slots, b[pairs.rows], *pairs.r.shape[:2])
+
+
 def vote_consistent_stars(
     data: CalibrationData,
     b: np.ndarray,
-    rel_tol: float = 0.03,
-    abs_tol_rad: float = 1e-3,
-    min_agreement: float = 0.5,
+    rel_tol: float = VOTE_REL_TOL,
+    abs_tol_rad: float = VOTE_ABS_TOL_RAD,
+    min_agreement: float = VOTE_MIN_AGREEMENT,
     chunk_obs: int = 20_000,
 ) -> np.ndarray:
     """(N,) bool: stars whose interstar angles agree with the catalogue for at least ``min_agreement`` of the other
@@ -47,27 +117,44 @@ def vote_consistent_stars(
     within 3 %, and 1 mrad for principal-point and distortion errors of a few pixels at typical focal lengths).
     Frames are padded to their largest star count within a chunk, so the work is vectorised and bounded.
     """
+    return consistent_stars_and_field(data, b, rel_tol, abs_tol_rad, min_agreement, chunk_obs)[0]
+
+
+def consistent_stars_and_field(
+    data: CalibrationData,
+    b: np.ndarray,
+    rel_tol: float = VOTE_REL_TOL,
+    abs_tol_rad: float = VOTE_ABS_TOL_RAD,
+    min_agreement: float = VOTE_MIN_AGREEMENT,
+    chunk_obs: int = 20_000,
+) -> tuple[np.ndarray, float]:
+    """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad] (the
+    field the data span: the number of :func:`hostlink.calibration.report.max_pair_angle_rad`, from the Gram
+    matrices the vote computes anyway; the angle is monotone in the dot product, so it is that of the smallest)."""
     keep = np.zeros(data.n_obs, dtype=bool)
-    starts = data.frame_starts
-    for f0, f1 in frame_chunks(starts, chunk_obs):
-        pf = padded_frames(data, b, f0, f1)
-        nmax = pf.valid.shape[1]
-        if nmax < 2:
-            continue
-        valid, rows, frame_local, slot = pf.valid, pf.rows, pf.frame, pf.slot
-        pairs = upper_pairs(nmax)
-        pair_ok = valid[:, pairs[0]] & valid[:, pairs[1]]
-        ang_b = pair_angles_upper_rad(pf.b, pairs, pair_ok)
-        ang_r = pair_angles_upper_rad(pf.r, pairs, pair_ok)
-        agree = (np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad) & pair_ok
-        # each star's agreeing pairs: pair p counts for both its stars (0/1 sums, exact in floating point)
-        incidence = np.zeros((pairs[0].size, nmax))
-        incidence[np.arange(pairs[0].size), pairs[0]] = 1.0
-        incidence[np.arange(pairs[0].size), pairs[1]] = 1.0
-        others = np.maximum(valid.sum(axis=1) - 1, 1)
-        frac = (agree.astype(np.float64) @ incidence) / others[:, None]
-        keep[rows] = frac[frame_local, slot] >= min_agreement
-    return keep
+    field_rad = 0.0
+    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
+        pairs = _frame_pairs(data, f0, f1)
+        field_rad = max(field_rad, float(angle_from_dot_rad(np.float64(pairs.min_dot_r))))
+        if pairs.nmax >= 2:
+            keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
+    return keep, field_rad
+
+
+def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
+    """(n,) fraction of the other stars of its frame with which each row's interstar angle agrees (the test of
+    :func:`vote_consistent_stars`): each star's pairs less its disagreeing ones (a pair counts for both its stars;
+    exact integer counts)."""
+    ang_b = pair_angles_at_rad(padded_b, pairs.positions)
+    ang_r = pairs.ang_r_rad
+    disagree = ~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad)
+    nmax = pairs.nmax
+    first, second = np.divmod(pairs.positions[disagree], nmax)  # flat slot of the first star, slot of the second
+    second += first - first % nmax
+    size = pairs.r.shape[0] * nmax
+    misses = (np.bincount(first, minlength=size) + np.bincount(second, minlength=size))[pairs.slots]
+    others = np.repeat(pairs.counts - 1, pairs.counts)
+    return (others - misses) / np.maximum(others, 1)
 
 
 def robust_sigma_2d(residual_norm: np.ndarray) -> float:
@@ -103,6 +190,10 @@ SCALE_MIN_PAIR_FRACTION = 0.2
 #: Pre-pass: triples whose spanned volume |det[r1 r2 r3]| is below this fraction of the largest of their frame are
 #: too close to collinear for the sign of the determinant to be trusted.
 PARITY_MIN_VOLUME_FRACTION = 0.05
+#: Pre-pass: triples of catalogue directions spanning less than this volume |det[r1 r2 r3]| are degenerate whatever
+#: their frame's largest (two stars identified as the same catalogue star): the triple product of unit vectors has a
+#: rounding error of ~1e-15, and three real stars 1.4 urad apart (far below a pixel) still span 1e-12.
+PARITY_MIN_VOLUME = 1e-12
 #: Pre-pass: most random triples per frame examined for the parity.
 PARITY_TRIPLES_PER_FRAME = 40
 #: Pre-pass: most frames it looks at (evenly spaced through the session): ~10^5 pairs and triples settle the scale
@@ -141,23 +232,38 @@ def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     return float(np.median(v[i : upper[i]])), int(counts[i])
 
 
-def _pair_log_ratios(data: CalibrationData, b: np.ndarray, chunk_obs: int) -> np.ndarray:
+def _long_pairs(pairs: _FramePairs) -> tuple[np.ndarray, np.ndarray]:
+    """The Gram positions and catalogue angles of the pairs whose catalogue angle is at least
+    :data:`SCALE_MIN_PAIR_FRACTION` of their frame's longest (and not zero), in order."""
+    per_frame = pairs.pairs_per_frame
+    has = per_frame > 0
+    longest = np.zeros(per_frame.size)
+    if np.any(has):
+        longest[has] = np.maximum.reduceat(pairs.ang_r_rad, (np.cumsum(per_frame) - per_frame)[has])
+    ang_r = pairs.ang_r_rad
+    use = (ang_r >= SCALE_MIN_PAIR_FRACTION * np.repeat(longest, per_frame)) & (ang_r > 0)
+    return pairs.positions[use], ang_r[use]
+
+
+def _pair_log_ratios(chunks: list[_FramePairs], long: list[tuple[np.ndarray, np.ndarray]], b: np.ndarray) -> np.ndarray:
     """log(angle_b / angle_r) over every pair of every frame whose catalogue angle is at least
-    :data:`SCALE_MIN_PAIR_FRACTION` of its frame's longest (small angles: angle_b / angle_r = F_true / F_nominal)."""
+    :data:`SCALE_MIN_PAIR_FRACTION` of its frame's longest (``long``, :func:`_long_pairs`; small angles:
+    angle_b / angle_r = F_true / F_nominal), for measured directions ``b`` (N, 3)."""
     out = []
-    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
-        pf = padded_frames(data, b, f0, f1)
-        nmax = pf.valid.shape[1]
-        if nmax < 2:
-            continue
-        pairs = upper_pairs(nmax)
-        upper = pf.valid[:, pairs[0]] & pf.valid[:, pairs[1]]
-        ang_b = pair_angles_upper_rad(pf.b, pairs, upper)
-        ang_r = pair_angles_upper_rad(pf.r, pairs, upper)
-        longest = np.max(np.where(upper, ang_r, 0.0), axis=1)
-        use = upper & (ang_r >= SCALE_MIN_PAIR_FRACTION * longest[:, None]) & (ang_r > 0) & (ang_b > 0)
-        out.append(np.log(ang_b[use] / ang_r[use]))
+    for pairs, (positions, ang_r) in zip(chunks, long, strict=True):
+        ang_b = pair_angles_at_rad(_padded_directions(pairs, b), positions)
+        use = ang_b > 0
+        if not np.all(use):
+            ang_b, ang_r = ang_b[use], ang_r[use]
+        out.append(np.log(ang_b / ang_r))
     return np.concatenate(out) if out else np.zeros(0)
+
+
+def _chunk_pairs(data: CalibrationData, chunk_obs: int, min_stars: int) -> list[_FramePairs]:
+    """:func:`_frame_pairs` of every chunk of ``data`` (:func:`hostlink.calibration.data.frame_chunks`) whose
+    largest frame has at least ``min_stars`` stars."""
+    chunks = [_frame_pairs(data, f0, f1) for f0, f1 in frame_chunks(data.frame_starts, chunk_obs)]
+    return [c for c in chunks if c.nmax >= min_stars]
 
 
 def estimate_scale(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> tuple[float, int]:
@@ -165,12 +271,20 @@ def estimate_scale(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20
     ``theta`` (model vector, F in px) against the catalogue's. For a pinhole, tan(angle) scales as 1 / F for pairs
     through the boresight, so the ratio angle_b / angle_r of every long pair votes for F_true / F_nominal; the
     densest 2 % window of log ratios (:data:`SCALE_MODE_WINDOW`) wins, so misidentified stars do not pull it. The
-    estimate is iterated three times (each through the rescaled camera) to remove the wide-field nonlinearity.
-    Returns (scale, number of pairs in the winning window); (1.0, 0) when no pair votes."""
+    estimate is iterated three times (each through the rescaled camera) to remove the wide-field nonlinearity; the
+    catalogue angles are computed once and kept for them (16 bytes per pair: the pre-pass calls this on at most
+    :data:`PREPASS_MAX_FRAMES` frames). Returns (scale, number of pairs in the winning window); (1.0, 0) when no
+    pair votes."""
+    return _estimate_scale(data, _chunk_pairs(data, chunk_obs, 2), theta)
+
+
+def _estimate_scale(data: CalibrationData, chunks: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
+    """:func:`estimate_scale` with the catalogue side of its pairs (``chunks``) computed once for its iterations."""
     theta = np.array(theta, dtype=np.float64)
+    long = [_long_pairs(c) for c in chunks]
     scale, n = 1.0, 0
     for _ in range(3):
-        ratios = _pair_log_ratios(data, pixels_to_unit(data.x_px, data.y_px, theta), chunk_obs)
+        ratios = _pair_log_ratios(chunks, long, pixels_to_unit(data.x_px, data.y_px, theta))
         if ratios.size == 0:
             return 1.0, 0
         log_step, n = _densest_window(ratios, SCALE_MODE_WINDOW)
@@ -188,32 +302,48 @@ def triple_handedness(
     """(triples with opposite handedness, triples examined): for up to :data:`PARITY_TRIPLES_PER_FRAME` random
     triples of ``consistent`` stars per frame, sign(det[b1 b2 b3]) against sign(det[r1 r2 r3]). A rotation keeps
     the sign of every triple product; a mirror (one flipped image axis) reverses it, while it keeps every interstar
-    angle, so only this test finds it. Triples too close to collinear (:data:`PARITY_MIN_VOLUME_FRACTION`) are
-    skipped. Deterministic for a given ``seed``."""
+    angle, so only this test finds it. Triples too close to collinear (:data:`PARITY_MIN_VOLUME_FRACTION`) or
+    degenerate (:data:`PARITY_MIN_VOLUME`) are skipped. Deterministic for a given ``seed``."""
+    chunks = _chunk_pairs(data, chunk_obs, 3)
+    return _triple_handedness(chunks, [_padded_directions(c, b) for c in chunks], consistent, seed)
+
+
+def _triple_handedness(
+    chunks: list[_FramePairs], padded_b: list[np.ndarray], consistent: np.ndarray, seed: int
+) -> tuple[int, int]:
+    """:func:`triple_handedness` over chunks of at least 3 stars (``padded_b``: their measured directions)."""
     rng = np.random.default_rng(seed)
     opposite = total = 0
-    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
-        pf = padded_frames(data, b, f0, f1)
-        valid = pf.valid.copy()
-        valid[pf.frame, pf.slot] &= consistent[pf.rows]
-        nmax = valid.shape[1]
-        if nmax < 3:
-            continue
-        m = valid.shape[0]
-        k = PARITY_TRIPLES_PER_FRAME
-        # random slots among the valid ones: rank random keys, invalid slots last
-        keys = rng.random((m, k, nmax)) + np.where(valid, 0.0, 2.0)[:, None, :]
+    k = PARITY_TRIPLES_PER_FRAME
+    for pairs, pb in zip(chunks, padded_b, strict=True):
+        m, nmax = pairs.r.shape[:2]
+        valid = np.zeros(m * nmax, dtype=bool)
+        valid[pairs.slots] = consistent[pairs.rows]
+        valid = valid.reshape(m, nmax)
+        # random slots among the valid ones: the three smallest of random keys, invalid slots (keys >= 2) last
+        keys = rng.random((m, k, nmax))
+        keys += np.where(valid, 0.0, 2.0)[:, None, :]
         idx = np.argsort(keys, axis=2)[:, :, :3]
-        ok = np.take_along_axis(np.broadcast_to(valid[:, None, :], keys.shape), idx, axis=2).all(axis=2)
-        fr = np.arange(m)[:, None, None]
-        det_b = np.linalg.det(pf.b[fr, idx])
-        det_r = np.linalg.det(pf.r[fr, idx])
+        # all three valid exactly when the frame has three valid slots
+        ok = np.broadcast_to((np.count_nonzero(valid, axis=1) >= 3)[:, None], (m, k)).copy()
+        flat = np.add(np.moveaxis(idx, 2, 0), (np.arange(m) * nmax)[:, None], order="C")  # (3, m, k) padded rows
+        det_b = _triple_product(pb.reshape(-1, 3), flat)
+        det_r = _triple_product(pairs.r.reshape(-1, 3), flat)
         biggest = np.max(np.where(ok, np.abs(det_r), 0.0), axis=1, keepdims=True)
         ok &= np.abs(det_r) >= PARITY_MIN_VOLUME_FRACTION * biggest
-        ok &= det_r != 0
+        ok &= np.abs(det_r) > PARITY_MIN_VOLUME
         opposite += int(np.count_nonzero(ok & (np.sign(det_b) != np.sign(det_r))))
         total += int(np.count_nonzero(ok))
     return opposite, total
+
+
+def _triple_product(v: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """det[v_i v_j v_k] = v_i . (v_j x v_k) for each triple of rows (i, j, k) of ``v`` (n, 3) in ``idx`` (3, ...)."""
+    x, y, z = np.ascontiguousarray(v.T)  # coordinates, each gathered into contiguous arrays
+    i, j, k = idx
+    yj, zj, yk, zk = y[j], z[j], y[k], z[k]
+    xj, xk = x[j], x[k]
+    return x[i] * (yj * zk - zj * yk) + y[i] * (zj * xk - xj * zk) + z[i] * (xj * yk - yj * xk)
 
 
 def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
@@ -228,19 +358,26 @@ def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_ob
     return scale_and_parity_of_sample(data, theta, chunk_obs)
 
 
-def prepass_frames(n_frames: int) -> np.ndarray:
-    """Indices (sorted, unique) of the at most :data:`PREPASS_MAX_FRAMES` evenly spaced frames the pre-pass uses."""
-    if n_frames <= PREPASS_MAX_FRAMES:
+def prepass_frames(n_frames: int, max_frames: int = PREPASS_MAX_FRAMES) -> np.ndarray:
+    """Indices (sorted, unique) of the at most ``max_frames`` evenly spaced frames (by default those the pre-pass
+    uses, :data:`PREPASS_MAX_FRAMES`)."""
+    if n_frames <= max_frames:
         return np.arange(n_frames, dtype=np.int64)
-    return np.unique(np.linspace(0, n_frames - 1, PREPASS_MAX_FRAMES).round().astype(np.int64))
+    return np.unique(np.linspace(0, n_frames - 1, max_frames).round().astype(np.int64))
 
 
 def scale_and_parity_of_sample(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
     """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
-    scale, n_pairs = estimate_scale(data, theta, chunk_obs)
+    # the catalogue side of every pair once, for the three scale iterations, the vote and the triples
+    chunks = _chunk_pairs(data, chunk_obs, 2)
+    scale, n_pairs = _estimate_scale(data, chunks, theta)
     theta_s = np.array(theta, dtype=np.float64)
     theta_s[0] *= scale
     b = pixels_to_unit(data.x_px, data.y_px, theta_s)
-    consistent = vote_consistent_stars(data, b, chunk_obs=chunk_obs)
-    opposite, total = triple_handedness(data, b, consistent, chunk_obs=chunk_obs)
+    padded_b = [_padded_directions(c, b) for c in chunks]
+    consistent = np.zeros(data.n_obs, dtype=bool)
+    for pairs, pb in zip(chunks, padded_b, strict=True):
+        consistent[pairs.rows] = _agreement(pairs, pb, VOTE_REL_TOL, VOTE_ABS_TOL_RAD) >= VOTE_MIN_AGREEMENT
+    with3 = [k for k, c in enumerate(chunks) if c.nmax >= 3]
+    opposite, total = _triple_handedness([chunks[k] for k in with3], [padded_b[k] for k in with3], consistent, 0)
     return ScaleParity(scale, n_pairs, opposite / total if total else float("nan"), total)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.calibration.bundle import (
+    ARCSEC_PER_RAD,
     DEFAULT_CHUNK_OBS,
     BundleOptions,
     ChunkSource,
@@ -27,6 +28,7 @@ from hostlink.calibration.data import (
     MIN_STARS_PER_FRAME,
     CalibrationData,
     calibration_data_from_session,
+    chunk_frame_count,
     concatenate_data,
     frame_chunks,
     load_chunk,
@@ -36,8 +38,8 @@ from hostlink.calibration.data import (
 )
 from hostlink.calibration.interstar_methods import calibrate_interstar
 from hostlink.calibration.report import (
-    ARCSEC_PER_RAD,
     RejectedStars,
+    clipped_rms,
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
@@ -53,6 +55,7 @@ from hostlink.calibration.report import (
 )
 from hostlink.calibration.robust import (
     ScaleParity,
+    consistent_stars_and_field,
     estimate_scale_and_parity,
     prepass_frames,
     robust_sigma_2d,
@@ -299,39 +302,67 @@ class _Screened:
 
 
 def _vote_chunk(data: CalibrationData, theta: np.ndarray) -> _Screened:
-    consistent = vote_consistent_stars(data, measured_directions(data, theta), chunk_obs=DEFAULT_CHUNK_OBS)
+    """The voting pass over one chunk at the camera ``theta`` (and the field it spans, from the same Gram matrices:
+    :func:`hostlink.calibration.robust.consistent_stars_and_field`)."""
+    consistent, field_rad = consistent_stars_and_field(
+        data, measured_directions(data, theta), chunk_obs=DEFAULT_CHUNK_OBS
+    )
     rows = data.source_rows()[~consistent]
-    return _Screened(rows.astype(np.int64), data.n_obs, data.n_frames, max_pair_angle_rad(data))
+    return _Screened(rows.astype(np.int64), data.n_obs, data.n_frames, field_rad)
 
 
-def _stats_chunk(data, theta0, theta, excluded, sigma_px, huber_k) -> tuple[dict, dict, tuple, tuple]:
-    """Residual and interstar sums of one chunk's inliers, before (nominal, SVD attitudes) and after the fit, added
-    up over sub-chunks of the bundle's working size (``DEFAULT_CHUNK_OBS`` stars: small temporaries)."""
+def _stats_chunk(data, theta0, theta, excluded) -> tuple[dict, tuple, tuple]:
+    """Residual sums of one chunk's inliers at the nominal camera ``theta0`` (SVD attitudes) and their interstar
+    sums there and at the result ``theta``, added up over sub-chunks of the bundle's working size
+    (``DEFAULT_CHUNK_OBS`` stars: small temporaries). The residuals at the result are the bundle's final pass's
+    (:attr:`hostlink.calibration.bundle.ChunkedBundleResult.residual_sums`)."""
     fit = without_rows(data, excluded)
     out = None
     for f0, f1 in frame_chunks(fit.frame_starts, DEFAULT_CHUNK_OBS) or [(0, 0)]:
         sub = frames_of(fit, f0, f1)
-        att = frame_attitudes(sub, theta, sigma_px, huber_k)
         ib, ia = interstar_sums_at(sub, [theta0, theta])
-        before, after = residual_sums(sub, theta0, fitted_attitudes(sub, theta0)), residual_sums(sub, theta, att)
+        before = residual_sums(sub, theta0, fitted_attitudes(sub, theta0))
         if out is not None:
-            before, after = merge_sums(out[0], before), merge_sums(out[1], after)
-            ib, ia = (out[2][0] + ib[0], out[2][1] + ib[1]), (out[3][0] + ia[0], out[3][1] + ia[1])
-        out = (before, after, ib, ia)
+            before = merge_sums(out[0], before)
+            ib, ia = (out[1][0] + ib[0], out[1][1] + ib[1]), (out[2][0] + ia[0], out[2][1] + ia[1])
+        out = (before, ib, ia)
     return out
 
 
-def sample_frames(source: ChunkSource, frames: np.ndarray) -> CalibrationData:
-    """The frames with the given global indices (sorted; counted through the chunks in order) as one data set."""
-    parts, offset = [], 0
+def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[CalibrationData]:
+    """For each array of global frame indices (sorted; counted through the chunks in order), those frames as one
+    data set; every chunk is read once for all the sets."""
+    parts: list[list[CalibrationData]] = [[] for _ in frame_sets]
+    offset = 0
     for chunk in source:
-        local = frames[(frames >= offset) & (frames < offset + chunk.n_frames)] - offset
-        if local.size:
-            pick = np.zeros(chunk.n_frames, dtype=bool)
-            pick[local] = True
-            parts.append(chunk.select(pick[chunk.frame_index()], min_stars=1)[0])
+        for frames, out in zip(frame_sets, parts, strict=True):
+            local = frames[(frames >= offset) & (frames < offset + chunk.n_frames)] - offset
+            if local.size:
+                pick = np.zeros(chunk.n_frames, dtype=bool)
+                pick[local] = True
+                out.append(chunk.select(pick[chunk.frame_index()], min_stars=1)[0])
         offset += chunk.n_frames
-    return concatenate_data(parts)
+    return [concatenate_data(p) for p in parts]
+
+
+#: The least-squares warm start's larger samples (the first is the pre-pass's :data:`robust.PREPASS_MAX_FRAMES`):
+#: evenly spaced frames held in memory (~60 bytes a star: ~120 MB for the largest at 20 stars per frame), each used
+#: when the session has more than twice as many frames. Each level of ~10x more frames starts the next a few of its
+#: standard deviations from its minimum, where one Gauss-Newton step leaves ~1e-2 sigma (the step from s sigma
+#: leaves ~1.5e-3 s^2 here), so the full data take two passes; a session 100x longer than the largest level takes
+#: three (the first step ~30 sigma leaves ~1.5 sigma).
+WARM_LEVEL_FRAMES = (10_000, 100_000)
+
+
+def warm_levels(source: ChunkSource, n_frames: int) -> tuple[CalibrationData, tuple[CalibrationData, ...]]:
+    """The pre-pass sample (:func:`hostlink.calibration.robust.prepass_frames`) and the warm-start samples of
+    :func:`hostlink.calibration.bundle.bundle_adjust_chunks` (coarse to fine: the pre-pass sample, then each of
+    :data:`WARM_LEVEL_FRAMES` the session is more than twice as long as; none for a session up to twice the
+    pre-pass sample), gathered in one read of the chunks."""
+    sets = [prepass_frames(n_frames)] + [prepass_frames(n_frames, k) for k in WARM_LEVEL_FRAMES if n_frames > 2 * k]
+    samples = sample_frames(source, *sets)
+    warm = tuple(samples) if n_frames > 2 * samples[0].n_frames else ()
+    return samples[0], warm
 
 
 def calibrate_chunks(
@@ -352,7 +383,7 @@ def calibrate_chunks(
     (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
     Raises ValueError as :func:`calibrate` does."""
     theta0 = nominal.model_vector(np.float64)
-    sample = sample_frames(source, prepass_frames(sum(c.n_frames for c in source)))
+    sample, warm = warm_levels(source, source.n_frames())
     prepass = scale_and_parity_of_sample(sample, theta0)
     start = start_from_prepass(prepass, nominal, estimate is None or "f" in estimate)
     theta_start = start.model_vector(np.float64)
@@ -367,8 +398,7 @@ def calibrate_chunks(
             f"{100 * (1 / prepass.scale - 1):+.1f} % off: estimate f"
         )
     held: list[dict] = []
-    # a session much longer than the pre-pass sample starts its least-squares round on that sample (in memory)
-    warm = sample if m_in > 2 * sample.n_frames else None
+    # a session much longer than the pre-pass sample starts its least-squares round on samples (in memory)
     res = _bundle_chunks(source, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress, voted, run_pass, warm)
     if estimate is None:
         sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
@@ -378,14 +408,13 @@ def calibrate_chunks(
             fixed = [ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n not in chosen]
             theta_restart[fixed] = theta0[fixed]
             restart = nominal.with_model_vector(theta_restart)
-            res = _bundle_chunks(source, restart, chosen, noise_px, max_iter, progress, voted, run_pass, None)
+            res = _bundle_chunks(source, restart, chosen, noise_px, max_iter, progress, voted, run_pass, ())
     dropped = np.union1d(voted, res.gated_rows)
-    before, after = None, None
+    before = None
     inter_before, inter_after = (0.0, 0), (0.0, 0)
     for chunk in source:
-        b, a, ib, ia = _stats_chunk(chunk, theta0, res.theta, dropped, res.robust_sigma_px, BundleOptions.huber_k)
+        b, ib, ia = _stats_chunk(chunk, theta0, res.theta, dropped)
         before = b if before is None else merge_sums(before, b)
-        after = a if after is None else merge_sums(after, a)
         inter_before = (inter_before[0] + ib[0], inter_before[1] + ib[1])
         inter_after = (inter_after[0] + ia[0], inter_after[1] + ia[1])
     rejected = {
@@ -405,7 +434,7 @@ def calibrate_chunks(
         data=None,
         attitudes=None,
         before=stats_from_sums(before),
-        after=stats_from_sums(after),
+        after=stats_from_sums(res.residual_sums),
         interstar_before_rad=math.sqrt(inter_before[0] / inter_before[1]) if inter_before[1] else float("nan"),
         interstar_after_rad=math.sqrt(inter_after[0] / inter_after[1]) if inter_after[1] else float("nan"),
         rejected=rejected,
@@ -426,7 +455,9 @@ def calibrate_chunks(
         outcome.data = fit
         outcome.attitudes = frame_attitudes(fit, res.theta, res.robust_sigma_px, BundleOptions.huber_k)
         outcome.before = residual_stats(fit, theta0, fitted_attitudes(fit, theta0))
-        outcome.after = residual_stats(fit, res.theta, outcome.attitudes)
+        # the final pass's residuals, as on the chunked path; the clipped RMS needs them all: at the result
+        e_len = np.linalg.norm(residuals(fit, res.theta, outcome.attitudes), axis=1)
+        outcome.after["rms_px_clipped"] = clipped_rms(e_len)
     return outcome
 
 
@@ -604,7 +635,7 @@ def spool_session(
     summary = ReferencesSummary(
         "+".join(sorted(sources)), refraction, n_unidentified, np.concatenate(unknown), time_known
     )
-    return ChunkSource(tuple(files), load_chunk), summary
+    return ChunkSource(tuple(files), load_chunk, chunk_frame_count), summary
 
 
 def calibrate_archive(

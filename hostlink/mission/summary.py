@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hostlink.calibration.report import ARCSEC_PER_RAD, fitted_attitudes
+from hostlink.calibration.bundle import ARCSEC_PER_RAD
+from hostlink.calibration.report import fitted_attitudes
 from hostlink.mission.config import BenchConfig
 from onboard.params import CameraParams
 
