@@ -433,6 +433,11 @@ SCALE_ROUND_TOL = 0.01
 #: The first round (plain least squares, before any robust scale is known) stops at steps below this many standard
 #: deviations: the robust rounds after it continue from there to ``BundleOptions.step_tol``.
 ROUGH_STEP_SIGMAS = 0.1
+#: A warm-start sample's rounds (``bundle_adjust_chunks``) stop at steps below this many of the sample's own
+#: standard deviations: the minimum of the next, ~10x larger level lies ~3 of them away (sampling: the sqrt(10)
+#: parameters' share of the frames left out), and what a step of s leaves (~1.5e-3 s^2) is far below that, so
+#: converging a sample further only costs passes; the next level's first step absorbs the difference.
+WARM_STEP_SIGMAS = 2.0
 #: A step below this many standard deviations that does not lower the cost ends the round as converged (the cost
 #: then moves by less than the attitudes' own convergence changes it: ~1e-4 sigma^2 per frame), rather than being
 #: retried at growing damping.
@@ -709,9 +714,19 @@ class ChunkSource:
     load: Callable[[object], CalibrationData] | None = None
     #: the number of frames of a handle's chunk without loading all of it (None: load the chunk and count)
     count: Callable[[object], int] | None = None
+    #: the chunk loaded last, kept until another one is loaded (memory: one chunk), so the passes over a session of
+    #: one chunk read it once (the chunks are read-only: every pass selects copies)
+    _last: list = field(default_factory=list, compare=False, repr=False)
 
     def chunk(self, handle: object) -> CalibrationData:
-        return handle if self.load is None else self.load(handle)
+        if self.load is None:
+            return handle
+        if self._last and self._last[0] == handle:
+            return self._last[1]
+        self._last.clear()  # the previous chunk is released before the next one is read
+        data = self.load(handle)
+        self._last.extend((handle, data))
+        return data
 
     def n_frames(self) -> int:
         """Frames in all the chunks."""
@@ -777,8 +792,9 @@ def bundle_adjust_chunks(
 
     Each pass eliminates every frame's attitude at the pass's camera (:func:`frame_attitudes`) and sums the reduced
     normal equations (Schur complement) with Huber weights of a fixed robust scale. The first round is plain least
-    squares to :data:`ROUGH_STEP_SIGMAS` (on ``warm_start``'s first sample of the frames held in memory, when given;
-    each further, larger sample then continues at that sample's robust scale to the same tolerance, so the full data
+    squares to :data:`ROUGH_STEP_SIGMAS` (on ``warm_start``'s first sample of the frames held in memory, when given,
+    to :data:`WARM_STEP_SIGMAS`; each further, larger sample then continues at that sample's robust scale to the
+    same tolerance, so the full data
     start within a few of their own standard deviations: ~10x more frames per level). A round converges at a step
     below ``options.step_tol`` sigma, or one whose product with the measured contraction is below
     ``options.remainder_tol`` sigma (the step is applied), and ends with a final pass (also unit weights: the
@@ -884,7 +900,7 @@ def bundle_adjust_chunks(
     for level in warm_start:
         warm = in_memory_source(level)
         cur = check(run_pass(warm, request(theta, sigma)), True)
-        theta, cur, _, _ = fit_round(warm, theta, cur, sigma, ROUGH_STEP_SIGMAS)
+        theta, cur, _, _ = fit_round(warm, theta, cur, sigma, WARM_STEP_SIGMAS)
         sigma = robust_sigma_from_histogram(cur.hist)
     cur = check(run_pass(source, request(theta, sigma)), True)
     final = None
