@@ -346,12 +346,12 @@ def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[Calibrat
 
 
 #: The least-squares warm start's larger samples (the first is the pre-pass's :data:`robust.PREPASS_MAX_FRAMES`):
-#: evenly spaced frames held in memory (~60 bytes a star: ~120 MB for the largest at 20 stars per frame), each used
-#: when the session has more than twice as many frames. Each level of ~10x more frames starts the next a few of its
-#: standard deviations from its minimum, where one Gauss-Newton step leaves ~1e-2 sigma (the step from s sigma
-#: leaves ~1.5e-3 s^2 here), so the full data take two passes; a session 100x longer than the largest level takes
-#: three (the first step ~30 sigma leaves ~1.5 sigma).
-WARM_LEVEL_FRAMES = (10_000, 100_000)
+#: evenly spaced frames held in memory (~60 bytes a star, twice that while gathered: ~120 MB for the largest at 20
+#: stars per frame), each used when the session has more than twice as many frames. Each level of 5-10x more
+#: frames starts the next a few of its standard deviations from its minimum, where one Gauss-Newton step leaves
+#: ~1e-2 sigma (the step from s sigma leaves ~1.5e-3 s^2 here), so the full data take two passes (measured up to
+#: 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) takes three.
+WARM_LEVEL_FRAMES = (10_000, 50_000)
 
 
 def warm_levels(source: ChunkSource, n_frames: int) -> tuple[CalibrationData, tuple[CalibrationData, ...]]:
