@@ -350,7 +350,7 @@ def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[Calibrat
 #: stars per frame), each used when the session has more than twice as many frames. Each level of 5-10x more
 #: frames starts the next a few of its standard deviations from its minimum, where one Gauss-Newton step leaves
 #: ~1e-2 sigma (the step from s sigma leaves ~1.5e-3 s^2 here), so the full data take two passes (measured up to
-#: 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) takes three.
+#: 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) should take three.
 WARM_LEVEL_FRAMES = (10_000, 50_000)
 
 
