@@ -14,15 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.bundle import angle_arcsec, residuals
+from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residuals
 from hostlink.calibration.data import (
     CalibrationData,
     angle_from_dot_rad,
+    frame_blocks,
     frame_chunks,
-    gram_positions,
+    gram_matrices,
     padded_frames,
-    pair_angles_at_rad,
-    upper_pairs,
 )
 from hostlink.calibration.frames import wahba_svd
 from onboard.camera import pixels_to_unit
@@ -101,37 +100,45 @@ def clipped_rms(e_len: np.ndarray, k: float = 3.0, max_passes: int = 20) -> floa
     return rms
 
 
-def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> float:
-    """Seed 000's Delta_rms [rad] over all n(n-1)/2 pairs of every frame (padded per chunk, bounded memory)."""
+def interstar_rms_rad(data: CalibrationData, theta: np.ndarray, chunk_obs: int = DEFAULT_CHUNK_OBS) -> float:
+    """Seed 000's Delta_rms [rad] over all n(n-1)/2 pairs of every frame (in blocks of frames, bounded memory)."""
     total, count = interstar_sums(data, theta, chunk_obs)
     return math.sqrt(total / count) if count else float("nan")
 
 
-def interstar_sums(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> tuple[float, int]:
+def interstar_sums(data: CalibrationData, theta: np.ndarray, chunk_obs: int = DEFAULT_CHUNK_OBS) -> tuple[float, int]:
     """(sum of squared interstar angle differences [rad^2], number of pairs) of :func:`interstar_rms_rad`."""
     return interstar_sums_at(data, [theta], chunk_obs)[0]
 
 
 def interstar_sums_at(
-    data: CalibrationData, thetas: list[np.ndarray], chunk_obs: int = 20_000
+    data: CalibrationData, thetas: list[np.ndarray], chunk_obs: int = DEFAULT_CHUNK_OBS
 ) -> list[tuple[float, int]]:
-    """:func:`interstar_sums` for each camera of ``thetas``, the catalogue angles computed once."""
+    """:func:`interstar_sums` for each camera of ``thetas``, the catalogue angles computed once. The frames go in
+    blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most ``chunk_obs`` stars), each
+    block's directions an (m, n, 3) stack whose Gram matrices hold every pair's dot product, without padding."""
     bs = [pixels_to_unit(data.x_px, data.y_px, theta) for theta in thetas]
     out = [(0.0, 0) for _ in thetas]
-    starts = data.frame_starts
-    for f0, f1 in frame_chunks(starts, chunk_obs):
-        pf = padded_frames(data, data.r, f0, f1)
-        pairs = upper_pairs(pf.valid.shape[1])
-        use = pf.valid[:, pairs[0]] & pf.valid[:, pairs[1]]
-        pos = gram_positions(use, pairs, pf.valid.shape[1])
-        gram = np.empty(pf.valid.shape + pf.valid.shape[1:])  # one buffer for the three Gram matrices
-        ang_r = pair_angles_at_rad(pf.r, pos, gram)
-        pb = np.zeros_like(pf.b)  # the same slots for every camera: the padding stays zero
-        for k, b_all in enumerate(bs):
-            pb[pf.frame, pf.slot] = b_all[pf.rows]
-            d = pair_angles_at_rad(pb, pos, gram) - ang_r
-            out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
+    counts = data.counts
+    for frames in frame_blocks(data.frame_starts, chunk_obs):
+        for n in np.unique(counts[frames]):
+            same = frames[counts[frames] == n]
+            if n < 2:
+                continue
+            rows = data.frame_starts[same][:, None] + np.arange(n)
+            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))  # the pairs i < j, flat in an n x n
+            ang_r = _pair_angles_rad(data.r[rows], upper)
+            for k, b in enumerate(bs):
+                d = _pair_angles_rad(b[rows], upper) - ang_r
+                out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
     return out
+
+
+def _pair_angles_rad(v: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The angles [rad] of the pairs at the flat positions ``upper`` of the Gram matrices of frames ``v`` (m, n, 3)
+    (:func:`hostlink.calibration.data.gram_matrices`, :func:`hostlink.calibration.data.angle_from_dot_rad`)."""
+    m, n = v.shape[:2]
+    return angle_from_dot_rad(gram_matrices(v).reshape(m, n * n)[:, upper])
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:

@@ -312,21 +312,18 @@ def _vote_chunk(data: CalibrationData, theta: np.ndarray) -> _Screened:
 
 
 def _stats_chunk(data, theta0, theta, excluded) -> tuple[dict, tuple, tuple]:
-    """Residual sums of one chunk's inliers at the nominal camera ``theta0`` (SVD attitudes) and their interstar
-    sums there and at the result ``theta``, added up over sub-chunks of the bundle's working size
-    (``DEFAULT_CHUNK_OBS`` stars: small temporaries). The residuals at the result are the bundle's final pass's
-    (:attr:`hostlink.calibration.bundle.ChunkedBundleResult.residual_sums`)."""
+    """Residual sums of one chunk's inliers at the nominal camera ``theta0`` (SVD attitudes), added up over
+    sub-chunks of the bundle's working size (``DEFAULT_CHUNK_OBS`` stars: small temporaries), and their interstar
+    sums there and at the result ``theta`` (:func:`interstar_sums_at`, in blocks of its own). The residuals at the
+    result are the bundle's final pass's (:attr:`hostlink.calibration.bundle.ChunkedBundleResult.residual_sums`)."""
     fit = without_rows(data, excluded)
-    out = None
+    inter_before, inter_after = interstar_sums_at(fit, [theta0, theta])
+    before = None
     for f0, f1 in frame_chunks(fit.frame_starts, DEFAULT_CHUNK_OBS) or [(0, 0)]:
         sub = frames_of(fit, f0, f1)
-        ib, ia = interstar_sums_at(sub, [theta0, theta])
-        before = residual_sums(sub, theta0, fitted_attitudes(sub, theta0))
-        if out is not None:
-            before = merge_sums(out[0], before)
-            ib, ia = (out[1][0] + ib[0], out[1][1] + ib[1]), (out[2][0] + ia[0], out[2][1] + ia[1])
-        out = (before, ib, ia)
-    return out
+        part = residual_sums(sub, theta0, fitted_attitudes(sub, theta0))
+        before = part if before is None else merge_sums(before, part)
+    return before, inter_before, inter_after
 
 
 def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[CalibrationData]:
