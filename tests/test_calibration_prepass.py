@@ -20,6 +20,7 @@ from hostlink.files.params import data_file, load_params
 from hostlink.files.session import read_session, write_session
 from hostlink.sky.references import ABERRATION_MAX_RAD
 from hostlink.sky.simulate import seed004_camera, seed004_config, simulate
+from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
 
 NOMINAL_PATH = str(data_file("seed004_nominal.json"))
@@ -81,8 +82,6 @@ def test_parity_skips_the_triples_of_a_star_identified_twice():
     """Two stars of a three-star frame identified as the same catalogue star span no volume on the sky: the sign of
     that triple's rounding-level product is noise, so it must not vote on the parity; the same frames with distinct
     identifications all vote, and none is mirrored (an identity attitude: r = b)."""
-    from onboard.camera import pixels_to_unit
-
     rng = np.random.default_rng(2)
     m = 200
     x, y = rng.uniform(0, TRUTH.image_size_px[0] - 1, 3 * m), rng.uniform(0, TRUTH.image_size_px[1] - 1, 3 * m)

@@ -256,35 +256,10 @@ def measured_directions(data: CalibrationData, theta: np.ndarray, max_obs: int =
     return out
 
 
-@dataclass(frozen=True)
-class PaddedFrames:
-    """Frames [f0, f1) of a chunk laid out as (m, nmax, ...) arrays, padded to the chunk's largest star count, so
-    per-frame pair computations vectorise. ``rows`` are the chunk's data rows; ``frame``/``slot`` place each row."""
-
-    b: np.ndarray  # (m, nmax, 3) measured directions
-    r: np.ndarray  # (m, nmax, 3) reference directions
-    valid: np.ndarray  # (m, nmax) real stars (the rest is padding)
-    rows: np.ndarray
-    frame: np.ndarray
-    slot: np.ndarray
-
-
-def padded_frames(data: CalibrationData, b: np.ndarray, f0: int, f1: int) -> PaddedFrames:
-    """The frames [f0, f1) of ``data`` (with measured directions ``b`` (N, 3)) as :class:`PaddedFrames`."""
-    rows, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
-    pb = np.zeros((f1 - f0, nmax, 3))
-    pr = np.zeros((f1 - f0, nmax, 3))
-    valid = np.zeros((f1 - f0, nmax), dtype=bool)
-    pb[frame, slot] = b[rows]
-    pr[frame, slot] = data.r[rows]
-    valid[frame, slot] = True
-    return PaddedFrames(pb, pr, valid, rows, frame, slot)
-
-
 def frame_slots(frame_starts: np.ndarray, f0: int, f1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Where the rows of frames [f0, f1) go in the padded layout of :class:`PaddedFrames`: (rows, frame, slot,
-    nmax), the data rows, each row's frame (0 = f0) and slot in it (its star's position in the frame), and the
-    largest star count (the padded width)."""
+    """Where the rows of frames [f0, f1) go in a layout of (m, nmax, ...) arrays padded to the frames' largest star
+    count (per-frame pair computations vectorise): (rows, frame, slot, nmax), the data rows, each row's frame
+    (0 = f0) and slot in it (its star's position in the frame), and the largest star count (the padded width)."""
     counts = np.diff(frame_starts[f0 : f1 + 1])
     nmax = int(counts.max(initial=0))
     rows = int(frame_starts[f0]) + np.arange(int(frame_starts[f1] - frame_starts[f0]))

@@ -17,11 +17,8 @@ import numpy as np
 from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residuals
 from hostlink.calibration.data import (
     CalibrationData,
-    angle_from_dot_rad,
     frame_blocks,
-    frame_chunks,
-    gram_matrices,
-    padded_frames,
+    pair_angles_at_rad,
 )
 from hostlink.calibration.frames import wahba_svd
 from onboard.camera import pixels_to_unit
@@ -122,23 +119,18 @@ def interstar_sums_at(
     counts = data.counts
     for frames in frame_blocks(data.frame_starts, chunk_obs):
         for n in np.unique(counts[frames]):
-            same = frames[counts[frames] == n]
             if n < 2:
                 continue
+            same = frames[counts[frames] == n]
             rows = data.frame_starts[same][:, None] + np.arange(n)
-            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))  # the pairs i < j, flat in an n x n
-            ang_r = _pair_angles_rad(data.r[rows], upper)
+            # the pairs i < j of each frame: flat positions in the stacked (m, n, n) Gram matrices, frame by frame
+            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))
+            positions = (np.arange(same.size)[:, None] * (n * n) + upper).ravel()
+            ang_r = pair_angles_at_rad(data.r[rows], positions)
             for k, b in enumerate(bs):
-                d = _pair_angles_rad(b[rows], upper) - ang_r
+                d = pair_angles_at_rad(b[rows], positions) - ang_r
                 out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
     return out
-
-
-def _pair_angles_rad(v: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """The angles [rad] of the pairs at the flat positions ``upper`` of the Gram matrices of frames ``v`` (m, n, 3)
-    (:func:`hostlink.calibration.data.gram_matrices`, :func:`hostlink.calibration.data.angle_from_dot_rad`)."""
-    m, n = v.shape[:2]
-    return angle_from_dot_rad(gram_matrices(v).reshape(m, n * n)[:, upper])
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:
@@ -327,18 +319,6 @@ def undetermined_parameters(
             )
             held.append({"parameter": n, "sigma_effect_px": effect[n], "limit_px": limits[n], "reason": reason})
     return tuple(n for n, h in zip(estimate, hold, strict=True) if not h), held
-
-
-def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = 20_000) -> float:
-    """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
-    best = 0.0
-    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
-        pf = padded_frames(data, data.r, f0, f1)
-        pair_ok = pf.valid[:, :, None] & pf.valid[:, None, :]
-        # the angle is monotone in the dot product: the largest is that of the smallest dot product
-        dot = np.min(np.where(pair_ok, pf.r @ pf.r.transpose(0, 2, 1), 1.0), initial=1.0)
-        best = max(best, float(angle_from_dot_rad(np.float64(dot))))
-    return best
 
 
 #: Reasons of :class:`RejectedStars`, in the order a star meets them.

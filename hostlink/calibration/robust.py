@@ -63,7 +63,7 @@ class _FramePairs:
 
 def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     """The :class:`_FramePairs` of frames [f0, f1) of ``data``: the padded layout of
-    :func:`hostlink.calibration.data.padded_frames` and the catalogue angles of its real pairs (their Gram matrix
+    :func:`hostlink.calibration.data.frame_slots` and the catalogue angles of its real pairs (their Gram matrix
     entries, :func:`hostlink.calibration.data.pair_angles_at_rad`)."""
     _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
     m = f1 - f0
@@ -88,6 +88,18 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
         ang_r_rad=angle_from_dot_rad(dots),
         min_dot_r=min(1.0, float(np.min(dots, initial=1.0)), float(np.min(diagonal, initial=1.0))),
     )
+
+
+def _field_rad(pairs: _FramePairs) -> float:
+    """The largest catalogue angle between two stars of one frame of ``pairs`` [rad] (0 for frames of one star):
+    the angle is monotone in the dot product, so it is that of the smallest."""
+    return float(angle_from_dot_rad(np.float64(pairs.min_dot_r)))
+
+
+def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = 20_000) -> float:
+    """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
+    chunks = frame_chunks(data.frame_starts, chunk_obs)
+    return max((_field_rad(_frame_pairs(data, f0, f1)) for f0, f1 in chunks), default=0.0)
 
 
 def _padded(slots: np.ndarray, v: np.ndarray, m: int, nmax: int) -> np.ndarray:
@@ -128,14 +140,13 @@ def consistent_stars_and_field(
     min_agreement: float = VOTE_MIN_AGREEMENT,
     chunk_obs: int = 20_000,
 ) -> tuple[np.ndarray, float]:
-    """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad] (the
-    field the data span: the number of :func:`hostlink.calibration.report.max_pair_angle_rad`, from the Gram
-    matrices the vote computes anyway; the angle is monotone in the dot product, so it is that of the smallest)."""
+    """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad]
+    (:func:`max_pair_angle_rad`, from the Gram matrices the vote computes anyway)."""
     keep = np.zeros(data.n_obs, dtype=bool)
     field_rad = 0.0
     for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
         pairs = _frame_pairs(data, f0, f1)
-        field_rad = max(field_rad, float(angle_from_dot_rad(np.float64(pairs.min_dot_r))))
+        field_rad = max(field_rad, _field_rad(pairs))
         if pairs.nmax >= 2:
             keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
     return keep, field_rad
