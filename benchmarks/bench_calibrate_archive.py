@@ -63,6 +63,7 @@ from hostlink.calibration.bundle import (  # noqa: E402
     parameter_scales,
 )
 from hostlink.calibration.data import (  # noqa: E402
+    SPOOL_SUFFIX,
     CalibrationData,
     build_data,
     chunk_frame_count,
@@ -70,7 +71,7 @@ from hostlink.calibration.data import (  # noqa: E402
     load_chunk,
     save_chunk,
 )
-from hostlink.calibration.frames import apply_attitude_increment, rotation_from_vector, wahba_svd  # noqa: E402
+from hostlink.calibration.frames import apply_attitude_increment, rotation_from_vector, wahba_attitudes  # noqa: E402
 from hostlink.files.params import load_params  # noqa: E402
 from hostlink.files.session import Session, SessionWriter  # noqa: E402
 from onboard.camera import unit_to_radec  # noqa: E402
@@ -108,7 +109,7 @@ def generate(frames: int, folder: Path) -> None:
     """Spool a session of ``frames`` frames to ``folder`` (chunks of CHUNK_FRAMES), the same stars as a Parquet
     session (``session.parquet``, through the one session writer), and its Fisher information."""
     folder.mkdir(parents=True, exist_ok=True)
-    if (folder / "info.npy").exists():
+    if (folder / "info.npy").exists() and chunk_files(folder):
         return
     info = np.zeros((10, 10))
     offset = 0
@@ -120,7 +121,7 @@ def generate(frames: int, folder: Path) -> None:
             rows = np.arange(d.n_obs, dtype=np.int64) + offset
             offset += d.n_obs
             data = build_data(d.x_px, d.y_px, d.r, d.frame_index(), None, None, rows)
-            save_chunk(folder / f"chunk{k:05d}.npz", data)
+            save_chunk(folder / f"chunk{k:05d}{SPOOL_SUFFIX}", data)
             writer.append(session_of(d, start))
             noise_free = build_data(ss.x_true_px, ss.y_true_px, d.r, d.frame_index())
             info += crb.fisher_information(noise_free, TRUTH.model_vector(), ss.attitudes_true, ALL, NOISE_PX)
@@ -128,7 +129,7 @@ def generate(frames: int, folder: Path) -> None:
 
 
 def chunk_files(folder: Path) -> tuple[str, ...]:
-    return tuple(str(p) for p in sorted(folder.glob("chunk*.npz")))
+    return tuple(str(p) for p in sorted(folder.glob(f"chunk*{SPOOL_SUFFIX}")))
 
 
 def load_all(folder: Path) -> CalibrationData:
@@ -279,7 +280,7 @@ def validation_px(method: str, estimate: np.ndarray) -> float:
     und = und.reshape(-1, 2)
     b_est = np.concatenate([und, np.ones((und.shape[0], 1))], axis=1)
     b_est /= np.linalg.norm(b_est, axis=1, keepdims=True)
-    rot = wahba_svd(b_true, b_est, np.array([0, gx.size]))[0]
+    rot = wahba_attitudes(b_true, b_est, np.array([0, gx.size]))[0]
     target = crb._project(b_true, theta_true[0])
     for _ in range(5):
         s = b_est @ rot.T

@@ -31,7 +31,7 @@ import numpy as np
 
 from hostlink.calibration.bundle import accumulate_normals, reduced_normal
 from hostlink.calibration.data import CalibrationData
-from hostlink.calibration.frames import rotation_from_vector, skew, wahba_svd
+from hostlink.calibration.frames import rotation_from_vector, skew, wahba_attitudes
 from onboard.camera import pixels_to_unit, unit_vector_jacobians
 from onboard.interstar import difference_jacobian, independent_pairs, order_for_pairs, pair_covariance
 from onboard.params import CameraParams
@@ -86,7 +86,7 @@ def validation_residual_px(
     gx, gy = grid_points(params_true, side)
     b_true = pixels_to_unit(gx, gy, theta_true)
     b_est = pixels_to_unit(gx, gy, np.asarray(theta_est, dtype=np.float64))
-    rot = wahba_svd(b_true, b_est, np.array([0, gx.size]))[0]  # b_true ~ rot b_est
+    rot = wahba_attitudes(b_true, b_est, np.array([0, gx.size]))[0]  # b_true ~ rot b_est
     target = _project(b_true, theta_true[0])
     for _ in range(5):
         s = b_est @ rot.T

@@ -17,7 +17,7 @@ from hostlink.calibration.bundle import (
     residual_histogram,
     robust_sigma_from_histogram,
 )
-from hostlink.calibration.data import measured_directions
+from hostlink.calibration.data import chunk_frame_count, load_chunk, measured_directions, save_chunk, take_frames
 from hostlink.calibration.frames import triad_attitudes
 from hostlink.calibration.robust import robust_sigma_2d
 from hostlink.calibration.run import calibrate, calibrate_archive, calibrate_chunks, calibrate_session
@@ -88,6 +88,40 @@ def test_in_memory_bundle_is_the_chunked_pass_on_one_chunk(dirty):
     one = calibrate_chunks(ChunkSource((ss.data,)), SEED004_NOMINAL)
     np.testing.assert_array_equal(one.theta, whole.theta)  # the same code on the same chunk: bit for bit
     assert whole.data.n_obs == one.n_stars_used and whole.data.n_frames == one.n_frames_used
+
+
+@pytest.mark.parametrize("which", ["all", "every-third", "first", "last", "none"])
+def test_taking_frames_by_index_equals_selecting_their_rows(dirty, which):
+    """The samples' gather (row ranges of the chosen frames) is the row selection with frames of at least one star."""
+    data = dirty[0].data
+    frames = {
+        "all": np.arange(data.n_frames),
+        "every-third": np.arange(0, data.n_frames, 3),
+        "first": np.array([0]),
+        "last": np.array([data.n_frames - 1]),
+        "none": np.zeros(0, dtype=np.int64),
+    }[which]
+    pick = np.zeros(data.n_frames, dtype=bool)
+    pick[frames] = True
+    expected = data.select(pick[data.frame_index()], min_stars=1)[0]
+    got = take_frames(data, frames)
+    for name in ("x_px", "y_px", "r", "frame_starts", "frame_number", "star_id", "row"):
+        assert getattr(got, name).dtype == getattr(expected, name).dtype
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+
+
+def test_spooled_chunk_reads_back_the_same_arrays_and_its_frame_count(dirty, tmp_path):
+    """A chunk written to the spool reads back array for array (values and dtypes), and its frame count is read
+    from the frame starts alone."""
+    data = frames_of(dirty[0].data, 17, 121)
+    path = tmp_path / "chunk000000.spool"
+    save_chunk(path, data)
+    back = load_chunk(path)
+    for name in ("x_px", "y_px", "r", "frame_starts", "frame_number", "star_id"):
+        assert getattr(back, name).dtype == getattr(data, name).dtype
+        np.testing.assert_array_equal(getattr(back, name), getattr(data, name))
+    np.testing.assert_array_equal(back.source_rows(), data.source_rows())
+    assert chunk_frame_count(path) == data.n_frames == 104
 
 
 def test_histogram_scale_matches_the_exact_median():

@@ -3,7 +3,7 @@
 Modules:
 - ``data``: the observations a calibration works on (centroids, reference directions, frame boundaries), built
   from a session with the reference directions of ``hostlink.sky.references``.
-- ``frames``: per-frame helpers (SVD attitude fit, padding), vectorised over frames.
+- ``frames``: per-frame helpers (least-squares attitude fit, padding), vectorised over frames.
 - ``bundle``: the default method, a bundle adjustment over the camera and per-frame attitudes (Schur complement),
   one pass over chunks of frames per iteration (memory O(K^2 + one chunk)).
 - ``distributed``: those passes, and per-sensor runs of a fleet, on a Dask cluster.

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hostlink.calibration.data import CalibrationData, frame_chunks, measured_directions
-from hostlink.calibration.frames import apply_attitude_increment, per_frame_products, triad_attitudes, wahba_svd
+from hostlink.calibration.data import MIN_STARS_PER_FRAME, CalibrationData, frame_chunks, measured_directions
+from hostlink.calibration.frames import apply_attitude_increment, per_frame_products, triad_attitudes, wahba_attitudes
 from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_cost, huber_weights, vote_consistent_stars
 from onboard.camera import (
     distortion_partials,
@@ -114,9 +114,21 @@ def parameter_scales(params: CameraParams) -> np.ndarray:
 
 def _projection(r: np.ndarray, attitude_obs: np.ndarray, focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """s = C r per star, its ideal-plane projection p = F s_xy / s_z [px], and 1 / s_z."""
-    s = np.einsum("nij,nj->ni", attitude_obs, r)
+    s = rotate(attitude_obs, r)
     inv_z = 1.0 / s[:, 2]
     return s, focal_px * s[:, :2] * inv_z[:, None], inv_z
+
+
+def rotate(attitude_obs: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """C r for each star's (n, 3, 3) attitude and (n, 3) vector, the products written out (einsum's numbers to
+    rounding, at half its cost for a few thousand stars)."""
+    s = np.empty(r.shape)
+    r0, r1, r2 = r[:, 0], r[:, 1], r[:, 2]
+    for i in range(3):
+        np.multiply(attitude_obs[:, i, 0], r0, out=s[:, i])
+        s[:, i] += attitude_obs[:, i, 1] * r1
+        s[:, i] += attitude_obs[:, i, 2] * r2
+    return s
 
 
 def _inverse_2x2(jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -172,11 +184,13 @@ def observation_terms(
     i00, i01, i10, i11 = cam.jc_inv
     d = q - p
     e = np.stack([i00 * d[:, 0] + i01 * d[:, 1], i10 * d[:, 0] + i11 * d[:, 1]], axis=1)
-    jt = jq_theta[:, :, cols]
+    # dq/dtheta plus the whitening's part (a new array: the camera terms are shared), less dp/dF = p / F in the F
+    # column (q does not depend on F, nor does the whitening: both are zero there)
+    jt = whitening_jacobian(cam.u, cam.v, theta, cols, e, (i00, i01, i10, i11), whitened=False)
+    jt += jq_theta if _all_columns(cols, jq_theta.shape[2]) else jq_theta[:, :, cols]
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
-        jt[:, :, f_col[0]] -= p / focal_px  # dp/dF = p / F; q does not depend on F
-    jt += whitening_jacobian(cam.u, cam.v, theta, cols, e, (i00, i01, i10, i11), whitened=False)
+        jt[:, :, f_col[0]] -= p / focal_px
     j_theta = np.empty_like(jt)
     j_theta[:, 0] = i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1]
     j_theta[:, 1] = i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]
@@ -243,13 +257,21 @@ def whitening_jacobian(
     (``onboard.camera.distortion_partials_applied_jacobian``: P at the unit coefficient for k1..s2, minus its
     derivative in u or v for the principal point, zero for F). ``whitened=False``: (dP/dtheta_k) e alone, before
     the product with Jc^-1 (the caller applies Jc^-1 once to the sum with dq/dtheta)."""
-    pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1])[:, :, cols]
+    pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1])
+    if not _all_columns(cols, pe.shape[2]):
+        pe = pe[:, :, cols]
     if not whitened:
         return pe
     i00, i01, i10, i11 = jc_inv
     return np.stack(
         [i00[:, None] * pe[:, 0] + i01[:, None] * pe[:, 1], i10[:, None] * pe[:, 0] + i11[:, None] * pe[:, 1]], axis=1
     )
+
+
+def _all_columns(cols: np.ndarray, k: int) -> bool:
+    """Whether ``cols`` selects every one of ``k`` columns in order (then the selection is the array itself: no
+    copy)."""
+    return cols.size == k and bool(np.all(cols == np.arange(k)))
 
 
 def observation_residuals(
@@ -408,8 +430,9 @@ def solve_scaled(s: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 def initial_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
-    """Per-frame SVD attitude from the measured directions of the given camera (Markley's method)."""
-    return wahba_svd(measured_directions(data, theta), data.r, data.frame_starts)
+    """Per-frame least-squares attitude from the measured directions of the given camera (Markley's rotation,
+    :func:`hostlink.calibration.frames.wahba_attitudes`)."""
+    return wahba_attitudes(measured_directions(data, theta), data.r, data.frame_starts)
 
 
 #: A trial step below this many standard deviations asks its pass for the final sums as well (``fit_round``): from
@@ -482,8 +505,11 @@ ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
 
 def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle [arcsec] between unit vectors a and b (N, 3), from the chord: 2 arcsin(|a - b| / 2) (accurate at any
-    angle, unlike arccos near 0)."""
-    return 2.0 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=1) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
+    angle, unlike arccos near 0). The chord's length written out: np.linalg.norm(d, axis=1)'s numbers, without its
+    reduction over an axis of three (several times the arithmetic's cost)."""
+    d = a - b
+    chord = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+    return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
 
 
 def _lengths(e: np.ndarray) -> np.ndarray:
@@ -604,12 +630,15 @@ def without_rows(data: CalibrationData, excluded_rows: np.ndarray) -> Calibratio
     """``data`` less the stars whose source row is in the sorted array ``excluded_rows``, and less the frames left
     with fewer than :data:`hostlink.calibration.data.MIN_STARS_PER_FRAME` stars."""
     rows = data.source_rows()
+    keep = None
     if excluded_rows.size:
         pos = np.minimum(np.searchsorted(excluded_rows, rows), excluded_rows.size - 1)
         keep = excluded_rows[pos] != rows
-    else:
-        keep = np.ones(data.n_obs, dtype=bool)
-    return data.select(keep)[0]
+        if np.all(keep):
+            keep = None
+    if keep is None and np.all(data.counts >= MIN_STARS_PER_FRAME):
+        return data  # nothing to leave out: the data themselves, not a copy (callers only read them)
+    return data.select(np.ones(data.n_obs, dtype=bool) if keep is None else keep)[0]
 
 
 @dataclass(frozen=True)
@@ -685,7 +714,7 @@ def _sub_chunk_sums(sub: CalibrationData, req: PassRequest) -> PassSums:
         s_unit, u_diag_unit = unit_weight_normal(blocks, s, jt_scaled, jp, w, sub.frame_starts)
         unit = (s_unit / np.outer(req.col_scale, req.col_scale), u_diag_unit / req.col_scale**2)  # unscaled columns
         b = offsets_to_unit(cam.q[:, 0], cam.q[:, 1], req.theta[0])
-        ang = angle_arcsec(b, np.einsum("nij,nj->ni", att_obs, sub.r))
+        ang = angle_arcsec(b, rotate(att_obs, sub.r))
         arcsec = (float(np.sum(ang * ang)), float(ang.max(initial=0.0)))
     return PassSums(
         s,

@@ -72,20 +72,48 @@ class CalibrationData:
         Returns the new data, the (N,) mask of rows kept and the (M,) mask of frames kept from this one.
         """
         keep = np.asarray(keep, dtype=bool).copy()
-        fidx = self.frame_index()
-        per_frame = np.bincount(fidx, weights=keep, minlength=self.n_frames)
+        counts = self.counts
+        cum = np.zeros(self.n_obs + 1, dtype=np.int64)
+        np.cumsum(keep, out=cum[1:])
+        per_frame = cum[self.frame_starts[1:]] - cum[self.frame_starts[:-1]]
         frame_kept = per_frame >= min_stars
-        keep &= frame_kept[fidx]
-        new = build_data(
-            self.x_px[keep],
-            self.y_px[keep],
-            self.r[keep],
-            fidx[keep],
-            self.frame_number,
-            self.star_id[keep],
-            self.source_rows()[keep],
+        if not np.all(frame_kept):
+            keep &= np.repeat(frame_kept, counts)
+        present = frame_kept & (per_frame > 0)  # the frames of the result (those with rows left)
+        starts = np.zeros(int(np.count_nonzero(present)) + 1, dtype=np.int64)
+        np.cumsum(per_frame[present], out=starts[1:])
+        rows = np.flatnonzero(keep)
+        new = CalibrationData(
+            x_px=np.asarray(self.x_px[rows], dtype=np.float64),
+            y_px=np.asarray(self.y_px[rows], dtype=np.float64),
+            r=np.asarray(self.r[rows], dtype=np.float64).reshape(-1, 3),
+            frame_starts=starts,
+            frame_number=np.asarray(np.asarray(self.frame_number)[present], dtype=np.int64),
+            star_id=np.asarray(self.star_id[rows], dtype=np.int64),
+            row=np.asarray(self.source_rows()[rows], dtype=np.int64),
         )
         return new, keep, frame_kept
+
+
+def take_frames(data: CalibrationData, frames: np.ndarray) -> CalibrationData:
+    """The frames of ``data`` at the sorted indices ``frames`` (those without a star left out) as a data set of
+    their own, gathered by row ranges: ``data.select`` of their rows with ``min_stars=1``, without a mask over every
+    row."""
+    counts = data.counts[frames]
+    frames = frames[counts > 0]
+    counts = counts[counts > 0]
+    starts = np.zeros(frames.size + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    rows = np.arange(int(starts[-1]), dtype=np.int64) + np.repeat(data.frame_starts[frames] - starts[:-1], counts)
+    return CalibrationData(
+        x_px=data.x_px[rows],
+        y_px=data.y_px[rows],
+        r=data.r[rows],
+        frame_starts=starts,
+        frame_number=np.asarray(data.frame_number, dtype=np.int64)[frames],
+        star_id=np.asarray(data.star_id, dtype=np.int64)[rows],
+        row=data.source_rows()[rows].astype(np.int64, copy=False),
+    )
 
 
 def build_data(
@@ -165,33 +193,35 @@ def session_chunk_data(
     return data, references
 
 
+#: The arrays of a spooled chunk (:func:`save_chunk`), in the order they are written: the frame starts first, so the
+#: frame count is read without the rest (:func:`chunk_frame_count`).
+SPOOL_FIELDS = ("frame_starts", "frame_number", "x_px", "y_px", "r", "star_id", "row")
+#: The file name suffix of a spooled chunk.
+SPOOL_SUFFIX = ".spool"
+
+
 def save_chunk(path: Path, data: CalibrationData) -> None:
-    """Write one chunk of calibration data to ``path`` (.npy arrays in an uncompressed .npz: read back at disk
-    speed by :func:`load_chunk`)."""
-    np.savez(
-        path,
-        x_px=data.x_px,
-        y_px=data.y_px,
-        r=data.r,
-        frame_starts=data.frame_starts,
-        frame_number=data.frame_number,
-        star_id=data.star_id,
-        row=data.source_rows(),
-    )
+    """Write one chunk of calibration data to ``path``: its arrays (:data:`SPOOL_FIELDS`) as numpy ``.npy``
+    records one after the other in one file, nothing around them, so :func:`load_chunk` reads them at disk speed (a
+    member of an ``.npz`` archive is also checksummed as it is read, which costs about as much as the read)."""
+    arrays = {name: getattr(data, name) for name in SPOOL_FIELDS if name != "row"}
+    arrays["row"] = data.source_rows()
+    with open(path, "wb") as f:
+        for name in SPOOL_FIELDS:
+            np.save(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
 
 
 def load_chunk(path: str | Path) -> CalibrationData:
     """A chunk written by :func:`save_chunk`."""
-    with np.load(path) as z:
-        return CalibrationData(
-            z["x_px"], z["y_px"], z["r"], z["frame_starts"], z["frame_number"], z["star_id"], z["row"]
-        )
+    with open(path, "rb") as f:
+        arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS}
+    return CalibrationData(**arrays)
 
 
 def chunk_frame_count(path: str | Path) -> int:
     """The number of frames of a chunk written by :func:`save_chunk`, reading only its frame starts."""
-    with np.load(path) as z:
-        return int(z["frame_starts"].size - 1)
+    with open(path, "rb") as f:
+        return int(np.load(f, allow_pickle=False).size - 1)
 
 
 def concatenate_data(parts: list[CalibrationData]) -> CalibrationData:
@@ -271,13 +301,12 @@ def frame_slots(frame_starts: np.ndarray, f0: int, f1: int) -> tuple[np.ndarray,
 def angle_from_dot_rad(dot: np.ndarray) -> np.ndarray:
     """The angle [rad] between two unit vectors from their dot product, through the chord sqrt(2 - 2 a.b) (accurate
     at small angles, where arccos is not). Monotone: the largest angle is that of the smallest dot product."""
-    # in place on one temporary: 2 - 2 a.b, then chord / 2 (>= 0), clipped at 1, arcsin, doubled (exact scalings)
-    x = np.array(dot, dtype=np.float64)  # a copy, also of a scalar (0-d: the in-place steps need an array)
-    x *= -2.0
-    x += 2.0
+    # in place on one temporary: the half chord sqrt((1 - a.b) / 2) (= sqrt(2 - 2 a.b) / 2 exactly: the scalings are
+    # by powers of two), clipped at 1, arcsin, doubled
+    x = np.asarray(np.subtract(1.0, dot, dtype=np.float64))  # a new array, also of a scalar (0-d, writable)
+    x *= 0.5
     np.maximum(x, 0.0, out=x)
     np.sqrt(x, out=x)
-    x *= 0.5
     np.minimum(x, 1.0, out=x)
     np.arcsin(x, out=x)
     x *= 2.0

@@ -1,8 +1,9 @@
-"""Per-frame helpers, vectorised over frames: the SVD attitude fit and small-rotation updates.
+"""Per-frame helpers, vectorised over frames: the least-squares attitude fit and small-rotation updates.
 
 The attitude of every frame at once: the profile matrices B = sum_k w_k b_k r_k^T are accumulated per frame here and
-solved by ``onboard.attitude.rotation_from_profile`` (Markley 1988), the same formula the sensor uses, so b = C r
-as in CAMERA_MODEL.md.
+solved for Markley's rotation (Markley 1988; ``onboard.attitude.rotation_from_profile``, the formula the sensor uses),
+so b = C r as in CAMERA_MODEL.md: as the polar factor of B by Newton's iteration where that is the same rotation, by
+the SVD elsewhere (:func:`rotations_from_profiles`).
 """
 
 from __future__ import annotations
@@ -12,9 +13,22 @@ import numpy as np
 from hostlink.calibration.data import frame_chunks
 from onboard.attitude import rotation_from_profile
 
+#: Newton steps of :func:`rotations_from_profiles` at most. From B / |B|_F the scaled iteration takes 5-6 for the
+#: profile matrices of star fields (singular values 1 and ~1e-2..1e-4: the field's width squared).
+POLAR_MAX_STEPS = 30
+#: Smallest det(B) / |B|_F^3 the polar iteration is used for; below it (two stars, (nearly) collinear ones, a
+#: reflection), and where it has not converged, the SVD.
+POLAR_MIN_DET = 1e-12
+#: A Newton step moving no entry of X by more than this is followed by one last step and ends the iteration: the
+#: convergence is quadratic, so that last step leaves ~1e-18 (rounding).
+POLAR_STEP_TOL = 1e-9
 
-def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Least-squares attitude per frame, (M, 3, 3), with b_k ~ C r_k (Markley's SVD method).
+
+def wahba_attitudes(
+    b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares attitude per frame, (M, 3, 3), with b_k ~ C r_k (Markley's rotation of the profile matrix,
+    :func:`rotations_from_profiles`).
 
     b, r: (N, 3) unit vectors grouped by frame; weights (N,) >= 0 (default 1). A frame whose weighted stars do
     not fix a rotation (fewer than two non-parallel) gets the best rotation the SVD offers (not unique).
@@ -30,7 +44,56 @@ def wahba_svd(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray, weights: n
         nonempty = np.diff(frame_starts[f0 : f1 + 1]) > 0
         if np.any(nonempty):
             big_b[f0:f1][nonempty] = np.add.reduceat(outer, local[nonempty], axis=0)
-    return rotation_from_profile(big_b)[0]
+    return rotations_from_profiles(big_b)
+
+
+def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
+    """Markley's rotation C = U diag(1, 1, det U det V) V^T for each of a stack of profile matrices B = U S V^T
+    (M, 3, 3), float64: :func:`onboard.attitude.rotation_from_profile`'s rotations, ~3x faster for 10^4 frames.
+
+    Where det B > 0 that rotation is U V^T, the orthogonal polar factor of B, which Newton's iteration
+    X <- (g X + X^-T / g) / 2 from X = B / |B|_F finds with Higham's Frobenius-norm scaling g = (|X^-1|_F / |X|_F)^1/2
+    (Higham 1986, "Computing the polar decomposition", sec. 3); X^-T is the cofactor matrix (the columns' cross
+    products) over det X, so each step is a few array operations over all frames instead of an SVD per frame. The
+    frames with det B / |B|_F^3 below :data:`POLAR_MIN_DET` or not converged in :data:`POLAR_MAX_STEPS` go to the SVD.
+    """
+    out = np.empty_like(profile)
+    solved = np.zeros(profile.shape[0], dtype=bool)
+    norm = _frobenius(profile)
+    x = profile / np.where(norm > 0.0, norm, 1.0)[:, None, None]
+    cof, det = _cofactors(x)
+    todo = np.flatnonzero(det > POLAR_MIN_DET)
+    x, cof, det = x[todo], cof[todo], det[todo]
+    for _ in range(POLAR_MAX_STEPS):
+        if todo.size == 0:
+            break
+        g = np.sqrt(_frobenius(cof) / det / _frobenius(x))
+        x_new = 0.5 * (g[:, None, None] * x + cof / (g * det)[:, None, None])
+        moved = np.max(np.abs(x_new - x).reshape(-1, 9), axis=1)
+        cof, det = _cofactors(x_new)
+        done = moved <= POLAR_STEP_TOL
+        if np.any(done):  # one last, unscaled step (g is 1 to rounding there)
+            out[todo[done]] = 0.5 * (x_new[done] + cof[done] / det[done, None, None])
+            solved[todo[done]] = True
+        x, cof, det, todo = x_new[~done], cof[~done], det[~done], todo[~done]
+    rest = np.flatnonzero(~solved)
+    if rest.size:
+        out[rest] = rotation_from_profile(profile[rest])[0]
+    return out
+
+
+def _frobenius(x: np.ndarray) -> np.ndarray:
+    """|X|_F of each of a stack of 3 x 3 matrices."""
+    return np.sqrt(np.sum(x.reshape(-1, 9) ** 2, axis=1))
+
+
+def _cofactors(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cofactor matrices (det X) X^-T of a stack of 3 x 3 matrices (columns: the cross products of X's other two
+    columns) and the determinants."""
+    c0, c1, c2 = x[:, :, 0], x[:, :, 1], x[:, :, 2]
+    cof = np.stack([_cross(c1, c2), _cross(c2, c0), _cross(c0, c1)], axis=2)
+    det = np.sum(c0 * cof[:, :, 0], axis=1)
+    return cof, det
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -93,23 +156,35 @@ def triad_attitudes(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray) -> n
     angles over the pair's separation of the least-squares attitude."""
     counts = np.diff(frame_starts)
     m = counts.shape[0]
+    starts = frame_starts[:-1]
     frame = np.repeat(np.arange(m), counts)
-    b1 = np.add.reduceat(b, frame_starts[:-1], axis=0)
-    r1 = np.add.reduceat(r, frame_starts[:-1], axis=0)
-    cos_to_mean = np.einsum("ni,ni->n", b, b1[frame]) / np.linalg.norm(b1, axis=1)[frame]
-    slot = np.arange(b.shape[0]) - frame_starts[:-1][frame]
-    padded = np.full((m, int(counts.max(initial=1))), np.inf)
-    padded[frame, slot] = cos_to_mean
-    far = frame_starts[:-1] + np.argmin(padded, axis=1)  # per frame, the star with the smallest cosine to the mean
-    return _triad_matrix(b1, b[far]) @ _triad_matrix(r1, r[far]).transpose(0, 2, 1)
+    b1 = np.add.reduceat(b, starts, axis=0)
+    r1 = np.add.reduceat(r, starts, axis=0)
+    # each star's dot product with its frame's summed direction: the cosine to the mean times the frame's |b1| > 0,
+    # so the same order within the frame
+    mean = b1[frame]
+    dot = b[:, 0] * mean[:, 0] + b[:, 1] * mean[:, 1] + b[:, 2] * mean[:, 2]
+    nmax = int(counts.max(initial=1))
+    padded = np.full(m * nmax, np.inf)
+    padded[np.arange(b.shape[0]) + (frame * nmax - starts[frame])] = dot
+    far = starts + np.argmin(padded.reshape(m, nmax), axis=1)  # per frame, the star farthest from the mean
+    # the measured and the catalogue frames in one call (the arithmetic of a few hundred rows costs less than the calls)
+    both = _triad_matrix(np.concatenate([b1, r1]), np.concatenate([b[far], r[far]]))
+    return both[:m] @ both[m:].transpose(0, 2, 1)
 
 
 def _triad_matrix(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
     """Columns (v1, v1 x v2, v1 x (v1 x v2)), normalised: the TRIAD frame of a vector pair, (M, 3, 3)."""
-    t1 = v1 / np.linalg.norm(v1, axis=1, keepdims=True)
+    t1 = v1 / _norms(v1)[:, None]
     t2 = _cross(t1, v2)
-    t2 /= np.linalg.norm(t2, axis=1, keepdims=True)
+    t2 /= _norms(t2)[:, None]
     return np.stack([t1, t2, _cross(t1, t2)], axis=2)
+
+
+def _norms(v: np.ndarray) -> np.ndarray:
+    """|v| of a stack of 3-vectors (M, 3): np.linalg.norm(v, axis=1)'s numbers, written out (its reduction over an
+    axis of three costs several times the arithmetic)."""
+    return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -14,13 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residuals
+from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residuals, rotate
 from hostlink.calibration.data import (
     CalibrationData,
     frame_blocks,
     pair_angles_at_rad,
 )
-from hostlink.calibration.frames import wahba_svd
+from hostlink.calibration.frames import wahba_attitudes
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
@@ -30,9 +30,12 @@ CORRELATION_LIMIT = 0.95
 ATTITUDE_LIMIT = 0.95
 
 
-def fitted_attitudes(data: CalibrationData, theta: np.ndarray) -> np.ndarray:
-    """Per-frame SVD attitude for a camera (methods without attitudes of their own, and the 'before' state)."""
-    return wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta), data.r, data.frame_starts)
+def fitted_attitudes(data: CalibrationData, theta: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame least-squares attitude for a camera (:func:`hostlink.calibration.frames.wahba_attitudes`; methods
+    without attitudes of their own, and the 'before' state).
+    ``b``: the stars' measured directions at ``theta`` when already computed."""
+    b = pixels_to_unit(data.x_px, data.y_px, theta) if b is None else b
+    return wahba_attitudes(b, data.r, data.frame_starts)
 
 
 def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray) -> dict:
@@ -45,14 +48,19 @@ def residual_stats(data: CalibrationData, theta: np.ndarray, attitudes: np.ndarr
 
 
 def residual_sums(
-    data: CalibrationData, theta: np.ndarray, attitudes: np.ndarray, e_len: np.ndarray | None = None
+    data: CalibrationData,
+    theta: np.ndarray,
+    attitudes: np.ndarray,
+    e_len: np.ndarray | None = None,
+    b: np.ndarray | None = None,
 ) -> dict:
     """The additive parts of :func:`residual_stats` (sums of squares, maxima, counts), so chunks of frames combine
-    exactly (:func:`merge_sums`, then :func:`stats_from_sums`)."""
+    exactly (:func:`merge_sums`, then :func:`stats_from_sums`). ``e_len``, ``b``: the residual lengths and the
+    measured directions at ``theta`` when already computed."""
     if e_len is None:
         e_len = np.linalg.norm(residuals(data, theta, attitudes), axis=1)
-    b = pixels_to_unit(data.x_px, data.y_px, theta)
-    s = np.einsum("nij,nj->ni", np.repeat(attitudes, data.counts, axis=0), data.r)
+    b = pixels_to_unit(data.x_px, data.y_px, theta) if b is None else b
+    s = rotate(np.repeat(attitudes, data.counts, axis=0), data.r)
     ang = angle_arcsec(b, s)
     return {
         "sum_px2": float(np.sum(e_len**2)),
@@ -111,11 +119,19 @@ def interstar_sums(data: CalibrationData, theta: np.ndarray, chunk_obs: int = DE
 def interstar_sums_at(
     data: CalibrationData, thetas: list[np.ndarray], chunk_obs: int = DEFAULT_CHUNK_OBS
 ) -> list[tuple[float, int]]:
-    """:func:`interstar_sums` for each camera of ``thetas``, the catalogue angles computed once. The frames go in
-    blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most ``chunk_obs`` stars), each
-    block's directions an (m, n, 3) stack whose Gram matrices hold every pair's dot product, without padding."""
-    bs = [pixels_to_unit(data.x_px, data.y_px, theta) for theta in thetas]
-    out = [(0.0, 0) for _ in thetas]
+    """:func:`interstar_sums` for each camera of ``thetas``, the catalogue angles computed once
+    (:func:`interstar_sums_of_directions` of the stars' directions through each camera)."""
+    return interstar_sums_of_directions(data, [pixels_to_unit(data.x_px, data.y_px, th) for th in thetas], chunk_obs)
+
+
+def interstar_sums_of_directions(
+    data: CalibrationData, bs: list[np.ndarray], chunk_obs: int = DEFAULT_CHUNK_OBS
+) -> list[tuple[float, int]]:
+    """:func:`interstar_sums` for each array of measured directions (N, 3) in ``bs``, the catalogue angles computed
+    once. The frames go in blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most
+    ``chunk_obs`` stars), each block's directions an (m, n, 3) stack whose Gram matrices hold every pair's dot
+    product, without padding."""
+    out = [(0.0, 0) for _ in bs]
     counts = data.counts
     for frames in frame_blocks(data.frame_starts, chunk_obs):
         for n in np.unique(counts[frames]):
@@ -360,7 +376,7 @@ def rejected_residuals_arcsec(data: CalibrationData, theta: np.ndarray, used: np
     fidx = data.frame_index()
     any_used = np.bincount(fidx, weights=used, minlength=data.n_frames) > 0
     weights = np.where(any_used[fidx], used.astype(float), 1.0)
-    att = wahba_svd(b, data.r, data.frame_starts, weights)
+    att = wahba_attitudes(b, data.r, data.frame_starts, weights)
     return angle_arcsec(b, np.einsum("nij,nj->ni", att[fidx], data.r))
 
 

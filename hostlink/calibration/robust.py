@@ -330,14 +330,14 @@ def _triple_handedness(
         m, nmax = pairs.r.shape[:2]
         valid = np.zeros(m * nmax, dtype=bool)
         valid[pairs.slots] = consistent[pairs.rows]
-        valid = valid.reshape(m, nmax)
-        # random slots among the valid ones: the three smallest of random keys, invalid slots (keys >= 2) last
-        keys = rng.random((m, k, nmax))
-        keys += np.where(valid, 0.0, 2.0)[:, None, :]
-        idx = np.argsort(keys, axis=2)[:, :, :3]
-        # all three valid exactly when the frame has three valid slots
-        ok = np.broadcast_to((np.count_nonzero(valid, axis=1) >= 3)[:, None], (m, k)).copy()
-        flat = np.add(np.moveaxis(idx, 2, 0), (np.arange(m) * nmax)[:, None], order="C")  # (3, m, k) padded rows
+        valid_rows = np.flatnonzero(valid)  # padded rows of the consistent stars, frame by frame
+        if valid_rows.size == 0:
+            continue
+        n_valid = np.count_nonzero(valid.reshape(m, nmax), axis=1)
+        ok = np.broadcast_to((n_valid >= 3)[:, None], (m, k)).copy()
+        first = np.cumsum(n_valid) - n_valid
+        picks = random_triples(rng, n_valid, k) + first[None, :, None]
+        flat = valid_rows[np.minimum(picks, valid_rows.size - 1)]  # (3, m, k) padded rows (frames with < 3: not ok)
         det_b = _triple_product(pb.reshape(-1, 3), flat)
         det_r = _triple_product(pairs.r.reshape(-1, 3), flat)
         biggest = np.max(np.where(ok, np.abs(det_r), 0.0), axis=1, keepdims=True)
@@ -346,6 +346,23 @@ def _triple_handedness(
         opposite += int(np.count_nonzero(ok & (np.sign(det_b) != np.sign(det_r))))
         total += int(np.count_nonzero(ok))
     return opposite, total
+
+
+def random_triples(rng: np.random.Generator, n: np.ndarray, k: int) -> np.ndarray:
+    """(3, m, k) indices of k uniformly random triples of distinct items out of each frame's n items (n >= 3; the
+    entries of frames with fewer are in [0, 3) and meaningless): i of n, j of the n - 1 others, h of the n - 2 left,
+    each skipping the ones drawn before it. Their order does not matter to the parity (a permutation flips det_b and
+    det_r alike)."""
+    u = rng.random((3, n.size, k))
+    i, j, h = (
+        np.minimum((u[a] * np.maximum(n - a, 1)[:, None]).astype(np.int64), np.maximum(n - a - 1, 0)[:, None])
+        for a in range(3)
+    )
+    j += j >= i
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    h += h >= lo
+    h += h >= hi
+    return np.stack([i, j, h])
 
 
 def _triple_product(v: np.ndarray, idx: np.ndarray) -> np.ndarray:

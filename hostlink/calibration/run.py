@@ -26,6 +26,7 @@ from hostlink.calibration.bundle import (
 )
 from hostlink.calibration.data import (
     MIN_STARS_PER_FRAME,
+    SPOOL_SUFFIX,
     CalibrationData,
     calibration_data_from_session,
     chunk_frame_count,
@@ -35,6 +36,7 @@ from hostlink.calibration.data import (
     measured_directions,
     save_chunk,
     session_chunk_data,
+    take_frames,
 )
 from hostlink.calibration.interstar_methods import calibrate_interstar
 from hostlink.calibration.report import (
@@ -43,7 +45,7 @@ from hostlink.calibration.report import (
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
-    interstar_sums_at,
+    interstar_sums_of_directions,
     merge_sums,
     rejected_stars,
     residual_stats,
@@ -312,16 +314,19 @@ def _vote_chunk(data: CalibrationData, theta: np.ndarray) -> _Screened:
 
 
 def _stats_chunk(data, theta0, theta, excluded) -> tuple[dict, tuple, tuple]:
-    """Residual sums of one chunk's inliers at the nominal camera ``theta0`` (SVD attitudes), added up over
+    """Residual sums of one chunk's inliers at the nominal camera ``theta0`` (least-squares attitudes), added up over
     sub-chunks of the bundle's working size (``DEFAULT_CHUNK_OBS`` stars: small temporaries), and their interstar
-    sums there and at the result ``theta`` (:func:`interstar_sums_at`, in blocks of its own). The residuals at the
-    result are the bundle's final pass's (:attr:`hostlink.calibration.bundle.ChunkedBundleResult.residual_sums`)."""
+    sums there and at the result ``theta`` (:func:`interstar_sums_of_directions`, in blocks of its own); the
+    directions at the nominal are computed once for all three. The residuals at the result are the bundle's final
+    pass's (:attr:`hostlink.calibration.bundle.ChunkedBundleResult.residual_sums`)."""
     fit = without_rows(data, excluded)
-    inter_before, inter_after = interstar_sums_at(fit, [theta0, theta])
+    b0 = pixels_to_unit(fit.x_px, fit.y_px, theta0)  # the measured directions at the nominal, for all three sums
+    inter_before, inter_after = interstar_sums_of_directions(fit, [b0, pixels_to_unit(fit.x_px, fit.y_px, theta)])
+    att0 = fitted_attitudes(fit, theta0, b0)  # all frames at once (an array operation per Newton step)
     before = None
     for f0, f1 in frame_chunks(fit.frame_starts, DEFAULT_CHUNK_OBS) or [(0, 0)]:
-        sub = frames_of(fit, f0, f1)
-        part = residual_sums(sub, theta0, fitted_attitudes(sub, theta0))
+        b_sub = b0[fit.frame_starts[f0] : fit.frame_starts[f1]]
+        part = residual_sums(frames_of(fit, f0, f1), theta0, att0[f0:f1], b=b_sub)
         before = part if before is None else merge_sums(before, part)
     return before, inter_before, inter_after
 
@@ -335,9 +340,7 @@ def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[Calibrat
         for frames, out in zip(frame_sets, parts, strict=True):
             local = frames[(frames >= offset) & (frames < offset + chunk.n_frames)] - offset
             if local.size:
-                pick = np.zeros(chunk.n_frames, dtype=bool)
-                pick[local] = True
-                out.append(chunk.select(pick[chunk.frame_index()], min_stars=1)[0])
+                out.append(take_frames(chunk, local))
         offset += chunk.n_frames
     return [concatenate_data(p) for p in parts]
 
@@ -620,7 +623,7 @@ def spool_session(
         unknown.append(refs.unknown_rows + offset)
         offset += len(chunk)
         if data.n_frames:
-            path = directory / f"chunk{k:06d}.npz"
+            path = directory / f"chunk{k:06d}{SPOOL_SUFFIX}"
             save_chunk(path, data)
             files.append(str(path))
     if offset == 0:

@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData
-from hostlink.calibration.frames import wahba_svd
+from hostlink.calibration.frames import wahba_attitudes
 from hostlink.calibration.interstar_methods import InterstarFit, fit_interstar, frame_pair_orders
 from onboard.camera import ideal_offset_jacobians, pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
@@ -36,7 +36,7 @@ def radial_least_squares(data: CalibrationData, theta: np.ndarray) -> np.ndarray
     Returns theta with k1, k2 replaced (other distortion terms unchanged)."""
     theta0 = theta.copy()
     theta0[3:5] = 0.0
-    att = wahba_svd(pixels_to_unit(data.x_px, data.y_px, theta0), data.r, data.frame_starts)
+    att = wahba_attitudes(pixels_to_unit(data.x_px, data.y_px, theta0), data.r, data.frame_starts)
     s = np.einsum("nij,nj->ni", np.repeat(att, data.counts, axis=0), data.r)
     x_hat = theta0[0] * s[:, :2] / s[:, 2:3]  # ideal offsets of the catalogue stars (eq. 6 right-hand side)
     q0, jq, _ = ideal_offset_jacobians(data.x_px, data.y_px, theta0)

@@ -237,10 +237,10 @@ def count_operations(fn: Callable, *args, **kwargs) -> Ops:
 def pixel_to_direction_ops(n_stars: int) -> Ops:
     """``onboard.camera.pixels_to_unit`` for N stars. Per star: u, v = x - x0, y - y0 (2 add); distortion_px:
     r2 = u u + v v (2 mul, 1 add), radial = r2 (k1 + r2 (k2 + r2 k3)) (3 mul, 2 add), dx and dy each 7 mul and
-    3 add; u - dx, v - dy (2 add); offsets_to_unit: w w (3 mul), its sum (2 add), sqrt (1), w / |w| (3 div).
-    The 4 additions g1..g4 of the coefficients are per call."""
+    3 add; u - dx, v - dy (2 add); offsets_to_unit: u'^2 + v'^2 + F^2 (2 mul, 2 add), sqrt (1), (u', v', F) over
+    it (3 div). The 4 additions g1..g4 of the coefficients and F^2 are per call."""
     n = int(n_stars)
-    return Ops(mul=22 * n, add=15 * n, div=3 * n, sqrt=n)
+    return Ops(mul=21 * n, add=15 * n, div=3 * n, sqrt=n)
 
 
 # Integer primitives of onboard.fixedpoint, per value (the fixed-point formulas below are built from them).
