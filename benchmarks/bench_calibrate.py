@@ -2,8 +2,8 @@
 
 1. Speed, side by side in one run: 1000 frames of 10-30 stars (seed 004's camera, 0.05 px noise). The same plain
    least-squares bundle problem (same residual function ``bundle.observation_terms``, same start: nominal camera and
-   per-frame SVD attitudes; the default method's robust loss, gating and screening switched off so that both solve
-   exactly the same problem) is solved by ``hostlink.calibration.bundle.bundle_adjust`` and by
+   per-frame least-squares (Markley) attitudes; the default method's robust loss, gating and screening switched off
+   so that both solve exactly the same problem) is solved by ``hostlink.calibration.bundle.bundle_adjust`` and by
    ``scipy.optimize.least_squares`` (trf, finite-difference Jacobian with ``jac_sparsity``: each residual depends
    on the 10 camera parameters and its frame's 3 attitude parameters). scipy runs twice: with its default
    tolerances, and with tight ones (1e-15) so that it may reach the same optimum. Speed is compared at equal

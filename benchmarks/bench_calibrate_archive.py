@@ -15,7 +15,8 @@ memory from the kernel's rusage of that process, loading of the input included; 
   one chunk).
 - ``scipy``: ``scipy.optimize.least_squares`` (trf, sparse finite-difference Jacobian through ``jac_sparsity``:
   each residual depends on the 10 camera parameters and its frame's 3 attitude parameters) on the same residual
-  function (``bundle.observation_terms``), plain least squares, from the nominal camera and SVD attitudes.
+  function (``bundle.observation_terms``), plain least squares, from the nominal camera and least-squares (Markley)
+  attitudes.
 - ``opencv``: the bundle adjustment an engineer would write on OpenCV: its camera model (fx = fy, cx, cy,
   k1, k2, p1, p2, k3), ``cv2.projectPoints`` for the projections and their Jacobians (every star rotated by its
   frame's attitude and projected with rvec = 0, so d/drvec is the derivative by a rotation increment), and

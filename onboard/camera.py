@@ -43,12 +43,14 @@ def offsets_to_unit(u_ideal: np.ndarray, v_ideal: np.ndarray, focal_px: np.ndarr
     """Ideal offsets -> sensor-frame unit vectors b = (u', v', F) / |.|, shape (N, 3)."""
     f = np.asarray(focal_px).astype(np.result_type(u_ideal), copy=False)
     dtype = np.result_type(u_ideal, v_ideal, f)
+    dtype = dtype if np.issubdtype(dtype, np.floating) else np.dtype(np.float64)  # integer offsets: float64 out
+    u, v, f = (np.asarray(a, dtype=dtype) for a in (u_ideal, v_ideal, f))
     # each component over the length sqrt((u'^2 + v'^2) + F^2), written out rather than a sum over a stacked axis
     # of three (the same numbers; numpy's reduction over so short an axis costs ten times the arithmetic)
-    norm = np.sqrt(u_ideal * u_ideal + v_ideal * v_ideal + f * f)
-    out = np.empty(np.broadcast_shapes(np.shape(u_ideal), np.shape(v_ideal), np.shape(f)) + (3,), dtype=dtype)
-    np.divide(u_ideal, norm, out=out[..., 0])
-    np.divide(v_ideal, norm, out=out[..., 1])
+    norm = np.sqrt(u * u + v * v + f * f)
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape, f.shape) + (3,), dtype=dtype)
+    np.divide(u, norm, out=out[..., 0])
+    np.divide(v, norm, out=out[..., 1])
     np.divide(f, norm, out=out[..., 2])
     return out
 

@@ -80,8 +80,8 @@ def validation_residual_px(
 ):
     """V(theta_hat) of the module docstring [px] (and, if asked, the (n_grid, 2) difference field).
 
-    The alignment starts from the SVD (Wahba) rotation and is refined by Gauss-Newton on the pixel metric, so it
-    minimises exactly the quantity reported."""
+    The alignment starts from the least-squares (Wahba) rotation and is refined by Gauss-Newton on the pixel metric,
+    so it minimises exactly the quantity reported."""
     theta_true = params_true.model_vector(np.float64)
     gx, gy = grid_points(params_true, side)
     b_true = pixels_to_unit(gx, gy, theta_true)

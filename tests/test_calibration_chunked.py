@@ -17,7 +17,14 @@ from hostlink.calibration.bundle import (
     residual_histogram,
     robust_sigma_from_histogram,
 )
-from hostlink.calibration.data import chunk_frame_count, load_chunk, measured_directions, save_chunk, take_frames
+from hostlink.calibration.data import (
+    CalibrationData,
+    chunk_frame_count,
+    load_chunk,
+    measured_directions,
+    save_chunk,
+    take_frames,
+)
 from hostlink.calibration.frames import triad_attitudes
 from hostlink.calibration.robust import robust_sigma_2d
 from hostlink.calibration.run import calibrate, calibrate_archive, calibrate_chunks, calibrate_session
@@ -92,8 +99,17 @@ def test_in_memory_bundle_is_the_chunked_pass_on_one_chunk(dirty):
 
 @pytest.mark.parametrize("which", ["all", "every-third", "first", "last", "none"])
 def test_taking_frames_by_index_equals_selecting_their_rows(dirty, which):
-    """The samples' gather (row ranges of the chosen frames) is the row selection with frames of at least one star."""
-    data = dirty[0].data
+    """The samples' gather (row ranges of the chosen frames) is the row selection with frames of at least one star,
+    an empty frame (frame 1 here) left out by both."""
+    d = dirty[0].data
+    starts = d.frame_starts.copy()
+    starts[2:] -= d.counts[1]  # frame 1 loses its stars
+    keep = np.ones(d.n_obs, dtype=bool)
+    keep[d.frame_starts[1] : d.frame_starts[2]] = False
+    data = CalibrationData(
+        d.x_px[keep], d.y_px[keep], d.r[keep], starts, d.frame_number, d.star_id[keep], d.source_rows()[keep]
+    )
+    assert data.counts[1] == 0
     frames = {
         "all": np.arange(data.n_frames),
         "every-third": np.arange(0, data.n_frames, 3),
@@ -122,6 +138,23 @@ def test_spooled_chunk_reads_back_the_same_arrays_and_its_frame_count(dirty, tmp
         np.testing.assert_array_equal(getattr(back, name), getattr(data, name))
     np.testing.assert_array_equal(back.source_rows(), data.source_rows())
     assert chunk_frame_count(path) == data.n_frames == 104
+
+
+@pytest.mark.parametrize("damage", ["cut-in-a-header", "cut-in-the-data", "bytes-after-it", "an-npz-archive"])
+def test_damaged_spool_file_is_an_error_naming_it(dirty, tmp_path, damage):
+    """A spool file cut short, with bytes after its arrays, or not a spool file at all: a ValueError naming it, not
+    a numpy traceback or a chunk of wrong arrays."""
+    path = tmp_path / "chunk000000.spool"
+    save_chunk(path, frames_of(dirty[0].data, 0, 50))
+    raw = path.read_bytes()
+    if damage == "an-npz-archive":
+        np.savez(path.with_suffix(".npz"), x_px=np.zeros(3))
+        path.with_suffix(".npz").replace(path)
+    else:
+        damaged = {"cut-in-a-header": raw[:20], "cut-in-the-data": raw[: len(raw) // 2], "bytes-after-it": raw + b"\0"}
+        path.write_bytes(damaged[damage])
+    with pytest.raises(ValueError, match="chunk000000.spool: not a spooled calibration chunk"):
+        load_chunk(path)
 
 
 def test_histogram_scale_matches_the_exact_median():

@@ -96,8 +96,9 @@ def test_parity_skips_the_triples_of_a_star_identified_twice():
 
 
 def test_parity_triples_are_distinct_stars_drawn_uniformly():
-    """Every triple is three different stars of its frame, and every star is drawn equally often (chi-square over
-    the stars of frames of 3, 4, 7 and 30, 40 000 triples each)."""
+    """Every triple is three different stars of its frame, every star is drawn equally often (chi-square over the
+    stars of frames of 3, 4, 7 and 30, 40 000 triples each), and so is every set of three stars (chi-square over the
+    35 sets of a frame of 7, 200 000 triples: a sampler favouring neighbours or fixed pairs fails it)."""
     n = np.array([3, 4, 7, 30])
     triples = random_triples(np.random.default_rng(5), n, 40_000)
     i, j, k = triples
@@ -108,6 +109,13 @@ def test_parity_triples_are_distinct_stars_drawn_uniformly():
         expected = 3 * 40_000 / count
         chi2 = float(np.sum((drawn - expected) ** 2 / expected))
         assert chi2 < count - 1 + 5 * np.sqrt(2 * (count - 1))  # the mean plus five standard deviations
+    sets = np.sort(random_triples(np.random.default_rng(6), np.array([7]), 200_000)[:, 0], axis=0)
+    codes = sets[0] * 49 + sets[1] * 7 + sets[2]
+    drawn = np.unique(codes, return_counts=True)[1]
+    assert drawn.size == 35  # every set of three of seven stars occurs
+    expected = 200_000 / 35
+    chi2 = float(np.sum((drawn - expected) ** 2 / expected))
+    assert chi2 < 34 + 5 * np.sqrt(2 * 34)
 
 
 def test_mirrored_detector_is_a_one_line_error_naming_the_parity_and_the_fix(sim_session, tmp_path, capsys):

@@ -7,6 +7,7 @@ from hostlink.files.params import load_params
 from onboard.camera import (
     distortion_px,
     ideal_offset_jacobians,
+    offsets_to_unit,
     pixels_to_unit,
     radec_to_unit,
     unit_to_pixels,
@@ -189,3 +190,19 @@ def test_applied_distortion_partials_jacobian_keeps_float32():
     assert j32.dtype == np.float32
     col_scale = np.maximum(np.max(np.abs(j64), axis=(0, 1)), 1e-300)  # F column: zero
     np.testing.assert_allclose(j32 / col_scale, j64 / col_scale, rtol=0, atol=1e-5)
+
+
+def test_unit_vectors_take_the_dtype_of_their_offsets():
+    """offsets_to_unit computes in the offsets' float type (float32 stays float32: the sensor's), in float64 for
+    integer offsets, and in the common type of mixed ones, with the focal length in that type; the result is unit."""
+    u = np.array([-700, 0, 3, 512])
+    v = np.array([250, 0, -4, -512])
+    as64 = offsets_to_unit(u.astype(np.float64), v.astype(np.float64), 5000.0)
+    np.testing.assert_allclose(np.linalg.norm(as64, axis=1), 1.0, rtol=0, atol=2e-16)
+    got = offsets_to_unit(u, v, 5000)
+    assert got.dtype == np.float64 and np.array_equal(got, as64)
+    got32 = offsets_to_unit(u.astype(np.float32), v.astype(np.float32), np.float32(5000.0))
+    assert got32.dtype == np.float32
+    np.testing.assert_allclose(got32, as64, rtol=0, atol=2e-7)
+    mixed = offsets_to_unit(u.astype(np.float32), v.astype(np.float64), 5000.0)
+    assert mixed.dtype == np.float64 and np.array_equal(mixed, as64)  # integer-valued offsets: exact in float32

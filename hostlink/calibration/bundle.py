@@ -32,7 +32,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hostlink.calibration.data import MIN_STARS_PER_FRAME, CalibrationData, frame_chunks, measured_directions
-from hostlink.calibration.frames import apply_attitude_increment, per_frame_products, triad_attitudes, wahba_attitudes
+from hostlink.calibration.frames import (
+    apply_attitude_increment,
+    per_frame_products,
+    triad_attitudes,
+    vector_norms,
+    wahba_attitudes,
+)
 from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_cost, huber_weights, vote_consistent_stars
 from onboard.camera import (
     distortion_partials,
@@ -505,11 +511,8 @@ ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
 
 def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle [arcsec] between unit vectors a and b (N, 3), from the chord: 2 arcsin(|a - b| / 2) (accurate at any
-    angle, unlike arccos near 0). The chord's length written out: np.linalg.norm(d, axis=1)'s numbers, without its
-    reduction over an axis of three (several times the arithmetic's cost)."""
-    d = a - b
-    chord = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
-    return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
+    angle, unlike arccos near 0); the chord's length by :func:`hostlink.calibration.frames.vector_norms`."""
+    return 2.0 * np.arcsin(np.clip(vector_norms(a - b) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
 
 
 def _lengths(e: np.ndarray) -> np.ndarray:

@@ -96,9 +96,9 @@ class CalibrationData:
 
 
 def take_frames(data: CalibrationData, frames: np.ndarray) -> CalibrationData:
-    """The frames of ``data`` at the sorted indices ``frames`` (those without a star left out) as a data set of
-    their own, gathered by row ranges: ``data.select`` of their rows with ``min_stars=1``, without a mask over every
-    row."""
+    """The frames of ``data`` at the sorted, unique int64 indices ``frames`` (those without a star left out) as a data
+    set of their own, gathered by row ranges: ``data.select`` of their rows with ``min_stars=1`` (for float64 data),
+    without a mask over every row."""
     counts = data.counts[frames]
     frames = frames[counts > 0]
     counts = counts[counts > 0]
@@ -212,9 +212,29 @@ def save_chunk(path: Path, data: CalibrationData) -> None:
 
 
 def load_chunk(path: str | Path) -> CalibrationData:
-    """A chunk written by :func:`save_chunk`."""
-    with open(path, "rb") as f:
-        arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS}
+    """A chunk written by :func:`save_chunk`. Raises ValueError naming the file when it is not one (cut short,
+    with data after its arrays, or arrays that do not fit together)."""
+    try:
+        with open(path, "rb") as f:
+            arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS}
+            trailing = f.read(1)
+    except (OSError, EOFError, ValueError) as exc:
+        raise ValueError(f"{path}: not a spooled calibration chunk ({exc})") from exc
+    if not all(isinstance(a, np.ndarray) and a.ndim >= 1 for a in arrays.values()):
+        raise ValueError(f"{path}: not a spooled calibration chunk (an archive or a scalar where an array belongs)")
+    starts, n = arrays["frame_starts"], arrays["x_px"].shape[0]
+    fits = (
+        not trailing
+        and starts.ndim == 1
+        and starts.size >= 1
+        and int(starts[0]) == 0
+        and int(starts[-1]) == n
+        and arrays["frame_number"].shape == (starts.size - 1,)
+        and arrays["r"].shape == (n, 3)
+        and all(arrays[name].shape == (n,) for name in ("y_px", "star_id", "row"))
+    )
+    if not fits:
+        raise ValueError(f"{path}: not a spooled calibration chunk (its arrays do not fit together)")
     return CalibrationData(**arrays)
 
 

@@ -19,8 +19,8 @@ POLAR_MAX_STEPS = 30
 #: Smallest det(B) / |B|_F^3 the polar iteration is used for; below it (two stars, (nearly) collinear ones, a
 #: reflection), and where it has not converged, the SVD.
 POLAR_MIN_DET = 1e-12
-#: A Newton step moving no entry of X by more than this is followed by one last step and ends the iteration: the
-#: convergence is quadratic, so that last step leaves ~1e-18 (rounding).
+#: A Newton step moving no entry of X by more than this ends the iteration: the convergence is quadratic (the error
+#: after a step is about half the square of the step), so what it leaves is ~1e-18, below rounding.
 POLAR_STEP_TOL = 1e-9
 
 
@@ -69,13 +69,11 @@ def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
             break
         g = np.sqrt(_frobenius(cof) / det / _frobenius(x))
         x_new = 0.5 * (g[:, None, None] * x + cof / (g * det)[:, None, None])
-        moved = np.max(np.abs(x_new - x).reshape(-1, 9), axis=1)
-        cof, det = _cofactors(x_new)
-        done = moved <= POLAR_STEP_TOL
-        if np.any(done):  # one last, unscaled step (g is 1 to rounding there)
-            out[todo[done]] = 0.5 * (x_new[done] + cof[done] / det[done, None, None])
-            solved[todo[done]] = True
-        x, cof, det, todo = x_new[~done], cof[~done], det[~done], todo[~done]
+        done = np.max(np.abs(x_new - x).reshape(-1, 9), axis=1) <= POLAR_STEP_TOL
+        out[todo[done]] = x_new[done]
+        solved[todo[done]] = True
+        x, todo = x_new[~done], todo[~done]
+        cof, det = _cofactors(x)
     rest = np.flatnonzero(~solved)
     if rest.size:
         out[rest] = rotation_from_profile(profile[rest])[0]
@@ -175,13 +173,13 @@ def triad_attitudes(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray) -> n
 
 def _triad_matrix(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
     """Columns (v1, v1 x v2, v1 x (v1 x v2)), normalised: the TRIAD frame of a vector pair, (M, 3, 3)."""
-    t1 = v1 / _norms(v1)[:, None]
+    t1 = v1 / vector_norms(v1)[:, None]
     t2 = _cross(t1, v2)
-    t2 /= _norms(t2)[:, None]
+    t2 /= vector_norms(t2)[:, None]
     return np.stack([t1, t2, _cross(t1, t2)], axis=2)
 
 
-def _norms(v: np.ndarray) -> np.ndarray:
+def vector_norms(v: np.ndarray) -> np.ndarray:
     """|v| of a stack of 3-vectors (M, 3): np.linalg.norm(v, axis=1)'s numbers, written out (its reduction over an
     axis of three costs several times the arithmetic)."""
     return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])

@@ -370,14 +370,14 @@ class RejectedStars:
 
 def rejected_residuals_arcsec(data: CalibrationData, theta: np.ndarray, used: np.ndarray) -> np.ndarray:
     """(N,) angle [arcsec] of every star of ``data`` from its reference rotated by its frame's attitude, the
-    attitude fitted (SVD) to the ``used`` stars of the frame through the camera ``theta``, or to all its stars when
-    none was used."""
+    least-squares attitude (Markley's rotation) fitted to the ``used`` stars of the frame through the camera
+    ``theta``, or to all its stars when none was used."""
     b = pixels_to_unit(data.x_px, data.y_px, theta)
     fidx = data.frame_index()
     any_used = np.bincount(fidx, weights=used, minlength=data.n_frames) > 0
     weights = np.where(any_used[fidx], used.astype(float), 1.0)
     att = wahba_attitudes(b, data.r, data.frame_starts, weights)
-    return angle_arcsec(b, np.einsum("nij,nj->ni", att[fidx], data.r))
+    return angle_arcsec(b, rotate(att[fidx], data.r))
 
 
 def rejected_stars(session, references, data_in: CalibrationData, outcome) -> RejectedStars:

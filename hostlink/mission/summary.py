@@ -177,9 +177,9 @@ def estimate_rows(estimates: list[tuple[int, Estimate]]) -> dict[str, np.ndarray
 
 
 def attitude_error_vectors_arcsec(data, theta: np.ndarray, truth_c: np.ndarray, frame_index: np.ndarray) -> np.ndarray:
-    """Per-frame attitude from the camera ``theta`` (SVD over the frame's stars) against the simulator's truth, as
-    the small rotation vector phi [arcsec] of the error rotation C_est C_true^T = I - [phi x] in the sensor frame:
-    phi_x, phi_y tilt the boresight, phi_z is the roll about it."""
+    """Per-frame attitude from the camera ``theta`` (the least-squares attitude over the frame's stars) against the
+    simulator's truth, as the small rotation vector phi [arcsec] of the error rotation C_est C_true^T = I - [phi x]
+    in the sensor frame: phi_x, phi_y tilt the boresight, phi_z is the roll about it."""
     est = fitted_attitudes(data, theta)
     d = np.einsum("fij,fkj->fik", est, truth_c[frame_index])
     phi = 0.5 * np.stack([d[:, 1, 2] - d[:, 2, 1], d[:, 2, 0] - d[:, 0, 2], d[:, 0, 1] - d[:, 1, 0]], axis=1)
