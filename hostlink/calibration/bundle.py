@@ -31,7 +31,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hostlink.calibration.data import MIN_STARS_PER_FRAME, CalibrationData, frame_chunks, measured_directions
+from hostlink.calibration.data import (
+    MIN_STARS_PER_FRAME,
+    CalibrationData,
+    frame_chunks,
+    measured_directions,
+    take_frames,
+)
 from hostlink.calibration.frames import (
     apply_attitude_increment,
     per_frame_products,
@@ -39,7 +45,7 @@ from hostlink.calibration.frames import (
     vector_norms,
     wahba_attitudes,
 )
-from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_cost, huber_weights, vote_consistent_stars
+from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_rho, huber_weights, vote_consistent_stars
 from onboard.camera import (
     distortion_partials,
     distortion_partials_applied_jacobian,
@@ -524,10 +530,6 @@ def _weights(norm: np.ndarray, sigma_px: float, huber_k: float) -> np.ndarray:
     return np.ones_like(norm) if not np.isfinite(sigma_px) else huber_weights(norm, sigma_px, huber_k)
 
 
-def _cost(norm: np.ndarray, sigma_px: float, huber_k: float) -> float:
-    return 0.5 * float(np.sum(norm * norm)) if not np.isfinite(sigma_px) else huber_cost(norm, sigma_px, huber_k)
-
-
 def frame_attitudes(
     data: CalibrationData,
     theta: np.ndarray,
@@ -671,44 +673,85 @@ def chunk_pass(data: CalibrationData, req: PassRequest) -> PassSums:
         sub = without_rows(frames_of(data, f0, f1), req.excluded_rows)
         if sub.n_frames == 0:
             continue
-        part = _checked_sums(sub, req)
+        frame_sums: list = []
+        part = _checked_sums(sub, req, frame_sums)
         if part is None:
             out.cost = np.inf  # a camera some frame cannot be fitted with: the step is rejected
             return out
         if req.final:
             # the next round's first pass, after gating, for this sub-chunk: the same sums when no star of it is
-            # beyond the gate, else the sub-chunk again without those stars (exactly what that pass computes). It is
-            # a final pass too (unit-weight sums, stars beyond the same gate): when the next round's first step is
-            # already below the tolerance, it ends that round without a pass of its own
-            part.regated = replace(part) if part.over_gate.size == 0 else empty_pass(req.cols.size, True, False)
-            if part.over_gate.size:
-                left = without_rows(sub, np.sort(part.over_gate))
-                again = _checked_sums(left, req) if left.n_frames else None
-                if again is not None:
-                    part.regated = again
-                elif left.n_frames:
-                    part.regated.cost = np.inf
+            # beyond the gate, else those sums with the frames of the gated stars summed again without them (what
+            # that pass computes, to the rounding of the sums). It is a final pass too (unit-weight sums, stars
+            # beyond the same gate): when the next round's first step is already below the tolerance, it ends that
+            # round without a pass of its own
+            part.regated = replace(part) if part.over_gate.size == 0 else _regated(sub, part, frame_sums[0], req)
         out = out.merge(part)
     return out
 
 
-def _checked_sums(sub: CalibrationData, req: PassRequest) -> PassSums | None:
+def _regated(sub: CalibrationData, part: PassSums, frame_sums: np.ndarray, req: PassRequest) -> PassSums:
+    """The final sums ``part`` of the sub-chunk ``sub`` without its stars beyond the gate (``part.over_gate``), their
+    frames' attitudes fitted anew and the frames left with fewer than three stars dropped, as a pass without them
+    gives them: only the frames holding those stars are summed again (with and without them). The matrices take out
+    the first and add the second sums; the residuals' sums and maxima add the other frames' own (``frame_sums``, of
+    :func:`_sub_chunk_sums`: no difference of large sums when a gated star's residual is huge) to the new ones.
+    A frame that cannot be summed again makes the cost infinite (the step is rejected), as in a pass."""
+    k = req.cols.size
+    gated = np.sort(part.over_gate)
+    rows = sub.source_rows()
+    hit = gated[np.minimum(np.searchsorted(gated, rows), gated.size - 1)] == rows
+    affected = np.unique(sub.frame_index()[hit])
+    frames = take_frames(sub, affected)
+    before = _checked_sums(frames, req)
+    left = without_rows(frames, gated)
+    after = _checked_sums(left, req) if left.n_frames else empty_pass(k, True, False)
+    if before is None or after is None:
+        failed = empty_pass(k, True, False)
+        failed.cost = np.inf
+        return failed
+    others = np.ones(sub.n_frames, dtype=bool)
+    others[affected] = False
+    max_e, max_arcsec, sum_e2, sum_arcsec2, cost = frame_sums[:, others]
+    return PassSums(
+        part.s - before.s + after.s,
+        part.rhs - before.rhs + after.rhs,
+        part.u_diag - before.u_diag + after.u_diag,
+        float(np.sum(cost)) + after.cost,
+        float(np.sum(sum_e2)) + after.sum_e2,
+        part.n_obs - before.n_obs + after.n_obs,
+        part.n_frames - before.n_frames + after.n_frames,
+        part.hist - before.hist + after.hist,
+        after.over_gate,
+        max(float(max_e.max(initial=0.0)), after.max_e_px),
+        part.s_unit - before.s_unit + after.s_unit,
+        part.u_diag_unit - before.u_diag_unit + after.u_diag_unit,
+        None,
+        float(np.sum(sum_arcsec2)) + after.sum_arcsec2,
+        max(float(max_arcsec.max(initial=0.0)), after.max_arcsec),
+    )
+
+
+def _checked_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | None = None) -> PassSums | None:
     """:func:`_sub_chunk_sums`, or None when some frame's terms are not finite at the request's camera."""
     try:
         with np.errstate(all="ignore"):  # a trial camera far off can make a frame's terms non-finite
-            part = _sub_chunk_sums(sub, req)
+            part = _sub_chunk_sums(sub, req, frame_sums)
     except np.linalg.LinAlgError:
         return None
     return part if np.isfinite(part.cost) and np.all(np.isfinite(part.s)) else None
 
 
-def _sub_chunk_sums(sub: CalibrationData, req: PassRequest) -> PassSums:
+def _sub_chunk_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | None = None) -> PassSums:
+    """The sums of :func:`chunk_pass` for the sub-chunk ``sub``. A final request appends to ``frame_sums`` (when
+    given) each frame's largest |e| and arcsec angle, and its sums of |e|^2, of the squared angles and of the robust
+    cost, (5, M) (:func:`_regated`)."""
     cam = camera_terms(sub.x_px, sub.y_px, req.theta)
     att = frame_attitudes(sub, req.theta, req.sigma_px, req.huber_k, cam)
     att_obs = np.repeat(att, sub.counts, axis=0)
     e, jt, jp = observation_terms(sub.x_px, sub.y_px, sub.r, att_obs, req.theta, req.cols, cam)
     norm = _lengths(e)
     w = _weights(norm, req.sigma_px, req.huber_k)
+    rho = huber_rho(norm, req.sigma_px, req.huber_k)
     jt_scaled = jt * req.col_scale[None, None, :]
     blocks = NormalBlocks(*normal_blocks(e, jt_scaled, jp, w, sub.frame_starts), e)
     s, rhs, _ = reduced_normal(blocks, 0.0)
@@ -719,11 +762,16 @@ def _sub_chunk_sums(sub: CalibrationData, req: PassRequest) -> PassSums:
         b = offsets_to_unit(cam.q[:, 0], cam.q[:, 1], req.theta[0])
         ang = angle_arcsec(b, rotate(att_obs, sub.r))
         arcsec = (float(np.sum(ang * ang)), float(ang.max(initial=0.0)))
+        if frame_sums is not None:
+            starts = sub.frame_starts[:-1]
+            per_frame = [np.maximum.reduceat(norm, starts), np.maximum.reduceat(ang, starts)]
+            per_frame += [np.add.reduceat(x, starts) for x in (norm * norm, ang * ang, rho)]
+            frame_sums.append(np.stack(per_frame))
     return PassSums(
         s,
         rhs,
         np.diag(blocks.u).copy(),
-        _cost(norm, req.sigma_px, req.huber_k),
+        float(np.sum(rho)),
         float(np.sum(norm * norm)),
         sub.n_obs,
         sub.n_frames,

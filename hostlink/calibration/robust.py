@@ -181,11 +181,19 @@ def huber_weights(residual_norm: np.ndarray, scale: float, k: float) -> np.ndarr
     return np.where(z <= 1.0, 1.0, 1.0 / np.maximum(z, 1e-300))
 
 
-def huber_cost(residual_norm: np.ndarray, scale: float, k: float, weights: np.ndarray | None = None) -> float:
-    """sum rho(|e|) with rho(t) = t^2 / 2 inside c = k * scale and c |t| - c^2 / 2 outside (Huber 1964)."""
-    c = k * scale
+def huber_rho(residual_norm: np.ndarray, scale: float, k: float) -> np.ndarray:
+    """rho(|e|) of each residual: t^2 / 2 inside c = k * scale and c |t| - c^2 / 2 outside (Huber 1964); t^2 / 2
+    everywhere for an infinite scale (plain least squares)."""
     t = residual_norm
-    rho = np.where(t <= c, 0.5 * t * t, c * t - 0.5 * c * c)
+    if not np.isfinite(scale):
+        return 0.5 * t * t
+    c = k * scale
+    return np.where(t <= c, 0.5 * t * t, c * t - 0.5 * c * c)
+
+
+def huber_cost(residual_norm: np.ndarray, scale: float, k: float, weights: np.ndarray | None = None) -> float:
+    """sum rho(|e|) (:func:`huber_rho`)."""
+    rho = huber_rho(residual_norm, scale, k)
     if weights is not None:
         rho = rho * weights
     return float(np.sum(rho))
