@@ -320,16 +320,23 @@ def frame_slots(frame_starts: np.ndarray, f0: int, f1: int) -> tuple[np.ndarray,
 
 def angle_from_dot_rad(dot: np.ndarray) -> np.ndarray:
     """The angle [rad] between two unit vectors from their dot product, through the chord sqrt(2 - 2 a.b) (accurate
-    at small angles, where arccos is not). Monotone: the largest angle is that of the smallest dot product."""
-    # in place on one temporary: the half chord sqrt((1 - a.b) / 2) (= sqrt(2 - 2 a.b) / 2 exactly: the scalings are
-    # by powers of two), clipped at 1, arcsin, doubled
-    x = np.asarray(np.subtract(1.0, dot, dtype=np.float64))  # a new array, also of a scalar (0-d, writable)
-    x *= 0.5
-    np.maximum(x, 0.0, out=x)
-    np.sqrt(x, out=x)
-    np.minimum(x, 1.0, out=x)
-    np.arcsin(x, out=x)
+    at small angles, where arccos is not): twice :func:`half_angle_from_dot_rad`. Monotone: the largest angle is
+    that of the smallest dot product."""
+    x = half_angle_from_dot_rad(dot)
     x *= 2.0
+    return x
+
+
+def half_angle_from_dot_rad(dot: np.ndarray) -> np.ndarray:
+    """Half the angle [rad] between two unit vectors from their dot product: arcsin of the half chord
+    sqrt((1 - a.b) / 2) (= sqrt(2 - 2 a.b) / 2 exactly: the scalings are by powers of two), clipped to [0, 1]
+    (rounding can put a.b just outside [-1, 1]). A new array, also of a scalar (0-d, writable); computed in place
+    on it."""
+    x = np.asarray(np.subtract(1.0, dot, dtype=np.float64))
+    x *= 0.5
+    np.clip(x, 0.0, 1.0, out=x)  # the square of the half chord: clipped before the root, the same numbers as after
+    np.sqrt(x, out=x)
+    np.arcsin(x, out=x)
     return x
 
 

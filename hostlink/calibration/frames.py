@@ -56,11 +56,13 @@ def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
     (Higham 1986, "Computing the polar decomposition", sec. 3); X^-T is the cofactor matrix (the columns' cross
     products) over det X, so each step is a few array operations over all frames instead of an SVD per frame. The
     frames with det B / |B|_F^3 below :data:`POLAR_MIN_DET` or not converged in :data:`POLAR_MAX_STEPS` go to the SVD.
-    """
-    out = np.empty_like(profile)
-    solved = np.zeros(profile.shape[0], dtype=bool)
-    norm = _frobenius(profile)
-    x = profile / np.where(norm > 0.0, norm, 1.0)[:, None, None]
+    The matrices are worked on as rows of 9 entries (row-major), each operation one call over all of them."""
+    m = profile.shape[0]
+    out = np.empty((m, 9))
+    solved = np.zeros(m, dtype=bool)
+    flat = profile.reshape(m, 9)
+    norm = _frobenius(flat)
+    x = flat / np.where(norm > 0.0, norm, 1.0)[:, None]
     cof, det = _cofactors(x)
     todo = np.flatnonzero(det > POLAR_MIN_DET)
     x, cof, det = x[todo], cof[todo], det[todo]
@@ -68,12 +70,19 @@ def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
         if todo.size == 0:
             break
         g = np.sqrt(_frobenius(cof) / det / _frobenius(x))
-        x_new = 0.5 * (g[:, None, None] * x + cof / (g * det)[:, None, None])
-        done = np.max(np.abs(x_new - x).reshape(-1, 9), axis=1) <= POLAR_STEP_TOL
+        x_new = g[:, None] * x
+        x_new += cof / (g * det)[:, None]
+        x_new *= 0.5
+        done = np.max(np.abs(x_new - x), axis=1) <= POLAR_STEP_TOL
+        if np.all(done):
+            out[todo] = x_new
+            solved[todo] = True
+            break
         out[todo[done]] = x_new[done]
         solved[todo[done]] = True
         x, todo = x_new[~done], todo[~done]
         cof, det = _cofactors(x)
+    out = out.reshape(m, 3, 3)
     rest = np.flatnonzero(~solved)
     if rest.size:
         out[rest] = rotation_from_profile(profile[rest])[0]
@@ -81,16 +90,23 @@ def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
 
 
 def _frobenius(x: np.ndarray) -> np.ndarray:
-    """|X|_F of each of a stack of 3 x 3 matrices."""
-    return np.sqrt(np.sum(x.reshape(-1, 9) ** 2, axis=1))
+    """|X|_F of each of a stack of 3 x 3 matrices as rows of 9 entries (M, 9)."""
+    return np.sqrt(np.einsum("ij,ij->i", x, x))
+
+
+#: Cofactor C_ij = X[i+1, j+1] X[i+2, j+2] - X[i+1, j+2] X[i+2, j+1] (indices mod 3) of a row-major 3 x 3 matrix:
+#: the flat positions of the four factors of each of the 9 entries.
+_COF_INDEX = np.array(
+    [[3 * ((i + a) % 3) + (j + b) % 3 for i in range(3) for j in range(3)] for a, b in ((1, 1), (2, 2), (1, 2), (2, 1))]
+)
 
 
 def _cofactors(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The cofactor matrices (det X) X^-T of a stack of 3 x 3 matrices (columns: the cross products of X's other two
-    columns) and the determinants."""
-    c0, c1, c2 = x[:, :, 0], x[:, :, 1], x[:, :, 2]
-    cof = np.stack([_cross(c1, c2), _cross(c2, c0), _cross(c0, c1)], axis=2)
-    det = np.sum(c0 * cof[:, :, 0], axis=1)
+    """The cofactor matrices (det X) X^-T of a stack of 3 x 3 matrices as rows of 9 entries (M, 9) (column k: the
+    cross product of X's other two columns) and the determinants (the expansion along the first column)."""
+    p, q, r, s = (np.take(x, idx, axis=1) for idx in _COF_INDEX)
+    cof = p * q - r * s
+    det = x[:, 0] * cof[:, 0] + x[:, 3] * cof[:, 3] + x[:, 6] * cof[:, 6]
     return cof, det
 
 

@@ -18,7 +18,8 @@ from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residua
 from hostlink.calibration.data import (
     CalibrationData,
     frame_blocks,
-    pair_angles_at_rad,
+    gram_matrices,
+    half_angle_from_dot_rad,
 )
 from hostlink.calibration.frames import wahba_attitudes
 from onboard.camera import pixels_to_unit
@@ -130,7 +131,9 @@ def interstar_sums_of_directions(
     """:func:`interstar_sums` for each array of measured directions (N, 3) in ``bs``, the catalogue angles computed
     once. The frames go in blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most
     ``chunk_obs`` stars), each block's directions an (m, n, 3) stack whose Gram matrices hold every pair's dot
-    product, without padding."""
+    product, without padding; the pairs i < j are the same entries of each (one gather along the rows). Each
+    difference is that of the half angles (:func:`hostlink.calibration.data.half_angle_from_dot_rad`), doubled in
+    the sum: the same numbers as the angles' (scalings by two are exact)."""
     out = [(0.0, 0) for _ in bs]
     counts = data.counts
     for frames in frame_blocks(data.frame_starts, chunk_obs):
@@ -138,15 +141,21 @@ def interstar_sums_of_directions(
             if n < 2:
                 continue
             same = frames[counts[frames] == n]
-            rows = data.frame_starts[same][:, None] + np.arange(n)
-            # the pairs i < j of each frame: flat positions in the stacked (m, n, n) Gram matrices, frame by frame
-            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))
-            positions = (np.arange(same.size)[:, None] * (n * n) + upper).ravel()
-            ang_r = pair_angles_at_rad(data.r[rows], positions)
+            rows = (data.frame_starts[same][:, None] + np.arange(n)).ravel()
+            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))  # pairs i < j in an n x n matrix
+            half_r = _pair_half_angles_rad(data.r, rows, same.size, n, upper)
             for k, b in enumerate(bs):
-                d = pair_angles_at_rad(b[rows], positions) - ang_r
-                out[k] = (out[k][0] + float(np.sum(d * d)), out[k][1] + d.size)
+                d = _pair_half_angles_rad(b, rows, same.size, n, upper)
+                d -= half_r
+                out[k] = (out[k][0] + 4.0 * float(np.vdot(d, d)), out[k][1] + d.size)
     return out
+
+
+def _pair_half_angles_rad(v: np.ndarray, rows: np.ndarray, m: int, n: int, upper: np.ndarray) -> np.ndarray:
+    """Half angles [rad] (m, P) between the vectors of ``v`` (N, 3) at ``rows`` (m frames of n stars, frame by frame)
+    at the flat positions ``upper`` of each frame's n x n Gram matrix."""
+    gram = gram_matrices(np.take(v, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
+    return half_angle_from_dot_rad(np.take(gram, upper, axis=1))
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:
