@@ -124,9 +124,12 @@ def parameter_scales(params: CameraParams) -> np.ndarray:
     return np.array([1.0, 1.0, 1.0, half_diag**-3, half_diag**-5, half_diag**-7] + [half_diag**-2] * 4)
 
 
-def _projection(r: np.ndarray, attitude_obs: np.ndarray, focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """s = C r per star, its ideal-plane projection p = F s_xy / s_z [px], and 1 / s_z."""
-    s = rotate(attitude_obs, r)
+def _projection(
+    r: np.ndarray, attitude_obs: np.ndarray, focal_px: float, s: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s = C r per star, its ideal-plane projection p = F s_xy / s_z [px], and 1 / s_z. ``s``: C r when already
+    computed."""
+    s = rotate(attitude_obs, r) if s is None else s
     inv_z = 1.0 / s[:, 2]
     return s, focal_px * s[:, :2] * inv_z[:, None], inv_z
 
@@ -287,12 +290,18 @@ def _all_columns(cols: np.ndarray, k: int) -> bool:
 
 
 def observation_residuals(
-    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, attitude_obs: np.ndarray, theta: np.ndarray
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    attitude_obs: np.ndarray,
+    theta: np.ndarray,
+    s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The residuals e of :func:`observation_terms` alone (no Jacobians): the cost of a trial step."""
+    """The residuals e of :func:`observation_terms` alone (no Jacobians): the cost of a trial step. ``s``: the
+    rotated references C r (:func:`rotate`) when already computed."""
     q_u, q_v = ideal_offsets(x_px, y_px, theta)
     dx_u, dx_v, dy_u, dy_v = distortion_partials(x_px - theta[1], y_px - theta[2], theta)
-    _, p, _ = _projection(r, attitude_obs, theta[0])
+    _, p, _ = _projection(r, attitude_obs, theta[0], s)
     det = (1 - dx_u) * (1 - dy_v) - dx_v * dy_u
     d0, d1 = q_u - p[:, 0], q_v - p[:, 1]
     return np.stack([((1 - dy_v) * d0 + dx_v * d1) / det, (dy_u * d0 + (1 - dx_u) * d1) / det], axis=1)

@@ -83,14 +83,15 @@ class CalibrationData:
         starts = np.zeros(int(np.count_nonzero(present)) + 1, dtype=np.int64)
         np.cumsum(per_frame[present], out=starts[1:])
         rows = np.flatnonzero(keep)
+        # np.take rather than indexing: the same rows, gathered several times faster for the (N, 3) vectors
         new = CalibrationData(
-            x_px=np.asarray(self.x_px[rows], dtype=np.float64),
-            y_px=np.asarray(self.y_px[rows], dtype=np.float64),
-            r=np.asarray(self.r[rows], dtype=np.float64).reshape(-1, 3),
+            x_px=np.asarray(np.take(self.x_px, rows), dtype=np.float64),
+            y_px=np.asarray(np.take(self.y_px, rows), dtype=np.float64),
+            r=np.asarray(np.take(np.asarray(self.r).reshape(-1, 3), rows, axis=0), dtype=np.float64),
             frame_starts=starts,
             frame_number=np.asarray(np.asarray(self.frame_number)[present], dtype=np.int64),
-            star_id=np.asarray(self.star_id[rows], dtype=np.int64),
-            row=np.asarray(self.source_rows()[rows], dtype=np.int64),
+            star_id=np.asarray(np.take(self.star_id, rows), dtype=np.int64),
+            row=np.asarray(np.take(self.source_rows(), rows), dtype=np.int64),
         )
         return new, keep, frame_kept
 
@@ -106,13 +107,13 @@ def take_frames(data: CalibrationData, frames: np.ndarray) -> CalibrationData:
     np.cumsum(counts, out=starts[1:])
     rows = np.arange(int(starts[-1]), dtype=np.int64) + np.repeat(data.frame_starts[frames] - starts[:-1], counts)
     return CalibrationData(
-        x_px=data.x_px[rows],
-        y_px=data.y_px[rows],
-        r=data.r[rows],
+        x_px=np.take(data.x_px, rows),
+        y_px=np.take(data.y_px, rows),
+        r=np.take(data.r, rows, axis=0),
         frame_starts=starts,
         frame_number=np.asarray(data.frame_number, dtype=np.int64)[frames],
-        star_id=np.asarray(data.star_id, dtype=np.int64)[rows],
-        row=data.source_rows()[rows].astype(np.int64, copy=False),
+        star_id=np.take(np.asarray(data.star_id, dtype=np.int64), rows),
+        row=np.take(data.source_rows(), rows).astype(np.int64, copy=False),
     )
 
 

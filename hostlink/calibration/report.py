@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, residuals, rotate
+from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, observation_residuals, residuals, rotate
 from hostlink.calibration.data import (
     CalibrationData,
     frame_blocks,
@@ -58,10 +58,11 @@ def residual_sums(
     """The additive parts of :func:`residual_stats` (sums of squares, maxima, counts), so chunks of frames combine
     exactly (:func:`merge_sums`, then :func:`stats_from_sums`). ``e_len``, ``b``: the residual lengths and the
     measured directions at ``theta`` when already computed."""
+    att_obs = np.repeat(attitudes, data.counts, axis=0)
+    s = rotate(att_obs, data.r)  # C r: for the angles and, when not given, the residuals
     if e_len is None:
-        e_len = np.linalg.norm(residuals(data, theta, attitudes), axis=1)
+        e_len = np.linalg.norm(observation_residuals(data.x_px, data.y_px, data.r, att_obs, theta, s), axis=1)
     b = pixels_to_unit(data.x_px, data.y_px, theta) if b is None else b
-    s = rotate(np.repeat(attitudes, data.counts, axis=0), data.r)
     ang = angle_arcsec(b, s)
     return {
         "sum_px2": float(np.sum(e_len**2)),

@@ -345,24 +345,23 @@ def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[Calibrat
     return [concatenate_data(p) for p in parts]
 
 
-#: The least-squares warm start's larger samples (the first is the pre-pass's :data:`robust.PREPASS_MAX_FRAMES`):
-#: evenly spaced frames held in memory (~60 bytes a star, twice that while gathered: ~120 MB for the largest at 20
-#: stars per frame), each used when the session has more than twice as many frames. Each level of 5-10x more
-#: frames starts the next a few of its standard deviations from its minimum, where one Gauss-Newton step leaves
-#: ~1e-2 sigma (the step from s sigma leaves ~1.5e-3 s^2 here), so the full data take two passes (measured up to
-#: 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) should take three.
-WARM_LEVEL_FRAMES = (10_000, 50_000)
+#: The least-squares warm start's samples: evenly spaced frames held in memory (~60 bytes a star, twice that while
+#: gathered: ~120 MB for the largest at 20 stars per frame), each used when the session has more than twice as many
+#: frames. Each level of 5-10x more frames starts the next a few of its standard deviations from its minimum, where
+#: one Gauss-Newton step leaves ~1e-2 sigma (the step from s sigma leaves ~1.5e-3 s^2 here), so the full data take
+#: two passes (measured up to 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) should
+#: take three.
+WARM_LEVEL_FRAMES = (1_000, 10_000, 50_000)
 
 
 def warm_levels(source: ChunkSource, n_frames: int) -> tuple[CalibrationData, tuple[CalibrationData, ...]]:
     """The pre-pass sample (:func:`hostlink.calibration.robust.prepass_frames`) and the warm-start samples of
-    :func:`hostlink.calibration.bundle.bundle_adjust_chunks` (coarse to fine: the pre-pass sample, then each of
-    :data:`WARM_LEVEL_FRAMES` the session is more than twice as long as; none for a session up to twice the
-    pre-pass sample), gathered in one read of the chunks."""
-    sets = [prepass_frames(n_frames)] + [prepass_frames(n_frames, k) for k in WARM_LEVEL_FRAMES if n_frames > 2 * k]
-    samples = sample_frames(source, *sets)
-    warm = tuple(samples) if n_frames > 2 * samples[0].n_frames else ()
-    return samples[0], warm
+    :func:`hostlink.calibration.bundle.bundle_adjust_chunks` (coarse to fine: each of :data:`WARM_LEVEL_FRAMES` the
+    session is more than twice as long as; none for a session up to twice the smallest), gathered in one read of
+    the chunks."""
+    levels = [prepass_frames(n_frames, k) for k in WARM_LEVEL_FRAMES if n_frames > 2 * k]
+    samples = sample_frames(source, prepass_frames(n_frames), *levels)
+    return samples[0], tuple(samples[1:])
 
 
 def calibrate_chunks(
