@@ -103,3 +103,20 @@ def test_attitudes_of_frames_recover_the_rotation_of_noise_free_stars():
     b = np.einsum("nij,nj->ni", np.repeat(truth, counts, axis=0), r)
     got = wahba_attitudes(b, r, starts)
     assert np.max(np.abs(got - truth)) < 1e-12
+
+
+def test_batched_3x3_inverse_matches_lapack_and_refuses_a_singular_block():
+    """The attitude blocks' written-out inverse (transposed cofactors over the determinant) against np.linalg.inv,
+    to the blocks' condition number times the rounding; an exactly singular block raises as np.linalg.inv does."""
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(300, 3, 3))
+    blocks = x @ x.transpose(0, 2, 1) + 1e-2 * np.eye(3)  # symmetric positive definite, as A = J_phi^T W J_phi
+    cond = np.linalg.cond(blocks)
+    expected = np.linalg.inv(blocks)
+    got = frames.inverse_3x3(blocks)
+    scale = np.abs(expected).max(axis=(1, 2))
+    assert np.all(np.abs(got - expected).max(axis=(1, 2)) <= 1e-15 * cond * scale)
+    singular = blocks.copy()
+    singular[5] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    with pytest.raises(np.linalg.LinAlgError):
+        frames.inverse_3x3(singular)

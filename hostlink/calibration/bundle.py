@@ -40,6 +40,7 @@ from hostlink.calibration.data import (
 )
 from hostlink.calibration.frames import (
     apply_attitude_increment,
+    inverse_3x3,
     per_frame_products,
     triad_attitudes,
     vector_norms,
@@ -401,7 +402,7 @@ def unit_weight_normal(
     a_1, b_1 = a_w + extra[:, k:, :], b_w + extra[:, :k, :]
 
     def schur_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.tensordot(b @ np.linalg.inv(a), b, axes=([0, 2], [0, 2]))
+        return np.tensordot(b @ inverse_3x3(a), b, axes=([0, 2], [0, 2]))
 
     u_1 = blocks.u + x
     return s + x - schur_sum(a_1, b_1) + schur_sum(a_w, b_w), np.diag(u_1).copy()
@@ -430,7 +431,7 @@ def reduced_normal(blocks: NormalBlocks, damping: float = 0.0) -> tuple[np.ndarr
     u = blocks.u.copy()
     kdx = np.arange(u.shape[0])
     u[kdx, kdx] *= 1.0 + damping
-    a_inv = np.linalg.inv(a)
+    a_inv = inverse_3x3(a)
     w = blocks.b @ a_inv
     s = u - np.tensordot(w, blocks.b, axes=([0, 2], [0, 2]))
     rhs = -blocks.g + np.einsum("mkj,mj->k", w, blocks.g_phi)
@@ -561,7 +562,8 @@ def frame_attitudes(
         e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta, cam)
         w = _weights(_lengths(e), sigma_px, huber_k)
         prod = per_frame_products(np.concatenate([jp, e[:, :, None]], axis=2), jp, w, data.frame_starts)
-        att = apply_attitude_increment(att, -np.linalg.solve(prod[:, :3, :], prod[:, 3, :, None])[:, :, 0])
+        step = np.einsum("mij,mj->mi", inverse_3x3(prod[:, :3, :]), prod[:, 3, :])
+        att = apply_attitude_increment(att, -step)
     return att
 
 
