@@ -74,10 +74,6 @@ def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
         x_new += cof / (g * det)[:, None]
         x_new *= 0.5
         done = np.max(np.abs(x_new - x), axis=1) <= POLAR_STEP_TOL
-        if np.all(done):
-            out[todo] = x_new
-            solved[todo] = True
-            break
         out[todo[done]] = x_new[done]
         solved[todo[done]] = True
         x, todo = x_new[~done], todo[~done]

@@ -399,7 +399,7 @@ def calibrate_chunks(
             f"{100 * (1 / prepass.scale - 1):+.1f} % off: estimate f"
         )
     held: list[dict] = []
-    # a session much longer than the pre-pass sample starts its least-squares round on samples (in memory)
+    # a session more than twice as long as the smallest of WARM_LEVEL_FRAMES starts its least-squares round on samples
     res = _bundle_chunks(source, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress, voted, run_pass, warm)
     if estimate is None:
         sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
