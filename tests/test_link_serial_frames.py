@@ -46,6 +46,17 @@ def test_gaps_and_corruption_are_counted_and_frames_still_arrive():
     link.close()
 
 
+def test_loss_is_counted_up_to_the_frame_delivered_not_to_what_was_read_beyond_it():
+    """Frames 0, 1 and 5 arrive in one read (a busy host reads in large batches): when the caller has frame 1, no
+    frame is lost yet; the three before frame 5 count when it is delivered. The loss the caller sees at a frame must
+    not depend on how far the link has read ahead."""
+    link = open_link("serial:loop://", timeout_s=0.5)
+    link._port.write(b"".join(encode_frame(seq, m.encode(frame(seq))) for seq in (0, 1, 5)))
+    seen = [(link.recv_frame().frame, link.stats.lost_messages) for _ in range(3)]
+    assert seen == [(0, 0), (1, 0), (5, 3)]
+    link.close()
+
+
 def test_a_reply_lost_mid_stream_is_not_counted_as_a_lost_frame():
     """Stream messages are numbered apart from replies: a reply lost on the line between two consecutive frames
     (the host times out and resends) leaves no gap in the stream's numbers; a reply that arrives counts nothing."""

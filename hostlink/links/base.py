@@ -82,7 +82,8 @@ class LinkStats:
     """Counters a link keeps while it is open (the stream command reports them)."""
 
     rx_messages: int = 0
-    #: Messages the sensor sent that never arrived, counted from sequence-number gaps (0 where a transport has none).
+    #: Messages the sensor sent that never arrived, counted from sequence-number gaps (0 where a transport has none),
+    #: up to the last stream message delivered to the caller (not to what the link has read beyond it).
     lost_messages: int = 0
     #: Frames dropped on arrival (bad CRC, bad framing, undecodable).
     corrupt_frames: int = 0

@@ -376,6 +376,14 @@ STREAM_FRAME_IDS = frozenset(
 
 
 # ---------------------------------------------------------------------------------------------- the link
+@dataclass(frozen=True)
+class _Counted:
+    """A stream message in the inbox with the frames lost up to it (the assembler's count when it completed)."""
+
+    message: Message
+    lost: int
+
+
 class CanLink(MessageLink):
     """Host node on a CAN bus (any python-can bus)."""
 
@@ -387,7 +395,7 @@ class CanLink(MessageLink):
         self.name = name
         self._bus = bus
         self._tx_lock = threading.Lock()
-        self._inbox: queue.SimpleQueue[Message] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue[Message | _Counted | None] = queue.SimpleQueue()
         self._assembler = StreamAssembler()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_HOST_TO_SENSOR_ID, cf.ISOTP_SENSOR_TO_HOST_ID)
         self._failure: str | None = None
@@ -439,11 +447,12 @@ class CanLink(MessageLink):
         self.stats.rx_bytes += len(data)
         if fid in STREAM_FRAME_IDS:
             out = self._assembler.feed(fid, data)
-            self.stats.lost_messages = self._assembler.lost
             self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors + self._adapter_errors
             if out is not None:
                 self.stats.rx_messages += 1
-                self._inbox.put(out)
+                # with the loss counted up to it, taken into the stats when it is delivered (not now: the reader
+                # thread may assemble later frames, and count their gaps, before the caller has this one)
+                self._inbox.put(_Counted(out, self._assembler.lost))
         elif fid == cf.ISOTP_SENSOR_TO_HOST_ID:
             self._isotp.feed(msg)
         elif fid == cf.ACK.frame_id:
@@ -488,6 +497,9 @@ class CanLink(MessageLink):
             return None
         if msg is None:
             self._check_alive()
+        if isinstance(msg, _Counted):
+            self.stats.lost_messages = msg.lost
+            return msg.message
         return msg
 
     def _discard_input(self) -> None:

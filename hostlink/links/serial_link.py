@@ -52,7 +52,9 @@ class SerialLink(MessageLink):
         self.name = name
         self._port = port
         self._splitter = FrameSplitter()
-        self._ready: deque[Message] = deque()
+        #: decoded messages not yet delivered, each with the stream messages lost just before it (counted in the
+        #: stats when it is delivered, so they hold the loss up to the message the caller has, whatever was read after)
+        self._ready: deque[tuple[Message, int]] = deque()
         self._tx_seq = 0
         self._rx_seq: int | None = None
 
@@ -74,7 +76,9 @@ class SerialLink(MessageLink):
             if remaining <= 0:
                 return None
             self._read_some()
-        return self._ready.popleft()
+        msg, lost_before = self._ready.popleft()
+        self.stats.lost_messages += lost_before
+        return msg
 
     def _read_some(self) -> None:
         # the port's timeout is _READ_SLICE_S (set once: changing it reconfigures a POSIX port every call)
@@ -92,15 +96,16 @@ class SerialLink(MessageLink):
             except (FramingError, DecodeError):
                 self.stats.corrupt_frames += 1
                 continue
+            lost_before = 0
             if isinstance(msg, (CentroidFrame, EndOfStream)):
                 # stream messages have their own sequence (replies are numbered apart); after a (re)start, loss is
                 # counted from the first stream message received, as on CAN and Modbus: frames lost before it are
                 # not known to be lost
                 if self._rx_seq is not None:
-                    self.stats.lost_messages += seq_gap(self._rx_seq, frame.seq)
+                    lost_before = seq_gap(self._rx_seq, frame.seq)
                 self._rx_seq = frame.seq
             self.stats.rx_messages += 1
-            self._ready.append(msg)
+            self._ready.append((msg, lost_before))
 
     def _discard_input(self) -> None:
         try:
