@@ -132,7 +132,11 @@ def _projection(
     computed."""
     s = rotate(attitude_obs, r) if s is None else s
     inv_z = 1.0 / s[:, 2]
-    return s, focal_px * s[:, :2] * inv_z[:, None], inv_z
+    p = np.empty((s.shape[0], 2))
+    for i in range(2):  # column by column: (F s_i) / s_z with the products of F s[:, :2] / s_z, at a fifth of the cost
+        np.multiply(s[:, i], focal_px, out=p[:, i])
+        p[:, i] *= inv_z
+    return s, p, inv_z
 
 
 def rotate(attitude_obs: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -154,6 +158,21 @@ def _inverse_2x2(jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     return jc[:, 1, 1] / det, -jc[:, 0, 1] / det, -jc[:, 1, 0] / det, jc[:, 0, 0] / det
 
 
+def _matrices_2x2(entries: tuple) -> np.ndarray:
+    """The stack (n, 2, 2) of 2 x 2 matrices with the entries (m00, m01, m10, m11) (each (n,))."""
+    out = np.empty((entries[0].shape[0], 2, 2))
+    for k, m in enumerate(entries):
+        out[:, k // 2, k % 2] = m
+    return out
+
+
+def _whiten(jc_inv: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Jc^-1 J for each star: the (n, 2, 2) whitening applied to its (n, 2, K) Jacobian rows, as one batched
+    product (the same two products and one sum per entry as written out, at a fifth of the cost of the
+    broadcast products over rows of K entries)."""
+    return np.matmul(jc_inv, j)
+
+
 @dataclass(frozen=True)
 class CameraTerms:
     """What the camera ``theta`` gives every star of a block, whatever its frame's attitude: the ideal offsets q
@@ -166,12 +185,15 @@ class CameraTerms:
     jc_inv: tuple
     u: np.ndarray
     v: np.ndarray
+    #: Jc^-1 as a stack of matrices (n, 2, 2), for :func:`_whiten`
+    jc_inv_matrix: np.ndarray
 
 
 def camera_terms(x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray) -> CameraTerms:
     """:class:`CameraTerms` of the centroids (x, y) [px] at the camera ``theta`` (``onboard.camera``)."""
     q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
-    return CameraTerms(q, jq_theta, _inverse_2x2(jc), x_px - theta[1], y_px - theta[2])
+    jc_inv = _inverse_2x2(jc)
+    return CameraTerms(q, jq_theta, jc_inv, x_px - theta[1], y_px - theta[2], _matrices_2x2(jc_inv))
 
 
 def observation_terms(
@@ -207,10 +229,7 @@ def observation_terms(
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
         jt[:, :, f_col[0]] -= p / focal_px
-    j_theta = np.empty_like(jt)
-    j_theta[:, 0] = i00[:, None] * jt[:, 0] + i01[:, None] * jt[:, 1]
-    j_theta[:, 1] = i10[:, None] * jt[:, 0] + i11[:, None] * jt[:, 1]
-    return e, j_theta, _attitude_jacobian(s, p, inv_z, focal_px, (i00, i01, i10, i11))
+    return e, _whiten(cam.jc_inv_matrix, jt), _attitude_jacobian(s, p, inv_z, focal_px, (i00, i01, i10, i11))
 
 
 def _attitude_jacobian(s: np.ndarray, p: np.ndarray, inv_z: np.ndarray, focal_px: float, jc_inv: tuple) -> np.ndarray:
@@ -276,12 +295,7 @@ def whitening_jacobian(
     pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1])
     if not _all_columns(cols, pe.shape[2]):
         pe = pe[:, :, cols]
-    if not whitened:
-        return pe
-    i00, i01, i10, i11 = jc_inv
-    return np.stack(
-        [i00[:, None] * pe[:, 0] + i01[:, None] * pe[:, 1], i10[:, None] * pe[:, 0] + i11[:, None] * pe[:, 1]], axis=1
-    )
+    return _whiten(_matrices_2x2(jc_inv), pe) if whitened else pe
 
 
 def _all_columns(cols: np.ndarray, k: int) -> bool:
@@ -347,7 +361,7 @@ def accumulate_normals(
         att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
         e, jt, jp = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, cols)
         u, g, blocks.a[f0:f1], blocks.b[f0:f1], blocks.g_phi[f0:f1] = normal_blocks(
-            e, jt * col_scale[None, None, :], jp, weights[a:b], starts[f0 : f1 + 1] - a
+            e, jt, jp, weights[a:b], starts[f0 : f1 + 1] - a, col_scale
         )
         blocks.u += u
         blocks.g += g
@@ -356,27 +370,36 @@ def accumulate_normals(
 
 
 def normal_blocks(
-    e: np.ndarray, jt: np.ndarray, jp: np.ndarray, w: np.ndarray, local_starts: np.ndarray
+    e: np.ndarray,
+    jt: np.ndarray,
+    jp: np.ndarray,
+    w: np.ndarray,
+    local_starts: np.ndarray,
+    col_scale: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The weighted normal-equation blocks of a run of whole frames from their terms (:func:`observation_terms`):
     U = sum J_t^T W J_t, g = sum J_t^T W e (K x K, K), and per frame A = sum J_phi^T W J_phi, B = sum J_t^T W J_phi,
     g_phi = sum J_phi^T W e; ``local_starts`` are the frames' first rows (one more entry: the row count). The
     per-frame blocks are one product [J_t J_phi e]^T W J_phi per frame
-    (:func:`hostlink.calibration.frames.per_frame_products`)."""
+    (:func:`hostlink.calibration.frames.per_frame_products`). ``col_scale``: the camera columns multiplied by it,
+    applied to the sums (K x K, K and K x 3 entries per frame) rather than to the per-star Jacobian."""
     k = jt.shape[2]
     jt_w = (jt * w[:, None, None]).reshape(-1, k)
     per_frame = per_frame_products(np.concatenate([jt, jp, e[:, :, None]], axis=2), jp, w, local_starts)
-    return (
-        jt_w.T @ jt.reshape(-1, k),
-        jt_w.T @ e.ravel(),
-        per_frame[:, k : k + 3, :],
-        per_frame[:, :k, :],
-        per_frame[:, k + 3, :],
-    )
+    u, g, b = jt_w.T @ jt.reshape(-1, k), jt_w.T @ e.ravel(), per_frame[:, :k, :]
+    if col_scale is not None:
+        u, g, b = u * np.outer(col_scale, col_scale), g * col_scale, b * col_scale[None, :, None]
+    return u, g, per_frame[:, k : k + 3, :], b, per_frame[:, k + 3, :]
 
 
 def unit_weight_normal(
-    blocks: NormalBlocks, s: np.ndarray, jt: np.ndarray, jp: np.ndarray, w: np.ndarray, frame_starts: np.ndarray
+    blocks: NormalBlocks,
+    s: np.ndarray,
+    jt: np.ndarray,
+    jp: np.ndarray,
+    w: np.ndarray,
+    frame_starts: np.ndarray,
+    col_scale: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reduced normal matrix and diag(U) with unit weights (the covariance's), from the weighted ones: the
     ``blocks`` of :func:`normal_blocks` with the weights ``w`` of the terms ``jt``, ``jp`` and their Schur complement
@@ -387,13 +410,15 @@ def unit_weight_normal(
 
     with X = sum_(w_k < 1) (1 - w_k) J_t,k^T J_t,k, and A'_f, B'_f the frame's blocks plus its stars' (1 - w_k)
     terms. The same matrix as :func:`reduced_normal` of :func:`normal_blocks` with unit weights, to the rounding of
-    the sums."""
+    the sums. ``col_scale``: that given to :func:`normal_blocks` (``jt`` unscaled)."""
     down = np.flatnonzero(w < 1.0)
     if down.size == 0:
         return s.copy(), np.diag(blocks.u).copy()
     k = jt.shape[2]
     dw = 1.0 - w[down]
     jt_d, jp_d = jt[down], jp[down]
+    if col_scale is not None:
+        jt_d *= col_scale
     x = (jt_d * dw[:, None, None]).reshape(-1, k).T @ jt_d.reshape(-1, k)
     frame = np.searchsorted(frame_starts, down, side="right") - 1  # each star's frame (increasing)
     affected, first = np.unique(frame, return_index=True)
@@ -561,10 +586,39 @@ def frame_attitudes(
         att_obs = np.repeat(att, data.counts, axis=0)
         e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta, cam)
         w = _weights(_lengths(e), sigma_px, huber_k)
-        prod = per_frame_products(np.concatenate([jp, e[:, :, None]], axis=2), jp, w, data.frame_starts)
-        step = np.einsum("mij,mj->mi", inverse_3x3(prod[:, :3, :]), prod[:, 3, :])
+        a, g = attitude_normal(e, jp, w, data.frame_starts)
+        step = np.einsum("mij,mj->mi", inverse_3x3(a), g)
         att = apply_attitude_increment(att, -step)
     return att
+
+
+#: The entries (i, j) of a symmetric 3 x 3 matrix stored once each (the upper triangle), and where each of the nine
+#: entries is found among them
+_SYM_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYM_INDEX = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
+
+
+def attitude_normal(
+    e: np.ndarray, jp: np.ndarray, w: np.ndarray, frame_starts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, A = sum J_phi^T W J_phi (M, 3, 3) and g_phi = sum J_phi^T W e (M, 3) of the residuals ``e`` (n, 2)
+    and their attitude Jacobian ``jp`` (n, 2, 3) with the weights ``w``: the blocks of :func:`normal_blocks` an
+    attitude step needs. Each star's six distinct entries of A and three of g_phi are rows (9, n) of products, summed
+    per frame along contiguous rows: the sums of :func:`hostlink.calibration.frames.per_frame_products` (to
+    rounding) at a quarter of their cost for so few columns, without their padded layout."""
+    wj = [[jp[:, r, i] * w for i in range(3)] for r in range(2)]
+    rows = np.empty((9, e.shape[0]))
+    for n, (i, j) in enumerate(_SYM_PAIRS):
+        np.multiply(wj[0][i], jp[:, 0, j], out=rows[n])
+        rows[n] += wj[1][i] * jp[:, 1, j]
+    for i in range(3):
+        np.multiply(wj[0][i], e[:, 0], out=rows[6 + i])
+        rows[6 + i] += wj[1][i] * e[:, 1]
+    sums = np.zeros((9, frame_starts.shape[0] - 1))
+    filled = np.diff(frame_starts) > 0  # a frame without stars sums to zero (reduceat would give it a row)
+    if np.any(filled):
+        sums[:, filled] = np.add.reduceat(rows, frame_starts[:-1][filled], axis=1)
+    return sums[_SYM_INDEX].T.reshape(-1, 3, 3), np.ascontiguousarray(sums[6:].T)
 
 
 @dataclass
@@ -763,12 +817,11 @@ def _sub_chunk_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | N
     norm = _lengths(e)
     w = _weights(norm, req.sigma_px, req.huber_k)
     rho = huber_rho(norm, req.sigma_px, req.huber_k)
-    jt_scaled = jt * req.col_scale[None, None, :]
-    blocks = NormalBlocks(*normal_blocks(e, jt_scaled, jp, w, sub.frame_starts), e)
+    blocks = NormalBlocks(*normal_blocks(e, jt, jp, w, sub.frame_starts, req.col_scale), e)
     s, rhs, _ = reduced_normal(blocks, 0.0)
     unit, arcsec = (None, None), (0.0, 0.0)
     if req.final:
-        s_unit, u_diag_unit = unit_weight_normal(blocks, s, jt_scaled, jp, w, sub.frame_starts)
+        s_unit, u_diag_unit = unit_weight_normal(blocks, s, jt, jp, w, sub.frame_starts, req.col_scale)
         unit = (s_unit / np.outer(req.col_scale, req.col_scale), u_diag_unit / req.col_scale**2)  # unscaled columns
         b = offsets_to_unit(cam.q[:, 0], cam.q[:, 1], req.theta[0])
         ang = angle_arcsec(b, rotate(att_obs, sub.r))

@@ -37,13 +37,17 @@ def wahba_attitudes(
     big_b = np.zeros((m, 3, 3))
     for f0, f1 in frame_chunks(frame_starts, 50_000):  # bounded working memory: (rows, 3, 3) per chunk
         a, z = int(frame_starts[f0]), int(frame_starts[f1])
-        outer = b[a:z, :, None] * r[a:z, None, :]
-        if weights is not None:
-            outer = outer * weights[a:z, None, None]
+        # the nine products b_i r_j of every star as rows (9, rows): summed along contiguous rows, the same sums as
+        # over a stack of (rows, 3, 3) outer products at a third of the cost
+        outer = np.empty((9, z - a))
+        bw = b[a:z] if weights is None else b[a:z] * weights[a:z, None]
+        for i in range(3):
+            for j in range(3):
+                np.multiply(bw[:, i], r[a:z, j], out=outer[3 * i + j])
         local = frame_starts[f0:f1] - a
         nonempty = np.diff(frame_starts[f0 : f1 + 1]) > 0
         if np.any(nonempty):
-            big_b[f0:f1][nonempty] = np.add.reduceat(outer, local[nonempty], axis=0)
+            big_b[f0:f1][nonempty] = np.add.reduceat(outer, local[nonempty], axis=1).T.reshape(-1, 3, 3)
     return rotations_from_profiles(big_b)
 
 
@@ -148,10 +152,11 @@ def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarr
 
 
 def per_frame_products(
-    terms: np.ndarray, right: np.ndarray, weights: np.ndarray, frame_starts: np.ndarray
+    terms: np.ndarray, right: np.ndarray, weights: np.ndarray | None, frame_starts: np.ndarray
 ) -> np.ndarray:
     """sum_k w_k T_k^T R_k over the stars k of each frame, (M, c, d), for per-star matrices T_k (N, r, c) and
     R_k (N, r, d) (here r = 2 residual rows; T the Jacobian columns and the residual, R the attitude columns).
+    ``weights`` None: ``right`` holds the weighted w_k R_k already.
 
     Frames are laid out padded with zeros to the largest star count, so the sums are one batched matrix product
     per frame (r x nmax rows) instead of one per star; padding adds exact zeros, so every frame's sum is its own
@@ -166,7 +171,7 @@ def per_frame_products(
     padded = np.zeros((m * nmax, r * c))
     padded[flat] = terms.reshape(n, r * c)
     padded_r = np.zeros((m * nmax, r * d))
-    padded_r[flat] = (right * weights[:, None, None]).reshape(n, r * d)
+    padded_r[flat] = (right if weights is None else right * weights[:, None, None]).reshape(n, r * d)
     return padded.reshape(m, nmax * r, c).transpose(0, 2, 1) @ padded_r.reshape(m, nmax * r, d)
 
 
