@@ -340,10 +340,13 @@ def accumulate_normals(
     weights: np.ndarray,
     col_scale: np.ndarray,
     chunk_obs: int = DEFAULT_CHUNK_OBS,
+    values: np.ndarray | None = None,
 ) -> NormalBlocks:
     """Weighted normal-equation blocks, one chunk of frames at a time (memory bounded by ``chunk_obs``).
 
-    Camera columns are multiplied by ``col_scale`` (the step is solved in scaled units)."""
+    Camera columns are multiplied by ``col_scale`` (the step is solved in scaled units). ``values``: (N, 2) vectors
+    whose gradient sums g = sum J_t^T W v and g_phi = sum J_phi^T W v the blocks carry instead of the residuals'
+    (and ``e`` holds them)."""
     k = cols.shape[0]
     m = data.n_frames
     starts = data.frame_starts
@@ -360,6 +363,7 @@ def accumulate_normals(
         a, b = int(starts[f0]), int(starts[f1])
         att = np.repeat(attitudes[f0:f1], counts[f0:f1], axis=0)
         e, jt, jp = observation_terms(data.x_px[a:b], data.y_px[a:b], data.r[a:b], att, theta, cols)
+        e = e if values is None else values[a:b]
         u, g, blocks.a[f0:f1], blocks.b[f0:f1], blocks.g_phi[f0:f1] = normal_blocks(
             e, jt, jp, weights[a:b], starts[f0 : f1 + 1] - a, col_scale
         )
@@ -899,6 +903,68 @@ def serial_pass(source: ChunkSource, req: PassRequest) -> PassSums:
 PassRunner = Callable[[ChunkSource, PassRequest], PassSums]
 
 
+#: Geodesic acceleration of a Gauss-Newton step over the full data (:func:`step_acceleration`) for steps above this
+#: many standard deviations (below, what the second-order term leaves is below ~0.01 sigma and the contraction test
+#: ends the fit on it anyway).
+ACCELERATION_MIN_SIGMAS = 1.0
+#: The acceleration is used only while 2 |a| / |v| (in the camera's standard deviations) is at most this: Transtrum
+#: and Sethna's bound (2012, sec. 3.2), beyond which the second-order model of the step is not to be trusted.
+ACCELERATION_MAX_RATIO = 0.75
+#: The step fraction h of the second difference (r(+h v) - 2 r(0) + r(-h v)) / h^2 along the step: exact for the
+#: quadratic term, the quartic one entering as h^2 / 12 of it.
+ACCELERATION_H = 0.5
+
+
+def step_acceleration(
+    sample: CalibrationData,
+    theta: np.ndarray,
+    dx: np.ndarray,
+    cols: np.ndarray,
+    col_scale: np.ndarray,
+    sigma_px: float,
+    huber_k: float,
+    s_full: np.ndarray,
+    n_obs_full: int,
+) -> np.ndarray | None:
+    """The geodesic acceleration a (scaled columns) of the Gauss-Newton step ``dx`` of the full data at the camera
+    ``theta`` (Transtrum and Sethna 2012, "Improvements to the Levenberg-Marquardt algorithm for nonlinear
+    least-squares minimization", eq. 15: a = -(J^T W J)^-1 J^T W r''; the step taken is dx + a / 2), its
+    second-order term measured on ``sample`` (frames of the same session held in memory): the second directional
+    derivative r'' of each star's residual along the joint step (the camera's ``dx`` and each frame's attitude step
+    that goes with it, -A^-1 (B^T dx + g_phi)) by the central second difference at :data:`ACCELERATION_H`, which is
+    free of the centroid noise (it cancels); J^T W r'' reduced over the sample's attitudes (Schur complement) and
+    scaled to the full data by their ratio of stars, then solved with the full data's reduced matrix ``s_full``.
+
+    What it corrects: a principal point d px off is compensated by every frame's attitude, whose rotation adds a
+    second-order change of scale, ~0.9 d^2 / F (measured: the focal length a Gauss-Newton step leaves), and the
+    distortion's curvature in the principal point adds its own; along the weak principal-point direction these are
+    several tenths of the camera's standard deviation. At 10^4 frames, one step from a principal point (2, -1) px
+    off leaves 0.49 sigma, the accelerated one 0.041 from a 100-frame sample (0.028 from 1000 frames or from all).
+    None when the sample's terms are not finite."""
+    with np.errstate(all="ignore"):
+        att = frame_attitudes(sample, theta, sigma_px, huber_k)
+        e0 = residuals(sample, theta, att)
+        w = _weights(_lengths(e0), sigma_px, huber_k)
+        blocks = accumulate_normals(sample, theta, att, cols, w, col_scale)
+        try:
+            _, _, a_inv = reduced_normal(blocks)
+        except np.linalg.LinAlgError:
+            return None
+        dphi = -np.einsum("mij,mj->mi", a_inv, np.einsum("mkj,k->mj", blocks.b, dx) + blocks.g_phi)
+
+        def moved(h: float) -> np.ndarray:
+            camera = theta.copy()
+            camera[cols] += h * dx * col_scale
+            return residuals(sample, camera, apply_attitude_increment(att, h * dphi))
+
+        h = ACCELERATION_H
+        r2 = (moved(h) - 2.0 * e0 + moved(-h)) / (h * h)
+        curvature = accumulate_normals(sample, theta, att, cols, w, col_scale, values=r2)
+        _, rhs, _ = reduced_normal(replace(blocks, g=curvature.g, g_phi=curvature.g_phi))
+        accel = solve_scaled(s_full, rhs * (n_obs_full / max(sample.n_obs, 1)))
+    return accel if np.all(np.isfinite(accel)) else None
+
+
 @dataclass
 class ChunkedBundleResult:
     """The camera of :func:`bundle_adjust_chunks` and what the report needs; no per-frame state."""
@@ -946,8 +1012,11 @@ def bundle_adjust_chunks(
     gives as ``after``): the last trial pass when its step was below :data:`FINAL_STEP_SIGMAS` (it was asked for
     them), else a pass of its own. Stars gated, the next round starts from the final pass's sums without them (final
     sums too: a first step already small enough ends that round on them); the fit ends when no star was gated and
-    the scale moved by at most :data:`SCALE_ROUND_TOL`. Typically two passes over the frames after a warm start
-    (the second a final one).
+    the scale moved by at most :data:`SCALE_ROUND_TOL`. A step of the full data above :data:`ACCELERATION_MIN_SIGMAS`
+    is taken with its geodesic acceleration (:func:`step_acceleration`, on the first warm-start level), so that
+    what the principal point's nonlinearity leaves does not cost a pass. Typically two passes over the frames after
+    a warm start (the second a final one): measured on 20 sessions of 10^4 frames, 17 took two and 3 three (without
+    the acceleration 4 took two, 16 three).
     ``options.screen`` is not used here (voting is the caller's: ``excluded_rows``). Raises ValueError when no frame
     with three stars is left."""
     opt = options or BundleOptions()
@@ -987,10 +1056,12 @@ def bundle_adjust_chunks(
                 kdx = np.arange(s.shape[0])
                 s[kdx, kdx] *= 1.0 + damping
                 dx = solve_scaled(s, cur.rhs)
-                theta_new = theta.copy()
-                theta_new[cols] += dx * scale
                 # the step's size in standard deviations of the camera: sqrt(dx^T S dx) / sigma
                 step_sigmas = float(np.sqrt(max(dx @ cur.rhs, 0.0))) / noise
+                if src is source and damping == 0.0 and step_sigmas > ACCELERATION_MIN_SIGMAS and warm_start:
+                    dx = accelerated(theta, dx, cur, sigma)
+                theta_new = theta.copy()
+                theta_new[cols] += dx * scale
                 if step_sigmas < step_tol:
                     return theta_new, cur, theta, True  # converged: this last, tiny step is applied unevaluated
                 if robust_full and damping == 0.0 and previous is not None:
@@ -1030,6 +1101,18 @@ def bundle_adjust_chunks(
             if decrease < opt.ftol:
                 return theta, cur, theta, True
         return theta, cur, theta, False
+
+    def accelerated(theta, dx, cur, sigma):
+        """``dx`` plus half its geodesic acceleration (:func:`step_acceleration`, measured on the first warm-start
+        level less the stars left out), when Transtrum and Sethna's bound admits it."""
+        sample = without_rows(warm_start[0], np.union1d(excluded, gated))
+        if sample.n_frames == 0:
+            return dx
+        accel = step_acceleration(sample, theta, dx, cols, scale, sigma, opt.huber_k, cur.s, cur.n_obs)
+        if accel is None:
+            return dx
+        size = np.sqrt(max(accel @ cur.s @ accel, 0.0) / max(dx @ cur.s @ dx, 1e-300))
+        return dx + 0.5 * accel if 2.0 * size <= ACCELERATION_MAX_RATIO else dx
 
     def check(p: PassSums, first: bool) -> PassSums:
         if p.n_frames == 0 or not np.isfinite(p.cost):
