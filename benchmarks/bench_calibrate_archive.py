@@ -36,6 +36,7 @@ OpenCV at 10^4 and 10^5, no slower at 10^3.
 
 Usage: nice -n 10 .venv/bin/python benchmarks/bench_calibrate_archive.py [--sizes 1000,10000,100000]
        [--methods archive,chunked,in-memory,scipy,opencv] [--skip-scipy-above 1000] [--repeat N] [--work DIR]
+       [--session N]
 With ``--repeat N`` every method runs N times, interleaved, each in a fresh process, and its run of least CPU
 time counts for every method alike (timeit's rule: the least disturbed run; at 10^4 frames one run of ours, ~0.6 s,
 varies by up to 40 % on a shared machine); the peak memory is the largest of the N.
@@ -109,9 +110,10 @@ def session_of(d: CalibrationData, first_frame: int) -> Session:
     )
 
 
-def generate(frames: int, folder: Path) -> None:
+def generate(frames: int, folder: Path, session: int = 0) -> None:
     """Spool a session of ``frames`` frames to ``folder`` (chunks of CHUNK_FRAMES), the same stars as a Parquet
-    session (``session.parquet``, through the one session writer), and its Fisher information."""
+    session (``session.parquet``, through the one session writer), and its Fisher information. ``session``: which of
+    the generator's sessions of that size (each its own seeds; 0 the default one)."""
     folder.mkdir(parents=True, exist_ok=True)
     if (folder / "info.npy").exists() and chunk_files(folder):
         return
@@ -120,7 +122,7 @@ def generate(frames: int, folder: Path) -> None:
     with SessionWriter(folder / "session.parquet") as writer:
         for k, start in enumerate(range(0, frames, CHUNK_FRAMES)):
             n = min(CHUNK_FRAMES, frames - start)
-            ss = synthetic_session(TRUTH, n, noise_px=NOISE_PX, seed=1000 * frames + k)
+            ss = synthetic_session(TRUTH, n, noise_px=NOISE_PX, seed=1000 * frames + k + 10**10 * session)
             d = ss.data
             rows = np.arange(d.n_obs, dtype=np.int64) + offset
             offset += d.n_obs
@@ -363,6 +365,13 @@ def main() -> None:
     ap.add_argument("--skip-scipy-above", type=int, default=1000, help="scipy takes minutes past this")
     ap.add_argument("--work", default="/tmp/hostlink-bench-archive")
     ap.add_argument(
+        "--session",
+        type=int,
+        default=0,
+        help="another session of each size (its own seeds, in WORK-sN): the fit's passes over the data, and so its "
+        "time, vary from one session to another",
+    )
+    ap.add_argument(
         "--repeat", type=int, default=1, help="runs of each method (fresh processes); the one of least CPU time counts"
     )
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -370,7 +379,7 @@ def main() -> None:
     if args.child:
         child(args.child, Path(args.work))
         return
-    work = Path(args.work)
+    work = Path(args.work) if args.session == 0 else Path(f"{args.work}-s{args.session}")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     byte_compile_project()
     sigma_of = {}
@@ -378,7 +387,7 @@ def main() -> None:
     for frames in [int(s) for s in args.sizes.split(",")]:
         folder = work / f"frames{frames}"
         t0 = time.perf_counter()
-        generate(frames, folder)
+        generate(frames, folder, args.session)
         info = np.load(folder / "info.npy")
         bound = crb.crb_validation_px(info, crb.validation_jacobian(TRUTH, ALL))
         d = np.sqrt(np.diag(info))  # equilibrated: the entries span 30 orders of magnitude
