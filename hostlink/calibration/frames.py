@@ -152,11 +152,10 @@ def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarr
 
 
 def per_frame_products(
-    terms: np.ndarray, right: np.ndarray, weights: np.ndarray | None, frame_starts: np.ndarray
+    terms: np.ndarray, right: np.ndarray, weights: np.ndarray, frame_starts: np.ndarray
 ) -> np.ndarray:
     """sum_k w_k T_k^T R_k over the stars k of each frame, (M, c, d), for per-star matrices T_k (N, r, c) and
     R_k (N, r, d) (here r = 2 residual rows; T the Jacobian columns and the residual, R the attitude columns).
-    ``weights`` None: ``right`` holds the weighted w_k R_k already.
 
     Frames are laid out padded with zeros to the largest star count, so the sums are one batched matrix product
     per frame (r x nmax rows) instead of one per star; padding adds exact zeros, so every frame's sum is its own
@@ -171,7 +170,7 @@ def per_frame_products(
     padded = np.zeros((m * nmax, r * c))
     padded[flat] = terms.reshape(n, r * c)
     padded_r = np.zeros((m * nmax, r * d))
-    padded_r[flat] = (right if weights is None else right * weights[:, None, None]).reshape(n, r * d)
+    padded_r[flat] = (right * weights[:, None, None]).reshape(n, r * d)
     return padded.reshape(m, nmax * r, c).transpose(0, 2, 1) @ padded_r.reshape(m, nmax * r, d)
 
 
