@@ -89,33 +89,39 @@ def distortion_partials_applied_jacobian(
     k1, k2, k3, p1, p2, s1, s2 = (theta[i] for i in range(3, 10))
     two, three, four, six = (theta.dtype.type(c) for c in (2, 3, 4, 6))
     g1, g2, g3, g4 = s1 + p1, s2 + p2, p1 + p1, p2 + p2
-    uu, uv, vv = u * u, u * v, v * v
-    r2 = uu + vv
+    # P w = radial w + 2 rd (u t, v t) + (the g terms), with t = u a + v b: every column is a few of these products
+    ua, vb, va, ub = u * a, v * b, v * a, u * b
+    t = ua + vb
+    ut, vt = u * t, v * t
+    r2 = u * u + v * v
     r4 = r2 * r2
     rd = k1 + r2 * (two * k2 + three * k3 * r2)  # d radial / d r2
     rdd = two * k2 + six * k3 * r2  # d^2 radial / d r2^2
     out = np.zeros((np.shape(u)[0], 2, 10), dtype=np.result_type(u, a))
-    # principal point: -d(P w)/du and -d(P w)/dv, with d rd/du = 2 u rdd, d radial/du = 2 u rd (same in v)
-    cross_u = two * v * rd + four * uv * u * rdd  # d dx_v/du = d dy_u/du less their g terms
-    cross_v = two * u * rd + four * uv * v * rdd  # d dx_v/dv = d dy_u/dv less their g terms
-    dxu_u = two * (g1 + g3) + six * u * rd + four * uu * u * rdd
-    dyv_v = two * (g2 + g4) + six * v * rd + four * vv * v * rdd
-    out[:, 0, 1] = -(dxu_u * a + (g4 + cross_u) * b)
-    out[:, 1, 1] = -((two * g2 + cross_u) * a + (g3 + cross_v) * b)
-    out[:, 0, 2] = -((g4 + cross_u) * a + (two * g1 + cross_v) * b)
-    out[:, 1, 2] = -((g3 + cross_v) * a + dyv_v * b)
-    # radial k1, k2, k3: radial = r2^n, rd = n r2^(n-1); dx_u = radial + 2 uu rd, dx_v = dy_u = 2 uv rd, ...
-    for col, radial, rd_n in ((3, r2, two), (4, r4, four * r2), (5, r4 * r2, six * r4)):
-        cross = uv * rd_n
-        out[:, 0, col] = (radial + uu * rd_n) * a + cross * b
-        out[:, 1, col] = cross * a + (radial + vv * rd_n) * b
     # p1: g1 = 1, g3 = 2; p2: g2 = 1, g4 = 2; s1: g1 = 1; s2: g2 = 1
-    out[:, 0, 6] = six * u * a + two * v * b
-    out[:, 1, 6] = two * (v * a + u * b)
-    out[:, 0, 7] = two * (v * a + u * b)
-    out[:, 1, 7] = two * u * a + six * v * b
-    out[:, 0, 8] = two * (u * a + v * b)
-    out[:, 1, 9] = two * (u * a + v * b)
+    t2 = two * t
+    s2w = two * (va + ub)
+    p1_row0 = t2 + four * ua  # 6 u a + 2 v b
+    p2_row1 = t2 + four * vb  # 2 u a + 6 v b
+    out[:, 0, 6] = p1_row0
+    out[:, 1, 6] = s2w
+    out[:, 0, 7] = s2w
+    out[:, 1, 7] = p2_row1
+    out[:, 0, 8] = t2
+    out[:, 1, 9] = t2
+    # principal point: -d(P w)/du and -d(P w)/dv, with d rd/du = 2 u rdd, d radial/du = 2 u rd, dt/du = a (same in
+    # v, b): d(row 0)/du = rd (6 u a + 2 v b) + 4 u^2 rdd t, d(row 0)/dv = d(row 1)/du = 2 rd (v a + u b) + 4 u v rdd t,
+    # d(row 1)/dv = rd (2 u a + 6 v b) + 4 v^2 rdd t, plus the g terms' constant derivatives
+    q = four * rdd * t
+    cross = rd * s2w + (u * v) * q
+    out[:, 0, 1] = -(rd * p1_row0 + (u * u) * q + two * (g1 + g3) * a + g4 * b)
+    out[:, 1, 1] = -(cross + two * g2 * a + g3 * b)
+    out[:, 0, 2] = -(cross + g4 * a + two * g1 * b)
+    out[:, 1, 2] = -(rd * p2_row1 + (v * v) * q + g3 * a + two * (g2 + g4) * b)
+    # radial k1, k2, k3: radial = r2^n, 2 rd = 2 n r2^(n-1): rows radial a + 2 rd u t and radial b + 2 rd v t
+    for col, radial, rd_n in ((3, r2, two), (4, r4, four * r2), (5, r4 * r2, six * r4)):
+        out[:, 0, col] = radial * a + rd_n * ut
+        out[:, 1, col] = radial * b + rd_n * vt
     return out
 
 

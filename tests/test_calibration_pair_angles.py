@@ -40,3 +40,48 @@ def test_dot_products_rounded_past_one_give_zero_and_pi():
     dots = np.array([1.0 + 4e-16, 1.0, -1.0, -1.0 - 4e-16])
     np.testing.assert_array_equal(angle_from_dot_rad(dots), [0.0, 0.0, np.pi, np.pi])
     assert half_angle_from_dot_rad(np.float64(1.0 + 4e-16)) == 0.0
+
+
+def test_vote_counts_every_frames_disagreeing_pairs_as_one_frame_at_a_time_does():
+    """The vote over blocks of one star count (frames of 1 to 14 stars, a fifth of the stars given another star's
+    catalogue direction) against the plain per-frame form with the cross-product angle: a star is consistent when
+    its angle to at least half of the other stars of its frame agrees within 3 % + 1 mrad; a star alone in its
+    frame is not. The field is the largest catalogue angle within a frame. Small blocks (chunk_obs) split the
+    frames of one count over several blocks."""
+    from synthetic_sessions import synthetic_session
+
+    from hostlink.calibration.data import build_data
+    from hostlink.calibration.robust import VOTE_ABS_TOL_RAD, VOTE_REL_TOL, consistent_stars_and_field
+    from onboard.camera import pixels_to_unit
+    from onboard.params import CameraParams
+
+    camera = CameraParams(25.0, 5.5, (1023.5, 1023.5), (2048, 2048))
+    many = synthetic_session(camera, 60, stars_per_frame=(3, 14), noise_px=0.1, seed=31).data
+    few = synthetic_session(camera, 8, stars_per_frame=(1, 2), noise_px=0.1, seed=32).data
+    key = np.concatenate([many.frame_index(), many.n_frames + few.frame_index()])
+    r = np.concatenate([many.r, few.r])
+    rng = np.random.default_rng(33)
+    wrong = rng.choice(r.shape[0], r.shape[0] // 5, replace=False)
+    r[wrong] = r[rng.permutation(wrong)]
+    data = build_data(np.concatenate([many.x_px, few.x_px]), np.concatenate([many.y_px, few.y_px]), r, key)
+    b = pixels_to_unit(data.x_px, data.y_px, camera.model_vector())
+
+    def angles(v):
+        cross = np.linalg.norm(np.cross(v[:, None, :], v[None, :, :]), axis=2)
+        return np.arctan2(cross, v @ v.T)
+
+    want = np.zeros(data.n_obs, dtype=bool)
+    field = 0.0
+    for f in range(data.n_frames):
+        a, z = int(data.frame_starts[f]), int(data.frame_starts[f + 1])
+        ang_r, ang_b = angles(data.r[a:z]), angles(b[a:z])
+        agree = np.abs(ang_b - ang_r) <= VOTE_REL_TOL * ang_r + VOTE_ABS_TOL_RAD
+        others = z - a - 1
+        if others:
+            want[a:z] = (agree.sum(axis=1) - 1) / others >= 0.5  # less the star itself
+        field = max(field, float(ang_r.max()))
+    assert 0 < np.count_nonzero(~want) < data.n_obs
+    for chunk_obs in (20_000, 40):
+        keep, field_rad = consistent_stars_and_field(data, b, chunk_obs=chunk_obs)
+        np.testing.assert_array_equal(keep, want)
+        assert abs(field_rad - field) <= 1e-12

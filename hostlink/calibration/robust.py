@@ -22,6 +22,7 @@ import numpy as np
 from hostlink.calibration.data import (
     CalibrationData,
     angle_from_dot_rad,
+    frame_blocks,
     frame_chunks,
     frame_slots,
     gram_matrices,
@@ -127,7 +128,7 @@ def vote_consistent_stars(
 
     A pair agrees when |angle_b - angle_r| <= rel_tol * angle_r + abs_tol_rad (defaults: a nominal focal length
     within 3 %, and 1 mrad for principal-point and distortion errors of a few pixels at typical focal lengths).
-    Frames are padded to their largest star count within a chunk, so the work is vectorised and bounded.
+    Frames go in blocks of one star count of at most ``chunk_obs`` stars, so the work is vectorised and bounded.
     """
     return consistent_stars_and_field(data, b, rel_tol, abs_tol_rad, min_agreement, chunk_obs)[0]
 
@@ -141,15 +142,37 @@ def consistent_stars_and_field(
     chunk_obs: int = 20_000,
 ) -> tuple[np.ndarray, float]:
     """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad]
-    (:func:`max_pair_angle_rad`, from the Gram matrices the vote computes anyway)."""
+    (:func:`max_pair_angle_rad`, from the Gram matrices the vote computes anyway).
+
+    The frames go in blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most
+    ``chunk_obs`` stars): each block's catalogue and measured directions are (m, n, 3) stacks whose Gram matrices
+    hold every pair's dot product without padding (half the entries of frames padded to their chunk's largest
+    count, for 10-30 stars per frame), and the pairs i < j are the same entries of every frame of the block."""
     keep = np.zeros(data.n_obs, dtype=bool)
-    field_rad = 0.0
-    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
-        pairs = _frame_pairs(data, f0, f1)
-        field_rad = max(field_rad, _field_rad(pairs))
-        if pairs.nmax >= 2:
-            keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
-    return keep, field_rad
+    min_dot = 1.0
+    counts = data.counts
+    for frames in frame_blocks(data.frame_starts, chunk_obs):
+        for n in np.unique(counts[frames]):
+            same = frames[counts[frames] == n]
+            rows = (data.frame_starts[same][:, None] + np.arange(n)).ravel()
+            m = same.size
+            gram_r = gram_matrices(np.take(data.r, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
+            # the star itself included, as in _frame_pairs: a frame of one star spans no angle (rounding aside)
+            min_dot = min(min_dot, float(np.min(gram_r, initial=1.0)))
+            if n < 2:
+                continue  # no other star to agree with: not consistent
+            first, second = np.triu_indices(n, 1)
+            upper = first * n + second
+            ang_r = angle_from_dot_rad(np.take(gram_r, upper, axis=1))
+            gram_b = gram_matrices(np.take(b, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
+            ang_b = angle_from_dot_rad(np.take(gram_b, upper, axis=1))
+            disagree = np.flatnonzero(~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad))
+            frame, pair = np.divmod(disagree, upper.size)
+            # a disagreeing pair counts against both its stars (exact integer counts)
+            misses = np.bincount(frame * n + first[pair], minlength=m * n)
+            misses += np.bincount(frame * n + second[pair], minlength=m * n)
+            keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
+    return keep, float(angle_from_dot_rad(np.float64(min_dot)))
 
 
 def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
