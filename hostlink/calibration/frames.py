@@ -135,15 +135,31 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def rotation_from_vector(a: np.ndarray) -> np.ndarray:
-    """exp([a x]) by Rodrigues' formula, for rotation vectors a (..., 3) [rad]; shape (..., 3, 3)."""
-    angle = np.sqrt(np.sum(a * a, axis=-1))
+    """exp([a x]) by Rodrigues' formula, for rotation vectors a (..., 3) [rad]; shape (..., 3, 3): I + s [a x] +
+    c [a x]^2 with [a x]^2 = a a^T - |a|^2 I, its nine entries written out (the same numbers as the matrix products
+    to rounding, without their small-matrix overhead, which costs more than the arithmetic for a few hundred)."""
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    angle2 = x * x + y * y + z * z
+    angle = np.sqrt(angle2)
     small = angle < 1e-8
     safe = np.where(small, 1.0, angle)
     # series limits below 1e-8 rad, where sin(x)/x and (1 - cos x)/x^2 equal 1 and 1/2 to double precision
     s = np.where(small, 1.0, np.sin(safe) / safe)
     c = np.where(small, 0.5, (1.0 - np.cos(safe)) / (safe * safe))
-    k = skew(a)
-    return np.eye(3) + s[..., None, None] * k + c[..., None, None] * (k @ k)
+    diagonal = 1.0 - c * angle2
+    sx, sy, sz = s * x, s * y, s * z
+    cxy, cxz, cyz = c * x * y, c * x * z, c * y * z
+    out = np.empty(a.shape[:-1] + (3, 3))
+    out[..., 0, 0] = diagonal + c * x * x
+    out[..., 0, 1] = cxy - sz
+    out[..., 0, 2] = cxz + sy
+    out[..., 1, 0] = cxy + sz
+    out[..., 1, 1] = diagonal + c * y * y
+    out[..., 1, 2] = cyz - sx
+    out[..., 2, 0] = cxz - sy
+    out[..., 2, 1] = cyz + sx
+    out[..., 2, 2] = diagonal + c * z * z
+    return out
 
 
 def apply_attitude_increment(attitude: np.ndarray, dphi: np.ndarray) -> np.ndarray:
@@ -182,16 +198,16 @@ def triad_attitudes(b: np.ndarray, r: np.ndarray, frame_starts: np.ndarray) -> n
     counts = np.diff(frame_starts)
     m = counts.shape[0]
     starts = frame_starts[:-1]
-    frame = np.repeat(np.arange(m), counts)
     b1 = np.add.reduceat(b, starts, axis=0)
     r1 = np.add.reduceat(r, starts, axis=0)
     # each star's dot product with its frame's summed direction: the cosine to the mean times the frame's |b1| > 0,
-    # so the same order within the frame
-    mean = b1[frame]
-    dot = b[:, 0] * mean[:, 0] + b[:, 1] * mean[:, 1] + b[:, 2] * mean[:, 2]
+    # so the same order within the frame (the products in place in the repeated sums, added in the same order)
+    dot3 = np.repeat(b1, counts, axis=0)
+    dot3 *= b
+    dot = dot3[:, 0] + dot3[:, 1] + dot3[:, 2]
     nmax = int(counts.max(initial=1))
     padded = np.full(m * nmax, np.inf)
-    padded[np.arange(b.shape[0]) + (frame * nmax - starts[frame])] = dot
+    padded[np.arange(b.shape[0]) + np.repeat(np.arange(m) * nmax - starts, counts)] = dot
     far = starts + np.argmin(padded.reshape(m, nmax), axis=1)  # per frame, the star farthest from the mean
     # the measured and the catalogue frames in one call (the arithmetic of a few hundred rows costs less than the calls)
     both = _triad_matrix(np.concatenate([b1, r1]), np.concatenate([b[far], r[far]]))
