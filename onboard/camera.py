@@ -97,7 +97,7 @@ def distortion_partials_applied_jacobian(
     r4 = r2 * r2
     rd = k1 + r2 * (two * k2 + three * k3 * r2)  # d radial / d r2
     rdd = two * k2 + six * k3 * r2  # d^2 radial / d r2^2
-    out = np.zeros((np.shape(u)[0], 2, 10), dtype=np.result_type(u, a))
+    out = _by_entry(np.shape(u)[0], 10, np.result_type(u, a))
     # p1: g1 = 1, g3 = 2; p2: g2 = 1, g4 = 2; s1: g1 = 1; s2: g2 = 1
     t2 = two * t
     s2w = two * (va + ub)
@@ -125,6 +125,13 @@ def distortion_partials_applied_jacobian(
     return out
 
 
+def _by_entry(n: int, k: int, dtype) -> np.ndarray:
+    """Zeros of shape (n, 2, k) stored entry by entry: each (row, column) entry of the n Jacobians is contiguous
+    (a transposed view of a (2, k, n) array), so each entry is written in one pass over contiguous memory and the
+    host sums rows of them (``hostlink.calibration.bundle.normal_blocks``); indexing is as for any (n, 2, k) array."""
+    return np.zeros((2, k, n), dtype=dtype).transpose(2, 0, 1)
+
+
 def ideal_offset_jacobians(
     x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -140,7 +147,7 @@ def ideal_offset_jacobians(
     n = np.shape(u)[0]
     dtype = np.result_type(u)
     r2 = u * u + v * v
-    j_theta = np.zeros((n, 2, 10), dtype=dtype)
+    j_theta = _by_entry(n, 10, dtype)
     # principal point: u = x - x0, so d/dx0 = -d/du
     j_theta[:, 0, 1] = -(1 - dx_u)
     j_theta[:, 0, 2] = dx_v

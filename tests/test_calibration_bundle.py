@@ -168,6 +168,28 @@ def test_attitude_blocks_summed_as_rows_are_the_per_frame_products_and_an_empty_
     np.testing.assert_array_equal(a, a.transpose(0, 2, 1))
 
 
+def test_normal_blocks_summed_as_rows_are_the_per_frame_products_whatever_the_jacobians_layout():
+    """normal_blocks (each star's products as rows, summed per frame; U and g as matrix products) against the padded
+    per-frame products [J_t J_phi e]^T W J_phi and the direct sums over stars, with Huber weights and a frame
+    without stars, for the Jacobians as observation_terms stores them (entry by entry) and as ordinary (n, 2, K)
+    arrays: the same blocks. Bound 1e-14 of each block's largest entry (sums in another order)."""
+    ss = synthetic_session(FULL_WENG, 40, noise_px=0.05, seed=4)
+    d = ss.data
+    theta = FULL_WENG.model_vector()
+    e, jt, jp = observation_terms(d.x_px, d.y_px, d.r, np.repeat(ss.attitudes_true, d.counts, axis=0), theta, ALL)
+    w = huber_weights(np.linalg.norm(e, axis=1), 0.02, 3.0)
+    starts = np.insert(d.frame_starts, 11, d.frame_starts[11])  # frame 11 has no star
+    padded = per_frame_products(np.concatenate([jt, jp, e[:, :, None]], axis=2), jp, w, starts)
+    k = ALL.size
+    jw = (jt * w[:, None, None]).reshape(-1, k)
+    want = (jw.T @ jt.reshape(-1, k), jw.T @ e.ravel(), padded[:, k : k + 3], padded[:, :k], padded[:, k + 3])
+    for layout in (lambda x: x, np.ascontiguousarray):
+        got = normal_blocks(e, layout(jt), layout(jp), w, starts)
+        assert np.all(got[2][11] == 0.0) and np.all(got[3][11] == 0.0) and np.all(got[4][11] == 0.0)
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-14 * np.abs(y).max())
+
+
 def test_column_scales_applied_to_the_sums_equal_the_sums_of_scaled_columns():
     """normal_blocks with col_scale (the scales applied to U, g and B) gives the blocks of the Jacobian with its
     columns scaled, to the rounding of the sums (1e-14 of each block's largest entry; the scales are not powers of

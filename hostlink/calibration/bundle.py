@@ -158,19 +158,17 @@ def _inverse_2x2(jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     return jc[:, 1, 1] / det, -jc[:, 0, 1] / det, -jc[:, 1, 0] / det, jc[:, 0, 0] / det
 
 
-def _matrices_2x2(entries: tuple) -> np.ndarray:
-    """The stack (n, 2, 2) of 2 x 2 matrices with the entries (m00, m01, m10, m11) (each (n,))."""
-    out = np.empty((entries[0].shape[0], 2, 2))
-    for k, m in enumerate(entries):
-        out[:, k // 2, k % 2] = m
+def _whiten(jc_inv: tuple, j: np.ndarray) -> np.ndarray:
+    """Jc^-1 J for each star: the whitening (entries (i00, i01, i10, i11), each (n,)) applied to the Jacobian rows
+    ``j`` (2, K, n) stored entry by entry, as rows of K x n products (each entry's two products and one sum); a new
+    (2, K, n) array."""
+    i00, i01, i10, i11 = jc_inv
+    out = np.empty(j.shape)
+    np.multiply(j[0], i00, out=out[0])
+    out[0] += j[1] * i01
+    np.multiply(j[0], i10, out=out[1])
+    out[1] += j[1] * i11
     return out
-
-
-def _whiten(jc_inv: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """Jc^-1 J for each star: the (n, 2, 2) whitening applied to its (n, 2, K) Jacobian rows, as one batched
-    product (the same two products and one sum per entry as written out, at a fifth of the cost of the
-    broadcast products over rows of K entries)."""
-    return np.matmul(jc_inv, j)
 
 
 @dataclass(frozen=True)
@@ -185,15 +183,13 @@ class CameraTerms:
     jc_inv: tuple
     u: np.ndarray
     v: np.ndarray
-    #: Jc^-1 as a stack of matrices (n, 2, 2), for :func:`_whiten`
-    jc_inv_matrix: np.ndarray
 
 
 def camera_terms(x_px: np.ndarray, y_px: np.ndarray, theta: np.ndarray) -> CameraTerms:
     """:class:`CameraTerms` of the centroids (x, y) [px] at the camera ``theta`` (``onboard.camera``)."""
     q, jq_theta, jc = ideal_offset_jacobians(x_px, y_px, theta)
     jc_inv = _inverse_2x2(jc)
-    return CameraTerms(q, jq_theta, jc_inv, x_px - theta[1], y_px - theta[2], _matrices_2x2(jc_inv))
+    return CameraTerms(q, jq_theta, jc_inv, x_px - theta[1], y_px - theta[2])
 
 
 def observation_terms(
@@ -209,11 +205,12 @@ def observation_terms(
 
     attitude_obs: (n, 3, 3) attitude of each star's frame. Returns e (n, 2) [measured px], J_theta (n, 2, K)
     with respect to the model-vector entries ``cols``, J_phi (n, 2, 3) with respect to the frame's rotation
-    increment. J_theta is the exact derivative of e, including that of the whitening Jc^-1 (which depends on the
-    principal point and the distortion): with the whitening held fixed, the Gauss-Newton fixed point is not the
-    minimum of sum |e|^2 and, along the weak principal-point/decentering/attitude direction, lies many standard
-    deviations from it (:func:`whitening_jacobian`). ``cam``: the block's :func:`camera_terms` at ``theta`` when
-    already computed.
+    increment; both stored entry by entry (views of (2, K, n) and (2, 3, n) arrays: every entry's n values
+    contiguous, the rows :func:`normal_blocks` multiplies and sums). J_theta is the exact derivative of e,
+    including that of the whitening Jc^-1 (which depends on the principal point and the distortion): with the
+    whitening held fixed, the Gauss-Newton fixed point is not the minimum of sum |e|^2 and, along the weak
+    principal-point/decentering/attitude direction, lies many standard deviations from it
+    (:func:`whitening_jacobian`). ``cam``: the block's :func:`camera_terms` at ``theta`` when already computed.
     """
     cam = cam if cam is not None else camera_terms(x_px, y_px, theta)
     q, jq_theta = cam.q, cam.jq_theta
@@ -223,13 +220,14 @@ def observation_terms(
     d = q - p
     e = np.stack([i00 * d[:, 0] + i01 * d[:, 1], i10 * d[:, 0] + i11 * d[:, 1]], axis=1)
     # dq/dtheta plus the whitening's part (a new array: the camera terms are shared), less dp/dF = p / F in the F
-    # column (q does not depend on F, nor does the whitening: both are zero there)
-    jt = whitening_jacobian(cam.u, cam.v, theta, cols, e, (i00, i01, i10, i11), whitened=False)
-    jt += jq_theta if _all_columns(cols, jq_theta.shape[2]) else jq_theta[:, :, cols]
+    # column (q does not depend on F, nor does the whitening: both are zero there); entry by entry, (2, K, n)
+    j = whitening_jacobian(cam.u, cam.v, theta, cols, e, (i00, i01, i10, i11), whitened=False).transpose(1, 2, 0)
+    jq = jq_theta.transpose(1, 2, 0)
+    j += jq if _all_columns(cols, jq_theta.shape[2]) else jq[:, cols, :]
     f_col = np.flatnonzero(cols == 0)
     if f_col.size:
-        jt[:, :, f_col[0]] -= p / focal_px
-    return e, _whiten(cam.jc_inv_matrix, jt), _attitude_jacobian(s, p, inv_z, focal_px, (i00, i01, i10, i11))
+        j[:, f_col[0], :] -= p.T / focal_px
+    return e, _whiten(cam.jc_inv, j).transpose(2, 0, 1), _attitude_jacobian(s, p, inv_z, focal_px, cam.jc_inv)
 
 
 def _attitude_jacobian(s: np.ndarray, p: np.ndarray, inv_z: np.ndarray, focal_px: float, jc_inv: tuple) -> np.ndarray:
@@ -241,14 +239,14 @@ def _attitude_jacobian(s: np.ndarray, p: np.ndarray, inv_z: np.ndarray, focal_px
     fz = focal_px * inv_z
     a0z, a1z = -p[:, 0] * inv_z, -p[:, 1] * inv_z
     sx, sy, sz = s[:, 0], s[:, 1], s[:, 2]
-    out = np.empty((s.shape[0], 2, 3))
+    out = np.empty((2, 3, s.shape[0]))  # entry by entry: returned as its (n, 2, 3) view
     # column by column (no stacked temporaries): c0 = (dp_0/ds) x s, c1 = (dp_1/ds) x s, then -Jc^-1 (c0, c1)
     for j, (c0, c1) in enumerate(
         ((-a0z * sy, fz * sz - a1z * sy), (a0z * sx - fz * sz, a1z * sx), (fz * sy, -fz * sx))
     ):
-        out[:, 0, j] = -(i00 * c0 + i01 * c1)
-        out[:, 1, j] = -(i10 * c0 + i11 * c1)
-    return out
+        out[0, j] = -(i00 * c0 + i01 * c1)
+        out[1, j] = -(i10 * c0 + i11 * c1)
+    return out.transpose(2, 0, 1)
 
 
 def attitude_terms(
@@ -292,10 +290,10 @@ def whitening_jacobian(
     (``onboard.camera.distortion_partials_applied_jacobian``: P at the unit coefficient for k1..s2, minus its
     derivative in u or v for the principal point, zero for F). ``whitened=False``: (dP/dtheta_k) e alone, before
     the product with Jc^-1 (the caller applies Jc^-1 once to the sum with dq/dtheta)."""
-    pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1])
-    if not _all_columns(cols, pe.shape[2]):
-        pe = pe[:, :, cols]
-    return _whiten(_matrices_2x2(jc_inv), pe) if whitened else pe
+    pe = distortion_partials_applied_jacobian(u, v, theta, e[:, 0], e[:, 1]).transpose(1, 2, 0)  # (2, 10, n)
+    if not _all_columns(cols, pe.shape[1]):
+        pe = pe[:, cols, :]
+    return (_whiten(jc_inv, pe) if whitened else pe).transpose(2, 0, 1)
 
 
 def _all_columns(cols: np.ndarray, k: int) -> bool:
@@ -384,16 +382,30 @@ def normal_blocks(
     """The weighted normal-equation blocks of a run of whole frames from their terms (:func:`observation_terms`):
     U = sum J_t^T W J_t, g = sum J_t^T W e (K x K, K), and per frame A = sum J_phi^T W J_phi, B = sum J_t^T W J_phi,
     g_phi = sum J_phi^T W e; ``local_starts`` are the frames' first rows (one more entry: the row count). The
-    per-frame blocks are one product [J_t J_phi e]^T W J_phi per frame
-    (:func:`hostlink.calibration.frames.per_frame_products`). ``col_scale``: the camera columns multiplied by it,
-    applied to the sums (K x K, K and K x 3 entries per frame) rather than to the per-star Jacobian."""
+    Jacobians are taken entry by entry, (2, K, n) and (2, 3, n) (:func:`observation_terms` stores them so: no copy):
+    U and g are two matrix products, and each frame's 3K entries of B, six of A and three of g_phi are rows of
+    products summed along the frame's rows (:func:`_frame_sums`). ``col_scale``: the camera columns multiplied by
+    it, applied to the sums (K x K, K and K x 3 entries per frame) rather than to the per-star Jacobian."""
     k = jt.shape[2]
-    jt_w = (jt * w[:, None, None]).reshape(-1, k)
-    per_frame = per_frame_products(np.concatenate([jt, jp, e[:, :, None]], axis=2), jp, w, local_starts)
-    u, g, b = jt_w.T @ jt.reshape(-1, k), jt_w.T @ e.ravel(), per_frame[:, :k, :]
+    j = np.ascontiguousarray(jt.transpose(1, 2, 0))
+    p = np.ascontiguousarray(jp.transpose(1, 2, 0))
+    e_rows = np.ascontiguousarray(e.T)
+    jw = j * w
+    u = jw[0] @ j[0].T + jw[1] @ j[1].T
+    g = jw[0] @ e_rows[0] + jw[1] @ e_rows[1]
+    pw = p * w
+    rows = np.empty((3 * k + 9, e.shape[0]))
+    for c in range(3):
+        block = rows[c * k : (c + 1) * k]
+        np.multiply(j[0], pw[0, c], out=block)
+        block += j[1] * pw[1, c]
+    _attitude_rows(p, pw, e_rows, rows[3 * k :])
+    sums = _frame_sums(rows, local_starts)
+    b = np.ascontiguousarray(sums[: 3 * k].reshape(3, k, -1).transpose(2, 1, 0))
+    a, g_phi = _attitude_blocks(sums[3 * k :])
     if col_scale is not None:
         u, g, b = u * np.outer(col_scale, col_scale), g * col_scale, b * col_scale[None, :, None]
-    return u, g, per_frame[:, k : k + 3, :], b, per_frame[:, k + 3, :]
+    return u, g, a, b, g_phi
 
 
 def unit_weight_normal(
@@ -607,22 +619,37 @@ def attitude_normal(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per frame, A = sum J_phi^T W J_phi (M, 3, 3) and g_phi = sum J_phi^T W e (M, 3) of the residuals ``e`` (n, 2)
     and their attitude Jacobian ``jp`` (n, 2, 3) with the weights ``w``: the blocks of :func:`normal_blocks` an
-    attitude step needs. Each star's six distinct entries of A and three of g_phi are rows (9, n) of products, summed
-    per frame along contiguous rows: the sums of :func:`hostlink.calibration.frames.per_frame_products` (to
-    rounding) at a quarter of their cost for so few columns, without their padded layout."""
-    wj = [[jp[:, r, i] * w for i in range(3)] for r in range(2)]
+    attitude step needs, the same rows of products summed the same way (:func:`_attitude_rows`)."""
+    p = np.ascontiguousarray(jp.transpose(1, 2, 0))
     rows = np.empty((9, e.shape[0]))
+    _attitude_rows(p, p * w, np.ascontiguousarray(e.T), rows)
+    return _attitude_blocks(_frame_sums(rows, frame_starts))
+
+
+def _attitude_rows(p: np.ndarray, pw: np.ndarray, e_rows: np.ndarray, out: np.ndarray) -> None:
+    """Each star's six distinct entries of J_phi^T W J_phi and three of J_phi^T W e as rows (9, n) of ``out``, from
+    the attitude Jacobian entry by entry ``p`` (2, 3, n), the same weighted ``pw`` and the residuals (2, n)."""
     for n, (i, j) in enumerate(_SYM_PAIRS):
-        np.multiply(wj[0][i], jp[:, 0, j], out=rows[n])
-        rows[n] += wj[1][i] * jp[:, 1, j]
+        np.multiply(pw[0, i], p[0, j], out=out[n])
+        out[n] += pw[1, i] * p[1, j]
     for i in range(3):
-        np.multiply(wj[0][i], e[:, 0], out=rows[6 + i])
-        rows[6 + i] += wj[1][i] * e[:, 1]
-    sums = np.zeros((9, frame_starts.shape[0] - 1))
-    filled = np.diff(frame_starts) > 0  # a frame without stars sums to zero (reduceat would give it a row)
+        np.multiply(pw[0, i], e_rows[0], out=out[6 + i])
+        out[6 + i] += pw[1, i] * e_rows[1]
+
+
+def _attitude_blocks(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A (M, 3, 3) and g_phi (M, 3) from the per-frame sums (9, M) of :func:`_attitude_rows`."""
+    return sums[_SYM_INDEX].T.reshape(-1, 3, 3), np.ascontiguousarray(sums[6:].T)
+
+
+def _frame_sums(rows: np.ndarray, frame_starts: np.ndarray) -> np.ndarray:
+    """The sums (r, M) of rows (r, n) along each frame's stars (contiguous columns from ``frame_starts``); a frame
+    without stars sums to zero (reduceat would give it a column of its own)."""
+    sums = np.zeros((rows.shape[0], frame_starts.shape[0] - 1))
+    filled = np.diff(frame_starts) > 0
     if np.any(filled):
         sums[:, filled] = np.add.reduceat(rows, frame_starts[:-1][filled], axis=1)
-    return sums[_SYM_INDEX].T.reshape(-1, 3, 3), np.ascontiguousarray(sums[6:].T)
+    return sums
 
 
 @dataclass
