@@ -150,16 +150,22 @@ def test_unit_weight_normal_from_the_weighted_one_equals_the_direct_sums(scale_p
     np.testing.assert_allclose(u_diag, np.diag(direct.u), rtol=1e-12)
 
 
+def _terms_with_an_empty_frame(camera, seed, empty):
+    """observation_terms of 40 frames at their true attitudes, Huber weights at 0.02 px (many stars down-weighted)
+    and frame starts with frame ``empty`` holding no star: (e, jt, jp, w, starts)."""
+    ss = synthetic_session(camera, 40, noise_px=0.05, seed=seed)
+    d = ss.data
+    att = np.repeat(ss.attitudes_true, d.counts, axis=0)
+    e, jt, jp = observation_terms(d.x_px, d.y_px, d.r, att, camera.model_vector(), ALL)
+    w = huber_weights(np.linalg.norm(e, axis=1), 0.02, 3.0)
+    return e, jt, jp, w, np.insert(d.frame_starts, empty, d.frame_starts[empty])
+
+
 def test_attitude_blocks_summed_as_rows_are_the_per_frame_products_and_an_empty_frame_sums_to_zero():
     """attitude_normal's A and g_phi (each star's products as rows, summed per frame) against the padded per-frame
     products [J_phi e]^T W J_phi, with Huber weights and a frame without stars among the others. Bound 1e-14 of each
     block's largest entry (the rounding of sums of 10-30 terms in another order; 3e-15 seen)."""
-    ss = synthetic_session(SEED004, 40, noise_px=0.05, seed=3)
-    d = ss.data
-    theta = SEED004.model_vector()
-    e, _, jp = observation_terms(d.x_px, d.y_px, d.r, np.repeat(ss.attitudes_true, d.counts, axis=0), theta, ALL)
-    w = huber_weights(np.linalg.norm(e, axis=1), 0.02, 3.0)
-    starts = np.insert(d.frame_starts, 7, d.frame_starts[7])  # frame 7 has no star
+    e, _, jp, w, starts = _terms_with_an_empty_frame(SEED004, seed=3, empty=7)
     a, g = attitude_normal(e, jp, w, starts)
     padded = per_frame_products(np.concatenate([jp, e[:, :, None]], axis=2), jp, w, starts)
     assert np.all(a[7] == 0.0) and np.all(g[7] == 0.0)
@@ -173,12 +179,7 @@ def test_normal_blocks_summed_as_rows_are_the_per_frame_products_whatever_the_ja
     per-frame products [J_t J_phi e]^T W J_phi and the direct sums over stars, with Huber weights and a frame
     without stars, for the Jacobians as observation_terms stores them (entry by entry) and as ordinary (n, 2, K)
     arrays: the same blocks. Bound 1e-14 of each block's largest entry (sums in another order)."""
-    ss = synthetic_session(FULL_WENG, 40, noise_px=0.05, seed=4)
-    d = ss.data
-    theta = FULL_WENG.model_vector()
-    e, jt, jp = observation_terms(d.x_px, d.y_px, d.r, np.repeat(ss.attitudes_true, d.counts, axis=0), theta, ALL)
-    w = huber_weights(np.linalg.norm(e, axis=1), 0.02, 3.0)
-    starts = np.insert(d.frame_starts, 11, d.frame_starts[11])  # frame 11 has no star
+    e, jt, jp, w, starts = _terms_with_an_empty_frame(FULL_WENG, seed=4, empty=11)
     padded = per_frame_products(np.concatenate([jt, jp, e[:, :, None]], axis=2), jp, w, starts)
     k = ALL.size
     jw = (jt * w[:, None, None]).reshape(-1, k)

@@ -46,8 +46,9 @@ def test_vote_counts_every_frames_disagreeing_pairs_as_one_frame_at_a_time_does(
     """The vote over blocks of one star count (frames of 1 to 14 stars, a fifth of the stars given another star's
     catalogue direction) against the plain per-frame form with the cross-product angle: a star is consistent when
     its angle to at least half of the other stars of its frame agrees within 3 % + 1 mrad; a star alone in its
-    frame is not. The field is the largest catalogue angle within a frame. Small blocks (chunk_obs) split the
-    frames of one count over several blocks."""
+    frame is not. The field is the largest catalogue angle within a frame, to 1e-12 rad (the chord form's rounding,
+    ~1e-15 / sin(angle): test above). Small blocks (chunk_obs) split the frames of one count over several
+    blocks."""
     from synthetic_sessions import synthetic_session
 
     from hostlink.calibration.data import build_data

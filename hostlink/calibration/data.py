@@ -6,6 +6,7 @@ Everything is float64 numpy columns, one row per identified star, rows grouped b
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -293,6 +294,24 @@ def frame_blocks(frame_starts: np.ndarray, max_obs: int) -> list[np.ndarray]:
         blocks.append(order[start:end])
         done, start = int(cum[end - 1]), end
     return blocks
+
+
+def count_blocks(frame_starts: np.ndarray, max_obs: int) -> Iterator[tuple[np.ndarray, int, int]]:
+    """The frames of :func:`frame_blocks`, each block split by star count: for every count n of a block, the rows
+    (m n,) of its m frames of n stars, frame by frame (so an (m, n, 3) stack of their vectors is a reshape, without
+    padding), with m and n."""
+    counts = np.diff(frame_starts)
+    for frames in frame_blocks(frame_starts, max_obs):
+        for n in np.unique(counts[frames]):
+            same = frames[counts[frames] == n]
+            yield (frame_starts[same][:, None] + np.arange(n)).ravel(), int(same.size), int(n)
+
+
+def block_gram(v: np.ndarray, rows: np.ndarray, m: int, n: int) -> np.ndarray:
+    """The Gram matrices (m, n n), flattened row by row, of the vectors of ``v`` (N, 3) at the rows of m frames of n
+    stars (:func:`count_blocks`): every pair's dot product; the pairs i < j of each frame are the flat positions
+    i n + j of ``np.triu_indices(n, 1)``."""
+    return gram_matrices(np.take(v, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
 
 
 def measured_directions(data: CalibrationData, theta: np.ndarray, max_obs: int = 50_000) -> np.ndarray:

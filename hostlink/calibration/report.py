@@ -17,8 +17,8 @@ import numpy as np
 from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, observation_residuals, residuals, rotate
 from hostlink.calibration.data import (
     CalibrationData,
-    frame_blocks,
-    gram_matrices,
+    block_gram,
+    count_blocks,
     half_angle_from_dot_rad,
 )
 from hostlink.calibration.frames import wahba_attitudes
@@ -130,33 +130,23 @@ def interstar_sums_of_directions(
     data: CalibrationData, bs: list[np.ndarray], chunk_obs: int = DEFAULT_CHUNK_OBS
 ) -> list[tuple[float, int]]:
     """:func:`interstar_sums` for each array of measured directions (N, 3) in ``bs``, the catalogue angles computed
-    once. The frames go in blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most
+    once. The frames go in blocks of one star count n (:func:`hostlink.calibration.data.count_blocks`, at most
     ``chunk_obs`` stars), each block's directions an (m, n, 3) stack whose Gram matrices hold every pair's dot
     product, without padding; the pairs i < j are the same entries of each (one gather along the rows). Each
     difference is that of the half angles (:func:`hostlink.calibration.data.half_angle_from_dot_rad`), doubled in
     the sum: the same numbers as the angles' (scalings by two are exact)."""
     out = [(0.0, 0) for _ in bs]
-    counts = data.counts
-    for frames in frame_blocks(data.frame_starts, chunk_obs):
-        for n in np.unique(counts[frames]):
-            if n < 2:
-                continue
-            same = frames[counts[frames] == n]
-            rows = (data.frame_starts[same][:, None] + np.arange(n)).ravel()
-            upper = np.flatnonzero(np.triu(np.ones((n, n), dtype=bool), 1))  # pairs i < j in an n x n matrix
-            half_r = _pair_half_angles_rad(data.r, rows, same.size, n, upper)
-            for k, b in enumerate(bs):
-                d = _pair_half_angles_rad(b, rows, same.size, n, upper)
-                d -= half_r
-                out[k] = (out[k][0] + 4.0 * float(np.vdot(d, d)), out[k][1] + d.size)
+    for rows, m, n in count_blocks(data.frame_starts, chunk_obs):
+        if n < 2:
+            continue
+        first, second = np.triu_indices(n, 1)
+        upper = first * n + second  # pairs i < j in an n x n matrix
+        half_r = half_angle_from_dot_rad(np.take(block_gram(data.r, rows, m, n), upper, axis=1))
+        for k, b in enumerate(bs):
+            d = half_angle_from_dot_rad(np.take(block_gram(b, rows, m, n), upper, axis=1))
+            d -= half_r
+            out[k] = (out[k][0] + 4.0 * float(np.vdot(d, d)), out[k][1] + d.size)
     return out
-
-
-def _pair_half_angles_rad(v: np.ndarray, rows: np.ndarray, m: int, n: int, upper: np.ndarray) -> np.ndarray:
-    """Half angles [rad] (m, P) between the vectors of ``v`` (N, 3) at ``rows`` (m frames of n stars, frame by frame)
-    at the flat positions ``upper`` of each frame's n x n Gram matrix."""
-    gram = gram_matrices(np.take(v, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
-    return half_angle_from_dot_rad(np.take(gram, upper, axis=1))
 
 
 def sigma_dict(estimate: tuple[str, ...], covariance: np.ndarray, params: CameraParams) -> dict:

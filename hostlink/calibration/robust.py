@@ -22,7 +22,8 @@ import numpy as np
 from hostlink.calibration.data import (
     CalibrationData,
     angle_from_dot_rad,
-    frame_blocks,
+    block_gram,
+    count_blocks,
     frame_chunks,
     frame_slots,
     gram_matrices,
@@ -144,34 +145,28 @@ def consistent_stars_and_field(
     """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad]
     (:func:`max_pair_angle_rad`, from the Gram matrices the vote computes anyway).
 
-    The frames go in blocks of one star count n (:func:`hostlink.calibration.data.frame_blocks`, at most
+    The frames go in blocks of one star count n (:func:`hostlink.calibration.data.count_blocks`, at most
     ``chunk_obs`` stars): each block's catalogue and measured directions are (m, n, 3) stacks whose Gram matrices
     hold every pair's dot product without padding (half the entries of frames padded to their chunk's largest
     count, for 10-30 stars per frame), and the pairs i < j are the same entries of every frame of the block."""
     keep = np.zeros(data.n_obs, dtype=bool)
     min_dot = 1.0
-    counts = data.counts
-    for frames in frame_blocks(data.frame_starts, chunk_obs):
-        for n in np.unique(counts[frames]):
-            same = frames[counts[frames] == n]
-            rows = (data.frame_starts[same][:, None] + np.arange(n)).ravel()
-            m = same.size
-            gram_r = gram_matrices(np.take(data.r, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
-            # the star itself included, as in _frame_pairs: a frame of one star spans no angle (rounding aside)
-            min_dot = min(min_dot, float(np.min(gram_r, initial=1.0)))
-            if n < 2:
-                continue  # no other star to agree with: not consistent
-            first, second = np.triu_indices(n, 1)
-            upper = first * n + second
-            ang_r = angle_from_dot_rad(np.take(gram_r, upper, axis=1))
-            gram_b = gram_matrices(np.take(b, rows, axis=0).reshape(m, n, 3)).reshape(m, n * n)
-            ang_b = angle_from_dot_rad(np.take(gram_b, upper, axis=1))
-            disagree = np.flatnonzero(~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad))
-            frame, pair = np.divmod(disagree, upper.size)
-            # a disagreeing pair counts against both its stars (exact integer counts)
-            misses = np.bincount(frame * n + first[pair], minlength=m * n)
-            misses += np.bincount(frame * n + second[pair], minlength=m * n)
-            keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
+    for rows, m, n in count_blocks(data.frame_starts, chunk_obs):
+        gram_r = block_gram(data.r, rows, m, n)
+        # the star itself included, as in _frame_pairs: a frame of one star spans no angle (rounding aside)
+        min_dot = min(min_dot, float(np.min(gram_r, initial=1.0)))
+        if n < 2:
+            continue  # no other star to agree with: not consistent
+        first, second = np.triu_indices(n, 1)
+        upper = first * n + second
+        ang_r = angle_from_dot_rad(np.take(gram_r, upper, axis=1))
+        ang_b = angle_from_dot_rad(np.take(block_gram(b, rows, m, n), upper, axis=1))
+        disagree = np.flatnonzero(~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad))
+        frame, pair = np.divmod(disagree, upper.size)
+        # a disagreeing pair counts against both its stars (exact integer counts)
+        misses = np.bincount(frame * n + first[pair], minlength=m * n)
+        misses += np.bincount(frame * n + second[pair], minlength=m * n)
+        keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
     return keep, float(angle_from_dot_rad(np.float64(min_dot)))
 
 
