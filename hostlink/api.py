@@ -50,6 +50,8 @@ Port kit (docs/port-kit.md):
     :func:`export_c` (C99 headers and source of the wire protocol), :func:`write_vectors` (golden test vectors of the
     onboard functions, float32 and fixed point, with tolerances), :func:`cost_table` / :func:`cost_table_text`
     (operations and memory per frame at N stars).
+Ground systems (docs/ground-systems.md):
+    :func:`export_ground` (an OpenC3 COSMOS target and an XTCE 1.2 document of every message, from the one table).
 Emulated sensor and the bench:
     :class:`EmulatorProcess` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its
     frame source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end),
@@ -118,6 +120,7 @@ from hostlink.mission.config import BenchConfig, design_nominal
 from hostlink.mission.run import run_bench
 from hostlink.portkit.costs import cost_table, cost_table_text
 from hostlink.portkit.export_c import write_c as export_c
+from hostlink.portkit.export_ground import write_ground as export_ground
 from hostlink.portkit.vectors import write_vectors
 from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
 from hostlink.sky.references import SessionReferences, session_references
@@ -223,6 +226,7 @@ __all__ = [
     "cost_table",
     "cost_table_text",
     "export_c",
+    "export_ground",
     "write_vectors",
     # emulator and bench
     "EmulatorProcess",

@@ -35,6 +35,7 @@ COMMANDS: tuple[str, ...] = (
     "example",
     "import-can",
     "export-c",
+    "export-ground",
     "vectors",
     "costs",
 )

@@ -352,13 +352,13 @@ class Telemetry:
 
     TYPE: ClassVar[MsgType] = MsgType.TELEMETRY
     tag: int = _tag()
-    streaming: bool = wire("?", False)
+    streaming: bool = wire("?", False, doc="the centroid stream is on")
     stage_state: int = wire("B", StageState.EMPTY, doc="StageState")
-    active_generation: int = wire("I", 0)
-    active_crc32: int = wire("I", 0)
-    frames_processed: int = wire("I", 0)
-    last_frame: int = wire("I", 0)
-    estimator_updates: int = wire("I", 0)
+    active_generation: int = wire("I", 0, doc="generation of the active parameter set")
+    active_crc32: int = wire("I", 0, doc="CRC-32 of the active parameter table")
+    frames_processed: int = wire("I", 0, doc="frames the sensor has processed since start-up")
+    last_frame: int = wire("I", 0, doc="frame counter of the last frame processed")
+    estimator_updates: int = wire("I", 0, doc="updates of the onboard recursive estimator")
 
 
 @dataclass(frozen=True)
@@ -369,8 +369,8 @@ class ParamTable:
     TYPE: ClassVar[MsgType] = MsgType.PARAM_TABLE
     tag: int = _tag()
     bank: int = wire("B", TableBank.ACTIVE, doc="TableBank")
-    generation: int = wire("I", 0)
-    crc32: int = wire("I", 0)
+    generation: int = wire("I", 0, doc="generation of the set (0 for the staged set)")
+    crc32: int = wire("I", 0, doc="CRC-32 the sensor computed over the table bytes")
     table: bytes = wire("s", bytes(TABLE_BYTES), count=TABLE_BYTES, doc="protocol.param_table bytes")
 
 
@@ -384,9 +384,9 @@ class Estimate:
     tag: int = _tag()
     status: int = wire("B", EstimateStatus.NONE, doc="EstimateStatus")
     estimated_mask: int = wire("H", 0, doc="bit i = ESTIMATE_FIELDS[i] is estimated")
-    base_generation: int = wire("I", 0)
-    n_updates: int = wire("I", 0)
-    last_frame: int = wire("I", 0)
+    base_generation: int = wire("I", 0, doc="generation of the active set the estimator started from")
+    n_updates: int = wire("I", 0, doc="updates of the estimator")
+    last_frame: int = wire("I", 0, doc="frame counter of the estimator's last update")
     values: tuple[float, ...] = wire("f", (0.0,) * 10, count=10, doc="ESTIMATE_FIELDS order, f in mm, x0/y0 in px")
     sigma: tuple[float, ...] = wire("f", (math.nan,) * 10, count=10, doc="1-sigma, NaN = unknown")
 
@@ -440,7 +440,7 @@ class EndOfStream:
     """The sensor's frame source is exhausted (replay reached the end of its file) after ``frames_sent`` frames."""
 
     TYPE: ClassVar[MsgType] = MsgType.END_OF_STREAM
-    frames_sent: int = wire("I", 0)
+    frames_sent: int = wire("I", 0, doc="frames sent before the source ended")
 
 
 Message = (
