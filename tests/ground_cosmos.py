@@ -25,13 +25,18 @@ MAG_ULPS = 2
 
 
 def load_target(directory: Path):  # noqa: ANN201 - openc3 PacketConfig
-    """Generate the exports into ``directory`` and load the COSMOS target with openc3's parser."""
+    """Generate the exports into ``directory`` and load the COSMOS target as COSMOS's System does: target.txt read
+    by openc3's Target, then each command and telemetry file it lists by openc3's PacketConfig."""
     from openc3.packets.packet_config import PacketConfig
+    from openc3.system.target import Target
 
     write_ground(directory)
+    target = Target(TARGET, str(directory / Path(COSMOS_TLM).parents[2]))
+    assert sorted(target.cmd_tlm_files) == sorted(str(directory / name) for name in (COSMOS_CMD, COSMOS_TLM))
+    assert target.ignored_parameters == ["SEQ"] and target.ignored_items == ["SEQ"]
     config = PacketConfig()
-    for name in (COSMOS_CMD, COSMOS_TLM):
-        config.process_file(str(directory / name), TARGET)
+    for name in target.cmd_tlm_files:
+        config.process_file(name, TARGET)
     return config
 
 
