@@ -139,3 +139,36 @@ def _encoded(msg: Message) -> bytes:
     from protocol.messages import encode
 
     return encode(msg)
+
+
+def build_interface(plugin: Path, interface: str, variables: dict[str, object]):  # noqa: ANN201 - openc3 interface
+    """Interface ``interface`` of the generated plugin.txt, built as COSMOS builds it (InterfaceModel.build), with the
+    plugin's ``<%= name %>`` VARIABLEs set to ``variables``."""
+    from openc3.config.config_parser import ConfigParser
+    from openc3.models.interface_model import InterfaceModel
+
+    text = plugin.read_text()
+    for name, value in variables.items():
+        text = text.replace(f"<%= {name} %>", str(value))
+    resolved = plugin.with_name("plugin.resolved.txt")
+    resolved.write_text(text)
+    found: dict[str, dict] = {}
+    current = None
+    for keyword, args in ConfigParser().parse_file(str(resolved)):
+        if keyword == "INTERFACE":
+            current = args[0]
+            found[current] = {"params": args[1:], "protocols": [], "targets": []}
+        elif keyword == "PROTOCOL" and current:
+            found[current]["protocols"].append(args)
+        elif keyword == "MAP_TARGET" and current:
+            found[current]["targets"].append(args[0])
+    mine = found[interface]
+    assert "<%=" not in " ".join(map(str, mine["params"])), "a VARIABLE left unset"
+    model = InterfaceModel(
+        interface,
+        config_params=mine["params"],
+        protocols=mine["protocols"],
+        target_names=mine["targets"],
+        scope="DEFAULT",
+    )
+    return model.build()

@@ -10,6 +10,7 @@ so the sensor answers with every reply and stream type: all 16 message types cro
 from __future__ import annotations
 
 import collections
+import os
 import threading
 import zlib
 from pathlib import Path
@@ -17,12 +18,15 @@ from pathlib import Path
 import pytest
 from emulator_fixtures import running_emulator
 
+# openc3 outside a COSMOS installation: its logger prints, and publishes nothing to COSMOS's Redis (as openc3's own
+# command-line tool sets it)
+os.environ.setdefault("OPENC3_NO_STORE", "1")
 pytest.importorskip("openc3", reason="openc3 is a test dependency (pyproject.toml [test])")
 
-from ground_cosmos import load_target, mismatches  # noqa: E402
+from ground_cosmos import build_interface, load_target, mismatches  # noqa: E402
 
 from hostlink.files.session import write_session  # noqa: E402
-from hostlink.portkit.export_ground import COSMOS_PLUGIN, TARGET  # noqa: E402
+from hostlink.portkit.export_ground import COSMOS_PLUGIN, SERIAL_INTERFACE, TARGET  # noqa: E402
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate  # noqa: E402
 from protocol.framing import FrameSplitter, decode_frame  # noqa: E402
 from protocol.messages import MESSAGES, TABLE_BYTES, decode  # noqa: E402
@@ -33,27 +37,6 @@ FRAMES = 120
 WATCHDOG_S = 300.0
 #: The line rate of the campaign [bit/s]: fast, so that 1000 frames take seconds (the pty has no physical limit).
 BAUD = 4_000_000
-
-
-def build_interface(plugin: Path, port: str, baud: int):  # noqa: ANN201 - an openc3 interface
-    """The interface of the generated plugin.txt, built as COSMOS builds it (InterfaceModel.build), with the
-    plugin's VARIABLEs set to ``port`` and ``baud``."""
-    from openc3.config.config_parser import ConfigParser
-    from openc3.models.interface_model import InterfaceModel
-
-    text = plugin.read_text().replace("<%= port %>", port).replace("<%= baud %>", str(baud))
-    resolved = plugin.with_name("plugin.resolved.txt")
-    resolved.write_text(text)
-    name, params, protocols, targets = None, [], [], []
-    for keyword, args in ConfigParser().parse_file(str(resolved)):
-        if keyword == "INTERFACE":
-            name, params = args[0], args[1:]
-        elif keyword == "PROTOCOL":
-            protocols.append(args)
-        elif keyword == "MAP_TARGET":
-            targets.append(args[0])
-    model = InterfaceModel(name, config_params=params, protocols=protocols, target_names=targets, scope="DEFAULT")
-    return model.build()
 
 
 class Campaign:
@@ -108,7 +91,8 @@ def run_campaign(tmp_path: Path, frames: int) -> Campaign:
     write_session(session, sim.session)
     with running_emulator("serial", "--replay", str(session), "--baud", str(BAUD)) as info:
         port, baud = info["link"].removeprefix("serial:").split("@")
-        interface = build_interface(tmp_path / "ground" / COSMOS_PLUGIN, port, int(baud))
+        plugin = tmp_path / "ground" / COSMOS_PLUGIN
+        interface = build_interface(plugin, SERIAL_INTERFACE, {"port": port, "baud": baud})
         assert [type(p).__name__ for p in interface.read_protocols] == ["CobsProtocol", "CrcProtocol"]
         interface.connect()
         watchdog = threading.Timer(WATCHDOG_S, interface.disconnect)

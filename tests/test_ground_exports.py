@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
 
@@ -14,6 +15,9 @@ import numpy as np
 import pytest
 from emulator_fixtures import hostlink
 
+# openc3 outside a COSMOS installation: its logger prints, and publishes nothing to COSMOS's Redis (as openc3's own
+# command-line tool sets it)
+os.environ.setdefault("OPENC3_NO_STORE", "1")
 pytest.importorskip("openc3", reason="openc3 is a test dependency (pyproject.toml [test])")
 
 from ground_cosmos import expected_items, expected_values, load_target, mismatches  # noqa: E402
@@ -332,3 +336,49 @@ def test_export_ground_writes_every_file_and_refuses_a_file_as_dir(tmp_path):
     bad = hostlink("export-ground", str(tmp_path / "file"))
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "not a directory" in bad.stderr
     assert "export-ground" in hostlink("--help").stdout
+
+
+def test_the_cosmos_modbus_target_carries_every_register_of_the_map(target):
+    from openc3.packets.packet_config import PacketConfig
+
+    from hostlink.portkit import ground_modbus
+    from protocol import modbus_map as mm
+
+    directory, _ = target
+    config = PacketConfig()
+    for name in (export_ground.MODBUS_CMD, export_ground.MODBUS_TLM):
+        config.process_file(str(directory / name), ground_modbus.TARGET)
+    assert config.warnings == []
+    regmap = mm.load_map()
+    kinds = {"uint16": ("UINT", 16), "int16": ("INT", 16), "uint32": ("UINT", 32), "int32": ("INT", 32)}
+    kinds |= {"int64": ("INT", 64), "float32": ("FLOAT", 32)}
+    telemetry = config.telemetry[ground_modbus.TARGET]
+    header_bits = 9 * 8  # MBAP (7 bytes), function code, byte count
+    seen = set()
+    for packet in telemetry.values():
+        if packet.packet_name == "WRITE_RESPONSE":
+            continue
+        address = config.commands[ground_modbus.TARGET][f"READ_{packet.packet_name}"].get_item("ADDRESS").default
+        for reg in regmap.table("input"):
+            for k in range(reg.count):
+                name = reg.name.upper() if reg.count == 1 else f"STAR_{k:03d}_{reg.name.split('_star_')[1].upper()}"
+                item = packet.items.get(name)
+                if item is None or item.bit_offset != header_bits + 16 * (reg.element_address(k) - address):
+                    continue
+                want = ("STRING", 8 * reg.length_bytes) if reg.type == "string" else kinds[reg.type]
+                assert (item.data_type, item.bit_size, item.endianness) == (*want, "BIG_ENDIAN"), name
+                assert (item.units or "") == reg.units and item.description.startswith(reg.description), name
+                if reg.scale is not None:
+                    assert item.read_conversion.coeffs == [0.0, reg.scale], name
+                seen.add((reg.name, k))
+    every = {(reg.name, k) for reg in regmap.table("input") for k in range(reg.count)}
+    assert seen == every  # every input register (and every star of the window) is read by some packet
+    commands = config.commands[ground_modbus.TARGET]
+    for reg in regmap.table("holding"):
+        write = commands[f"WRITE_{reg.name.upper()}"]
+        assert write.get_item("ADDRESS").id_value == reg.address
+        assert write.get_item("QUANTITY").default == reg.width
+        item = write.get_item(reg.name.upper())
+        assert (item.data_type, item.bit_size, item.endianness) == (*kinds[reg.type], "BIG_ENDIAN"), reg.name
+    codes = commands["WRITE_COMMAND"].get_item("COMMAND").states
+    assert codes == {c["name"]: int(c["code"]) for c in regmap.commands}

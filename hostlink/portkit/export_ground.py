@@ -33,6 +33,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from hostlink.portkit import ground_modbus
 from protocol import framing, messages
 from protocol.messages import MAX_STARS, MESSAGES, MessageSpec, WireField
 
@@ -50,8 +51,20 @@ COSMOS_PLUGIN = "cosmos/plugin.txt"
 COSMOS_TARGET_TXT = f"cosmos/targets/{TARGET}/target.txt"
 COSMOS_CMD = f"cosmos/targets/{TARGET}/cmd_tlm/cmd.txt"
 COSMOS_TLM = f"cosmos/targets/{TARGET}/cmd_tlm/tlm.txt"
+MODBUS_TARGET_TXT = f"cosmos/targets/{ground_modbus.TARGET}/target.txt"
+MODBUS_CMD = f"cosmos/targets/{ground_modbus.TARGET}/cmd_tlm/cmd.txt"
+MODBUS_TLM = f"cosmos/targets/{ground_modbus.TARGET}/cmd_tlm/tlm.txt"
 XTCE_FILE = "xtce/startracker.xml"
-FILES: tuple[str, ...] = (COSMOS_PLUGIN, COSMOS_TARGET_TXT, COSMOS_CMD, COSMOS_TLM, XTCE_FILE)
+FILES: tuple[str, ...] = (
+    COSMOS_PLUGIN,
+    COSMOS_TARGET_TXT,
+    COSMOS_CMD,
+    COSMOS_TLM,
+    MODBUS_TARGET_TXT,
+    MODBUS_CMD,
+    MODBUS_TLM,
+    XTCE_FILE,
+)
 #: The XTCE parameters of the frame header and the abstract container every telemetry packet extends.
 XTCE_HEADER_CONTAINER = "FRAME"
 XTCE_HEADER_COMMAND = "COMMAND"
@@ -322,10 +335,13 @@ def cosmos_plugin() -> str:
     """plugin.txt: the target and its serial interface (COBS framing, then the CRC-32 check)."""
     lines = [
         _BANNER.format(c="#", name="plugin.txt"),
-        "# Serial link: COBS( seq:u16 LE | message | crc32:u32 LE ) 0x00, 8N1. Set the port and baud rate when",
-        "# installing the plugin (COSMOS asks for the VARIABLEs).",
+        "# Serial link: COBS( seq:u16 LE | message | crc32:u32 LE ) 0x00, 8N1; and Modbus/TCP. Set the serial port",
+        "# and baud rate, and the Modbus server's host and port, when installing the plugin (COSMOS asks for the",
+        "# VARIABLEs).",
         "VARIABLE port /dev/ttyUSB0",
         f"VARIABLE baud {DEFAULT_BAUD}",
+        "VARIABLE modbus_host 127.0.0.1",
+        f"VARIABLE modbus_port {ground_modbus.DEFAULT_PORT}",
         "",
         f"TARGET {TARGET} {TARGET}",
         "",
@@ -336,6 +352,7 @@ def cosmos_plugin() -> str:
         "  PROTOCOL READ_WRITE openc3/interfaces/protocols/crc_protocol.py " + " ".join(crc_protocol_args()),
         f"  MAP_TARGET {TARGET}",
         "",
+        *ground_modbus.cosmos_modbus_plugin_lines(),
     ]
     return "\n".join(lines)
 
@@ -502,11 +519,15 @@ def xtce_document() -> str:
 def generate_ground() -> dict[str, str]:
     """Relative path -> text of every generated file (:data:`FILES`)."""
     cmd, tlm = cosmos_cmd_tlm()
+    modbus_cmd, modbus_tlm = ground_modbus.cosmos_modbus_cmd_tlm()
     return {
         COSMOS_PLUGIN: cosmos_plugin(),
         COSMOS_TARGET_TXT: cosmos_target_txt(),
         COSMOS_CMD: cmd,
         COSMOS_TLM: tlm,
+        MODBUS_TARGET_TXT: ground_modbus.cosmos_modbus_target_txt(),
+        MODBUS_CMD: modbus_cmd,
+        MODBUS_TLM: modbus_tlm,
         XTCE_FILE: xtce_document(),
     }
 
