@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "write an OpenC3 COSMOS target (commands, telemetry, serial interface) and an XTCE 1.2 document"
+HELP = "write OpenC3 COSMOS targets (serial and Modbus/TCP: commands, telemetry, interfaces) and an XTCE 1.2 document"
 DESCRIPTION = (
     "Generates, from the single protocol definition, the sensor's messages for the ground systems test campaigns "
     "use: an OpenC3 COSMOS plugin (cosmos/plugin.txt: the serial interface with COSMOS's COBS and CRC-32 protocols "
-    "configured to the project's framing; cosmos/targets/STARTRACKER/: target.txt and cmd_tlm/cmd.txt, tlm.txt with "
-    "every field's type, unit, description and states) and xtce/startracker.xml, an XTCE 1.2 document of the same "
+    "configured to the project's framing, and a Modbus/TCP interface; cosmos/targets/STARTRACKER/: target.txt and "
+    "cmd_tlm/cmd.txt, tlm.txt with every field's type, unit, description and states; cosmos/targets/STARTRACKER_MB/: "
+    "the Modbus register map's reads and writes) and xtce/startracker.xml, an XTCE 1.2 document of the serial "
     "messages for Yamcs or any XTCE tool (written by yamcs-pymdb). docs/ground-systems.md explains how to load them, "
     "what maps to what and what does not translate."
 )

@@ -21,6 +21,9 @@ ground items both exports are written from, so the COSMOS target and the XTCE ca
   slots: a frame carries 0..255 stars, so the packet is allowed to be short (COSMOS ``ALLOW_SHORT``: slots past the
   frame's stars read as None; XTCE: each slot's entries are included only when ``N_STARS`` is larger than its index).
 
+The Modbus/TCP link's COSMOS target is generated from the Modbus register map by
+:mod:`hostlink.portkit.ground_modbus`; this module writes it beside the serial one.
+
 docs/ground-systems.md is the user's guide (how to load the target in COSMOS and the XTCE in Yamcs, what maps to
 what, and what does not translate).
 """
