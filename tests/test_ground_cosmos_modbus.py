@@ -19,7 +19,7 @@ from emulator_fixtures import running_emulator
 # openc3 outside a COSMOS installation: its logger prints, and publishes nothing to COSMOS's Redis (as openc3's own
 # command-line tool sets it)
 os.environ.setdefault("OPENC3_NO_STORE", "1")
-pytest.importorskip("openc3", reason="openc3 is a test dependency (pyproject.toml [test])")
+pytest.importorskip("openc3", reason="openc3 is the [cosmos] test extra (pyproject.toml), needs numpy >= 2")
 
 from ground_cosmos import build_interface  # noqa: E402
 

@@ -18,7 +18,7 @@ from emulator_fixtures import hostlink
 # openc3 outside a COSMOS installation: its logger prints, and publishes nothing to COSMOS's Redis (as openc3's own
 # command-line tool sets it)
 os.environ.setdefault("OPENC3_NO_STORE", "1")
-pytest.importorskip("openc3", reason="openc3 is a test dependency (pyproject.toml [test])")
+pytest.importorskip("openc3", reason="openc3 is the [cosmos] test extra (pyproject.toml), needs numpy >= 2")
 
 from ground_cosmos import expected_items, expected_values, load_target, mismatches  # noqa: E402
 
