@@ -13,7 +13,6 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from emulator_fixtures import hostlink
 
 # openc3 outside a COSMOS installation: its logger prints, and publishes nothing to COSMOS's Redis (as openc3's own
 # command-line tool sets it)
@@ -326,16 +325,6 @@ def test_the_xtce_names_the_same_containers_parameters_types_units_and_encodings
             ours_t = _type_of(our_atypes, a.get("argumentTypeRef"), variable)
             theirs_t = _type_of(their_atypes, their_by_name[a.get("name")].get("argumentTypeRef"), variable)
             assert ours_t == theirs_t, (spec.name, a.get("name"))
-
-
-def test_export_ground_writes_every_file_and_refuses_a_file_as_dir(tmp_path):
-    run = hostlink("export-ground", str(tmp_path / "g"))
-    assert run.returncode == 0, run.stderr
-    assert run.stdout.split() == [str(tmp_path / "g" / f) for f in export_ground.FILES]
-    (tmp_path / "file").write_text("x")
-    bad = hostlink("export-ground", str(tmp_path / "file"))
-    assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "not a directory" in bad.stderr
-    assert "export-ground" in hostlink("--help").stdout
 
 
 def test_the_cosmos_modbus_target_carries_every_register_of_the_map(target):
