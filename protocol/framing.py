@@ -27,8 +27,11 @@ DELIMITER = b"\x00"
 SEQ_MODULUS = 1 << 16
 _SEQ = struct.Struct("<H")
 _CRC = struct.Struct("<I")
+#: Bytes of the sequence number (first, little-endian) and of the CRC-32 (last, little-endian) of a frame.
+SEQ_BYTES = _SEQ.size
+CRC_BYTES = _CRC.size
 #: Bytes a frame adds to its payload before COBS: sequence number and CRC.
-FRAME_FIELDS_BYTES = _SEQ.size + _CRC.size
+FRAME_FIELDS_BYTES = SEQ_BYTES + CRC_BYTES
 
 
 class FramingError(ValueError):

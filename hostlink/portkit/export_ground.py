@@ -30,6 +30,7 @@ what, and what does not translate).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import io
 import re
@@ -171,26 +172,38 @@ def _description(f: WireField, spec: MessageSpec) -> str:
     return f.doc
 
 
-def _scalar_item(f: WireField, spec: MessageSpec, **extra: object) -> GroundItem:
+def _scalar_item(f: WireField, spec: MessageSpec) -> GroundItem:
+    """The item of a scalar or fixed-array field."""
     data_type, bits = _KIND[f.fmt]
     return GroundItem(
-        name=extra.pop("name", item_name(f.name)),  # type: ignore[arg-type]
+        name=item_name(f.name),
         data_type=data_type,
         bits=bits,
-        description=extra.pop("description", _description(f, spec)),  # type: ignore[arg-type]
+        description=_description(f, spec),
         unit=f.unit,
         array_count=int(f.count) if not f.variable and f.count != 1 else None,
         states=_states(f),
         scale=f.fixed.steps_per_unit if f.fixed is not None else None,
         length_of=item_name(f.length_of) if f.length_of else None,
         field=f.name,
-        **extra,  # type: ignore[arg-type]
+    )
+
+
+def _slot_item(record: WireField, slot: int, member: WireField, spec: MessageSpec) -> GroundItem:
+    """The item of member ``member`` of star slot ``slot`` of record field ``record``."""
+    singular = record.name[:-1] if record.name.endswith("s") else record.name
+    return dataclasses.replace(
+        _scalar_item(member, spec),
+        name=slot_item_name(record.name, slot, member.name),
+        description=f"{singular} {slot}: {member.doc}",
+        slot=slot,
+        record_member=member.name,
     )
 
 
 def header_items(spec: MessageSpec) -> tuple[GroundItem, GroundItem]:
     """The frame header every packet starts with: sequence number (``protocol.framing``) and type byte."""
-    seq_bits = framing._SEQ.size * 8
+    seq_bits = framing.SEQ_BYTES * 8
     return (
         GroundItem("SEQ", "UINT", seq_bits, f"frame sequence number, per direction, modulo {framing.SEQ_MODULUS}"),
         GroundItem(
@@ -208,18 +221,7 @@ def packet_items(spec: MessageSpec) -> tuple[GroundItem, ...]:
     out: list[GroundItem] = list(header_items(spec))
     for f in spec.fields:
         if f.fmt == "record":
-            for slot in range(int(f.max_count or MAX_STARS)):
-                for m in f.record:
-                    out.append(
-                        _scalar_item(
-                            m,
-                            spec,
-                            name=slot_item_name(f.name, slot, m.name),
-                            description=f"{f.name[:-1] if f.name.endswith('s') else f.name} {slot}: {m.doc}",
-                            slot=slot,
-                            record_member=m.name,
-                        )
-                    )
+            out += [_slot_item(f, slot, m, spec) for slot in range(int(f.max_count or MAX_STARS)) for m in f.record]
         elif f.fmt == "s":
             variable = f.variable
             out.append(
@@ -319,7 +321,7 @@ def cosmos_target_txt() -> str:
 def crc_protocol_args() -> list[str]:
     """CrcProtocol's arguments for the serial frame: no item to fill (the CRC is appended to the frame, after the
     payload), strip it on read, log bad frames, the last 32 bits, little-endian, CRC-32/ISO-HDLC."""
-    crc_bits = framing._CRC.size * 8
+    crc_bits = framing.CRC_BYTES * 8
     return [
         "nil",
         "TRUE",
@@ -425,7 +427,7 @@ def _xtce_parameter(system, name: str, item: GroundItem, length_bits: int | None
     if item.data_type == "FLOAT":
         return FloatParameter(system, name, bits=item.bits, **kw)
     if item.data_type in ("UINT", "INT"):
-        return IntegerParameter(system, name, signed=item.signed, bits=max(item.bits, 8), **kw)
+        return IntegerParameter(system, name, signed=item.signed, bits=item.bits, **kw)
     if item.data_type == "STRING":
         return StringParameter(system, name, **kw)
     return BinaryParameter(system, name, **kw)
@@ -469,14 +471,15 @@ def xtce_system():  # noqa: ANN201 - a yamcs.pymdb System
         abstract=True,
         short_description="every message from the sensor: frame sequence number and type byte",
     )
+    base_arguments = [_xtce_argument("SEQ", seq_item, None), _xtce_argument("TYPE", type_item, None)]
     base_command = Command(
         system,
         XTCE_HEADER_COMMAND,
         abstract=True,
-        arguments=[_xtce_argument("SEQ", seq_item, None), _xtce_argument("TYPE", type_item, None)],
+        arguments=base_arguments,
+        entries=[ArgumentEntry(a) for a in base_arguments],
         short_description="every command to the sensor: frame sequence number and type byte",
     )
-    base_command._entries = [ArgumentEntry(a) for a in base_command.arguments]
     for spec, items in packets().values():
         body = [(i, bits) for i, bits in _folded(items) if i.name not in ("SEQ", "TYPE")]
         doc = plain(spec.doc)
