@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.portkit.export_ground import COSMOS_CMD, COSMOS_TLM, TARGET, write_ground
+from hostlink.portkit.export_ground import COSMOS_CMD, COSMOS_TLM, TARGET, table_item_name, write_ground
+from protocol import param_table
 from protocol.messages import MAX_STARS, Message, MessageSpec, spec_of
 
 #: The magnitude's calibrated value: COSMOS (and XTCE) multiply the raw millimagnitudes by the double nearest 0.001,
@@ -130,6 +131,11 @@ def mismatches(packet, msg: Message, seq: int) -> list[str]:  # noqa: ANN001 - a
             ok = raw == int(want) and conv == int(want)
         if not ok:
             out.append(f"{spec.name}.{name}: openc3 raw {raw!r} converted {conv!r}, hostlink {want!r}")
+    if spec.name == "PARAM_TABLE":  # the table's values, laid over its bytes
+        for field, want in param_table.table_to_mapping(msg.table).items():
+            got = packet.read(table_item_name(field))
+            if not _same_float(got, want):
+                out.append(f"{spec.name}.{table_item_name(field)}: openc3 {got!r}, hostlink {want!r}")
     if len(packet.buffer_no_copy()) != 2 + len(_encoded(msg)):
         out.append(f"{spec.name}: buffer of {len(packet.buffer_no_copy())} bytes")
     return out

@@ -46,6 +46,7 @@ from protocol.messages import (  # noqa: E402
     encode,
     spec_of,
 )
+from protocol.param_table import PARAM_FIELDS, table_from_mapping  # noqa: E402
 
 TARGET = export_ground.TARGET
 XTCE_NS = {"x": "http://www.omg.org/spec/XTCE/20180204"}
@@ -63,6 +64,8 @@ def sample_messages() -> list:
         y_px=np.round(rng.uniform(-10, 1030, n) * 1024) / 1024,
         mag=np.array([5.1, np.nan, -1.46, 12.345, 0.0, np.nan, 32.767]),
     )
+    table = {f: float(v) for f, v in zip(PARAM_FIELDS, rng.normal(0, 1e-3, len(PARAM_FIELDS)), strict=True)}
+    table |= {"focal_length_mm": 70.2262, "image_width_px": 1024.0, "sigma_k1": math.nan}
     return [
         GetStatus(tag=1),
         StreamControl(tag=2, enable=False),
@@ -76,7 +79,7 @@ def sample_messages() -> list:
         Ack(tag=65535, command=7, value=13),
         Nak(tag=10, command=5, code=10, text="focal_length_mm: 1e9 is not plausible (µ)"),
         Telemetry(tag=11, streaming=True, stage_state=2, active_generation=3, active_crc32=4, frames_processed=5),
-        ParamTable(tag=12, bank=0, generation=0, crc32=99, table=bytes(range(92))),
+        ParamTable(tag=12, bank=0, generation=0, crc32=99, table=table_from_mapping(table)),
         Estimate(
             tag=13,
             status=1,
@@ -109,7 +112,8 @@ def target_differences(config, table: tuple[MessageSpec, ...]) -> list[str]:
         if packet is None:
             out.append(f"{spec.name}: no packet")
             continue
-        wire = [i for i in packet.sorted_items if i.data_type != "DERIVED"]  # COSMOS adds its own time items
+        # COSMOS adds its own time items; the parameter table's values are views laid over its bytes (OVERLAP)
+        wire = [i for i in packet.sorted_items if i.data_type != "DERIVED" and not i.overlap]
         got = [(i.name, i.bit_size if not i.variable_bit_size else 0, i.data_type) for i in wire]
         want = list(expected_items(spec))
         if got != want:
@@ -240,7 +244,10 @@ def _condition(el: ET.Element) -> tuple[str, str, int]:
 
 
 def _length_items(packet) -> set[str]:  # noqa: ANN001 - openc3 Packet
-    return {i.variable_bit_size["length_item_name"] for i in packet.sorted_items if i.variable_bit_size}
+    """Items the XTCE does not carry as parameters: length items (a leading size there) and the parameter table's
+    values (views over its bytes in COSMOS; the XTCE keeps the bytes)."""
+    lengths = {i.variable_bit_size["length_item_name"] for i in packet.sorted_items if i.variable_bit_size}
+    return lengths | {i.name for i in packet.sorted_items if i.overlap}
 
 
 def test_the_xtce_names_the_same_containers_parameters_types_units_and_encodings_as_the_cosmos_target(target, tmp_path):

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hostlink.portkit import ground_modbus
-from protocol import framing, messages
+from protocol import framing, messages, param_table
 from protocol.messages import MAX_STARS, MESSAGES, MessageSpec, WireField
 
 #: The COSMOS target name and the XTCE space system name.
@@ -299,9 +299,43 @@ def _cosmos_packet(spec: MessageSpec, items: tuple[GroundItem, ...]) -> list[str
     out = [f"{'COMMAND' if command else 'TELEMETRY'} {TARGET} {spec.name} LITTLE_ENDIAN {_quote(doc)}"]
     if any(i.slot is not None for i in items):
         out.append("  ALLOW_SHORT")
+    bit = 0
     for item in items:
         out += _cosmos_item(item, command)
+        if not command and is_param_table(item):
+            if any(i.bits == 0 for i in items[: items.index(item)]):  # pragma: no cover - a table invariant
+                raise ValueError(f"{spec.name}.{item.name}: a table after a variable field has no fixed place")
+            out += _table_view(item, bit)
+        bit += item.bits * (item.array_count or 1)
     return out + [""]
+
+
+def is_param_table(item: GroundItem) -> bool:
+    """A field holding a parameter table (``protocol.param_table``: its description names the module)."""
+    return item.data_type == "BLOCK" and item.bits == 8 * param_table.TABLE_BYTES and "param_table" in item.description
+
+
+def table_item_name(field: str) -> str:
+    """The COSMOS item of one value of a parameter table field (``TABLE_FOCAL_LENGTH_MM``)."""
+    return f"TABLE_{item_name(field)}"
+
+
+def _table_view(item: GroundItem, bit_offset: int) -> list[str]:
+    """The table's values as float32 items laid over its bytes (``OVERLAP``; COSMOS only: the XTCE keeps the
+    bytes), with the units of the Modbus map's table registers."""
+    from protocol import modbus_map
+
+    regmap = modbus_map.load_map()
+    size = 8 * param_table.TABLE_DTYPE.itemsize
+    out = []
+    for k, field in enumerate(param_table.PARAM_FIELDS):
+        desc = f"parameter table field {k} ({field}), in {item.name}"
+        out.append(f"  ITEM {table_item_name(field)} {bit_offset + k * size} {size} FLOAT {_quote(desc)} LITTLE_ENDIAN")
+        out.append("    OVERLAP")
+        unit = regmap[f"active_{field}"].units
+        if unit:
+            out.append(f"    UNITS {UNIT_NAMES.get(unit, unit)} {unit}")
+    return out
 
 
 def cosmos_cmd_tlm() -> tuple[str, str]:
