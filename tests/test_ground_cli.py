@@ -20,6 +20,9 @@ def test_export_ground_writes_every_file_and_refuses_a_file_as_dir(tmp_path):
     (tmp_path / "file").write_text("x")
     bad = hostlink("export-ground", str(tmp_path / "file"))
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "not a directory" in bad.stderr
+    under_a_file = hostlink("export-ground", str(tmp_path / "file" / "sub"))
+    assert under_a_file.returncode == 2 and "cannot write" in under_a_file.stderr
+    assert len(under_a_file.stderr.strip().splitlines()) == 1
     assert "export-ground" in hostlink("--help").stdout
 
 

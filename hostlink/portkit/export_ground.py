@@ -584,7 +584,6 @@ def write_ground(directory: str | Path) -> list[Path]:
     paths = []
     for name, text in texts.items():
         path = out / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_text(path, text)
+        write_text(path, text)  # creates the directories (a UserError if it cannot)
         paths.append(path)
     return paths
