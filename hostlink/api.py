@@ -1,4 +1,4 @@
-"""The public Python API of the host (ARCHITECTURE.md ``hostlink/api``): one import for the whole job.
+"""The public Python API of the host (docs/architecture.md ``hostlink/api``): one import for the whole job.
 
     from hostlink import api
 
@@ -15,7 +15,7 @@ would be wrong, e.g. not converged or a centroid off the detector); :class:`Link
 to a sensor fails; :class:`SensorRefused` / :class:`CommandRefused` when the sensor refuses a command and says why;
 :class:`UploadMismatch` when a read-back differs from what was uploaded.
 
-Files (INTERFACES.md formats; every write is atomic):
+Files (docs/file-formats.md formats; every write is atomic):
     :func:`read_session`, :func:`read_session_chunks` (a session of any length, or several files, in chunks of whole
     frames), :func:`concatenate_sessions`, :func:`write_session`, :class:`SessionWriter` (CSV, or Parquet for
     ``*.parquet``), :func:`load_params`,

@@ -55,7 +55,7 @@ def fisher_information(
 
 
 def grid_points(params: CameraParams, side: int = GRID_SIDE) -> tuple[np.ndarray, np.ndarray]:
-    """side x side measured-pixel positions spanning the detector, corners included (CAMERA_MODEL.md extent)."""
+    """side x side measured-pixel positions spanning the detector, corners included (docs/camera-model.md extent)."""
     w, h = params.image_size_px
     gx, gy = np.meshgrid(np.linspace(-0.5, w - 0.5, side), np.linspace(-0.5, h - 0.5, side))
     return gx.ravel(), gy.ravel()

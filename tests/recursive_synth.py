@@ -23,7 +23,7 @@ from onboard.interstar import (
 )
 from onboard.params import CameraParams, params_from_dict
 
-#: Seed 004 sec. 3, Table 1 (k signs converted to CAMERA_MODEL.md: k = -k_seed004): the package's seed004_camera.
+#: Seed 004 sec. 3, Table 1 (k signs converted to docs/camera-model.md: k = -k_seed004): the package's seed004_camera.
 SEED004_TRUE = load_params("builtin:seed004_camera")
 #: The starting values of seed 004's experiments (sec. 3: f 72 mm, principal point (512, 512), no distortion): the
 #: package's design nominal (builtin:seed004_nominal, f 70 mm at (511.5, 511.5)) moved further from the truth.

@@ -30,7 +30,7 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (docs/file-formats.md)")
     parser.add_argument(
         "--params",
         required=True,

@@ -1,4 +1,4 @@
-"""``hostlink calibrate``: batch ground calibration of a session (INTERFACES.md)."""
+"""``hostlink calibrate``: batch ground calibration of a session (docs/file-formats.md)."""
 
 from __future__ import annotations
 
@@ -35,8 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "session",
         nargs="+",
         metavar="SESSION",
-        help="session file(s) (INTERFACES.md): one CSV, or several files, a glob pattern or .parquet files read as "
-        "one session in time order (the chunked path)",
+        help="session file(s) (docs/file-formats.md): one CSV, or several files, a glob pattern or .parquet files "
+        "read as one session in time order (the chunked path)",
     )
     parser.add_argument(
         "--nominal",

@@ -1,4 +1,4 @@
-"""``hostlink simulate``: simulated observations of the real sky through a given camera (INTERFACES.md).
+"""``hostlink simulate``: simulated observations of the real sky through a given camera (docs/file-formats.md).
 
 Writes SESSION.csv or SESSION.parquet (with ra_deg, dec_deg: geocentric apparent place) and SESSION.truth.json
 beside it.

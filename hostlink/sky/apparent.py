@@ -1,4 +1,5 @@
-"""Geocentric apparent place of Hipparcos stars, true equator and equinox of date (INTERFACES.md, seed 000 sec. 3).
+"""Geocentric apparent place of Hipparcos stars, true equator and equinox of date (seed 000 sec. 3; the session
+file's ``ra_deg, dec_deg``, docs/file-formats.md).
 
 The chain, all in pyerfa (IAU 2006/2000A):
 
