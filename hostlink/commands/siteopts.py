@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from hostlink.errors import UserError
-from onboard.site import Site, Weather
+from hostlink.api import Site, UserError, Weather
 
 
 def _numbers(text: str, option: str, counts: tuple[int, ...], example: str) -> list[float]:
