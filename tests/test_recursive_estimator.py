@@ -62,6 +62,7 @@ def seed004_sessions():
     return np.array(rec), np.array(ml), np.array(sig)
 
 
+@pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
 def test_every_parameter_is_within_1_3x_of_the_bound_over_several_sessions(seed004_sessions):
     rec, ml, sig = seed004_sessions
     # The batch ML of the same pairs attains the bound (validates the CRB used): the RMS of 6 standard normals is
