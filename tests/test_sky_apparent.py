@@ -23,6 +23,8 @@ ARCSEC = np.pi / 648000.0
 #: The acceptance bar of the simulator's reference directions (issue 2): 0.01 arcsec.
 TOL_RAD = 0.01 * ARCSEC
 MAS_TO_RAD = ARCSEC / 1000.0
+#: The bound of the apparent place interpolated between hourly nodes (hostlink.sky.apparent's docstring: 2.4e-5").
+INTERPOLATION_BOUND_RAD = 2.4e-5 * ARCSEC
 
 
 def reference_chain(cat, rows, jd_utc1: float, jd_utc2: float) -> np.ndarray:
@@ -83,7 +85,9 @@ def test_one_time_per_row_equals_separate_calls():
     together = apparent_directions(cat, rows, jd1, jd2)
     for k in range(3):
         alone = apparent_directions(cat, rows[k : k + 1], jd1[k], jd2[k])
-        assert angle_rad(together[k : k + 1], alone)[0] < 1e-15  # same arithmetic, rounding only
+        # one time per row is interpolated between hourly nodes (issue 29), one time is ERFA at that time: they agree
+        # within the interpolation's bound, 2.4e-5" (hostlink.sky.apparent's docstring)
+        assert angle_rad(together[k : k + 1], alone)[0] < INTERPOLATION_BOUND_RAD
 
 
 def test_radec_degrees_are_the_unit_vectors_in_session_convention():
@@ -119,7 +123,9 @@ def test_session_without_radec_gets_the_same_reference_directions_as_the_simulat
     without = session_references(replace(s, ra_deg=None, dec_deg=None)).r
     ident = s.star_id != 0
     assert np.all(np.isnan(without[~ident])) and np.all(np.isnan(with_radec[~ident]))
-    assert angle_rad(with_radec[ident], without[ident]).max() < 1e-12  # same ERFA route, float64 rounding
+    # the simulator writes ERFA's place at each frame's time; without the columns the place is interpolated between
+    # hourly nodes (issue 29): the same within the interpolation's bound
+    assert angle_rad(with_radec[ident], without[ident]).max() < INTERPOLATION_BOUND_RAD
 
 
 def test_apparent_place_per_epoch_matches_erfa_atci13_star_by_star():
@@ -156,4 +162,7 @@ def test_apparent_place_per_epoch_matches_erfa_atci13_star_by_star():
     ri, di, eo = erfa.atci13(ra0, de0, pr0, pd0, px0, rv0, tt1, tt2)  # one full ERFA evaluation per row
     err_arcsec = angle_rad(got, radec_to_unit(ri - eo, di)) / ARCSEC
     assert err_arcsec.max() < 0.001
-    assert err_arcsec.max() < 2.4e-5
+    assert err_arcsec.max() * ARCSEC < INTERPOLATION_BOUND_RAD
+    # a row's place does not depend on the rows that come with it (a session read in chunks gets the same places)
+    part = slice(1234, 1300)
+    assert np.array_equal(apparent_directions(cat, rows[part], jd1[part], jd2[part]), got[part])

@@ -99,6 +99,9 @@ def apparent_from_astrometry(stars: StarsJ2000, astrom: np.ndarray, eo_rad: np.n
 #: interpolation in between errs by at most 2.4e-5" at this spacing (module docstring).
 APPARENT_NODE_SPACING_S = 3600.0
 _DAY_S = 86400.0
+#: Origin of the node grid, a UTC Julian date (2000-01-01 12:00 UTC; any fixed date would do: fixed, so that a row's
+#: place does not depend on the other rows of the call).
+_NODE_ORIGIN_JD_UTC = 2451545.0
 
 
 def apparent_directions(
@@ -106,9 +109,10 @@ def apparent_directions(
 ) -> np.ndarray:
     """Geocentric apparent unit vectors (N, 3), true equator and equinox of date, of catalogue ``rows`` at UTC
     (jd_utc1 + jd_utc2), a scalar or one time per row. One time: ERFA for each distinct star at that time. One time
-    per row: exact at nodes :data:`APPARENT_NODE_SPACING_S` apart and interpolated between them, within 2.4e-5" of
-    ERFA's place (module docstring). ``dut1_s`` is accepted for symmetry with the site functions and not used: a
-    geocentric apparent place does not depend on UT1."""
+    per row: exact at nodes :data:`APPARENT_NODE_SPACING_S` apart on a grid fixed in time (so a row's place does not
+    depend on which other rows come with it: a session read in chunks gets the same places) and interpolated between
+    them, within 2.4e-5" of ERFA's place (module docstring). ``dut1_s`` is accepted for symmetry with the site
+    functions and not used: a geocentric apparent place does not depend on UT1."""
     del dut1_s
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
     jd1, jd2 = np.broadcast_arrays(
@@ -118,34 +122,33 @@ def apparent_directions(
         raise ValueError(f"expected one time or one per row ({rows.size}), got {jd1.size}")
     if rows.size == 0:
         return np.zeros((0, 3))
-    days = (jd1 - jd1[0]) + (jd2 - jd2[0])  # from the first row's time, exact to ~1e-11 day
-    if jd1.size == 1 or np.all(days == days[0]):
+    if jd1.size == 1:
         distinct, star_of_row = np.unique(rows, return_inverse=True)
-        astrom, eo = frame_astrometry(jd1[:1], jd2[:1])
+        astrom, eo = frame_astrometry(jd1, jd2)
         return apparent_from_astrometry(stars_at_j2000(cat, distinct), astrom, eo)[star_of_row]
-    return _interpolated_directions(cat, rows, jd1[0], jd2[0], days)
+    return _interpolated_directions(cat, rows, (jd1 - _NODE_ORIGIN_JD_UTC) + jd2)
 
 
-def _interpolated_directions(
-    cat: Catalogue, rows: np.ndarray, jd1_ref: float, jd2_ref: float, days: np.ndarray
-) -> np.ndarray:
-    """Apparent directions of ``rows`` at UTC ``jd1_ref + jd2_ref + days`` (module docstring, "per epoch"): ERFA
-    for each (star, node) pair that a row needs, linear in time between a row's two nodes, renormalised."""
+def _interpolated_directions(cat: Catalogue, rows: np.ndarray, days: np.ndarray) -> np.ndarray:
+    """Apparent directions of ``rows`` at UTC Julian date :data:`_NODE_ORIGIN_JD_UTC` + ``days`` (module docstring,
+    "per epoch"): ERFA for each (star, node) pair a row needs, nodes at whole multiples of the spacing from that
+    date, linear in time between a row's two nodes, renormalised."""
     step = APPARENT_NODE_SPACING_S / _DAY_S
-    start = float(days.min())
-    position = (days - start) / step
-    n_nodes = int(np.floor(position.max())) + 2  # nodes start + k step, k = 0 .. n_nodes - 1, covering every row
-    node = np.minimum(np.floor(position), n_nodes - 2).astype(np.int64)
+    position = days / step
+    node = np.floor(position).astype(np.int64)
     weight = position - node
+    first = int(node.min())
+    span = int(node.max()) - first + 2  # node indices first .. first + span - 1 cover every row's two nodes
     # the (star, node) pairs of each row's lower node; its upper pairs are the same keys + 1
-    lower_keys, pair_of_row = np.unique(rows * n_nodes + node, return_inverse=True)
+    lower_keys, pair_of_row = np.unique(rows * span + (node - first), return_inverse=True)
     keys = np.union1d(lower_keys, lower_keys + 1)
     lower = np.searchsorted(keys, lower_keys)[pair_of_row]
     upper = np.searchsorted(keys, lower_keys + 1)[pair_of_row]
-    star_rows, key_node = np.divmod(keys, n_nodes)
+    star_rows, key_node = np.divmod(keys, span)
     distinct, star_of_key = np.unique(star_rows, return_inverse=True)
     nodes_used, node_of_key = np.unique(key_node, return_inverse=True)
-    astrom, eo = frame_astrometry(np.full(nodes_used.size, jd1_ref), jd2_ref + start + step * nodes_used)
+    node_days = (first + nodes_used) * step
+    astrom, eo = frame_astrometry(np.full(nodes_used.size, _NODE_ORIGIN_JD_UTC), node_days)
     exact = apparent_from_astrometry(
         stars_at_j2000(cat, distinct).take(star_of_key), astrom[node_of_key], eo[node_of_key]
     )
