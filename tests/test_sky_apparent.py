@@ -27,12 +27,12 @@ MAS_TO_RAD = ARCSEC / 1000.0
 INTERPOLATION_BOUND_RAD = 2.4e-5 * ARCSEC
 
 
-def reference_chain(cat, rows, jd_utc1: float, jd_utc2: float) -> np.ndarray:
-    tt1, tt2 = utc_to_tt(np.atleast_1d(jd_utc1), np.atleast_1d(jd_utc2))
+def propagated(cat, rows, tt1, tt2):
+    """erfa.pmsafe of catalogue ``rows`` from the Hipparcos epoch to TT ``tt1 + tt2``: (ra, dec, pmr, pmd, px, rv)."""
     dec = cat.dec_rad[rows]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", erfa.ErfaWarning)  # non-positive parallaxes: pmsafe's safe override
-        ra, de, _, _, px, _ = erfa.pmsafe(
+        return erfa.pmsafe(
             cat.ra_rad[rows],
             dec,
             cat.pmra_masyr[rows] / np.cos(dec) * MAS_TO_RAD,
@@ -41,9 +41,14 @@ def reference_chain(cat, rows, jd_utc1: float, jd_utc2: float) -> np.ndarray:
             0.0,
             HIPPARCOS_EPOCH_JD_TT,
             0.0,
-            tt1[0],
-            tt2[0],
+            tt1,
+            tt2,
         )
+
+
+def reference_chain(cat, rows, jd_utc1: float, jd_utc2: float) -> np.ndarray:
+    tt1, tt2 = utc_to_tt(np.atleast_1d(jd_utc1), np.atleast_1d(jd_utc2))
+    ra, de, _, _, px, _ = propagated(cat, rows, tt1[0], tt2[0])
     pvh, pvb = erfa.epv00(tt1[0], tt2[0])
     p = erfa.pmpx(ra, de, 0.0, 0.0, px, 0.0, 0.0, pvb["p"])  # parallax only: motion already applied
     em = np.linalg.norm(pvh["p"])
@@ -144,22 +149,8 @@ def test_apparent_place_per_epoch_matches_erfa_atci13_star_by_star():
     got = apparent_directions(cat, rows, jd1, jd2)
 
     tt1, tt2 = utc_to_tt(jd1, jd2)
-    dec = cat.dec_rad[rows]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", erfa.ErfaWarning)
-        ra0, de0, pr0, pd0, px0, rv0 = erfa.pmsafe(
-            cat.ra_rad[rows],
-            dec,
-            cat.pmra_masyr[rows] / np.cos(dec) * MAS_TO_RAD,
-            cat.pmdec_masyr[rows] * MAS_TO_RAD,
-            np.maximum(cat.plx_mas[rows], 0) / 1000.0,
-            0.0,
-            HIPPARCOS_EPOCH_JD_TT,
-            0.0,
-            2451545.0,
-            0.0,
-        )
-    ri, di, eo = erfa.atci13(ra0, de0, pr0, pd0, px0, rv0, tt1, tt2)  # one full ERFA evaluation per row
+    j2000 = propagated(cat, rows, 2451545.0, 0.0)  # atci13 takes J2000 star data (its note 1)
+    ri, di, eo = erfa.atci13(*j2000, tt1, tt2)  # one full ERFA evaluation per row
     err_arcsec = angle_rad(got, radec_to_unit(ri - eo, di)) / ARCSEC
     assert err_arcsec.max() < 0.001
     assert err_arcsec.max() * ARCSEC < INTERPOLATION_BOUND_RAD
