@@ -2,7 +2,7 @@
 and ``hostlink replay`` streaming them, run on demand.
 
 1. Sessions: seed 004's camera, 10-30 stars per frame uniform over the detector, 0.05 px noise, frames 0.1 s
-   apart, reference directions in ``ra_deg``/``dec_deg`` (tests/synthetic_sessions.py: the camera model and a
+   apart, reference directions in ``ra_deg``/``dec_deg`` (hostlink.api.synthetic_session: the camera model and a
    random attitude per frame, so any number of frames is cheap; every row is a valid session row). Written once
    per size as CSV and as Parquet through the one session writer (``SessionWriter``, chunk by chunk), kept in
    ``--dir`` and reused.
@@ -40,13 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the synthetic star fields live there
-
-from synthetic_sessions import synthetic_session  # noqa: E402
-
-from hostlink.files.params import load_params  # noqa: E402
-from hostlink.files.session import Session, SessionWriter  # noqa: E402
-from onboard.camera import unit_to_radec  # noqa: E402
+from hostlink.api import synthetic_session
+from hostlink.files.params import load_params
+from hostlink.files.session import Session, SessionWriter
+from onboard.camera import unit_to_radec
 
 TRUTH = "builtin:seed004_camera"
 NOMINAL = "builtin:seed004_nominal"

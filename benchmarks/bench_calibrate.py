@@ -24,30 +24,24 @@ Usage: .venv/bin/python benchmarks/bench_calibrate.py [--frames 1000] [--memory-
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 import tracemalloc
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers below live there
-
-from crb_bounds import validation_residual_px  # noqa: E402
-from synthetic_sessions import synthetic_session  # noqa: E402
-
-from hostlink.calibration.bundle import (  # noqa: E402
+from hostlink.api import synthetic_session, validation_residual_px
+from hostlink.calibration.bundle import (
     BundleOptions,
     bundle_adjust,
     initial_attitudes,
     observation_terms,
     parameter_scales,
 )
-from hostlink.calibration.frames import apply_attitude_increment  # noqa: E402
-from hostlink.files.params import load_params  # noqa: E402
+from hostlink.calibration.frames import apply_attitude_increment
+from hostlink.files.params import load_params
 
 TRUTH = load_params("builtin:seed004_camera")
 NOMINAL = load_params("builtin:seed004_nominal")

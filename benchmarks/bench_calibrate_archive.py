@@ -26,7 +26,7 @@ memory from the kernel's rusage of that process, loading of the input included; 
 Each method's time includes its own imports (OpenCV and scipy ~130 ms, ours ~7 ms), with every package
 byte-compiled first (:func:`byte_compile_project`), as installed packages are.
 
-Accuracy: the validation residual (``tests/crb_bounds.py``: RMS over a grid of the detector of the difference
+Accuracy: the validation residual (``hostlink.calibration.crb``: RMS over a grid of the detector of the difference
 between the estimated and the true camera's directions, best rotation removed) against its Cramer-Rao bound from
 the Fisher information of the noise-free session (summed chunk by chunk). Ratios are against ``chunked`` in the same
 run, of CPU time (each method single-threaded; the wall time of one run on a shared machine varies several-fold with
@@ -55,19 +55,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers below live there
-
-import crb_bounds as crb  # noqa: E402
-from synthetic_sessions import synthetic_session  # noqa: E402
-
-from hostlink.calibration.bundle import (  # noqa: E402
+from hostlink import api
+from hostlink.api import synthetic_session
+from hostlink.calibration.bundle import (
     ChunkSource,
     initial_attitudes,
     observation_terms,
     parameter_columns,
     parameter_scales,
 )
-from hostlink.calibration.data import (  # noqa: E402
+from hostlink.calibration.data import (
     SPOOL_SUFFIX,
     CalibrationData,
     build_data,
@@ -76,11 +73,11 @@ from hostlink.calibration.data import (  # noqa: E402
     load_chunk,
     save_chunk,
 )
-from hostlink.calibration.frames import apply_attitude_increment, rotation_from_vector, wahba_attitudes  # noqa: E402
-from hostlink.files.params import load_params  # noqa: E402
-from hostlink.files.session import Session, SessionWriter  # noqa: E402
-from onboard.camera import unit_to_radec  # noqa: E402
-from onboard.params import ESTIMATE_NAMES  # noqa: E402
+from hostlink.calibration.frames import apply_attitude_increment, rotation_from_vector
+from hostlink.files.params import load_params
+from hostlink.files.session import Session, SessionWriter
+from onboard.camera import unit_to_radec
+from onboard.params import ESTIMATE_NAMES
 
 TRUTH = load_params("builtin:seed004_camera")
 NOMINAL = load_params("builtin:seed004_nominal")
@@ -130,7 +127,7 @@ def generate(frames: int, folder: Path, session: int = 0) -> None:
             save_chunk(folder / f"chunk{k:05d}{SPOOL_SUFFIX}", data)
             writer.append(session_of(d, start))
             noise_free = build_data(ss.x_true_px, ss.y_true_px, d.r, d.frame_index())
-            info += crb.fisher_information(noise_free, TRUTH.model_vector(), ss.attitudes_true, ALL, NOISE_PX)
+            info += api.fisher_information(noise_free, TRUTH.model_vector(), ss.attitudes_true, ALL, NOISE_PX)
     np.save(folder / "info.npy", info)
 
 
@@ -273,28 +270,18 @@ RUNNERS = {
 # ------------------------------------------------------------------------------------------------ the accuracy
 def validation_px(method: str, estimate: np.ndarray) -> float:
     """Validation residual [px] of an estimate: our model vector, or OpenCV's 8 values (directions of the grid
-    through cv2.undistortPoints, aligned to the truth's by the best rotation as in crb_bounds)."""
+    through cv2.undistortPoints, aligned to the truth's by the best rotation, as for ours)."""
     if method != "opencv":
-        return crb.validation_residual_px(estimate, TRUTH)
+        return api.validation_residual_px(estimate, TRUTH)
     import cv2
 
-    theta_true = TRUTH.model_vector()
-    gx, gy = crb.grid_points(TRUTH)
-    b_true = crb.pixels_to_unit(gx, gy, theta_true)
+    gx, gy = api.grid_points(TRUTH)
     cam, dist = _opencv_model(estimate)
     und = cv2.undistortPoints(np.stack([gx, gy], axis=1).reshape(-1, 1, 2), cam, dist, criteria=None)
     und = und.reshape(-1, 2)
     b_est = np.concatenate([und, np.ones((und.shape[0], 1))], axis=1)
     b_est /= np.linalg.norm(b_est, axis=1, keepdims=True)
-    rot = wahba_attitudes(b_true, b_est, np.array([0, gx.size]))[0]
-    target = crb._project(b_true, theta_true[0])
-    for _ in range(5):
-        s = b_est @ rot.T
-        d = crb._project(s, theta_true[0]) - target
-        j = (crb._project_jacobian(s, theta_true[0]) @ crb.skew(s)).reshape(-1, 3)
-        rot = rotation_from_vector(-np.linalg.lstsq(j, -d.ravel(), rcond=None)[0]) @ rot
-    diff = crb._project(b_est @ rot.T, theta_true[0]) - target
-    return float(np.sqrt(np.mean(np.sum(diff * diff, axis=1))))
+    return api.validation_residual_from_directions_px(b_est, TRUTH)
 
 
 # ----------------------------------------------------------------------------------------------- the harness
@@ -389,7 +376,7 @@ def main() -> None:
         t0 = time.perf_counter()
         generate(frames, folder, args.session)
         info = np.load(folder / "info.npy")
-        bound = crb.crb_validation_px(info, crb.validation_jacobian(TRUTH, ALL))
+        bound = api.crb_validation_px(info, api.validation_jacobian(TRUTH, ALL))
         d = np.sqrt(np.diag(info))  # equilibrated: the entries span 30 orders of magnitude
         sigma_of[frames] = np.sqrt(np.diag(np.linalg.pinv(info / d[:, None] / d[None, :], hermitian=True))) / d
         print(

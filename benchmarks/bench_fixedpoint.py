@@ -12,20 +12,18 @@ run through ``hostlink replay --precision fixed`` sees.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from hostlink.api import make_frames, seed004_paper_start, seed004_true_camera
+from onboard import fixedpoint, recursive
+from onboard.camera import pixels_to_unit
+from onboard.interstar import difference_residuals, independent_pairs
+from protocol.messages import dequantise_px, quantise_px
 
-from recursive_synth import SEED004_PAPER_START, SEED004_TRUE, make_frames  # noqa: E402
-
-from onboard import fixedpoint, recursive  # noqa: E402
-from onboard.camera import pixels_to_unit  # noqa: E402
-from onboard.interstar import difference_residuals, independent_pairs  # noqa: E402
-from protocol.messages import dequantise_px, quantise_px  # noqa: E402
+SEED004_TRUE = seed004_true_camera()
+SEED004_PAPER_START = seed004_paper_start()
 
 
 def wire_frames(frames):

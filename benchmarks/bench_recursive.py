@@ -8,17 +8,15 @@ that the emulator never limits a bench.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from hostlink.api import make_frames, seed004_paper_start, seed004_true_camera
+from onboard import recursive
 
-from recursive_synth import SEED004_PAPER_START, SEED004_TRUE, make_frames  # noqa: E402
-
-from onboard import recursive  # noqa: E402
+SEED004_TRUE = seed004_true_camera()
+SEED004_PAPER_START = seed004_paper_start()
 
 
 def frames_per_second(frames, dtype) -> float:

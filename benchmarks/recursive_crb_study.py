@@ -1,7 +1,7 @@
 """Study: the onboard recursive estimator's error against the Cramer-Rao bound, per parameter, over N seeds.
 
 Each seed is one seed-004 session (``hostlink.sky.simulate.seed004_config``: Hipparcos stars to Hp 6, >= 10 stars per
-frame, 0.05 px) or one synthetic run (``tests/recursive_synth.py``, 10-30 stars uniformly on the detector), replayed
+frame, 0.05 px) or one synthetic run (``hostlink.api.synth_frames``, 10-30 stars uniformly on the detector), replayed
 from seed 004's cold start (f 72 mm, principal point (512, 512), no distortion). For each parameter it prints
 
 * err/CRB: RMS over the seeds of (estimate - truth) / CRB, CRB = sqrt(diag(J^-1)), J the 2n-3 pair information of the
@@ -21,18 +21,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from hostlink.api import interstar_batch_ml as batch_ml
+from hostlink.api import seed004_paper_start, sky_frames, synth_frames
+from onboard import recursive
+from onboard.params import ESTIMATE_NAMES
 
-from recursive_synth import SEED004_PAPER_START, batch_ml, sky_frames, synth_frames  # noqa: E402
-
-from onboard import recursive  # noqa: E402
-from onboard.params import ESTIMATE_NAMES  # noqa: E402
+SEED004_PAPER_START = seed004_paper_start()
 
 
 def run_estimator(frames, config, dtype, nominal=SEED004_PAPER_START):

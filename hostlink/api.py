@@ -1,4 +1,4 @@
-"""The public Python API of the host (ARCHITECTURE.md ``hostlink/api``): one import for the whole job.
+"""The public Python API of the host (docs/architecture.md ``hostlink/api``): one import for the whole job.
 
     from hostlink import api
 
@@ -15,7 +15,7 @@ would be wrong, e.g. not converged or a centroid off the detector); :class:`Link
 to a sensor fails; :class:`SensorRefused` / :class:`CommandRefused` when the sensor refuses a command and says why;
 :class:`UploadMismatch` when a read-back differs from what was uploaded.
 
-Files (INTERFACES.md formats; every write is atomic):
+Files (docs/file-formats.md formats; every write is atomic):
     :func:`read_session`, :func:`read_session_chunks` (a session of any length, or several files, in chunks of whole
     frames), :func:`concatenate_sessions`, :func:`write_session`, :class:`SessionWriter` (CSV, or Parquet for
     ``*.parquet``), :func:`load_params`,
@@ -52,6 +52,23 @@ Port kit (docs/port-kit.md):
     (operations and memory per frame at N stars).
 Ground systems (docs/ground-systems.md):
     :func:`export_ground` (an OpenC3 COSMOS target and an XTCE 1.2 document of every message, from the one table).
+The judge (scoring a calibration against a known truth; the tests and benchmarks use the same functions):
+    :func:`synthetic_session` (random star fields through a known camera, exact truth, :class:`SyntheticSession`),
+    :func:`make_frames` / :func:`synth_frames` / :func:`sky_frames` (the same frame by frame, for the recursive
+    estimator), :func:`seed004_true_camera`, :func:`seed004_paper_start`; :func:`fisher_information` (the
+    Cramer-Rao bound of a session, attitudes as nuisance), :func:`validation_residual_px` /
+    :func:`validation_residual_from_directions_px` (accuracy over the detector, [px]), :func:`validation_jacobian`,
+    :func:`crb_validation_px` (its bound), :func:`grid_points`, :func:`interstar_frame_information`,
+    :func:`interstar_information`, :func:`interstar_batch_ml` (the onboard measurement model's bound and batch
+    estimate), :func:`attitude_covariance` (an attitude's bound), :func:`rotation_angle_rad`.
+Helpers the commands share (parsing and checking options, what they print):
+    :func:`check_on_detector`, :func:`session_paths`, :func:`truth_path_for`, :func:`emit_param_file`,
+    :func:`write_json`, :func:`write_rejected`, :func:`write_calibration_plots`, :func:`summary_table`,
+    :func:`write_example`, :func:`progress_bar`, :func:`parse_estimate_names`, :func:`refined_mask`,
+    :func:`refraction_mode`, :func:`precision_dtype`, :func:`seed004_config`, :func:`frames_to_session`,
+    :func:`read_can_capture` (loaded on first use), :func:`parse_endpoint_options`, and the constants
+    ``DISTORTION_NAMES``, ``DEFAULT_REJECT_ARCSEC``, ``PRECISIONS``, ``REFRACTION_MODELS``, ``ENDPOINTS``,
+    ``WIRE_PX_FORMAT``, with :class:`EndpointOptions` and :class:`EstimatorBudget`.
 Emulated sensor and the bench:
     :class:`EmulatorProcess` (``hostlink emulate`` as a child process), :func:`build_sensor` (the firmware and its
     frame source, in process), :func:`run_bench` with :class:`BenchConfig` (the whole mission end to end),
@@ -60,31 +77,63 @@ Emulated sensor and the bench:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from hostlink.calibration.crb import (
+    attitude_covariance,
+    crb_validation_px,
+    fisher_information,
+    grid_points,
+    interstar_batch_ml,
+    interstar_frame_information,
+    interstar_information,
+    rotation_angle_rad,
+    validation_jacobian,
+    validation_residual_from_directions_px,
+    validation_residual_px,
+)
 from hostlink.calibration.holdout import CrossValidation, cross_validate
+from hostlink.calibration.plots import write_calibration_plots
 from hostlink.calibration.replay import (
     ReplayResult,
     estimate_extras,
+    precision_dtype,
     replay_chunks,
     replay_config,
     replay_prior,
     replay_session,
 )
+from hostlink.calibration.report import write_rejected
 from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_archive, calibrate_session, result_extras
+from hostlink.calibration.synthetic import (
+    SyntheticSession,
+    make_frames,
+    seed004_paper_start,
+    seed004_true_camera,
+    sky_frames,
+    synth_frames,
+    synthetic_session,
+)
+from hostlink.emulator import ENDPOINTS
 from hostlink.emulator.process import EmulatorProcess
-from hostlink.emulator.setup import build_sensor
+from hostlink.emulator.sensor import EndpointOptions
+from hostlink.emulator.setup import build_sensor, parse_endpoint_options
 from hostlink.errors import LinkError, SensorRefused, UserError
+from hostlink.files.atomic import write_json
 from hostlink.files.attitude import write_attitudes
-from hostlink.files.params import data_file, load_params, load_params_with_sigma, save_params
+from hostlink.files.params import data_file, emit_param_file, load_params, load_params_with_sigma, save_params
 from hostlink.files.session import (
     Session,
     SessionWriter,
+    check_on_detector,
     concatenate_sessions,
     read_session,
     read_session_chunks,
+    session_paths,
     write_session,
 )
 from hostlink.files.trace import TraceWriter, read_trace, write_trace
-from hostlink.files.truth import read_truth, write_truth
+from hostlink.files.truth import read_truth, truth_path_for, write_truth
 from hostlink.images.centroid import (
     CentroidOptions,
     CentroidResult,
@@ -99,6 +148,7 @@ from hostlink.images.read import RawImage, read_image
 from hostlink.links import Link, open_link
 from hostlink.links.base import CommandRefused
 from hostlink.links.operations import (
+    WIRE_PX_FORMAT,
     ActiveParams,
     EstimatePoll,
     StreamResult,
@@ -107,6 +157,7 @@ from hostlink.links.operations import (
     accept_estimate,
     estimate_record,
     float32_equal,
+    frames_to_session,
     params_float32_dict,
     poll_estimate,
     poll_estimates,
@@ -117,17 +168,30 @@ from hostlink.links.operations import (
     stream_frames,
 )
 from hostlink.mission.config import BenchConfig, design_nominal
+from hostlink.mission.example import write_example
 from hostlink.mission.run import run_bench
+from hostlink.mission.summary import summary_table
 from hostlink.portkit.costs import cost_table, cost_table_text
 from hostlink.portkit.export_c import write_c as export_c
 from hostlink.portkit.export_ground import write_ground as export_ground
 from hostlink.portkit.vectors import write_vectors
-from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
+from hostlink.progress import progress_bar
+from hostlink.sky.attitude import (
+    DEFAULT_REJECT_ARCSEC,
+    PRECISIONS,
+    REFRACTION_MODELS,
+    REFRACTION_MODES,
+    SessionAttitudes,
+    refraction_mode,
+    solve_attitudes,
+)
 from hostlink.sky.references import SessionReferences, session_references
 from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
-from hostlink.sky.simulate import SimConfig, SimResult, simulate
-from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
-from onboard.recursive import RecursiveConfig
+from hostlink.sky.simulate import SimConfig, SimResult, seed004_config, simulate
+from onboard.firmware import EstimatorBudget
+from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, Distortion
+from onboard.prior import refined_mask
+from onboard.recursive import RecursiveConfig, parse_estimate_names
 from onboard.site import Site, Weather
 from protocol.messages import Estimate
 
@@ -233,4 +297,66 @@ __all__ = [
     "build_sensor",
     "design_nominal",
     "run_bench",
+    # the judge
+    "SyntheticSession",
+    "attitude_covariance",
+    "crb_validation_px",
+    "fisher_information",
+    "grid_points",
+    "interstar_batch_ml",
+    "interstar_frame_information",
+    "interstar_information",
+    "make_frames",
+    "rotation_angle_rad",
+    "seed004_paper_start",
+    "seed004_true_camera",
+    "sky_frames",
+    "synth_frames",
+    "synthetic_session",
+    "validation_jacobian",
+    "validation_residual_from_directions_px",
+    "validation_residual_px",
+    # helpers the commands share
+    "DEFAULT_REJECT_ARCSEC",
+    "DISTORTION_NAMES",
+    "ENDPOINTS",
+    "EndpointOptions",
+    "EstimatorBudget",
+    "PRECISIONS",
+    "REFRACTION_MODELS",
+    "WIRE_PX_FORMAT",
+    "check_on_detector",
+    "emit_param_file",
+    "frames_to_session",
+    "parse_endpoint_options",
+    "parse_estimate_names",
+    "precision_dtype",
+    "progress_bar",
+    "read_can_capture",
+    "refined_mask",
+    "refraction_mode",
+    "seed004_config",
+    "session_paths",
+    "summary_table",
+    "truth_path_for",
+    "write_calibration_plots",
+    "write_example",
+    "write_json",
+    "write_rejected",
 ]
+
+if TYPE_CHECKING:  # for readers and type checkers; at run time __getattr__ below loads it
+    from hostlink.links.can_capture import read_can_capture
+
+#: Names loaded on first use (PEP 562): python-can's log readers cost ~60 ms of import that only ``import-can`` needs.
+_LAZY = {"read_can_capture": "hostlink.links.can_capture"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -45,7 +45,7 @@ class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         # A value starting with '-' and a digit is a value, not an option (as Python 3.13's argparse reads it):
-        # `--site -33.9,-70.7,2400` (south, west) and `--weather -5,750` (frost) are INTERFACES.md syntax.
+        # `--site -33.9,-70.7,2400` (south, west) and `--weather -5,750` (frost) are docs/interfaces.md syntax.
         self._negative_number_matcher = re.compile(r"^-\.?\d")
 
     def error(self, message: str) -> None:  # one line, not usage + message

@@ -1,4 +1,4 @@
-"""The one camera model (shared/spec/CAMERA_MODEL.md), written once and dtype-generic.
+"""The one camera model (docs/camera-model.md), written once and dtype-generic.
 
 Every function takes the model vector ``theta`` = (F_px, x0_px, y0_px, k1, k2, k3, p1, p2, s1, s2) as returned by
 ``CameraParams.model_vector(dtype)``, and computes in the dtype of its inputs: the sensor calls it with float32
@@ -9,7 +9,7 @@ Jacobians are with respect to the model vector (F in pixels). The focal length i
 d/df_mm = (1000 / p) d/dF_px.
 
 Source: Weng, Cohen, Herniou (1992), as used in seed 000 eq. 7; pinhole direction as seed 004 eq. 2 / seed 000 eq. 2
-with the sign convention of CAMERA_MODEL.md (+x along increasing column, +y along increasing row, +z boresight).
+with the sign convention of docs/camera-model.md (+x along increasing column, +y along increasing row, +z boresight).
 """
 
 from __future__ import annotations
@@ -236,7 +236,7 @@ def unit_to_pixels(b_sensor: np.ndarray, theta: np.ndarray, tol_px: float = 1e-1
 
 
 def radec_to_unit(ra_rad: np.ndarray, dec_rad: np.ndarray) -> np.ndarray:
-    """Catalogue direction r = (cos dec cos ra, cos dec sin ra, sin dec), shape (N, 3) (CAMERA_MODEL.md)."""
+    """Catalogue direction r = (cos dec cos ra, cos dec sin ra, sin dec), shape (N, 3) (docs/camera-model.md)."""
     cd = np.cos(dec_rad)
     return np.stack([cd * np.cos(ra_rad), cd * np.sin(ra_rad), np.sin(dec_rad)], axis=-1)
 

@@ -2,10 +2,10 @@
 
 Frames (every function says which it returns):
 - GCRS: geocentric, ICRS axes (the catalogue's frame after apparent-place corrections up to aberration).
-- TOD: the true equator and equinox of date (the session file's ``ra_deg, dec_deg`` frame, INTERFACES.md);
+- TOD: the true equator and equinox of date (the session file's ``ra_deg, dec_deg`` frame, docs/file-formats.md);
   ``r_tod = N P B r_gcrs`` (:func:`true_of_date_matrix`). ERFA's CIRS right ascension relates by RA_tod = RA_cirs - EO.
 - Local (seed 001 eq. 9, 22): north-up-east, ``x`` north, ``y`` up (the zenith), ``z`` east; ``r_local = R_ig r_tod``
-  (:func:`local_frame_matrix`). Polar motion and the deflection of the vertical are ignored (INTERFACES.md).
+  (:func:`local_frame_matrix`). Polar motion and the deflection of the vertical are ignored (docs/file-formats.md).
 
 Earth rotation is computed in fixed point: angles as 64-bit binary angles (a full turn is 2^64, so unsigned
 wrap-around *is* the modulo), and only the final sine and cosine are taken in the working dtype, after an exact

@@ -1,6 +1,6 @@
-"""Fixed-point front end of the onboard estimator, for a sensor without an FPU (ARCHITECTURE.md: onboard).
+"""Fixed-point front end of the onboard estimator, for a sensor without an FPU (docs/architecture.md: onboard).
 
-What runs per star and per frame runs here in integers: the camera model of CAMERA_MODEL.md from a measured
+What runs per star and per frame runs here in integers: the camera model of docs/camera-model.md from a measured
 centroid to a sensor-frame unit vector, and the interstar difference residuals of :mod:`onboard.interstar`. It is
 the fixed-point twin of :func:`onboard.camera.pixels_to_unit` and :func:`onboard.interstar.difference_residuals`
 (the same Weng formula, seed 000 eq. 7, term by term; ``tests/test_fixedpoint_camera.py`` holds it against them in
@@ -221,7 +221,7 @@ def _coef_term(power_q30, cam: FixedCamera, k: int):
 def ideal_offsets_q30(x_steps, y_steps, cam: FixedCamera):
     """Measured centroids (Q10 px) -> ideal offsets (u', v') = (u - dx, v - dy), Q30 normalised (px / S).
 
-    The Weng correction at the measured point (CAMERA_MODEL.md, seed 000 eq. 7), grouped by coefficient as in
+    The Weng correction at the measured point (docs/camera-model.md, seed 000 eq. 7), grouped by coefficient as in
     :func:`onboard.camera.ideal_offset_jacobians`: with g1 = s1 + p1, g2 = s2 + p2, g3 = 2 p1, g4 = 2 p2,
     dx = p1 (3u^2 + v^2) + 2 p2 uv + s1 r^2 + u (k1 r^2 + k2 r^4 + k3 r^6) and
     dy = p2 (u^2 + 3v^2) + 2 p1 uv + s2 r^2 + v (k1 r^2 + k2 r^4 + k3 r^6).

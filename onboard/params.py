@@ -1,6 +1,6 @@
 """Camera parameter set: the data class, its parameter vector, and its validation.
 
-The meaning of every field is fixed by ``shared/spec/CAMERA_MODEL.md``. This module holds no I/O: the host reads
+The meaning of every field is fixed by docs/camera-model.md. This module holds no I/O: the host reads
 and writes JSON files (``hostlink.files.params``); the sensor receives the same fields over the link. Both validate with
 :func:`validate_params`, so a set means the same thing, and is accepted or refused for the same reason, on every side.
 """
@@ -36,7 +36,7 @@ class ParameterError(ValueError):
 
 @dataclass(frozen=True)
 class Distortion:
-    """Weng distortion coefficients (CAMERA_MODEL.md): radial k1..k3 [px^-2, px^-4, px^-6], decentering p1 p2
+    """Weng distortion coefficients (docs/camera-model.md): radial k1..k3 [px^-2, px^-4, px^-6], decentering p1 p2
     and thin prism s1 s2 [px^-1]."""
 
     k1: float = 0.0
@@ -63,7 +63,7 @@ class CameraParams:
 
     @property
     def focal_length_px(self) -> float:
-        """F = 1000 f / p (CAMERA_MODEL.md)."""
+        """F = 1000 f / p (docs/camera-model.md)."""
         return 1000.0 * self.focal_length_mm / self.pixel_pitch_um
 
     def vector(self, dtype: type | np.dtype = np.float64) -> np.ndarray:
@@ -162,7 +162,7 @@ def validate_params(params: CameraParams, dtype: type = np.float64) -> None:
     """Refuse a parameter set that no sensor may use (raises :class:`ParameterError` naming the field).
 
     Checks, in order: every value finite; f > 0 and p > 0 (and F = 1000 f / p finite); image size in 1..2**24; the
-    principal point on the detector (``[-0.5, w-0.5] x [-0.5, h-0.5]``, CAMERA_MODEL.md); and the distortion keeps
+    principal point on the detector (``[-0.5, w-0.5] x [-0.5, h-0.5]``, docs/camera-model.md); and the distortion keeps
     the measured-to-ideal mapping one-to-one over the detector: the radial map r -> r (1 - k1 r^2 - k2 r^4 - k3 r^6)
     strictly increasing for every radius from 0 to the farthest corner (exact: :func:`min_radial_slope`), and the
     Jacobian determinant of (x, y) -> (u', v') positive on a 17 x 17 grid spanning the detector, corners included.
@@ -210,7 +210,7 @@ def validate_params(params: CameraParams, dtype: type = np.float64) -> None:
 
 
 def farthest_corner_radius2_px2(params: CameraParams) -> float:
-    """Squared distance [px^2] from the principal point to the farthest detector corner (CAMERA_MODEL.md extent)."""
+    """Squared distance [px^2] from the principal point to the farthest detector corner (docs/camera-model.md)."""
     width, height = params.image_size_px
     x0, y0 = params.principal_point_px
     du = max(abs(-0.5 - x0), abs(width - 0.5 - x0))
@@ -220,7 +220,7 @@ def farthest_corner_radius2_px2(params: CameraParams) -> float:
 
 def min_radial_slope(distortion: Distortion, s_max_px2: float, dtype: type = np.float64) -> tuple[float, float]:
     """Smallest slope d r'/d r of the radial map r' = r (1 - k1 r^2 - k2 r^4 - k3 r^6) over r^2 = s in [0, s_max]
-    and the radius [px] where it occurs. The slope is P(s) = 1 - 3 k1 s - 5 k2 s^2 - 7 k3 s^3 (CAMERA_MODEL.md,
+    and the radius [px] where it occurs. The slope is P(s) = 1 - 3 k1 s - 5 k2 s^2 - 7 k3 s^3 (docs/camera-model.md,
     radial terms); a cubic's minimum on an interval is at an end or at a real root of P'(s) = -3 k1 - 10 k2 s -
     21 k3 s^2, found in closed form, so the test is exact at the cost of one quadratic."""
     one, two, three, four, five, seven, ten, c21 = (dtype(v) for v in (1, 2, 3, 4, 5, 7, 10, 21))
@@ -293,7 +293,7 @@ class PlausibilityLimits:
 
 
 def max_distortion_displacement_px(params: CameraParams, dtype: type = np.float64) -> tuple[float, tuple[float, float]]:
-    """Largest |(dx, dy)| [px] of the Weng correction (CAMERA_MODEL.md) on the 17 x 17 detector grid (corners
+    """Largest |(dx, dy)| [px] of the Weng correction (docs/camera-model.md) on the 17 x 17 detector grid (corners
     included), and the pixel where it occurs, computed in ``dtype``."""
     from onboard.camera import distortion_px  # local: camera imports this module
 

@@ -1,4 +1,4 @@
-"""Onboard recursive camera calibration from interstar angles (ARCHITECTURE.md: onboard; the sensor's estimator).
+"""Onboard recursive camera calibration from interstar angles (docs/architecture.md: onboard; the sensor's estimator).
 
 The lineage is Samaan, Griffith and Junkins (2001) and Griffith, Singla and Junkins (2002) (seed README; seed 004
 sec. 1 describes them as a Kalman filter on the interstar cosines whose state and covariance are updated frame by

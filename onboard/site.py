@@ -1,4 +1,4 @@
-"""Observing site and weather (INTERFACES.md): plain data shared by the sensor model and the host.
+"""Observing site and weather (docs/interfaces.md): plain data shared by the sensor model and the host.
 
 Longitude is east-positive. Relative humidity is a fraction 0..1. Wavelength defaults to 0.55 um (visual), the
 effective wavelength of a silicon star sensor being a user choice.

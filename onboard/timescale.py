@@ -1,4 +1,4 @@
-"""Fixed-point time for the sensor (ARCHITECTURE.md: no clock, time comes in with the data).
+"""Fixed-point time for the sensor (docs/architecture.md: no clock, time comes in with the data).
 
 A float32 Julian date has a resolution of about 2 minutes, and a float32 Earth rotation angle one of 0.1" at best,
 so time is carried as a :class:`FixedTime`: whole days since J2000.0 (int32) plus the fraction of the day in units of
@@ -107,7 +107,7 @@ def add_seconds(t: FixedTime, seconds) -> FixedTime:
 
 
 def ut1_from_utc(t_utc: FixedTime, dut1_s: float = 0.0) -> FixedTime:
-    """UT1 = UTC + dUT1 (INTERFACES.md: dUT1 = 0 unless given; |dUT1| < 0.9 s)."""
+    """UT1 = UTC + dUT1 (docs/interfaces.md: dUT1 = 0 unless given; |dUT1| < 0.9 s)."""
     return add_seconds(t_utc, dut1_s)
 
 

@@ -1,4 +1,4 @@
-"""U-D factorised covariance for the onboard estimator (ARCHITECTURE.md: onboard, bounded work, no allocation).
+"""U-D factorised covariance for the onboard estimator (docs/architecture.md: onboard, bounded work, no allocation).
 
 The covariance of a K-state filter is held as P = U diag(d) U^T with U unit upper triangular (Bierman 1977,
 "Factorization Methods for Discrete Sequential Estimation", ch. V; Thornton and Bierman 1980). The plain update

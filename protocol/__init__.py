@@ -1,2 +1,2 @@
-"""Message formats shared by sensor and host (ARCHITECTURE.md): messages, codecs, framing, CRC, parameter table,
+"""Message formats shared by sensor and host (docs/architecture.md): messages, codecs, framing, CRC, parameter table,
 DBC and Modbus map. Bytes in, messages out: no I/O, imports neither ``onboard`` nor ``hostlink``."""

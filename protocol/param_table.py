@@ -3,13 +3,13 @@
 A table is 23 IEEE-754 float32 values, little-endian, in :data:`PARAM_FIELDS` order (92 bytes): the 13 camera
 fields (:data:`CAMERA_FIELDS`), then the 1-sigma prior of each estimable parameter (:data:`SIGMA_FIELDS`, in
 :data:`ESTIMATE_NAMES` order, parameter units: f in mm). The camera fields are the keys of a camera
-parameter file (shared/spec/CAMERA_MODEL.md), flattened; ``image_size_px`` travels as float32 too (exact for any
+parameter file (docs/camera-model.md), flattened; ``image_size_px`` travels as float32 too (exact for any
 size below 2**24). A sigma is a finite value >= 0, or NaN: NaN or 0 means "unknown", and the sensor's estimator then
 starts that parameter from its cold-start prior (``onboard.prior``). The CRC of a set is :func:`protocol.crc.crc32`
 over the 92 table bytes. This module is the single definition of the layout: sizes, the CAN DBC field choices, the
 Modbus mailbox checks and the bank records all derive from it.
 
-"Equal to float32" (INTERFACES.md, ``hostlink upload``) means: every file value rounded to float32 (round to
+"Equal to float32" (docs/commands.md, ``hostlink upload``) means: every file value rounded to float32 (round to
 nearest even, as numpy does) equals the value the sensor reports, bit for bit.
 
 Pure: bytes in, values out. The parameter names (:data:`DISTORTION_NAMES`, :data:`ESTIMATE_NAMES`) are defined here,
@@ -27,8 +27,8 @@ import numpy as np
 
 from protocol.crc import crc32
 
-#: Distortion keys of a camera parameter file (CAMERA_MODEL.md: radial k1 k2 k3, decentering p1 p2, thin prism s1 s2),
-#: in the order of every parameter vector and table. THE list: every other module imports it.
+#: Distortion keys of a camera parameter file (docs/camera-model.md: radial k1 k2 k3, decentering p1 p2, thin prism
+#: s1 s2), in the order of every parameter vector and table. THE list: every other module imports it.
 DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "s1", "s2")
 #: Names of the estimable parameters, in the order of every parameter vector in the project (``--estimate`` names,
 #: the sigma fields below, the onboard estimate's values): focal length, principal point, then the distortion.

@@ -6,6 +6,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.slow  # the whole mission end to end (issue 29: the fast lane is pytest -m 'not slow')
+
 
 @pytest.fixture(scope="module")
 def bench_report(tmp_path_factory):

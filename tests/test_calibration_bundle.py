@@ -227,6 +227,7 @@ def _efficiency(camera, nominal, trials, frames, misid=0.0, seed0=0):
 @pytest.mark.parametrize(
     "camera,nominal", [(SEED004, SEED004_NOMINAL), (FULL_WENG, FULL_WENG_NOMINAL)], ids=["seed004", "full_weng"]
 )
+@pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
 def test_default_method_reaches_the_cramer_rao_bound(camera, nominal):
     """Validation residual within 1.2x of the CRB (issue 3). 16 trials of 200 frames; V^2 is a weighted chi-square
     whose spread over 16 trials is ~+-15 % in RMS for an efficient estimator, so an efficient fit passes and a
@@ -237,6 +238,7 @@ def test_default_method_reaches_the_cramer_rao_bound(camera, nominal):
     assert 5.5 < nees.mean() < 14.5
 
 
+@pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
 def test_three_percent_misidentified_costs_less_than_one_and_a_half():
     clean, _, _ = _efficiency(SEED004, SEED004_NOMINAL, trials=8, frames=200, seed0=100)
     dirty, bound, _ = _efficiency(SEED004, SEED004_NOMINAL, trials=8, frames=200, misid=0.03, seed0=100)

@@ -120,6 +120,7 @@ def test_each_seed000_method_runs_its_own_observation_equation(monkeypatch, meth
     assert seen and all(call == (form, improved) for call in seen)
 
 
+@pytest.mark.slow  # a 4000-frame session (issue 29: the fast lane is pytest -m 'not slow')
 def test_seed004_keeps_improving_with_more_frames():
     """Regression: the pair covariances depend on theta; judging LM steps with covariances re-evaluated at each trial
     let the optimiser lower e^T P^-1 e by inflating P (P ~ F^-2) instead of fitting the data, and stop on a biased

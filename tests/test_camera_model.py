@@ -1,4 +1,4 @@
-"""The one camera model (CAMERA_MODEL.md): Jacobians vs finite differences, the inverse, and float32 vs float64."""
+"""The one camera model (docs/camera-model.md): Jacobians vs finite differences, the inverse, and float32 vs float64."""
 
 import numpy as np
 import pytest

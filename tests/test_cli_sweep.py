@@ -19,12 +19,12 @@ def test_every_option_of_the_link_number_and_file_commands_is_taken_or_refused_i
 
 def test_the_sweep_reports_an_internal_error(monkeypatch):
     sweep = _load_sweep()
-    import hostlink.commands.costs as costs
+    import hostlink.api as api
 
-    def broken(_args):
+    def broken(*_args):
         raise KeyError("boom")
 
-    monkeypatch.setattr(costs, "run", broken)
+    monkeypatch.setattr(api, "cost_table_text", broken)  # what `hostlink costs` calls
     n, failures = sweep.sweep(["costs"], hang_s=60.0)
     # every case whose options parse reaches run() and is reported (the others argparse refused in one line)
     assert failures and len(failures) < n and all("internal error: KeyError" in f["problem"] for f in failures)

@@ -1,5 +1,5 @@
-"""INTERFACES.md / CAMERA_MODEL.md promises found broken by the contract audit, each pinned by the CLI or file
-behaviour an outside tool sees."""
+"""docs/file-formats.md / docs/camera-model.md promises found broken by the contract audit, each pinned by the CLI or
+file behaviour an outside tool sees."""
 
 import csv
 import json

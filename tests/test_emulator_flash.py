@@ -86,6 +86,7 @@ def test_recorded_serial_upload_bytes_replayed_after_a_restart_activate_nothing(
     assert active.generation == 3 and banks.params_to_table(active.params) == banks.params_to_table(NOMINAL)
 
 
+@pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
 def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path):
     """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times;
     after each restart a recorded upload (whole, a prefix or some of its frames) is replayed on the line and activates

@@ -4,50 +4,12 @@ sequence numbers, the serial line is never faster than its baud rate, and it sto
 import signal
 import time
 
-import numpy as np
-import pytest
 from emulator_fixtures import hostlink, running_emulator
 
 from hostlink.emulator.sensor import Pacer
-from hostlink.files.session import read_session, write_session
 from hostlink.links import open_link
-from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from protocol.framing import framed_size
-from protocol.messages import CENTROID_LSB_PX, frame_message_bytes
-
-
-@pytest.fixture(scope="module")
-def replay_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("replay") / "session.csv"
-    sim = simulate(SimConfig(camera=seed004_camera(), frames=50, noise_px=0.01, seed=11, false_star_fraction=0.1))
-    write_session(path, sim.session)
-    return path
-
-
-def test_replay_streams_exactly_the_rows_of_the_file(replay_file, tmp_path):
-    source = read_session(replay_file)
-    assert np.any(source.star_id == 0)  # false stars (no identity, no reference direction) are replayed too
-    with running_emulator("serial", "--replay", str(replay_file)) as info:
-        out = tmp_path / "out.csv"
-        run = hostlink("stream", "--link", info["link"], "--frames", "1000", "--out", str(out))
-        assert run.returncode == 0, run.stderr
-        assert "stream ended after 50 frames" in run.stderr and "lost 0" in run.stderr
-        got = read_session(out)
-    assert len(got) == len(source)
-    assert np.array_equal(got.frame, source.frame) and np.array_equal(got.star_id, source.star_id)
-    assert list(got.t_utc) == list(source.t_utc)
-    assert np.array_equal(got.mag, source.mag, equal_nan=True)
-    # fixed point: each coordinate is the file's rounded to the nearest 2^-10 px step
-    assert np.max(np.abs(got.x_px - source.x_px)) <= CENTROID_LSB_PX / 2
-    assert np.max(np.abs(got.y_px - source.y_px)) <= CENTROID_LSB_PX / 2
-
-
-def test_messages_lost_on_the_line_are_counted_from_sequence_numbers(replay_file, tmp_path):
-    with running_emulator("serial", "--replay", str(replay_file), "--drop-every", "10") as info:
-        run = hostlink("stream", "--link", info["link"], "--frames", "1000", "--out", str(tmp_path / "o.csv"))
-    assert run.returncode == 0, run.stderr
-    # frames 10, 20, 30, 40, 50 of the 50 are lost; the end-of-stream message after them reveals the last gap
-    assert "45 frames" in run.stderr and "lost 5 message(s)" in run.stderr
+from protocol.messages import frame_message_bytes
 
 
 def test_the_line_is_never_faster_than_the_baud_rate(replay_file):

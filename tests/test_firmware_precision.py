@@ -128,6 +128,7 @@ def test_emulate_and_bench_take_the_precision_option_float32_by_default():
     assert parser.parse_args(["bench"]).precision == "float32"
 
 
+@pytest.mark.slow  # the whole mission end to end (issue 29: the fast lane is pytest -m 'not slow')
 def test_bench_runs_the_whole_mission_on_the_fixed_point_sensor(tmp_path):
     import json
     import subprocess

@@ -97,6 +97,7 @@ def test_attitude_matches_the_simulated_truth():
         assert abs(roll_arcsec) < 60.0
 
 
+@pytest.mark.slow  # every frame through the exhaustive matcher (issue 29: the fast lane is pytest -m 'not slow')
 def test_own_matcher_without_the_engine_identifies_with_no_wrong_identity(simulated):
     blind, truth, _ = simulated
     frames = blind.frame < 3

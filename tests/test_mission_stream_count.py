@@ -35,6 +35,7 @@ def test_default_spare_frames_cover_a_host_reading_at_a_third_of_the_link_rate()
     assert spare_frames(BenchConfig(cal_frames=60)) == 256 and spare_frames(BenchConfig(spare_frames=7)) == 7
 
 
+@pytest.mark.slow  # the whole mission end to end (issue 29: the fast lane is pytest -m 'not slow')
 def test_a_bench_whose_drift_phase_falls_short_writes_its_counts_and_fails(tmp_path):
     from hostlink.api import run_bench
 

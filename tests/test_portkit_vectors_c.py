@@ -39,7 +39,7 @@ static void put32(float v)
     printf(" %08" PRIx32, bits);
 }
 
-/* camera.ideal_offsets + offsets_to_unit, float32 (CAMERA_MODEL.md, seed 000 eq. 7) */
+/* camera.ideal_offsets + offsets_to_unit, float32 (docs/camera-model.md, seed 000 eq. 7) */
 static void pixel_to_direction(const float th[10], float x, float y)
 {
     float k1 = th[3], k2 = th[4], k3 = th[5], p1 = th[6], p2 = th[7], s1 = th[8], s2 = th[9];

@@ -26,7 +26,7 @@ def test_docs_page_is_generated_from_the_map_and_up_to_date():
 def test_every_entry_has_the_interface_fields_and_no_two_share_a_register():
     doc = json.loads((ROOT / "protocol" / "modbus_map.json").read_text())
     for e in doc["registers"]:
-        assert {"name", "table", "address", "type", "word_order", "units"} <= set(e)  # INTERFACES.md
+        assert {"name", "table", "address", "type", "word_order", "units"} <= set(e)  # docs/modbus_map.md
     m = mm.parse_map(json.dumps(doc))  # parse_map refuses overlaps
     used = [a for r in m.table("input") for a in r.occupied()]
     assert len(used) == len(set(used))

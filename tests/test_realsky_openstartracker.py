@@ -21,6 +21,8 @@ from hostlink.files.session import read_session
 from hostlink.images.identify import identify_session
 from onboard.params import params_from_dict
 
+pytestmark = pytest.mark.slow  # real frames end to end (issue 29: the fast lane is pytest -m 'not slow')
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "realsky.py"
 STORED = ROOT / "tests" / "data" / "realsky_openstartracker_centroids.csv"

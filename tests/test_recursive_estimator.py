@@ -62,6 +62,7 @@ def seed004_sessions():
     return np.array(rec), np.array(ml), np.array(sig)
 
 
+@pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
 def test_every_parameter_is_within_1_3x_of_the_bound_over_several_sessions(seed004_sessions):
     rec, ml, sig = seed004_sessions
     # The batch ML of the same pairs attains the bound (validates the CRB used): the RMS of 6 standard normals is
@@ -107,6 +108,7 @@ def test_misidentified_stars_are_rejected_and_the_estimate_stays_within_2x_of_th
     assert np.all(np.abs(err / crb) < 2 * 3.5), err / crb
 
 
+@pytest.mark.slow  # a long drifting run (issue 29: the fast lane is pytest -m 'not slow')
 def test_a_sinusoidal_focal_drift_of_6_um_is_tracked_to_under_1_um_rms():
     n = 3000
     f_mm = SEED004_TRUE.focal_length_mm + 6e-3 * np.sin(2 * np.pi * np.arange(n) / n)

@@ -148,6 +148,7 @@ def _rms_z(runs, label, k):
     return np.sqrt(np.mean(z**2, axis=0))
 
 
+@pytest.mark.slow  # Monte Carlo over seeds (issue 29: the fast lane is pytest -m 'not slow')
 def test_a_refinement_stays_consistent_with_its_own_sigma(refinement_runs):
     for k in CHECKPOINTS:
         # normalised error of f, x0, y0 over 8 seeds: RMS of a unit normal sample of 8 exceeds 1.6 with p ~ 3 %;
@@ -155,6 +156,7 @@ def test_a_refinement_stays_consistent_with_its_own_sigma(refinement_runs):
         assert np.all(_rms_z(refinement_runs, "file", k) < 1.6), (k, _rms_z(refinement_runs, "file", k))
 
 
+@pytest.mark.slow  # Monte Carlo over seeds (issue 29: the fast lane is pytest -m 'not slow')
 def test_the_filter_sigma_matches_the_information_form_posterior(refinement_runs):
     # Kalman filter without burn-in = prior information + data information (the Cramer-Rao bound of the prior and the
     # 200 frames). 15 %: the filter linearises at its estimate, up to ~10 px off along the weak principal point /
@@ -164,6 +166,7 @@ def test_the_filter_sigma_matches_the_information_form_posterior(refinement_runs
         np.testing.assert_allclose(r["file"][N_FRAMES][1], r["posterior_sigma"], rtol=0.15)
 
 
+@pytest.mark.slow  # Monte Carlo over seeds (issue 29: the fast lane is pytest -m 'not slow')
 def test_a_refined_prior_does_not_wander_like_a_burn_in_restart(refinement_runs):
     def rms_err(label, k):
         return np.sqrt(np.mean([r[label][k][0][1:3] ** 2 for r in refinement_runs]))

@@ -181,7 +181,7 @@ def test_replay_refuses_a_star_id_unknown_to_hipparcos_when_the_file_has_no_refe
 
 
 def test_replay_without_reference_columns_computes_them_from_hipparcos(tmp_path):
-    """INTERFACES.md: when ra_deg/dec_deg are absent, the reference directions come from the catalogue at t_utc.
+    """docs/file-formats.md: when ra_deg/dec_deg are absent, the reference directions come from the catalogue at t_utc.
     The simulator wrote them through the same ERFA apparent place, rounded to 1e-10 deg (0.4 mas) in the file, so
     the two replays must agree to far below the estimate's sigma."""
     import csv

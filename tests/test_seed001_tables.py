@@ -6,7 +6,7 @@ What the paper did, as far as its printed numbers tell (each finding is pinned b
   nutation (true equator and equinox of date) and Greenwich apparent sidereal time, but no annual aberration: so do
   we here (onboard.earth). This reproduces Table 6's ideal image points to 0.015 px; adding aberration would move
   them by 0.65 px.
-- Image coordinates: seed 001 eq. 2 and 4 write w = ((x - x0) D, (y - y0) D, f): the CAMERA_MODEL.md convention
+- Image coordinates: seed 001 eq. 2 and 4 write w = ((x - x0) D, (y - y0) D, f): the docs/camera-model.md convention
   itself (the mirrored one of seed 000 misses Table 6 by 500 px), so no conversion is needed.
 - Euler angles: R1(roll) R3(pitch) R2(-yaw) (onboard.attitude), for both the mounting (eq. 26) and the ship.
 - Refraction: eq. 13-17 with the pressure in mmHg and eq. 16's gravity term; the refracted image points were made by

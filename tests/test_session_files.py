@@ -1,4 +1,4 @@
-"""Session CSV files (INTERFACES.md): round trip, frames, unidentified rows, and one-line errors for bad files."""
+"""Session CSV files (docs/file-formats.md): round trip, frames, unidentified rows, one-line errors for bad files."""
 
 import numpy as np
 import pytest

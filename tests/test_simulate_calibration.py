@@ -1,6 +1,6 @@
 """An independent calibration of a simulated session recovers the camera the simulator was given (issue 2 acceptance).
 
-Written here from CAMERA_MODEL.md alone, sharing no code with the project's camera model or calibration: a bundle
+Written here from docs/camera-model.md alone, sharing no code with the project's camera model or calibration: a bundle
 adjustment (scipy least_squares) of (F, x0, y0, k1, k2) and one small rotation per frame, starting from the nominal
 camera a user would know (seed004_nominal.json) and attitudes by an SVD solution of Wahba's problem. Residuals are the
 measured centroids' ideal offsets minus the pinhole projection of C r, in pixels, so with Gaussian centroid noise
@@ -24,7 +24,7 @@ N_CAM = 5  # F_px, x0, y0, k1, k2
 
 
 def spec_ideal_offsets(x, y, cam):
-    """CAMERA_MODEL.md: u = x - x0, v = y - y0, radial correction (k1 r^2 + k2 r^4), ideal = measured - correction."""
+    """docs/camera-model.md: u = x - x0, v = y - y0, radial correction (k1 r^2 + k2 r^4), ideal = measured - corr."""
     _, x0, y0, k1, k2 = cam
     u, v = x - x0, y - y0
     r2 = u * u + v * v

@@ -124,7 +124,9 @@ def test_reference_directions_are_the_apparent_place_of_the_star_at_the_frame_ti
     frame_of_row = np.searchsorted(np.unique(s.frame), s.frame)
     r_ref = apparent_directions(cat, hip_lookup(cat, s.star_id), jd1[frame_of_row], jd2[frame_of_row])
     r_ses = radec_to_unit(np.radians(s.ra_deg), np.radians(s.dec_deg))
-    assert _angles(r_ref, r_ses).max() < 1e-12  # same ERFA route; float64 rounding of ra/dec only
+    # the simulator: ERFA at each frame's time; one time per row: interpolated between hourly nodes (issue 29), within
+    # the interpolation's bound, 2.4e-5" (hostlink.sky.apparent)
+    assert _angles(r_ref, r_ses).max() < 2.4e-5 * np.pi / 648000
 
 
 @pytest.mark.parametrize("min_stars,max_stars", [(10, 30), (5, 8), (15, 15)])

@@ -114,8 +114,9 @@ def test_the_file_route_and_the_hipparcos_route_give_the_same_observed_reference
     np.testing.assert_array_equal(from_file.usable, s.star_id != 0)
     np.testing.assert_array_equal(from_hipparcos.usable, s.star_id != 0)
     ok = from_file.usable
-    # the simulator wrote the same ERFA apparent place; float64 rounding of the ra/dec round trip only
-    assert _angles(from_file.r[ok], from_hipparcos.r[ok]).max() < 1e-11
+    # the simulator wrote ERFA's apparent place at each frame's time; without the columns it is interpolated between
+    # hourly nodes (issue 29): the same within the interpolation's bound, 2.4e-5" (hostlink.sky.apparent)
+    assert _angles(from_file.r[ok], from_hipparcos.r[ok]).max() < 2.4e-5 * ARCSEC
     assert "refraction" in from_file.refraction and "10 C, 1013.25 hPa" in from_file.refraction
 
 

@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 from scripts_loader import load_script
 
+pytestmark = pytest.mark.slow  # the soak (issue 29: the fast lane is pytest -m 'not slow')
+
 #: Largest RSS growth allowed in the 15 s judged [MB]. Measured on a flat run: 0.0 MB (emulator) and 0.06 MB
 #: (monitor) over 45 s. A leak of one received frame per frame (a CentroidFrame of 10-30 stars holds >= 1 kB) over
 #: the >= 1,000 frames required below would grow >= 1 MB, so the bound separates a leak from allocator noise.

@@ -4,6 +4,7 @@ distortion, through the bundle adjustment and ``hostlink bench``."""
 import json
 
 import numpy as np
+import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.api import design_nominal
@@ -71,6 +72,7 @@ def test_bench_summary_without_drift_estimates_is_strict_json():
     assert doc == {"a": None, "b": [1.0, None], "c": [None, 2.0]}
 
 
+@pytest.mark.slow  # the whole mission end to end (issue 29: the fast lane is pytest -m 'not slow')
 def test_bench_runs_a_narrow_field_camera_with_its_own_magnitude_limit(tmp_path, capsys):
     """--maglim reaches the simulator (at Hp <= 6 a 4 deg field rarely holds 10 stars), a --camera without
     --nominal gets its own design nominal, and a drift phase shorter than the polling interval still reports."""

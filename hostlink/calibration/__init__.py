@@ -1,4 +1,4 @@
-"""Batch ground calibration (ARCHITECTURE.md ``hostlink/calibration``): host side, float64, on the one camera model.
+"""Batch ground calibration (docs/architecture.md): host side, float64, on the one camera model.
 
 Modules:
 - ``data``: the observations a calibration works on (centroids, reference directions, frame boundaries), built

@@ -1,6 +1,6 @@
 """The default calibration: a bundle adjustment over the camera and the attitude of every frame.
 
-Measurement model, per identified star k of frame f (CAMERA_MODEL.md):
+Measurement model, per identified star k of frame f (docs/camera-model.md):
 
     q(x_k, y_k; theta) = F (C_f r_k)_xy / (C_f r_k)_z
 

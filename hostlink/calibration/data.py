@@ -29,7 +29,7 @@ MIN_STARS_PER_FRAME = 3
 class CalibrationData:
     """Observations grouped by frame.
 
-    x_px, y_px: measured centroids [px] (CAMERA_MODEL.md pixel convention), shape (N,).
+    x_px, y_px: measured centroids [px] (docs/camera-model.md pixel convention), shape (N,).
     r: reference unit vectors (N, 3) in the frame the attitude maps from (b = C r).
     frame_starts: (M + 1,) row index where each frame starts, last entry N.
     frame_number: (M,) session frame counter of each frame.

@@ -2,8 +2,8 @@
 
 The attitude of every frame at once: the profile matrices B = sum_k w_k b_k r_k^T are accumulated per frame here and
 solved for Markley's rotation (Markley 1988; ``onboard.attitude.rotation_from_profile``, the formula the sensor uses),
-so b = C r as in CAMERA_MODEL.md: as the polar factor of B by Newton's iteration where that is the same rotation, by
-the SVD elsewhere (:func:`rotations_from_profiles`).
+so b = C r as in docs/camera-model.md: as the polar factor of B by Newton's iteration where that is the same
+rotation, by the SVD elsewhere (:func:`rotations_from_profiles`).
 """
 
 from __future__ import annotations

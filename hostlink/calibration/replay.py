@@ -1,4 +1,4 @@
-"""Host driver of the onboard recursive calibration (ARCHITECTURE.md: hostlink runs ``onboard`` logic unchanged).
+"""Host driver of the onboard recursive calibration (docs/architecture.md: hostlink runs ``onboard`` logic unchanged).
 
 :func:`replay_session` feeds a session, frame by frame, to :mod:`onboard.recursive` exactly as the sensor would
 (identified stars only, the sensor's float32 or the host's float64 reference, or ``fixed``: the fixed-point front end

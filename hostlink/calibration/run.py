@@ -536,7 +536,7 @@ def _json_safe(value):
 
 
 def result_extras(outcome: CalibrationOutcome, references: SessionReferences | None = None) -> dict:
-    """The extra keys of the result file (INTERFACES.md: the parameter file plus extras), with ``references``
+    """The extra keys of the result file (docs/file-formats.md: the parameter file plus extras), with ``references``
     (where the reference directions came from) when given; non-finite numbers as null. Also the rejected stars by
     reason and the time note when :func:`calibrate_session` set them, and ``failed`` (the reason) for a failed
     result kept on request."""

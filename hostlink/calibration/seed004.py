@@ -5,7 +5,7 @@
    x_hat of eq. 6 is where the distortion-free camera images the catalogue star; the attitude it needs comes from
    the step-1 camera (a least-squares fit per frame: Markley's solution of the same Wahba problem the paper solves
    by QUEST).
-   The project's convention evaluates the distortion at the measured point (CAMERA_MODEL.md: k = -k_seed004),
+   The project's convention evaluates the distortion at the measured point (docs/camera-model.md: k = -k_seed004),
    so eq. 6 reads q(x_d; x0, y0, k) = x_hat - x0 with q linear in (k1, k2): its columns are the camera model's
    dq/dk (``onboard.camera.ideal_offset_jacobians``).
 3. Levenberg-Marquardt on all parameters (x0, y0, f, k1, k2) with the cosine objective (eq. 11-13).

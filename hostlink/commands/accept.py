@@ -29,8 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.files.params import emit_param_file
-    from hostlink.links.operations import accept_estimate, params_float32_dict
+    from hostlink.api import accept_estimate, emit_param_file, params_float32_dict
 
     with open_link_from_args(args) as link:
         result, estimate = accept_estimate(link, force=args.force)

@@ -9,9 +9,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from hostlink.api import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES, UserError
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
-from hostlink.errors import UserError
-from hostlink.sky.attitude import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES
 
 HELP = "attitude per frame (b = C r) from a session, with refraction correction for ground sessions"
 DESCRIPTION = (
@@ -30,7 +29,7 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (docs/file-formats.md)")
     parser.add_argument(
         "--params",
         required=True,
@@ -91,10 +90,14 @@ def parse_mounting(text: str) -> tuple[float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hostlink.files.attitude import write_attitudes
-    from hostlink.files.params import load_params
-    from hostlink.files.session import check_on_detector, read_session
-    from hostlink.sky.attitude import refraction_mode, solve_attitudes
+    from hostlink.api import (
+        check_on_detector,
+        load_params,
+        read_session,
+        refraction_mode,
+        solve_attitudes,
+        write_attitudes,
+    )
 
     site, weather = site_and_weather(args)
     mode = refraction_mode(args.refraction, weather)

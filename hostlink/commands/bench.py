@@ -117,9 +117,8 @@ def run(args: argparse.Namespace) -> int:
     import math
     from pathlib import Path
 
-    from hostlink.api import BenchConfig, load_params, run_bench
+    from hostlink.api import BenchConfig, UserError, load_params, run_bench
     from hostlink.commands.siteopts import site_and_weather
-    from hostlink.errors import UserError
 
     if not (math.isfinite(args.noise_px) and 0 < args.noise_px <= 5):
         raise UserError(f"--noise-px must be in (0, 5] px, got {args.noise_px}")
@@ -165,7 +164,7 @@ def _print_table(summary: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from hostlink.mission.summary import summary_table
+    from hostlink.api import summary_table
 
     table = Table(title=f"hostlink bench ({summary['transport']}, {summary['precision']} sensor)")
     for col in ("quantity", "before (nominal)", "after"):

@@ -1,11 +1,11 @@
-"""``hostlink calibrate``: batch ground calibration of a session (INTERFACES.md)."""
+"""``hostlink calibrate``: batch ground calibration of a session (docs/file-formats.md)."""
 
 from __future__ import annotations
 
 import argparse
 
+from hostlink.api import UserError
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
-from hostlink.errors import UserError
 
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
 DESCRIPTION = (
@@ -29,14 +29,14 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from onboard.params import ESTIMATE_NAMES
+    from hostlink.api import ESTIMATE_NAMES
 
     parser.add_argument(
         "session",
         nargs="+",
         metavar="SESSION",
-        help="session file(s) (INTERFACES.md): one CSV, or several files, a glob pattern or .parquet files read as "
-        "one session in time order (the chunked path)",
+        help="session file(s) (docs/file-formats.md): one CSV, or several files, a glob pattern or .parquet files "
+        "read as one session in time order (the chunked path)",
     )
     parser.add_argument(
         "--nominal",
@@ -114,9 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from hostlink.calibration.run import result_extras
-    from hostlink.files.params import load_params, save_params
-    from onboard.recursive import parse_estimate_names
+    from hostlink.api import load_params, parse_estimate_names, result_extras, save_params
 
     try:
         estimate = None if args.estimate is None else parse_estimate_names(args.estimate)
@@ -130,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     outcome, references = calibrate(args, nominal, estimate, site, weather)
     failure = outcome.failure()
     if args.rejected:
-        from hostlink.calibration.report import write_rejected
+        from hostlink.api import write_rejected
 
         write_rejected(args.rejected, outcome.rejected_stars)
     if failure and not args.keep_failed:
@@ -160,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{held_out.fit_rms_px:.4g} px)"
             )
     if args.plot:
-        from hostlink.calibration.plots import write_calibration_plots
+        from hostlink.api import write_calibration_plots
 
         write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px)
         if not args.quiet:
@@ -172,8 +170,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather):
     """One CSV read whole: every method, the --rejected list and the plots."""
-    from hostlink.calibration.run import calibrate_session
-    from hostlink.files.session import check_on_detector, read_session
+    from hostlink.api import calibrate_session, check_on_detector, read_session
 
     path = args.session[0]
     session = read_session(path)
@@ -203,8 +200,7 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
 
 def _held_out(args: argparse.Namespace, nominal, estimate, site, weather):
     """k-fold held-out judgement of the same calibration (hostlink.calibration.holdout.cross_validate)."""
-    from hostlink.calibration.holdout import cross_validate
-    from hostlink.files.session import read_session
+    from hostlink.api import cross_validate, read_session
 
     return cross_validate(
         read_session(args.session[0]),
@@ -237,8 +233,7 @@ def _chunked(args: argparse.Namespace) -> bool:
 
 def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather):
     """Any number of files, chunk by chunk (bundle only; no per-star output)."""
-    from hostlink.calibration.run import calibrate_archive
-    from hostlink.progress import progress_bar
+    from hostlink.api import calibrate_archive, progress_bar
 
     if args.method != "bundle":
         raise UserError(
@@ -279,7 +274,7 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     import math
 
-    from onboard.params import DISTORTION_NAMES
+    from hostlink.api import DISTORTION_NAMES
 
     sig = outcome.sigma()
     p = outcome.params

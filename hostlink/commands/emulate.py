@@ -109,11 +109,14 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import threading
 
-    from hostlink.emulator import ENDPOINTS
-    from hostlink.emulator.sensor import EndpointOptions
-    from hostlink.emulator.setup import build_sensor, parse_endpoint_options
-    from hostlink.errors import UserError
-    from onboard.firmware import EstimatorBudget
+    from hostlink.api import (
+        ENDPOINTS,
+        EndpointOptions,
+        EstimatorBudget,
+        UserError,
+        build_sensor,
+        parse_endpoint_options,
+    )
 
     extra = parse_endpoint_options(args.transport, args.option)
     for name in ("baud", "bitrate", "sim_frames"):

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hostlink.mission.example import write_example
+    from hostlink.api import write_example
 
     result = write_example(args.dir, overwrite=args.force)
     for path in result.written:

@@ -22,7 +22,7 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (docs/file-formats.md)")
     parser.add_argument(
         "--nominal",
         required=True,
@@ -41,11 +41,15 @@ def run(args: argparse.Namespace) -> int:
     import math
     from pathlib import Path
 
-    from hostlink.errors import UserError
-    from hostlink.files.atomic import write_json
-    from hostlink.files.params import load_params
-    from hostlink.files.session import check_on_detector, read_session, write_session
-    from hostlink.images.identify import identify_session
+    from hostlink.api import (
+        UserError,
+        check_on_detector,
+        identify_session,
+        load_params,
+        read_session,
+        write_json,
+        write_session,
+    )
 
     session = read_session(args.session)
     nominal = load_params(args.nominal)

@@ -27,9 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.files.session import write_session
-    from hostlink.links.can_capture import read_can_capture
-    from hostlink.links.operations import WIRE_PX_FORMAT, frames_to_session
+    from hostlink.api import WIRE_PX_FORMAT, frames_to_session, read_can_capture, write_session
 
     capture = read_can_capture(args.log, channel=args.channel)
     write_session(args.out, frames_to_session(capture.frames), float_format=WIRE_PX_FORMAT)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hostlink.errors import UserError
+from hostlink.api import UserError
 
 LINK_HELP = (
     "sensor link string (docs/links.md), e.g. serial:/dev/ttyUSB0@921600, "
@@ -21,7 +21,7 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
 
 def open_link_from_args(args: argparse.Namespace):
     """The link named by ``--link``, with the ``--timeout`` checked (one-line UserError otherwise)."""
-    from hostlink.links import open_link
+    from hostlink.api import open_link
 
     if not args.timeout > 0:
         raise UserError(f"--timeout must be > 0, got {args.timeout}")

@@ -42,8 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from hostlink.errors import UserError
-    from hostlink.links.operations import EstimatePoll, estimate_record, poll_estimates, stream_frames
+    from hostlink.api import EstimatePoll, UserError, estimate_record, poll_estimates, stream_frames
 
     if args.count < 0 or args.interval <= 0 or args.every_frames < 0:
         raise UserError("--count and --every-frames must be >= 0 and --interval > 0")

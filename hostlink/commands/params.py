@@ -22,8 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.files.params import emit_param_file
-    from hostlink.links.operations import params_float32_dict, read_active_params
+    from hostlink.api import emit_param_file, params_float32_dict, read_active_params
 
     with open_link_from_args(args) as link:
         active = read_active_params(link)

@@ -70,19 +70,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
-    from hostlink.calibration.replay import (
+    from hostlink.api import (
+        TraceWriter,
+        UserError,
+        check_on_detector,
         estimate_extras,
+        load_params_with_sigma,
+        parse_estimate_names,
         precision_dtype,
+        progress_bar,
+        read_session_chunks,
         replay_chunks,
         replay_config,
         replay_prior,
+        save_params,
+        session_paths,
     )
-    from hostlink.errors import UserError
-    from hostlink.files.params import load_params_with_sigma, save_params
-    from hostlink.files.session import check_on_detector, read_session_chunks, session_paths
-    from hostlink.files.trace import TraceWriter
-    from hostlink.progress import progress_bar
-    from onboard.recursive import parse_estimate_names
 
     precision_dtype(args.precision)  # refuse an unknown precision before reading files
     try:

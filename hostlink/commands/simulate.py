@@ -1,4 +1,4 @@
-"""``hostlink simulate``: simulated observations of the real sky through a given camera (INTERFACES.md).
+"""``hostlink simulate``: simulated observations of the real sky through a given camera (docs/file-formats.md).
 
 Writes SESSION.csv or SESSION.parquet (with ra_deg, dec_deg: geocentric apparent place) and SESSION.truth.json
 beside it.
@@ -11,8 +11,8 @@ import argparse
 import math
 import sys
 
+from hostlink.api import UserError
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
-from hostlink.errors import UserError
 
 HELP = "simulate a session of real-sky (Hipparcos) observations through a camera, with its truth"
 DESCRIPTION = (
@@ -108,11 +108,16 @@ def _read_attitudes(path: str):
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hostlink.files.params import load_params
-    from hostlink.files.session import write_session
-    from hostlink.files.truth import truth_path_for, write_truth
-    from hostlink.progress import progress_bar
-    from hostlink.sky.simulate import SimConfig, seed004_config, simulate
+    from hostlink.api import (
+        SimConfig,
+        load_params,
+        progress_bar,
+        seed004_config,
+        simulate,
+        truth_path_for,
+        write_session,
+        write_truth,
+    )
 
     site, weather = site_and_weather(args)
     attitudes = _read_attitudes(args.attitudes) if args.attitudes else None

@@ -1,12 +1,11 @@
-"""Command-line site, weather and dUT1 options (INTERFACES.md), shared by every command that takes them."""
+"""Command-line site, weather and dUT1 options (docs/interfaces.md), shared by every command that takes them."""
 
 from __future__ import annotations
 
 import argparse
 import math
 
-from hostlink.errors import UserError
-from onboard.site import Site, Weather
+from hostlink.api import Site, UserError, Weather
 
 
 def _numbers(text: str, option: str, counts: tuple[int, ...], example: str) -> list[float]:
@@ -56,7 +55,7 @@ def add_site_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dut1", type=float, default=0.0, metavar="SECONDS", help="UT1 - UTC (default 0)")
 
 
-#: IERS keeps |UT1 - UTC| below 0.9 s (INTERFACES.md: dUT1 in seconds); anything at or above 1 s is a unit mistake.
+#: IERS keeps |UT1 - UTC| below 0.9 s (docs/interfaces.md: dUT1 in seconds); anything at or above 1 s is a unit mistake.
 MAX_ABS_DUT1_S = 1.0
 
 

@@ -32,8 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from hostlink.links.operations import StreamResult, record_session
-    from hostlink.progress import progress_bar
+    from hostlink.api import StreamResult, progress_bar, record_session
 
     result = StreamResult()
     try:

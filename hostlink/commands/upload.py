@@ -42,10 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from hostlink.errors import UserError
-    from hostlink.files.params import load_params_with_sigma
-    from hostlink.links.operations import float32_equal, safe_upload
-    from onboard.prior import refined_mask
+    from hostlink.api import UserError, float32_equal, load_params_with_sigma, refined_mask, safe_upload
 
     params, sigma = load_params_with_sigma(args.params, validate=not args.no_host_check)
 

@@ -1,4 +1,4 @@
-"""The emulated sensor (ARCHITECTURE.md): the real ``onboard`` firmware logic behind a real link endpoint.
+"""The emulated sensor (docs/architecture.md): the real ``onboard`` firmware logic behind a real link endpoint.
 
 ``hostlink emulate --transport T`` builds an :class:`~hostlink.emulator.sensor.EmulatedSensor` (firmware + frame
 source) and hands it to the endpoint module ``ENDPOINTS[T]``, whose ``serve(sensor, options, ready, stop)`` opens the

@@ -1,4 +1,4 @@
-"""The emulated sensor's Modbus register server (ARCHITECTURE.md: emulator/): a TCP server (MBAP, or RTU framing
+"""The emulated sensor's Modbus register server (docs/architecture.md: emulator/): a TCP server (MBAP, or RTU framing
 over TCP) whose holding and input registers are served by two callbacks, ``on_read(table, address, count) ->
 list[int]`` and ``on_write(address, values)``; raising :class:`~hostlink.links.modbus_adapter.ModbusAdapterError`
 with an ``exception_code`` in a callback answers the request with that Modbus exception. It runs its own asyncio loop

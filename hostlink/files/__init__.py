@@ -1,4 +1,4 @@
-"""Files (ARCHITECTURE.md: hostlink/files): one reader and one writer for each file the host handles, and the one
+"""Files (docs/architecture.md: hostlink/files): one reader and one writer for each file the host handles, and the one
 time module.
 
 ``session`` (session files, CSV or Parquet, read whole or in chunks of whole frames), ``columnar`` (the Parquet

@@ -1,4 +1,4 @@
-"""The one atomic file writer (ARCHITECTURE.md: hostlink/files): every file the host writes goes through it.
+"""The one atomic file writer (docs/architecture.md: hostlink/files): every file the host writes goes through it.
 
 A file is written whole or not at all: the bytes go to a temporary file in the same directory (``PATH.<pid>.tmp``,
 or a name the caller chooses, such as a session's ``PATH.partial``), which is flushed, ``fsync``-ed and renamed onto

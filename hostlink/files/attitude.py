@@ -1,4 +1,4 @@
-"""Attitude files (INTERFACES.md, ``hostlink attitude --out``): one row per frame of a session."""
+"""Attitude files (docs/file-formats.md, ``hostlink attitude --out``): one row per frame of a session."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The columnar session format (docs/file-formats.md, "Session file, Parquet"): the schema, and the Parquet side of
 the one session reader and writer (:mod:`hostlink.files.session`), through pyarrow.
 
-A session is the same table as the CSV (INTERFACES.md): one row per star observation, frames in time order. Columns:
+A session is the same table as the CSV: one row per star observation, frames in time order. Columns:
 ``frame`` int64, ``t_utc`` string (the ISO 8601 UTC text, exactly as in a CSV: a leap second ``23:59:60`` has no
 Arrow timestamp), ``star_id`` int64, ``x_px``/``y_px`` float64 [px], optional ``mag`` float64 and ``ra_deg``/
 ``dec_deg`` float64 [deg] (null = none, as an empty CSV cell), and extra columns as strings. Every row group holds

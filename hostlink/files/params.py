@@ -1,4 +1,4 @@
-"""Camera parameter files (INTERFACES.md): load, validate, save; the parameter files shipped with the package are
+"""Camera parameter files (docs/file-formats.md): load, validate, save; the parameter files shipped with the package are
 read by name (``builtin:seed004_nominal``, ``builtin:seed004_camera``).
 
 Validation itself lives in ``onboard.params`` so that the host and the sensor refuse a set for the same reason.

@@ -1,4 +1,4 @@
-"""Session files (INTERFACES.md): star observations, one row per star, frames in time order; the one reader and
+"""Session files (docs/file-formats.md): star observations, one row per star, frames in time order; the one reader and
 the one writer.
 
 A :class:`Session` holds columns as numpy arrays (float64 on the host) plus the frame boundaries, so every consumer
@@ -106,7 +106,7 @@ DETECTOR_MARGIN_PX = 1.0
 
 def check_on_detector(session: Session, image_size_px: tuple[int, int], session_name: str, params_name: str) -> None:
     """Refuse (one-line UserError) a session with a centroid off the detector of a parameter file
-    (``[-0.5, w - 0.5] x [-0.5, h - 0.5]``, CAMERA_MODEL.md, plus :data:`DETECTOR_MARGIN_PX`): the file then
+    (``[-0.5, w - 0.5] x [-0.5, h - 0.5]``, docs/camera-model.md, plus :data:`DETECTOR_MARGIN_PX`): the file then
     describes another camera and every result would be silently wrong."""
     width, height = image_size_px
     m = DETECTOR_MARGIN_PX

@@ -1,4 +1,4 @@
-"""THE time module of the host (ARCHITECTURE.md: hostlink/files): every ISO 8601 time stamp is parsed and written
+"""THE time module of the host (docs/architecture.md: hostlink/files): every ISO 8601 time stamp is parsed and written
 here, and UTC is converted to TT / UT1 here (pyerfa).
 
 Three forms of a UTC time:
@@ -149,7 +149,7 @@ def utc_to_tt(jd1: np.ndarray, jd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def utc_to_ut1(jd1: np.ndarray, jd2: np.ndarray, dut1_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """UTC -> UT1 with UT1 - UTC = dut1_s (INTERFACES.md: 0 unless --dut1 is given)."""
+    """UTC -> UT1 with UT1 - UTC = dut1_s (docs/interfaces.md: 0 unless --dut1 is given)."""
     return erfa.utcut1(jd1, jd2, dut1_s)
 
 

@@ -16,7 +16,7 @@ from hostlink.errors import UserError
 from hostlink.files.atomic import AtomicFile, cannot_write
 from protocol.param_table import DISTORTION_NAMES
 
-#: Trace columns (INTERFACES.md requires frame, focal_length_mm, x0_px, y0_px).
+#: Trace columns (docs/file-formats.md requires frame, focal_length_mm, x0_px, y0_px).
 TRACE_COLUMNS = (
     "frame",
     "t_utc",

@@ -1,4 +1,4 @@
-"""The image side of the host (ARCHITECTURE.md ``hostlink/images``): THE image reader (``read``: FITS, TIFF, PNG
+"""The image side of the host (docs/architecture.md ``hostlink/images``): THE image reader (``read``: FITS, TIFF, PNG
 into one float64 array with the exposure time), star centroids from images into a session of unidentified stars
 (``centroid``: SEP source extraction, hot / saturated / blended rejection, PSF-fit centroids and their Cramer-Rao
 bound), and lost-in-space star identification (``identify``, with the pattern engine behind ``solver_adapter``).

@@ -832,7 +832,7 @@ def identify_session(
 
 def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue) -> Session:
     """``session`` with ``star_id``; when the file has ra_deg/dec_deg, the newly identified rows get theirs (the
-    geocentric apparent place at the frame's time, INTERFACES.md; the J2000 place when the time is unknown)."""
+    geocentric apparent place at the frame's time, docs/file-formats.md; the J2000 place when the time is unknown)."""
     out = replace(session, star_id=star_id)
     if session.ra_deg is None or session.dec_deg is None:
         return out

@@ -1,4 +1,4 @@
-"""THE image reader of the host (ARCHITECTURE.md ``hostlink/images``): FITS (astropy.io.fits), TIFF 8/16 bit
+"""THE image reader of the host (docs/architecture.md ``hostlink/images``): FITS (astropy.io.fits), TIFF 8/16 bit
 (tifffile) and PNG/JPEG (Pillow), each into one float64 array of detector counts [ADU] plus what the file says about
 the exposure (its time, its saturation level).
 

@@ -1,4 +1,4 @@
-"""Links to a sensor (ARCHITECTURE.md): one :class:`~hostlink.links.base.Link` interface, chosen by one string.
+"""Links to a sensor (docs/architecture.md): one :class:`~hostlink.links.base.Link` interface, chosen by one string.
 
 A link string is ``SCHEME:TARGET``; the scheme picks the transport module, which parses its own target:
 

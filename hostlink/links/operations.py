@@ -385,7 +385,7 @@ def float32_equal(
     a: CameraParams, b: CameraParams, sigma_a: np.ndarray | None = None, sigma_b: np.ndarray | None = None
 ) -> bool:
     """Every parameter of ``a`` and ``b`` (and their sigmas, None = unknown) equal after rounding to float32, bit for
-    bit (INTERFACES.md, ``hostlink upload``)."""
+    bit (docs/commands.md, ``hostlink upload``)."""
     return params_to_table(a, sigma_a) == params_to_table(b, sigma_b)
 
 

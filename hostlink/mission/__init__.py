@@ -1,4 +1,4 @@
-"""The main job, ``hostlink bench`` (ARCHITECTURE.md: hostlink/mission): the whole mission end to end against an
+"""The main job, ``hostlink bench`` (docs/architecture.md: hostlink/mission): the whole mission end to end against an
 emulated sensor.
 
 * :mod:`~hostlink.mission.config`: what a run is given (:class:`BenchConfig`, the built-in true camera, the nominal);

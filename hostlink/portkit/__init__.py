@@ -1,4 +1,4 @@
-"""The port kit (ARCHITECTURE.md: hostlink/portkit): what a firmware engineer needs to port the sensor to C.
+"""The port kit (docs/architecture.md: hostlink/portkit): what a firmware engineer needs to port the sensor to C.
 
 - :mod:`hostlink.portkit.export_c`: C99 headers and one C source generated from the single protocol definition
   (``protocol.messages.MESSAGES``, ``protocol.framing``, ``protocol.param_table``, ``protocol.can_frames``).

@@ -703,7 +703,7 @@ SPECS: tuple[VectorSpec, ...] = (
         "pixel_to_direction",
         "float32",
         "onboard.camera.ideal_offsets, onboard.camera.offsets_to_unit (= pixels_to_unit)",
-        "Measured centroid [px] -> ideal offsets u', v' [px] -> sensor-frame unit vector b (CAMERA_MODEL.md, seed "
+        "Measured centroid [px] -> ideal offsets u', v' [px] -> sensor-frame unit vector b (docs/camera-model.md, seed "
         "000 eq. 7). theta = (F px, x0, y0, k1, k2, k3, p1, p2, s1, s2).",
         _p2d_cases,
         _p2d_compute,

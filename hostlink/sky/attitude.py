@@ -1,4 +1,4 @@
-"""The attitude of every frame of a session (INTERFACES.md), as the sensor computes it: the library behind
+"""The attitude of every frame of a session (docs/file-formats.md), as the sensor computes it: the library behind
 ``hostlink attitude``.
 
 It lives in ``hostlink/sky`` because it is the sky side of a frame: measured directions matched to the sky's

@@ -4,11 +4,12 @@
 radians, epoch J1991.25), 7 Plx (mas), 8 pmRA (mas/yr, mu_alpha* = cos(dec) d(ra)/dt), 9 pmDE (mas/yr),
 20 Hpmag (Hipparcos magnitude). The text file is parsed once (about 2 s) and cached as a compressed ``.npz`` in the
 user cache directory (``$XDG_CACHE_HOME/startracker-companion`` or ``~/.cache/startracker-companion``), keyed by the
-catalogue file's size and modification time; a cached load takes a few milliseconds.
+catalogue file's size and modification time; a cached load takes ~0.1 s, once per process.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -84,6 +85,20 @@ def parse_hip2(path: str | Path) -> Catalogue:
     )
 
 
+@functools.lru_cache(maxsize=2)
+def _load_once(cached: Path, source: Path) -> Catalogue:
+    """The catalogue of ``source``, read once per process (the cache file's name changes with the source's size and
+    time, so an edited catalogue is read again): reading the compressed cache costs ~0.1 s, which a session read in
+    chunks would otherwise pay per chunk. Its arrays are read-only, since every caller shares them."""
+    cat = _read_cache(cached) if cached.is_file() else None
+    if cat is None:
+        cat = parse_hip2(source)
+        _write_cache(cached, cat)
+    for f in fields(cat):
+        getattr(cat, f.name).setflags(write=False)
+    return cat
+
+
 def _cache_path(source: Path) -> Path:
     st = source.stat()
     return cache_dir() / f"hip2-v{_CACHE_VERSION}-{st.st_size}-{st.st_mtime_ns}.npz"
@@ -114,11 +129,7 @@ def load_catalogue(maglim: float | None = None, path: str | Path | None = None) 
     source = Path(path) if path is not None else catalogue_file()
     if not source.is_file():
         raise UserError(f"{source}: Hipparcos catalogue file not found")
-    cached = _cache_path(source)
-    cat = _read_cache(cached) if cached.is_file() else None
-    if cat is None:
-        cat = parse_hip2(source)
-        _write_cache(cached, cat)
+    cat = _load_once(_cache_path(source), source)
     if maglim is not None:
         cat = cat.subset(np.flatnonzero(cat.mag <= maglim))
     return cat

@@ -1,10 +1,10 @@
-"""THE reference-direction service (ARCHITECTURE.md ``hostlink/sky``): the rows of a session -> the unit vector r
+"""THE reference-direction service (docs/architecture.md ``hostlink/sky``): the rows of a session -> the unit vector r
 of each star at its frame's time, in the true equator and equinox of date, and a note of where they came from.
 
 Every host job that needs reference directions (batch calibration, the onboard estimator's replay, the attitude,
 the bench's replay file for a ground sensor) asks :func:`session_references`; none computes them itself.
 
-1. Geocentric apparent place (INTERFACES.md, session file): the file's ``ra_deg, dec_deg`` when it has them;
+1. Geocentric apparent place (docs/file-formats.md, session file): the file's ``ra_deg, dec_deg`` when it has them;
    otherwise the Hipparcos apparent place of each ``star_id`` at its frame's ``t_utc`` through ERFA
    (:func:`hostlink.sky.apparent.apparent_directions`: pmsafe, apci13, atciq, ra = ri - eo), as the sensor computes
    it from its onboard catalogue. Unidentified rows (``star_id`` 0) have none (NaN).

@@ -1,4 +1,4 @@
-"""The image renderer for tests (ARCHITECTURE.md ``hostlink/sky``): the stars of a simulated frame
+"""The image renderer for tests (docs/architecture.md ``hostlink/sky``): the stars of a simulated frame
 (:func:`hostlink.sky.simulate.simulate`, projected through the true camera by ``onboard.camera.unit_to_pixels``)
 drawn as a detector would record them, with the truth, so the image chain (centroiding, identification, calibration)
 is scored against it.

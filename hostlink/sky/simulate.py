@@ -1,5 +1,5 @@
-"""The real-sky sensor simulator behind ``hostlink simulate`` (INTERFACES.md): Hipparcos stars at their geocentric
-apparent place at each frame's time, seen through the true camera, as a session plus its truth.
+"""The real-sky sensor simulator behind ``hostlink simulate`` (docs/file-formats.md): Hipparcos stars at their
+geocentric apparent place at each frame's time, seen through the true camera, as a session plus its truth.
 
 Per frame k (time t_k = t0 + k * interval, on the session file's 1 ms grid):
 
@@ -18,7 +18,8 @@ Per frame k (time t_k = t0 + k * interval, on the session file's 1 ms grid):
    one, not otherwise in the frame, with that star's reference direction), false stars (star_id 0, no ra/dec) are
    added at uniform random pixels, Poisson with mean ``false_star_fraction`` x the frame's real stars.
 
-The CSV's ra_deg/dec_deg are always the geocentric apparent place (never refracted), as INTERFACES.md defines them.
+The CSV's ra_deg/dec_deg are always the geocentric apparent place (never refracted), as docs/file-formats.md defines
+them.
 The truth (camera, noise, per-frame C and f, misidentified and false rows, site, weather) is a compact JSON beside
 the session (``SESSION.truth.json``, ``hostlink.files.truth``), with per-frame quantities stored as arrays.
 

@@ -2,7 +2,8 @@
 
 Frames: every vector here is in the true equator and equinox of date (the frame of the session's reference
 directions, ``hostlink.sky.apparent``). Its pole is the CIP, which is the terrestrial pole when polar motion is
-ignored (INTERFACES.md), so the local zenith is the geodetic vertical rotated by the Greenwich apparent sidereal time.
+ignored (docs/interfaces.md), so the local zenith is the geodetic vertical rotated by the Greenwich apparent sidereal
+time.
 
 Refraction: ERFA's model (``erfa.refco``) relates the observed zenith distance ``z_obs`` to the
 in-vacuo topocentric one ``z_top`` by ``z_top = z_obs + A tan z_obs + B tan^3 z_obs`` (refco's definition). The
@@ -48,7 +49,7 @@ def zenith_true_of_date(
     """Unit vector of the local (geodetic) zenith in the true equator and equinox of date, (3,) or (F, 3).
 
     Hour angle of the zenith = GAST + east longitude, GAST from ``erfa.gst06a`` (UT1 = UTC + dut1, TT from UTC);
-    declination = geodetic latitude. Polar motion is ignored (INTERFACES.md).
+    declination = geodetic latitude. Polar motion is ignored (docs/interfaces.md).
     """
     scalar = np.ndim(jd_utc1) == 0 and np.ndim(jd_utc2) == 0
     theta = _gast_rad(jd_utc1, jd_utc2, dut1_s) + np.radians(site.lon_deg)
