@@ -19,7 +19,8 @@ Files (INTERFACES.md formats; every write is atomic):
     :func:`read_session`, :func:`read_session_chunks` (a session of any length, or several files, in chunks of whole
     frames), :func:`concatenate_sessions`, :func:`write_session`, :class:`SessionWriter` (CSV, or Parquet for
     ``*.parquet``), :func:`load_params`,
-    :func:`load_params_with_sigma`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
+    :func:`load_params_with_sigma`, :func:`load_params_for_upload` (refuses a failed or unconverged calibration),
+    :func:`params_file_status`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
     :func:`write_attitudes`, :func:`write_trace`, :class:`TraceWriter`, :func:`read_trace`, :func:`data_file` (the
     camera files shipped with
     the package; ``load_params("builtin:NAME")`` reads one by name).
@@ -72,7 +73,8 @@ from hostlink.emulator.process import EmulatorProcess
 from hostlink.emulator.setup import build_sensor
 from hostlink.errors import LinkError, SensorRefused, UserError
 from hostlink.files.attitude import write_attitudes
-from hostlink.files.params import data_file, load_params, load_params_with_sigma, save_params
+from hostlink.files.params import data_file, load_params, load_params_for_upload, load_params_with_sigma, save_params
+from hostlink.files.params import file_status as params_file_status
 from hostlink.files.session import (
     Session,
     SessionWriter,
@@ -173,6 +175,8 @@ __all__ = [
     "data_file",
     "load_params",
     "load_params_with_sigma",
+    "load_params_for_upload",
+    "params_file_status",
     "read_session",
     "read_session_chunks",
     "concatenate_sessions",

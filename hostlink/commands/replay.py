@@ -117,11 +117,14 @@ def run(args: argparse.Namespace) -> int:
             on_trace=None if trace is None else trace.append,
             name=name,
         )
-    save_params(args.out, result.params, estimate_extras(result, args.precision))
+    extras = estimate_extras(result, args.precision)
+    save_params(args.out, result.params, extras)
     p = result.params
     print(
         f"replayed {result.n_frames} frames ({result.state.updates} used): f = {p.focal_length_mm:.6f} mm, "
         f"principal point ({p.principal_point_px[0]:.3f}, {p.principal_point_px[1]:.3f}) px, prior "
         f"{result.prior} -> {args.out}"
     )
+    if extras["status"] != "converged":
+        print(f"not converged: {extras['status_reason']} (status {extras['status']}: upload refuses this file)")
     return 0
