@@ -6,7 +6,10 @@ import csv
 import math
 from pathlib import Path
 
+import numpy as np
+
 from hostlink.files.atomic import atomic_open
+from hostlink.sky.pointing import attitude_quaternion, boresight_radec_roll
 
 #: Columns of every attitude file; C's elements row by row (b = C r).
 ATTITUDE_COLUMNS = (
@@ -14,6 +17,10 @@ ATTITUDE_COLUMNS = (
     + tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
     + ("residual_rms_arcsec", "status")
 )
+#: The attitude in other forms, from C (:mod:`hostlink.sky.pointing`): the quaternion, scalar first, carrying the
+#: reference axes onto the sensor axes; the boresight (+z) right ascension and declination [deg] in the reference
+#: frame; the roll [deg] from the image's up (-y) to the projected celestial north, toward +x.
+POINTING_COLUMNS = ("q0", "q1", "q2", "q3", "boresight_ra_deg", "boresight_dec_deg", "roll_deg")
 #: Added when the attitudes carry a ship attitude (a site and the sensor's mounting were given).
 SHIP_COLUMNS = ("ship_yaw_deg", "ship_pitch_deg", "ship_roll_deg")
 
@@ -24,14 +31,18 @@ def _cell(value: float) -> str:
 
 def write_attitudes(path: str | Path, attitudes) -> None:
     """Write ATTITUDE.csv atomically from a :class:`hostlink.sky.attitude.SessionAttitudes`: frame, t_utc, n_stars,
-    n_used, c11..c33, residual_rms_arcsec [arcsec, 4 decimals], status, then ship_yaw_deg, ship_pitch_deg,
-    ship_roll_deg [deg] when it has a ship attitude. Unsolved values are empty cells."""
+    n_used, c11..c33, residual_rms_arcsec [arcsec, 4 decimals], status, q0..q3, boresight_ra_deg,
+    boresight_dec_deg, roll_deg (:data:`POINTING_COLUMNS`), then ship_yaw_deg, ship_pitch_deg, ship_roll_deg [deg]
+    when it has a ship attitude. Unsolved values are empty cells."""
     ship = attitudes.ship_ypr_deg
+    quaternions = attitude_quaternion(attitudes.C)
     with atomic_open(path, newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(ATTITUDE_COLUMNS + (SHIP_COLUMNS if ship is not None else ()))
+        w.writerow(ATTITUDE_COLUMNS + POINTING_COLUMNS + (SHIP_COLUMNS if ship is not None else ()))
         for k in range(attitudes.n_frames):
             rms = float(attitudes.residual_rms_arcsec[k])
+            solved = bool(np.all(np.isfinite(attitudes.C[k])))
+            pointing = boresight_radec_roll(attitudes.C[k]) if solved else (math.nan,) * 3
             w.writerow(
                 [
                     int(attitudes.frame[k]),
@@ -41,5 +52,7 @@ def write_attitudes(path: str | Path, attitudes) -> None:
                 ]
                 + [_cell(v) for v in attitudes.C[k].reshape(9)]
                 + ["" if not math.isfinite(rms) else f"{rms:.4f}", attitudes.status[k]]
+                + [_cell(v) for v in quaternions[k]]
+                + [_cell(v) for v in pointing]
                 + ([] if ship is None else [_cell(v) for v in ship[k]])
             )
