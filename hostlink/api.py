@@ -25,7 +25,9 @@ Files (INTERFACES.md formats; every write is atomic):
     camera files shipped with
     the package; ``load_params("builtin:NAME")`` reads one by name).
 Sky:
-    :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
+    :func:`simulate` (a session of the real sky through a true camera, with its truth; :func:`simulate_chunks`
+    the same chunk by chunk as :class:`SimChunk` s, :func:`write_simulation` straight to its files in bounded
+    memory), :func:`session_references`
     (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
 Images:
     :func:`centroid_images` (star centroids from FITS/TIFF/PNG images into a session of unidentified stars, with
@@ -124,7 +126,7 @@ from hostlink.portkit.vectors import write_vectors
 from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
 from hostlink.sky.references import SessionReferences, session_references
 from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
-from hostlink.sky.simulate import SimConfig, SimResult, simulate
+from hostlink.sky.simulate import SimChunk, SimConfig, SimResult, simulate, simulate_chunks, write_simulation
 from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
 from onboard.recursive import RecursiveConfig
 from onboard.site import Site, Weather
@@ -198,6 +200,9 @@ __all__ = [
     "identify_session",
     "session_references",
     "simulate",
+    "simulate_chunks",
+    "write_simulation",
+    "SimChunk",
     "solve_attitudes",
     # calibration
     "calibrate_session",

@@ -109,10 +109,9 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from hostlink.files.params import load_params
-    from hostlink.files.session import write_session
-    from hostlink.files.truth import truth_path_for, write_truth
+    from hostlink.files.truth import truth_path_for
     from hostlink.progress import progress_bar
-    from hostlink.sky.simulate import SimConfig, seed004_config, simulate
+    from hostlink.sky.simulate import SimConfig, seed004_config, write_simulation
 
     site, weather = site_and_weather(args)
     attitudes = _read_attitudes(args.attitudes) if args.attitudes else None
@@ -153,14 +152,9 @@ def run(args: argparse.Namespace) -> int:
     if cfg.min_stars > cfg.max_stars and args.max_stars is None:
         cfg = replace(cfg, max_stars=cfg.min_stars)
     # a bar only where simulating takes long enough to watch (a few thousand frames and up)
-    with progress_bar("simulating", int(cfg.frames), enabled=cfg.frames >= 2000) as advance:
-        result = simulate(cfg, progress=lambda done, _total: advance(done))
     truth_path = truth_path_for(args.out)
-    write_session(args.out, result.session)
-    write_truth(truth_path, result.truth)
-    session = result.session
-    print(
-        f"wrote {session.n_frames} frames, {len(session)} stars to {args.out} (truth: {truth_path})",
-        file=sys.stdout,
-    )
+    # streamed to disk chunk by chunk: memory bounded by one chunk whatever --frames (issue 31)
+    with progress_bar("simulating", int(cfg.frames), enabled=cfg.frames >= 2000) as advance:
+        frames, rows = write_simulation(cfg, args.out, truth_path, progress=lambda done, _total: advance(done))
+    print(f"wrote {frames} frames, {rows} stars to {args.out} (truth: {truth_path})", file=sys.stdout)
     return 0
