@@ -15,6 +15,7 @@ import re
 import sys
 import warnings
 
+from hostlink.errors import DISTRIBUTION as _DISTRIBUTION
 from hostlink.errors import UserError
 
 #: Sub-commands in the order ``--help`` lists them (module ``hostlink.commands.<name>``).
@@ -52,7 +53,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 #: The distribution that installs the ``hostlink`` console script (pyproject.toml ``[project] name``).
-DISTRIBUTION = "startracker-companion"
+DISTRIBUTION = _DISTRIBUTION
 
 
 def package_version() -> str:
