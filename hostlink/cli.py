@@ -66,6 +66,23 @@ def package_version() -> str:
         return "unknown (not installed)"
 
 
+#: Every help text's last line: the docs/NAME.md pages a help text cites are installed with the package.
+DOCS_NOTE = "docs/NAME.md pages are installed with the package: hostlink --docs prints where"
+
+
+class _DocsAction(argparse.Action):
+    """``hostlink --docs``: print the documentation folder and its pages (:mod:`hostlink.docs`), then exit 0."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None) -> None:  # noqa: A002
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, _namespace, _values, _option_string=None) -> None:
+        from hostlink.docs import docs_listing
+
+        print(docs_listing())
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hostlink",
@@ -73,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
         "sensors (real or emulated) over serial, CAN or Modbus.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    parser.add_argument("--docs", action=_DocsAction, help=f"print where the documentation is ({DOCS_NOTE})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
         module_name = f"hostlink.commands.{name.replace('-', '_')}"
@@ -82,7 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name != module_name:
                 raise
             continue
-        p = sub.add_parser(name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
+        p = sub.add_parser(
+            name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP), epilog=DOCS_NOTE
+        )
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

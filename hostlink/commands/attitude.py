@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from hostlink.commands.jsonopt import add_json_argument
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
 from hostlink.sky.attitude import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES
@@ -36,7 +37,7 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("session", metavar="SESSION.csv", help="session file (INTERFACES.md)")
+    parser.add_argument("session", metavar="SESSION.csv", help="session file (docs/file-formats.md)")
     parser.add_argument(
         "--params",
         required=True,
@@ -83,6 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "east)",
     )
     _add_wcs_argument(parser)
+    add_json_argument(parser, "the attitudes (frames: one object per row, keyed by ATTITUDE.csv's columns)")
 
 
 def _add_wcs_argument(parser: argparse.ArgumentParser) -> None:
@@ -92,6 +94,10 @@ def _add_wcs_argument(parser: argparse.ArgumentParser) -> None:
         help="also write a FITS WCS header per solved frame, DIR/frame_<frame>.fits (TAN-SIP of the calibrated "
         "camera: astropy's WCS(header).all_pix2world(x_px, y_px, 0) gives the stars' directions)",
     )
+
+
+def _silent(*_args, **_kwargs) -> None:
+    """``print`` when --json asks for the object alone on stdout."""
 
 
 def parse_mounting(text: str) -> tuple[float, float, float]:
@@ -134,19 +140,43 @@ def run(args: argparse.Namespace) -> int:
         mounting,
     )
     write_attitudes(args.out, attitudes)
-    print(
+    report = print if not args.json else _silent
+    report(
         f"hostlink attitude: {attitudes.n_solved}/{attitudes.n_frames} frames solved (refraction: {mode}) -> {args.out}"
     )
+    wcs = None
     if args.wcs and attitudes.n_solved:
         from hostlink.files.wcs import write_wcs_headers
         from hostlink.sky.pointing import sip_model
 
         sip = sip_model(params.model_vector(), params.image_size_px)
         n = write_wcs_headers(args.wcs, attitudes, params, sip, session.time_known, site is not None)
-        print(
+        wcs = {
+            "directory": args.wcs,
+            "files": n,
+            "sip_order": sip.order,
+            "sip_error_px": sip.forward_error_px,
+            "sip_inverse_order": sip.inverse_order,
+            "sip_inverse_error_px": sip.inverse_error_px,
+        }
+        report(
             f"wcs: {n} FITS headers (TAN-SIP order {sip.order}, error {sip.forward_error_px:.2g} px pixel->sky; "
             f"inverse order {sip.inverse_order}, error {sip.inverse_error_px:.2g} px sky->pixel) -> "
             f"{args.wcs}/frame_<frame>.fits"
+        )
+    if args.json:
+        from hostlink.commands.jsonopt import print_json
+        from hostlink.files.attitude import attitude_records
+
+        print_json(
+            {
+                "out": args.out,
+                "refraction": mode,
+                "n_frames": attitudes.n_frames,
+                "n_solved": attitudes.n_solved,
+                "wcs": wcs,
+                "frames": attitude_records(attitudes),
+            }
         )
     if attitudes.n_solved == 0:
         raise UserError(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.commands.jsonopt import add_json_argument
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
 
@@ -35,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "session",
         nargs="+",
         metavar="SESSION",
-        help="session file(s) (INTERFACES.md): one CSV, or several files, a glob pattern or .parquet files read as "
-        "one session in time order (the chunked path)",
+        help="session file(s) (docs/file-formats.md): one CSV, or several files, a glob pattern or .parquet files "
+        "read as one session in time order (the chunked path)",
     )
     parser.add_argument(
         "--nominal",
@@ -108,6 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "RMS [px] beside the fit's own residual, the figure to compare calibrations of the same images by "
         "(K >= 2; one CSV read whole)",
     )
+    add_json_argument(parser, "the result (RESULT.json's object; also for a failure kept with --keep-failed)")
     add_site_arguments(parser)
 
 
@@ -118,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from hostlink.files.params import load_params, save_params
     from onboard.recursive import parse_estimate_names
 
+    args.quiet = args.quiet or args.json  # --json: the result object alone on stdout
     try:
         estimate = None if args.estimate is None else parse_estimate_names(args.estimate)
     except ValueError as exc:
@@ -165,6 +168,11 @@ def run(args: argparse.Namespace) -> int:
         write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px)
         if not args.quiet:
             print(f"plots written to {args.plot}/residual_field.png and convergence.png")
+    if args.json:
+        from hostlink.commands.jsonopt import print_json
+        from hostlink.files.params import params_json
+
+        print_json(params_json(outcome.params, extras))
     if failure:
         raise UserError(f"calibration failed: {failure}; kept in {args.out} as asked (--keep-failed)")
     return 0
