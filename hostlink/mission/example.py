@@ -45,7 +45,7 @@ Run from this directory:
 
   s.csv, s.truth.json   1000 simulated frames of the real sky (Hipparcos) with 0.05 px centroid noise, and the truth
   cal.json              batch calibration (bundle adjustment) with the 1-sigma of every parameter
-  plots/                residuals before and after
+  plots/                residual fields before (nominal camera) and after calibration, and the fit's convergence
   onboard.json          the sensor's own recursive estimator run over the session, frame by frame
   trace.csv             that estimator's state after every frame
   attitude.csv          one attitude per frame (b = C r) with the calibrated camera
