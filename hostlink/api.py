@@ -61,76 +61,95 @@ Emulated sensor and the bench:
 
 from __future__ import annotations
 
-from hostlink.calibration.holdout import CrossValidation, cross_validate
-from hostlink.calibration.replay import (
-    ReplayResult,
-    estimate_extras,
-    replay_chunks,
-    replay_config,
-    replay_prior,
-    replay_session,
-)
-from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_archive, calibrate_session, result_extras
-from hostlink.emulator.process import EmulatorProcess
-from hostlink.emulator.setup import build_sensor
-from hostlink.errors import LinkError, SensorRefused, UserError
-from hostlink.files.attitude import write_attitudes
-from hostlink.files.params import data_file, load_params, load_params_for_upload, load_params_with_sigma, save_params
-from hostlink.files.params import file_status as params_file_status
-from hostlink.files.session import (
-    Session,
-    SessionWriter,
-    concatenate_sessions,
-    read_session,
-    read_session_chunks,
-    write_session,
-)
-from hostlink.files.trace import TraceWriter, read_trace, write_trace
-from hostlink.files.truth import read_truth, write_truth
-from hostlink.images.centroid import (
-    CentroidOptions,
-    CentroidResult,
-    FrameReport,
-    TimeOptions,
-    centroid_crb_px,
-    centroid_images,
-    centroid_pixels,
-)
-from hostlink.images.identify import FrameIdentity, Identification, identify_session
-from hostlink.images.read import RawImage, read_image
-from hostlink.links import Link, open_link
-from hostlink.links.base import CommandRefused
-from hostlink.links.operations import (
-    ActiveParams,
-    EstimatePoll,
-    StreamResult,
-    UploadMismatch,
-    UploadResult,
-    accept_estimate,
-    estimate_record,
-    float32_equal,
-    params_float32_dict,
-    poll_estimate,
-    poll_estimates,
-    read_active_params,
-    read_estimate,
-    record_session,
-    safe_upload,
-    stream_frames,
-)
-from hostlink.mission.config import BenchConfig, design_nominal
-from hostlink.mission.run import run_bench
-from hostlink.portkit.costs import cost_table, cost_table_text
-from hostlink.portkit.export_c import write_c as export_c
-from hostlink.portkit.vectors import write_vectors
-from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
-from hostlink.sky.references import SessionReferences, session_references
-from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
-from hostlink.sky.simulate import SimChunk, SimConfig, SimResult, simulate, simulate_chunks, write_simulation
-from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
-from onboard.recursive import RecursiveConfig
-from onboard.site import Site, Weather
-from protocol.messages import Estimate
+from typing import TYPE_CHECKING
+
+# The names below are imported when first used (PEP 562 ``__getattr__`` at the end of this module), so that
+# ``import hostlink.api`` costs milliseconds and pulls in no numpy, scipy or astropy (issue 31: a user who only uploads
+# a file does not wait for the image stack). The import statements stay the one list of where each name lives: type
+# checkers read them here, and :func:`_lazy_table` reads the same statements from this file's source.
+if TYPE_CHECKING:
+    from hostlink.calibration.holdout import CrossValidation, cross_validate
+    from hostlink.calibration.replay import (
+        ReplayResult,
+        estimate_extras,
+        replay_chunks,
+        replay_config,
+        replay_prior,
+        replay_session,
+    )
+    from hostlink.calibration.run import (
+        METHODS,
+        CalibrationOutcome,
+        calibrate_archive,
+        calibrate_session,
+        result_extras,
+    )
+    from hostlink.emulator.process import EmulatorProcess
+    from hostlink.emulator.setup import build_sensor
+    from hostlink.errors import LinkError, SensorRefused, UserError
+    from hostlink.files.attitude import write_attitudes
+    from hostlink.files.params import (
+        data_file,
+        load_params,
+        load_params_for_upload,
+        load_params_with_sigma,
+        save_params,
+    )
+    from hostlink.files.params import file_status as params_file_status
+    from hostlink.files.session import (
+        Session,
+        SessionWriter,
+        concatenate_sessions,
+        read_session,
+        read_session_chunks,
+        write_session,
+    )
+    from hostlink.files.trace import TraceWriter, read_trace, write_trace
+    from hostlink.files.truth import read_truth, write_truth
+    from hostlink.images.centroid import (
+        CentroidOptions,
+        CentroidResult,
+        FrameReport,
+        TimeOptions,
+        centroid_crb_px,
+        centroid_images,
+        centroid_pixels,
+    )
+    from hostlink.images.identify import FrameIdentity, Identification, identify_session
+    from hostlink.images.read import RawImage, read_image
+    from hostlink.links import Link, open_link
+    from hostlink.links.base import CommandRefused
+    from hostlink.links.operations import (
+        ActiveParams,
+        EstimatePoll,
+        StreamResult,
+        UploadMismatch,
+        UploadResult,
+        accept_estimate,
+        estimate_record,
+        float32_equal,
+        params_float32_dict,
+        poll_estimate,
+        poll_estimates,
+        read_active_params,
+        read_estimate,
+        record_session,
+        safe_upload,
+        stream_frames,
+    )
+    from hostlink.mission.config import BenchConfig, design_nominal
+    from hostlink.mission.run import run_bench
+    from hostlink.portkit.costs import cost_table, cost_table_text
+    from hostlink.portkit.export_c import write_c as export_c
+    from hostlink.portkit.vectors import write_vectors
+    from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
+    from hostlink.sky.references import SessionReferences, session_references
+    from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
+    from hostlink.sky.simulate import SimChunk, SimConfig, SimResult, simulate, simulate_chunks, write_simulation
+    from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
+    from onboard.recursive import RecursiveConfig
+    from onboard.site import Site, Weather
+    from protocol.messages import Estimate
 
 __all__ = [
     # data
@@ -239,3 +258,42 @@ __all__ = [
     "design_nominal",
     "run_bench",
 ]
+
+
+def _lazy_table() -> dict[str, tuple[str, str]]:
+    """Public name -> (module, attribute), from the ``from MODULE import NAME [as ALIAS]`` statements of this file's
+    ``if TYPE_CHECKING:`` block (the one list of where each name lives)."""
+    import ast
+    from pathlib import Path
+
+    tree = ast.parse(Path(__file__).read_text(encoding="utf-8"))
+    table: dict[str, tuple[str, str]] = {}
+    for node in tree.body:
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for stmt in node.body:
+                if isinstance(stmt, ast.ImportFrom) and stmt.module:
+                    for alias in stmt.names:
+                        table[alias.asname or alias.name] = (stmt.module, alias.name)
+    return table
+
+
+_LAZY: dict[str, tuple[str, str]] | None = None
+
+
+def __getattr__(name: str):  # noqa: ANN202 - PEP 562: the public names, imported on first use
+    global _LAZY
+    if _LAZY is None:
+        _LAZY = _lazy_table()
+    try:
+        module, attribute = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    import importlib
+
+    value = getattr(importlib.import_module(module), attribute)
+    globals()[name] = value  # later uses are plain lookups
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
