@@ -79,7 +79,11 @@ class _DocsAction(argparse.Action):
     def __call__(self, parser, _namespace, _values, _option_string=None) -> None:
         from hostlink.docs import docs_listing
 
-        print(docs_listing())
+        try:
+            print(docs_listing(), flush=True)
+        except BrokenPipeError:  # `hostlink --docs | head -1`: quiet, as a shell tool killed by SIGPIPE
+            _stdout_closed()
+            parser.exit(128 + 13)
         parser.exit(0)
 
 
