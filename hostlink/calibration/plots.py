@@ -216,6 +216,7 @@ AFTER_CAPTION = (
     "(a swirl, a radial pattern) that stay after calibration: a model or identification error to look into."
 )
 BEFORE_CAPTION = (
-    "The same, through the nominal camera (each frame's attitude fitted to it): the pattern calibration removes; "
-    "radial arrows are distortion, a uniform shift or scale the principal point and focal length."
+    "Arrows: mean residual (measured minus predicted centroid) per cell through the nominal camera, each frame's "
+    "attitude fitted to it: the pattern calibration removes. Radial arrows are distortion; a uniform shift or scale, "
+    "the principal point and focal length."
 )
