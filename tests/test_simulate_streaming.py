@@ -33,7 +33,7 @@ def test_streamed_files_equal_the_simulation_in_memory(tmp_path, monkeypatch):
 
 
 def test_a_failed_simulation_leaves_no_files(tmp_path, monkeypatch):
-    """A simulation that fails part way (here: the second chunk's sky cannot be built) writes neither file."""
+    """A simulation that fails part way (here: the second chunk's sky cannot be built) leaves no file at all."""
     monkeypatch.setattr(sim, "_CHUNK_FRAMES", 300)
     real = sim._chunk_sky
 
@@ -45,4 +45,4 @@ def test_a_failed_simulation_leaves_no_files(tmp_path, monkeypatch):
     monkeypatch.setattr(sim, "_chunk_sky", failing)
     with pytest.raises(sim.UserError, match="stop"):
         sim.write_simulation(sim.seed004_config(frames=1000, seed=9), tmp_path / "s.csv", tmp_path / "s.truth.json")
-    assert not (tmp_path / "s.csv").exists() and not (tmp_path / "s.truth.json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # not even s.csv.partial

@@ -728,6 +728,15 @@ class SessionWriter:
         finally:
             self._file.abandon(keep=True)
 
+    def discard(self) -> None:
+        """Close and remove the partial file: nothing of this writer stays (a simulation that failed part way)."""
+        try:
+            self._close_sink()
+        except UserError:
+            pass  # the write is abandoned anyway; the error that got us here is the one to report
+        finally:
+            self._file.abandon(keep=False)
+
     def _close_sink(self) -> None:
         if self._sink is not None:
             sink, self._sink = self._sink, None

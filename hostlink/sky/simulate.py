@@ -623,21 +623,31 @@ def write_simulation(
     :class:`hostlink.files.truth.TruthWriter`, in memory bounded by one chunk whatever the number of frames. Both
     files appear only when the whole simulation succeeded. Returns (frames, rows)."""
     header = _truth_header(config)
-    with SessionWriter(session_path) as sessions, TruthWriter(truth_path, header, TRUTH_PER_FRAME_KEYS) as truth:
-        for chunk in simulate_chunks(config, progress):
-            sessions.append(chunk.session)
-            truth.append(
-                {
-                    "attitude": chunk.attitude.reshape(-1, 9),
-                    "focal_length_mm": chunk.focal_length_mm,
-                    "real_stars_per_frame": chunk.real_stars_per_frame,
-                    "misidentified_rows": chunk.misidentified_rows,
-                    "misidentified_true_star_id": chunk.misidentified_true_star_id,
-                    "false_rows": chunk.false_rows,
-                }
-            )
-        rows = sessions.rows
-    return int(config.frames), int(rows)
+    sessions = SessionWriter(session_path)
+    try:
+        with TruthWriter(truth_path, header, TRUTH_PER_FRAME_KEYS) as truth:
+            _write_chunks(config, progress, sessions, truth)
+            sessions.commit()  # before the truth is written: a truth file always has its session
+    except BaseException:
+        sessions.discard()  # a simulation that failed part way (or was interrupted) leaves no file, not even .partial
+        raise
+    return int(config.frames), int(sessions.rows)
+
+
+def _write_chunks(config: SimConfig, progress, sessions: SessionWriter, truth: TruthWriter) -> None:
+    """Each chunk of the simulation appended to the session and truth writers as it is made."""
+    for chunk in simulate_chunks(config, progress):
+        sessions.append(chunk.session)
+        truth.append(
+            {
+                "attitude": chunk.attitude.reshape(-1, 9),
+                "focal_length_mm": chunk.focal_length_mm,
+                "real_stars_per_frame": chunk.real_stars_per_frame,
+                "misidentified_rows": chunk.misidentified_rows,
+                "misidentified_true_star_id": chunk.misidentified_true_star_id,
+                "false_rows": chunk.false_rows,
+            }
+        )
 
 
 def _realign(order: np.ndarray, old_rows: np.ndarray, values: np.ndarray) -> np.ndarray:
