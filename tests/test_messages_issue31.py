@@ -62,10 +62,12 @@ def _fits_bytes():
     [
         (lambda b: b"", "empty file"),
         (lambda b: b"hello world" * 300, "not a FITS file"),
-        (lambda b: b[:2000], "truncated or damaged FITS file"),
-        (lambda b: b[: 2880 + 100], "truncated or damaged FITS file"),
+        (lambda b: b[:2000], "truncated or damaged FITS file: 2000 bytes"),
+        (lambda b: b[: 2880 + 100], "truncated FITS file: 2980 bytes where its header describes 11520"),
+        (lambda b: b[:2880], "truncated FITS file: 2880 bytes where its header describes 11520"),
+        (lambda b: b.replace(b"END" + b" " * 77, b" " * 80, 1), "no END card"),
     ],
-    ids=["empty", "not-fits", "cut-in-the-header", "cut-in-the-data"],
+    ids=["empty", "not-fits", "cut-in-the-header", "cut-in-the-data", "header-only", "no-end-card"],
 )
 def test_centroid_on_a_broken_fits_names_the_damage_not_an_astropy_option(tmp_path, capsys, cut, needle):
     path = tmp_path / "frame.fits"

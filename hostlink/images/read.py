@@ -151,12 +151,20 @@ def _fits_problem(path: Path, exc: BaseException, caught: list) -> str:
         start = fh.read(30)
     if not start.startswith(b"SIMPLE  ="):
         return "not a FITS file (a FITS file starts with the card SIMPLE = T)"
-    texts = [str(w.message) for w in caught]
-    if size % FITS_BLOCK_BYTES or any("truncated" in t for t in texts):
+    texts = " ".join(str(w.message) for w in caught)
+    expected = re.search(r"expected size \((\d+)\)", texts)
+    if expected:
         return (
-            f"truncated or damaged FITS file ({size} bytes, not whole {FITS_BLOCK_BYTES}-byte blocks or shorter than "
-            "its header says): copy it again from its source"
+            f"truncated FITS file: {size} bytes where its header describes {expected.group(1)}; copy it again from "
+            "its source"
         )
+    if size % FITS_BLOCK_BYTES:
+        return (
+            f"truncated or damaged FITS file: {size} bytes, not a whole number of {FITS_BLOCK_BYTES}-byte blocks; "
+            "copy it again from its source"
+        )
+    if "END card" in first:
+        return "damaged FITS header: it has no END card (the file was cut or overwritten)"
     return f"cannot read the FITS image ({first})"
 
 
