@@ -26,33 +26,33 @@ from onboard.camera import distortion_px, unit_to_radec
 
 def attitude_quaternion(c: np.ndarray) -> np.ndarray:
     """Quaternion (q0, q1, q2, q3), scalar first and q0 >= 0, of the attitude matrix ``c`` (module docstring), by
-    Shepperd's method (Shepperd 1978, J. Guidance Control 1(3): the largest of 4 q_i^2 taken first, so no division
-    by a small number). ``c`` (3, 3) or (N, 3, 3); NaN matrices give NaN quaternions."""
-    c = np.asarray(c, dtype=np.float64)
-    flat = c.reshape(-1, 3, 3)
-    out = np.full((flat.shape[0], 4), np.nan)
-    for k, a in enumerate(flat):
-        if not np.all(np.isfinite(a)):
-            continue
-        tr = a[0, 0] + a[1, 1] + a[2, 2]
-        # 4 q_i^2 for i = 0..3 (Shuster eq. 163-164), then the other three from the off-diagonal sums/differences
-        four_sq = np.array([1 + tr, 1 + 2 * a[0, 0] - tr, 1 + 2 * a[1, 1] - tr, 1 + 2 * a[2, 2] - tr])
-        i = int(np.argmax(four_sq))
-        d = 2.0 * math.sqrt(four_sq[i])  # = 4 |q_i|
-        diff = (a[1, 2] - a[2, 1], a[2, 0] - a[0, 2], a[0, 1] - a[1, 0])  # 4 q0 q1, 4 q0 q2, 4 q0 q3
-        summ = {(1, 2): a[0, 1] + a[1, 0], (1, 3): a[0, 2] + a[2, 0], (2, 3): a[1, 2] + a[2, 1]}  # 4 qi qj
-        q = np.empty(4)
-        q[i] = d / 4.0
-        for j in range(4):
-            if j == i:
-                continue
-            if 0 in (i, j):
-                q[j] = diff[max(i, j) - 1] / d
-            else:
-                q[j] = summ[(min(i, j), max(i, j))] / d
-        q /= np.linalg.norm(q)
-        out[k] = -q if q[0] < 0 else q
-    return out.reshape(c.shape[:-2] + (4,))
+    Shepperd's method (Shepperd 1978, J. Guidance Control 1(3); Shuster 1993 eq. 163-168): of 4 q_i^2 (from the
+    trace and the diagonal) the largest is taken first, and the other three from the off-diagonal sums and
+    differences divided by it, so no division by a small number. ``c`` (3, 3) or (N, 3, 3); NaN matrices give NaN
+    quaternions."""
+    a = np.asarray(c, dtype=np.float64).reshape(-1, 3, 3)
+    d0, d1, d2 = a[:, 0, 0], a[:, 1, 1], a[:, 2, 2]
+    tr = d0 + d1 + d2
+    four_sq = np.stack([1 + tr, 1 + 2 * d0 - tr, 1 + 2 * d1 - tr, 1 + 2 * d2 - tr], axis=1)  # 4 q_i^2
+    # 4 q_i q_j for every pair: (0, k) from the differences, (i, j) from the sums of the off-diagonal elements
+    pair = np.empty((a.shape[0], 4, 4))
+    pair[:, 0, 1] = pair[:, 1, 0] = a[:, 1, 2] - a[:, 2, 1]
+    pair[:, 0, 2] = pair[:, 2, 0] = a[:, 2, 0] - a[:, 0, 2]
+    pair[:, 0, 3] = pair[:, 3, 0] = a[:, 0, 1] - a[:, 1, 0]
+    pair[:, 1, 2] = pair[:, 2, 1] = a[:, 0, 1] + a[:, 1, 0]
+    pair[:, 1, 3] = pair[:, 3, 1] = a[:, 0, 2] + a[:, 2, 0]
+    pair[:, 2, 3] = pair[:, 3, 2] = a[:, 1, 2] + a[:, 2, 1]
+    idx = np.arange(4)
+    pair[:, idx, idx] = four_sq
+    finite = np.all(np.isfinite(four_sq), axis=1)
+    best = np.argmax(np.where(finite[:, None], four_sq, 0.0), axis=1)
+    rows = pair[np.arange(a.shape[0]), best]  # 4 q_best q_j for j = 0..3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = rows / (2.0 * np.sqrt(np.take_along_axis(four_sq, best[:, None], axis=1)))
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(q[:, :1] < 0, -q, q)
+    q[~finite] = np.nan
+    return q.reshape(np.shape(c)[:-2] + (4,))
 
 
 def boresight_radec_roll(c: np.ndarray) -> tuple[float, float, float]:
