@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.atomic import file_path, write_json
+from hostlink.files.atomic import cannot_write, file_path, write_json
 from onboard.params import ParameterError, params_from_dict
 
 TRUTH_FORMAT = "startracker-companion simulation truth"
@@ -91,7 +91,14 @@ class TruthWriter:
     def __enter__(self) -> TruthWriter:
         import tempfile
 
-        self._spools = {key: tempfile.TemporaryFile("w+", encoding="utf-8") for key in self.per_frame}
+        # beside the truth file, not in the system's temporary folder (often a RAM disk: 10^6 frames spool ~200 MB)
+        folder = file_path(self.path).parent
+        try:
+            self._spools = {key: tempfile.TemporaryFile("w+", encoding="utf-8", dir=folder) for key in self.per_frame}
+        except OSError as exc:
+            for spool in self._spools.values():
+                spool.close()
+            raise cannot_write(self.path, exc) from None
         return self
 
     def append(self, values: dict[str, np.ndarray]) -> None:
