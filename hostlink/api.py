@@ -28,7 +28,10 @@ Sky:
     :func:`simulate` (a session of the real sky through a true camera, with its truth; :func:`simulate_chunks`
     the same chunk by chunk as :class:`SimChunk` s, :func:`write_simulation` straight to its files in bounded
     memory), :func:`session_references`
-    (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
+    (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame), in other
+    forms: :func:`attitude_quaternion` (scalar first), :func:`boresight_radec_roll`, :func:`attitude_records` (the
+    rows of ATTITUDE.csv as objects), and as FITS WCS: :func:`sip_model` (the camera's distortion as SIP, with its
+    fit errors), :func:`write_wcs_headers` (one TAN-SIP header per frame).
 Images:
     :func:`centroid_images` (star centroids from FITS/TIFF/PNG images into a session of unidentified stars, with
     :class:`CentroidOptions`, :class:`TimeOptions` and one :class:`FrameReport` per image in a
@@ -87,7 +90,7 @@ if TYPE_CHECKING:
     from hostlink.emulator.process import EmulatorProcess
     from hostlink.emulator.setup import build_sensor
     from hostlink.errors import LinkError, SensorRefused, UserError
-    from hostlink.files.attitude import write_attitudes
+    from hostlink.files.attitude import attitude_records, write_attitudes
     from hostlink.files.params import (
         data_file,
         load_params,
@@ -106,6 +109,7 @@ if TYPE_CHECKING:
     )
     from hostlink.files.trace import TraceWriter, read_trace, write_trace
     from hostlink.files.truth import read_truth, write_truth
+    from hostlink.files.wcs import write_wcs_headers
     from hostlink.images.centroid import (
         CentroidOptions,
         CentroidResult,
@@ -143,6 +147,7 @@ if TYPE_CHECKING:
     from hostlink.portkit.export_c import write_c as export_c
     from hostlink.portkit.vectors import write_vectors
     from hostlink.sky.attitude import REFRACTION_MODES, SessionAttitudes, solve_attitudes
+    from hostlink.sky.pointing import SipModel, attitude_quaternion, boresight_radec_roll, sip_model
     from hostlink.sky.references import SessionReferences, session_references
     from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
     from hostlink.sky.simulate import SimChunk, SimConfig, SimResult, simulate, simulate_chunks, write_simulation
@@ -223,6 +228,12 @@ __all__ = [
     "write_simulation",
     "SimChunk",
     "solve_attitudes",
+    "attitude_quaternion",
+    "boresight_radec_roll",
+    "attitude_records",
+    "sip_model",
+    "SipModel",
+    "write_wcs_headers",
     # calibration
     "calibrate_session",
     "calibrate_archive",

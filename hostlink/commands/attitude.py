@@ -146,8 +146,7 @@ def run(args: argparse.Namespace) -> int:
     )
     wcs = None
     if args.wcs and attitudes.n_solved:
-        from hostlink.files.wcs import write_wcs_headers
-        from hostlink.sky.pointing import sip_model
+        from hostlink.api import sip_model, write_wcs_headers
 
         sip = sip_model(params.model_vector(), params.image_size_px)
         n = write_wcs_headers(args.wcs, attitudes, params, sip, session.time_known, site is not None)
@@ -165,8 +164,8 @@ def run(args: argparse.Namespace) -> int:
             f"{args.wcs}/frame_<frame>.fits"
         )
     if args.json:
+        from hostlink.api import attitude_records
         from hostlink.commands.jsonopt import print_json
-        from hostlink.files.attitude import attitude_records
 
         print_json(
             {
