@@ -19,13 +19,19 @@ Files (docs/file-formats.md formats; every write is atomic):
     :func:`read_session`, :func:`read_session_chunks` (a session of any length, or several files, in chunks of whole
     frames), :func:`concatenate_sessions`, :func:`write_session`, :class:`SessionWriter` (CSV, or Parquet for
     ``*.parquet``), :func:`load_params`,
-    :func:`load_params_with_sigma`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
+    :func:`load_params_with_sigma`, :func:`load_params_for_upload` (refuses a failed or unconverged calibration),
+    :func:`params_file_status`, :func:`save_params`, :func:`read_truth`, :func:`write_truth`,
     :func:`write_attitudes`, :func:`write_trace`, :class:`TraceWriter`, :func:`read_trace`, :func:`data_file` (the
     camera files shipped with
     the package; ``load_params("builtin:NAME")`` reads one by name).
 Sky:
-    :func:`simulate` (a session of the real sky through a true camera, with its truth), :func:`session_references`
-    (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame).
+    :func:`simulate` (a session of the real sky through a true camera, with its truth; :func:`simulate_chunks`
+    the same chunk by chunk as :class:`SimChunk` s, :func:`write_simulation` straight to its files in bounded
+    memory), :func:`session_references`
+    (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame), in other
+    forms: :func:`attitude_quaternion` (scalar first), :func:`boresight_radec_roll`, :func:`attitude_records` (the
+    rows of ATTITUDE.csv as objects), and as FITS WCS: :func:`sip_model` (the camera's distortion as SIP, with its
+    fit errors), :func:`write_wcs_headers` (one TAN-SIP header per frame).
 Images:
     :func:`centroid_images` (star centroids from FITS/TIFF/PNG images into a session of unidentified stars, with
     :class:`CentroidOptions`, :class:`TimeOptions` and one :class:`FrameReport` per image in a
@@ -79,123 +85,156 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from hostlink.calibration.crb import (
-    attitude_covariance,
-    crb_validation_px,
-    fisher_information,
-    grid_points,
-    interstar_batch_ml,
-    interstar_frame_information,
-    interstar_information,
-    rotation_angle_rad,
-    validation_jacobian,
-    validation_residual_from_directions_px,
-    validation_residual_px,
-)
-from hostlink.calibration.holdout import CrossValidation, cross_validate
-from hostlink.calibration.plots import write_calibration_plots
-from hostlink.calibration.replay import (
-    ReplayResult,
-    estimate_extras,
-    precision_dtype,
-    replay_chunks,
-    replay_config,
-    replay_prior,
-    replay_session,
-)
-from hostlink.calibration.report import write_rejected
-from hostlink.calibration.run import METHODS, CalibrationOutcome, calibrate_archive, calibrate_session, result_extras
-from hostlink.calibration.synthetic import (
-    SyntheticSession,
-    make_frames,
-    seed004_paper_start,
-    seed004_true_camera,
-    sky_frames,
-    synth_frames,
-    synthetic_session,
-)
-from hostlink.emulator import ENDPOINTS
-from hostlink.emulator.process import EmulatorProcess
-from hostlink.emulator.sensor import EndpointOptions
-from hostlink.emulator.setup import build_sensor, parse_endpoint_options
-from hostlink.errors import LinkError, SensorRefused, UserError
-from hostlink.files.atomic import write_json
-from hostlink.files.attitude import write_attitudes
-from hostlink.files.params import data_file, emit_param_file, load_params, load_params_with_sigma, save_params
-from hostlink.files.session import (
-    Session,
-    SessionWriter,
-    check_on_detector,
-    concatenate_sessions,
-    read_session,
-    read_session_chunks,
-    session_paths,
-    write_session,
-)
-from hostlink.files.trace import TraceWriter, read_trace, write_trace
-from hostlink.files.truth import read_truth, truth_path_for, write_truth
-from hostlink.images.centroid import (
-    CentroidOptions,
-    CentroidResult,
-    FrameReport,
-    TimeOptions,
-    centroid_crb_px,
-    centroid_images,
-    centroid_pixels,
-)
-from hostlink.images.identify import FrameIdentity, Identification, identify_session
-from hostlink.images.read import RawImage, read_image
-from hostlink.links import Link, open_link
-from hostlink.links.base import CommandRefused
-from hostlink.links.operations import (
-    WIRE_PX_FORMAT,
-    ActiveParams,
-    EstimatePoll,
-    StreamResult,
-    UploadMismatch,
-    UploadResult,
-    accept_estimate,
-    estimate_record,
-    float32_equal,
-    frames_to_session,
-    params_float32_dict,
-    poll_estimate,
-    poll_estimates,
-    read_active_params,
-    read_estimate,
-    record_session,
-    safe_upload,
-    stream_frames,
-)
-from hostlink.mission.config import BenchConfig, design_nominal
-from hostlink.mission.example import write_example
-from hostlink.mission.run import run_bench
-from hostlink.mission.summary import summary_table
-from hostlink.portkit.costs import cost_table, cost_table_text
-from hostlink.portkit.export_c import write_c as export_c
-from hostlink.portkit.export_ground import write_ground as export_ground
-from hostlink.portkit.vectors import write_vectors
-from hostlink.progress import progress_bar
-from hostlink.sky.attitude import (
-    DEFAULT_REJECT_ARCSEC,
-    PRECISIONS,
-    REFRACTION_MODELS,
-    REFRACTION_MODES,
-    SessionAttitudes,
-    refraction_mode,
-    solve_attitudes,
-)
-from hostlink.sky.references import SessionReferences, session_references
-from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
-from hostlink.sky.simulate import SimConfig, SimResult, seed004_config, simulate
-from onboard.firmware import EstimatorBudget
-from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, Distortion
-from onboard.prior import refined_mask
-from onboard.recursive import RecursiveConfig, parse_estimate_names
-from onboard.site import Site, Weather
-from protocol.messages import Estimate
+# The names below are imported when first used (PEP 562 ``__getattr__`` at the end of this module), so that
+# ``import hostlink.api`` costs milliseconds and pulls in no numpy, scipy or astropy (issue 31: a user who only uploads
+# a file does not wait for the image stack). The import statements stay the one list of where each name lives: type
+# checkers read them here, and :func:`_lazy_table` reads the same statements from this file's source.
+if TYPE_CHECKING:
+    from hostlink.calibration.crb import (
+        attitude_covariance,
+        crb_validation_px,
+        fisher_information,
+        grid_points,
+        interstar_batch_ml,
+        interstar_frame_information,
+        interstar_information,
+        rotation_angle_rad,
+        validation_jacobian,
+        validation_residual_from_directions_px,
+        validation_residual_px,
+    )
+    from hostlink.calibration.holdout import CrossValidation, cross_validate
+    from hostlink.calibration.plots import write_calibration_plots
+    from hostlink.calibration.replay import (
+        ReplayResult,
+        estimate_extras,
+        precision_dtype,
+        replay_chunks,
+        replay_config,
+        replay_prior,
+        replay_session,
+    )
+    from hostlink.calibration.report import write_rejected
+    from hostlink.calibration.run import (
+        METHODS,
+        CalibrationOutcome,
+        calibrate_archive,
+        calibrate_session,
+        result_extras,
+    )
+    from hostlink.calibration.synthetic import (
+        SyntheticSession,
+        make_frames,
+        seed004_paper_start,
+        seed004_true_camera,
+        sky_frames,
+        synth_frames,
+        synthetic_session,
+    )
+    from hostlink.emulator import ENDPOINTS
+    from hostlink.emulator.process import EmulatorProcess
+    from hostlink.emulator.sensor import EndpointOptions
+    from hostlink.emulator.setup import build_sensor, parse_endpoint_options
+    from hostlink.errors import LinkError, SensorRefused, UserError
+    from hostlink.files.atomic import json_text, write_json
+    from hostlink.files.attitude import attitude_records, write_attitudes
+    from hostlink.files.params import (
+        data_file,
+        emit_param_file,
+        load_params,
+        load_params_for_upload,
+        load_params_with_sigma,
+        params_json,
+        save_params,
+    )
+    from hostlink.files.params import file_status as params_file_status
+    from hostlink.files.session import (
+        Session,
+        SessionWriter,
+        check_on_detector,
+        concatenate_sessions,
+        read_session,
+        read_session_chunks,
+        session_paths,
+        write_session,
+    )
+    from hostlink.files.trace import TraceWriter, read_trace, write_trace
+    from hostlink.files.truth import read_truth, truth_path_for, write_truth
+    from hostlink.files.wcs import write_wcs_headers
+    from hostlink.images.centroid import (
+        CentroidOptions,
+        CentroidResult,
+        FrameReport,
+        TimeOptions,
+        centroid_crb_px,
+        centroid_images,
+        centroid_pixels,
+    )
+    from hostlink.images.identify import FrameIdentity, Identification, identify_session
+    from hostlink.images.read import RawImage, read_image
+    from hostlink.links import Link, open_link
+    from hostlink.links.base import CommandRefused
+    from hostlink.links.can_capture import read_can_capture
+    from hostlink.links.operations import (
+        WIRE_PX_FORMAT,
+        ActiveParams,
+        EstimatePoll,
+        StreamResult,
+        UploadMismatch,
+        UploadResult,
+        accept_estimate,
+        estimate_record,
+        float32_equal,
+        frames_to_session,
+        params_float32_dict,
+        poll_estimate,
+        poll_estimates,
+        read_active_params,
+        read_estimate,
+        record_session,
+        safe_upload,
+        stream_frames,
+    )
+    from hostlink.mission.config import BenchConfig, design_nominal
+    from hostlink.mission.example import write_example
+    from hostlink.mission.run import run_bench
+    from hostlink.mission.summary import summary_table
+    from hostlink.portkit.costs import cost_table, cost_table_text
+    from hostlink.portkit.export_c import write_c as export_c
+    from hostlink.portkit.export_ground import write_ground as export_ground
+    from hostlink.portkit.vectors import write_vectors
+    from hostlink.progress import progress_bar
+    from hostlink.sky.attitude import (
+        DEFAULT_REJECT_ARCSEC,
+        PRECISIONS,
+        REFRACTION_MODELS,
+        REFRACTION_MODES,
+        SessionAttitudes,
+        refraction_mode,
+        solve_attitudes,
+    )
+    from hostlink.sky.pointing import SipModel, attitude_quaternion, boresight_radec_roll, sip_model
+    from hostlink.sky.references import SessionReferences, session_references
+    from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
+    from hostlink.sky.simulate import (
+        SimChunk,
+        SimConfig,
+        SimResult,
+        seed004_config,
+        simulate,
+        simulate_chunks,
+        write_simulation,
+    )
+    from onboard.firmware import EstimatorBudget
+    from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, Distortion
+    from onboard.prior import refined_mask
+    from onboard.recursive import RecursiveConfig, parse_estimate_names
+    from onboard.site import Site, Weather
+    from protocol.messages import Estimate
 
 __all__ = [
+    "json_text",
+    "params_json",
     # data
     "ActiveParams",
     "BenchConfig",
@@ -240,6 +279,8 @@ __all__ = [
     "data_file",
     "load_params",
     "load_params_with_sigma",
+    "load_params_for_upload",
+    "params_file_status",
     "read_session",
     "read_session_chunks",
     "concatenate_sessions",
@@ -261,7 +302,16 @@ __all__ = [
     "identify_session",
     "session_references",
     "simulate",
+    "simulate_chunks",
+    "write_simulation",
+    "SimChunk",
     "solve_attitudes",
+    "attitude_quaternion",
+    "boresight_radec_roll",
+    "attitude_records",
+    "sip_model",
+    "SipModel",
+    "write_wcs_headers",
     # calibration
     "calibrate_session",
     "calibrate_archive",
@@ -345,18 +395,41 @@ __all__ = [
     "write_rejected",
 ]
 
-if TYPE_CHECKING:  # for readers and type checkers; at run time __getattr__ below loads it
-    from hostlink.links.can_capture import read_can_capture
 
-#: Names loaded on first use (PEP 562): python-can's log readers cost ~60 ms of import that only ``import-can`` needs.
-_LAZY = {"read_can_capture": "hostlink.links.can_capture"}
+def _lazy_table() -> dict[str, tuple[str, str]]:
+    """Public name -> (module, attribute), from the ``from MODULE import NAME [as ALIAS]`` statements of this file's
+    ``if TYPE_CHECKING:`` block (the one list of where each name lives)."""
+    import ast
+    from pathlib import Path
+
+    tree = ast.parse(Path(__file__).read_text(encoding="utf-8"))
+    table: dict[str, tuple[str, str]] = {}
+    for node in tree.body:
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for stmt in node.body:
+                if isinstance(stmt, ast.ImportFrom) and stmt.module:
+                    for alias in stmt.names:
+                        table[alias.asname or alias.name] = (stmt.module, alias.name)
+    return table
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
+_LAZY: dict[str, tuple[str, str]] | None = None
 
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+def __getattr__(name: str):  # noqa: ANN202 - PEP 562: the public names, imported on first use
+    global _LAZY
+    if _LAZY is None:
+        _LAZY = _lazy_table()
+    try:
+        module, attribute = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    import importlib
+
+    value = getattr(importlib.import_module(module), attribute)
+    globals()[name] = value  # later uses are plain lookups
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -15,6 +15,7 @@ import re
 import sys
 import warnings
 
+from hostlink.errors import DISTRIBUTION as _DISTRIBUTION
 from hostlink.errors import UserError
 
 #: Sub-commands in the order ``--help`` lists them (module ``hostlink.commands.<name>``).
@@ -53,7 +54,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 #: The distribution that installs the ``hostlink`` console script (pyproject.toml ``[project] name``).
-DISTRIBUTION = "startracker-companion"
+DISTRIBUTION = _DISTRIBUTION
 
 
 def package_version() -> str:
@@ -66,6 +67,27 @@ def package_version() -> str:
         return "unknown (not installed)"
 
 
+#: Every help text's last line: the docs/NAME.md pages a help text cites are installed with the package.
+DOCS_NOTE = "docs/NAME.md pages are installed with the package: hostlink --docs prints where"
+
+
+class _DocsAction(argparse.Action):
+    """``hostlink --docs``: print the documentation folder and its pages (:mod:`hostlink.docs`), then exit 0."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None) -> None:  # noqa: A002
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, _namespace, _values, _option_string=None) -> None:
+        from hostlink.docs import docs_listing
+
+        try:
+            print(docs_listing(), flush=True)
+        except BrokenPipeError:  # `hostlink --docs | head -1`: quiet, as a shell tool killed by SIGPIPE
+            _stdout_closed()
+            parser.exit(128 + 13)
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hostlink",
@@ -73,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
         "sensors (real or emulated) over serial, CAN or Modbus.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    parser.add_argument("--docs", action=_DocsAction, help=f"print where the documentation is ({DOCS_NOTE})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
         module_name = f"hostlink.commands.{name.replace('-', '_')}"
@@ -82,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name != module_name:
                 raise
             continue
-        p = sub.add_parser(name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
+        p = sub.add_parser(
+            name, help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP), epilog=DOCS_NOTE
+        )
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

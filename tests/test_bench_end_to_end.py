@@ -81,6 +81,13 @@ def test_report_has_summary_plots_and_a_terminal_table(bench_report):
     assert "residual RMS (px)" in stdout and "focal drift tracking" in stdout
 
 
+def test_the_step_counter_counts_each_of_its_steps_once_in_order(bench_report):
+    """Issue 31: the bench said [1/6] .. [5/6]; every step it announces is now counted, [1/6] to [6/6]."""
+    import re
+
+    assert re.findall(r"^\[(\d)/(\d)\]", bench_report[2], re.MULTILINE) == [(str(k), "6") for k in range(1, 7)]
+
+
 def test_bad_bench_option_is_one_line_and_non_zero(tmp_path):
     run = subprocess.run(
         [sys.executable, "-m", "hostlink.cli", "bench", "--out", str(tmp_path), "--noise-px", "-1"],

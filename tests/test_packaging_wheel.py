@@ -5,6 +5,7 @@ from the package alone (``hostlink example``, then the commands of its README.tx
 Slow (a virtual environment and an install of the dependencies, from pip's configured index and cache) but part of
 CI: it is the only test that sees the package as a user does, without the checkout on the path."""
 
+import csv
 import json
 import os
 import re
@@ -61,6 +62,7 @@ def test_a_wheel_installed_outside_the_checkout_runs_the_worked_session(tmp_path
     for needed in (
         "LICENSE",
         "README.md",
+        "CHANGELOG.md",
         "docs/camera-model.md",
         "docs/commands.md",
         "docs/hardware.md",
@@ -102,8 +104,12 @@ def test_a_wheel_installed_outside_the_checkout_runs_the_worked_session(tmp_path
     assert (session / "plots").is_dir() and any((session / "plots").glob("*.png"))
     onboard = json.loads((session / "onboard.json").read_text())
     assert abs(onboard["focal_length_mm"] - truth["focal_length_mm"]) < 5 * onboard["sigma"]["focal_length_mm"]
-    rows = (session / "attitude.csv").read_text().splitlines()
-    assert len(rows) == 1 + truth_frames(session) and all(r.endswith(",ok") for r in rows[1:])
+    with open(session / "attitude.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == truth_frames(session) and all(r["status"] == "ok" for r in rows)
+    # the documentation pages come with the wheel, where `hostlink --docs` says
+    docs = Path(_run(["hostlink", "--docs"], work, env).stdout.splitlines()[0])
+    assert docs.is_relative_to(venv) and (docs / "interfaces.md").is_file() and (docs.parent / "CHANGELOG.md").is_file()
 
 
 def truth_frames(session: Path) -> int:

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 from hostlink.calibration.bundle import ChunkSource, PassRequest, PassSums, chunk_pass, empty_pass
-from hostlink.errors import UserError
+from hostlink.errors import UserError, install_hint
 
 #: Workers of the local cluster of ``--dask local`` unless told (one process each, one thread: numpy's own threads
 #: do the rest).
@@ -37,7 +37,7 @@ def dask_client(
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise UserError("--dask needs Dask: pip install 'hostlink[dask]'") from None
+        raise UserError(f"--dask needs Dask: {install_hint('dask')}") from None
     cluster = None
     try:
         if address == "local":

@@ -269,7 +269,9 @@ def _append_trace(trace: dict[str, list], state, res: recursive.FrameResult, fra
 def estimate_extras(result: ReplayResult, precision: str) -> dict:
     """Extra keys of ESTIMATE.json: sigma of each estimated parameter, method, precision, the prior it started from
     (``file``: the nominal's sigma for every estimated parameter; ``file+cold``: for some; ``cold``) and frame
-    statistics."""
+    statistics; ``status`` / ``status_reason`` (:mod:`hostlink.calibration.status`)."""
+    from hostlink.calibration.status import replay_status
+
     state = result.state
     return {
         "sigma": estimate_sigma_json(state),
@@ -282,6 +284,7 @@ def estimate_extras(result: ReplayResult, precision: str) -> dict:
         "frames_used": result.frames_used,
         "rejected_stars": result.rejected_stars,
         "focal_drift_detected_frame": state.drift_frame if state.drift_on else None,
+        **replay_status(state),  # issue 31: upload refuses an estimate that has not converged
     }
 
 

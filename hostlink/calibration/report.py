@@ -214,8 +214,10 @@ def degeneracies(normal: np.ndarray, estimate: tuple[str, ...], u_diag: np.ndarr
             if lost[i] > ATTITUDE_LIMIT:
                 tradeoff.append({"parameter": name, "information_absorbed_by_attitude": float(lost[i])})
                 messages.append(
-                    f"{name} trades off against attitude ({100 * lost[i]:.4g} % of its information "
-                    "is absorbed by the per-frame attitudes)"
+                    f"{name} trades off against attitude: the per-frame attitudes absorb {100 * lost[i]:.6g} % of "
+                    f"the information on it, and the remaining {100 * (1 - lost[i]):.2g} % is what sets its 1-sigma "
+                    "above (only the perspective across the field tells them apart: more frames or a wider field "
+                    "shrink it)"
                 )
     return {
         "condition_number": cond,

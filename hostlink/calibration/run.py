@@ -539,7 +539,9 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
     """The extra keys of the result file (docs/file-formats.md: the parameter file plus extras), with ``references``
     (where the reference directions came from) when given; non-finite numbers as null. Also the rejected stars by
     reason and the time note when :func:`calibrate_session` set them, and ``failed`` (the reason) for a failed
-    result kept on request."""
+    result kept on request; ``status`` / ``status_reason`` (:mod:`hostlink.calibration.status`)."""
+    from hostlink.calibration.status import calibration_status
+
     extras = {
         "method": outcome.method,
         "estimated": list(outcome.estimate),
@@ -570,6 +572,7 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
     failure = outcome.failure()
     if failure:
         extras["failed"] = failure
+    extras.update(calibration_status(outcome))  # issue 31: upload refuses a set that is not converged
     return _json_safe(extras)
 
 

@@ -10,6 +10,7 @@ import argparse
 import math
 
 from hostlink.api import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES, UserError
+from hostlink.commands.jsonopt import add_json_argument
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 
 HELP = "attitude per frame (b = C r) from a session, with refraction correction for ground sessions"
@@ -24,7 +25,13 @@ DESCRIPTION = (
     "also ship_yaw_deg,ship_pitch_deg,ship_roll_deg: the ship's attitude in the local north-up-east frame (seed 001: "
     "yaw from north toward east in [0, 360), pitch bow up in [-90, 90], roll starboard down in (-180, 180], the "
     "frame rotation "
-    "R1(roll) R3(pitch) R2(-yaw) from north-up-east to bow-mast-starboard), empty for an unsolved frame."
+    "R1(roll) R3(pitch) R2(-yaw) from north-up-east to bow-mast-starboard), empty for an unsolved frame. "
+    "Every row also has the attitude as a quaternion q0,q1,q2,q3 (scalar first, q0 >= 0: the rotation carrying the "
+    "reference axes onto the sensor axes, scipy's Rotation.from_matrix(C.T)) and the boresight's "
+    "boresight_ra_deg,boresight_dec_deg and roll_deg (from the image's up, -y, to the projected celestial north, "
+    "toward +x; as 'hostlink identify' prints). --wcs DIR writes one FITS header per solved frame, "
+    "DIR/frame_<frame>.fits: TAN at the boresight with SIP distortion of the camera (its fit error stated in the "
+    "header and printed), for astropy's WCS."
 )
 
 
@@ -75,6 +82,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "ship_pitch_deg, ship_roll_deg (ship attitude in the local north-up-east frame, yaw from north toward "
         "east)",
     )
+    _add_wcs_argument(parser)
+    add_json_argument(parser, "the attitudes (frames: one object per row, keyed by ATTITUDE.csv's columns)")
+
+
+def _add_wcs_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--wcs",
+        metavar="DIR",
+        help="also write a FITS WCS header per solved frame, DIR/frame_<frame>.fits (TAN-SIP of the calibrated "
+        "camera: astropy's WCS(header).all_pix2world(x_px, y_px, 0) gives the stars' directions)",
+    )
+
+
+def _silent(*_args, **_kwargs) -> None:
+    """``print`` when --json asks for the object alone on stdout."""
 
 
 def parse_mounting(text: str) -> tuple[float, float, float]:
@@ -121,9 +143,43 @@ def run(args: argparse.Namespace) -> int:
         mounting,
     )
     write_attitudes(args.out, attitudes)
-    print(
+    report = print if not args.json else _silent
+    report(
         f"hostlink attitude: {attitudes.n_solved}/{attitudes.n_frames} frames solved (refraction: {mode}) -> {args.out}"
     )
+    wcs = None
+    if args.wcs and attitudes.n_solved:
+        from hostlink.api import sip_model, write_wcs_headers
+
+        sip = sip_model(params.model_vector(), params.image_size_px)
+        n = write_wcs_headers(args.wcs, attitudes, params, sip, session.time_known, site is not None)
+        wcs = {
+            "directory": args.wcs,
+            "files": n,
+            "sip_order": sip.order,
+            "sip_error_px": sip.forward_error_px,
+            "sip_inverse_order": sip.inverse_order,
+            "sip_inverse_error_px": sip.inverse_error_px,
+        }
+        report(
+            f"wcs: {n} FITS headers (TAN-SIP order {sip.order}, error {sip.forward_error_px:.2g} px pixel->sky; "
+            f"inverse order {sip.inverse_order}, error {sip.inverse_error_px:.2g} px sky->pixel) -> "
+            f"{args.wcs}/frame_<frame>.fits"
+        )
+    if args.json:
+        from hostlink.api import attitude_records
+        from hostlink.commands.jsonopt import print_json
+
+        print_json(
+            {
+                "out": args.out,
+                "refraction": mode,
+                "n_frames": attitudes.n_frames,
+                "n_solved": attitudes.n_solved,
+                "wcs": wcs,
+                "frames": attitude_records(attitudes),
+            }
+        )
     if attitudes.n_solved == 0:
         raise UserError(
             f"no frame solved (each frame's reason is in the status column of {args.out}; --min-stars {args.min_stars})"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hostlink.api import UserError
+from hostlink.commands.jsonopt import add_json_argument
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
@@ -75,7 +76,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="centroid noise per axis [px] for the reported sigma (default: from the residuals)",
     )
     parser.add_argument("--max-iter", type=int, default=100, metavar="N", help="most iterations (default 100)")
-    parser.add_argument("--plot", metavar="DIR", help="write residual-field and convergence PNGs into DIR")
+    parser.add_argument(
+        "--plot",
+        metavar="DIR",
+        help="write PNGs into DIR: residual_field_before.png (nominal camera), residual_field.png (calibrated) and "
+        "convergence.png (residual RMS and step per iteration, its stages shaded)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.add_argument(
         "--chunk-frames",
@@ -108,6 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "RMS [px] beside the fit's own residual, the figure to compare calibrations of the same images by "
         "(K >= 2; one CSV read whole)",
     )
+    add_json_argument(parser, "the result (RESULT.json's object; also for a failure kept with --keep-failed)")
     add_site_arguments(parser)
 
 
@@ -116,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
 
     from hostlink.api import load_params, parse_estimate_names, result_extras, save_params
 
+    args.quiet = args.quiet or args.json  # --json: the result object alone on stdout
     try:
         estimate = None if args.estimate is None else parse_estimate_names(args.estimate)
     except ValueError as exc:
@@ -160,9 +168,14 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         from hostlink.api import write_calibration_plots
 
-        write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px)
+        written = write_calibration_plots(Path(args.plot), outcome, nominal.image_size_px, nominal)
         if not args.quiet:
-            print(f"plots written to {args.plot}/residual_field.png and convergence.png")
+            print(f"plots written to {args.plot}: {', '.join(p.name for p in written)}")
+    if args.json:
+        from hostlink.api import params_json
+        from hostlink.commands.jsonopt import print_json
+
+        print_json(params_json(outcome.params, extras))
     if failure:
         raise UserError(f"calibration failed: {failure}; kept in {args.out} as asked (--keep-failed)")
     return 0
@@ -271,6 +284,27 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
         )
 
 
+#: Units of the Weng distortion coefficients (docs/camera-model.md), printed beside their values.
+DISTORTION_UNITS = {
+    "k1": "px^-2",
+    "k2": "px^-4",
+    "k3": "px^-6",
+    "p1": "px^-1",
+    "p2": "px^-1",
+    "s1": "px^-1",
+    "s2": "px^-1",
+}
+
+
+def _iterations_text(history: list[dict]) -> str:
+    """The iteration count as the live lines number them (the last one printed), and how many of them are the
+    evaluated steps plotted in convergence.png (an iteration that ends a stage with a tiny step is not evaluated)."""
+    if not history:
+        return "0 iterations"
+    last = max(int(h["iteration"]) for h in history)
+    return f"{last} iterations ({len(history)} evaluated steps)" if last != len(history) else f"{last} iterations"
+
+
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     import math
 
@@ -283,7 +317,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
         ("x0 [px]", p.principal_point_px[0], sig["principal_point_px"][0]),
         ("y0 [px]", p.principal_point_px[1], sig["principal_point_px"][1]),
     ]
-    rows += [(k, getattr(p.distortion, k), sig["distortion"][k]) for k in DISTORTION_NAMES]
+    rows += [(f"{k} [{DISTORTION_UNITS[k]}]", getattr(p.distortion, k), sig["distortion"][k]) for k in DISTORTION_NAMES]
     b, a = outcome.before, outcome.after
     stats = [
         ("residual RMS [px]", b["rms_px"], a["rms_px"]),
@@ -297,7 +331,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
         f"rejected stars: {rej['total_stars']} ({rej['voting']} by interstar voting, {rej['gating']} by residual "
         f"gating; {rej['frames_dropped']} frames dropped)",
         f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma; "
-        f"{len(outcome.history)} iterations{'' if outcome.converged else ' (NOT converged)'}",
+        f"{_iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
     ]
     pre = outcome.prepass
     if pre and abs(pre["focal_scale"] - 1.0) > 0.01:

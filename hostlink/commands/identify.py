@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.commands.jsonopt import add_json_argument
+
 HELP = "identify a session's unidentified stars (star_id 0) against Hipparcos, lost in space"
 DESCRIPTION = (
     "Identify the rows of SESSION.csv with star_id 0 (centroids from `hostlink centroid`, or a sensor's raw "
@@ -35,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--report", metavar="REPORT.json", help="write the per-frame report (attitude, parity, scale)")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_json_argument(parser, "the per-frame report (REPORT.json's object)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,6 +64,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.session}: no unidentified star (every star_id is already set)")
     if args.report:
         write_json(args.report, result.report())
+    if args.json:
+        from hostlink.commands.jsonopt import print_json
+
+        print_json(result.report())
+        args.quiet = True  # the object alone on stdout
     if result.n_frames_identified == 0:
         raise UserError(
             f"no frame identified ({len(result.frames)} tried, engine {result.engine}): check the nominal focal "

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hostlink.commands.jsonopt import add_json_argument
+
 HELP = "run the onboard recursive calibration over a session, exactly as the sensor would"
 #: Frames read at a time: the replay's memory is one chunk and the estimator, whatever the session's length.
 REPLAY_CHUNK_FRAMES = 2000
@@ -65,6 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="estimator prior: 'file' = the nominal file's sigma (default when the file has one), 'cold' = the "
         "cold-start prior (3%% of f, 5%% of the image side for the principal point, 5 px of distortion)",
     )
+    add_json_argument(p, "the estimate (ESTIMATE.json's object)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -120,11 +123,20 @@ def run(args: argparse.Namespace) -> int:
             on_trace=None if trace is None else trace.append,
             name=name,
         )
-    save_params(args.out, result.params, estimate_extras(result, args.precision))
+    extras = estimate_extras(result, args.precision)
+    save_params(args.out, result.params, extras)
+    if args.json:
+        from hostlink.api import params_json
+        from hostlink.commands.jsonopt import print_json
+
+        print_json(params_json(result.params, extras))
+        return 0
     p = result.params
     print(
         f"replayed {result.n_frames} frames ({result.state.updates} used): f = {p.focal_length_mm:.6f} mm, "
         f"principal point ({p.principal_point_px[0]:.3f}, {p.principal_point_px[1]:.3f}) px, prior "
         f"{result.prior} -> {args.out}"
     )
+    if extras["status"] != "converged":
+        print(f"not converged: {extras['status_reason']} (status {extras['status']}: upload refuses this file)")
     return 0

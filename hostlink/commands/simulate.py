@@ -108,16 +108,7 @@ def _read_attitudes(path: str):
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hostlink.api import (
-        SimConfig,
-        load_params,
-        progress_bar,
-        seed004_config,
-        simulate,
-        truth_path_for,
-        write_session,
-        write_truth,
-    )
+    from hostlink.api import SimConfig, load_params, progress_bar, seed004_config, truth_path_for, write_simulation
 
     site, weather = site_and_weather(args)
     attitudes = _read_attitudes(args.attitudes) if args.attitudes else None
@@ -158,14 +149,9 @@ def run(args: argparse.Namespace) -> int:
     if cfg.min_stars > cfg.max_stars and args.max_stars is None:
         cfg = replace(cfg, max_stars=cfg.min_stars)
     # a bar only where simulating takes long enough to watch (a few thousand frames and up)
-    with progress_bar("simulating", int(cfg.frames), enabled=cfg.frames >= 2000) as advance:
-        result = simulate(cfg, progress=lambda done, _total: advance(done))
     truth_path = truth_path_for(args.out)
-    write_session(args.out, result.session)
-    write_truth(truth_path, result.truth)
-    session = result.session
-    print(
-        f"wrote {session.n_frames} frames, {len(session)} stars to {args.out} (truth: {truth_path})",
-        file=sys.stdout,
-    )
+    # streamed to disk chunk by chunk: memory bounded by one chunk whatever --frames (issue 31)
+    with progress_bar("simulating", int(cfg.frames), enabled=cfg.frames >= 2000) as advance:
+        frames, rows = write_simulation(cfg, args.out, truth_path, progress=lambda done, _total: advance(done))
+    print(f"wrote {frames} frames, {rows} stars to {args.out} (truth: {truth_path})", file=sys.stdout)
     return 0

@@ -18,7 +18,10 @@ DESCRIPTION = (
     "back equal to the file (to float32). A refusal prints the sensor's reason on one line; an interrupted upload "
     "leaves the old set active. The file's 'sigma' object (1-sigma of each estimated parameter, as written by "
     "'hostlink calibrate' or 'hostlink replay') travels with the set: the sensor's onboard estimator restarts from "
-    "it as its prior, so a refinement keeps the calibration's accuracy (null, NaN or 0 = unknown: cold-start prior)."
+    "it as its prior, so a refinement keeps the calibration's accuracy (null, NaN or 0 = unknown: cold-start prior). "
+    "A file whose 'status' is 'failed' or 'not_converged' (a calibration kept with --keep-failed, a replay that did "
+    "not converge) is refused before anything is sent (exit 2); a file without a status (a design nominal, a "
+    "hand-written set) is checked by the plausibility rules only."
 )
 
 
@@ -42,9 +45,9 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from hostlink.api import UserError, float32_equal, load_params_with_sigma, refined_mask, safe_upload
+    from hostlink.api import UserError, float32_equal, load_params_for_upload, refined_mask, safe_upload
 
-    params, sigma = load_params_with_sigma(args.params, validate=not args.no_host_check)
+    params, sigma = load_params_for_upload(args.params, validate=not args.no_host_check)  # refuses a failed set
 
     def step(k: int, text: str) -> None:
         if args.verbose:

@@ -144,3 +144,69 @@ def emit_param_file(data: dict, out: str | Path | None = None) -> None:
     sys.stdout.write(text)
     if out:
         write_text(out, text)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# calibration status (issue 31): a result file says whether it may be used as a camera
+
+#: The ``status`` of a parameter file written by ``hostlink calibrate`` or ``hostlink replay``: ``converged`` (a
+#: usable calibration), ``not_converged`` (the fit or the recursive estimator did not converge) or ``failed`` (it
+#: converged to a result that must not be used, e.g. most stars rejected). ``status_reason`` says why.
+STATUS_CONVERGED = "converged"
+STATUS_NOT_CONVERGED = "not_converged"
+STATUS_FAILED = "failed"
+STATUSES = (STATUS_CONVERGED, STATUS_NOT_CONVERGED, STATUS_FAILED)
+
+
+def status_fields(status: str, reason: str | None = None) -> dict:
+    """The parameter file's status keys: ``status`` (one of :data:`STATUSES`) and ``status_reason`` (null when
+    converged, else one line saying why)."""
+    if status not in STATUSES:
+        raise ValueError(f"unknown calibration status {status!r} (expected one of {', '.join(STATUSES)})")
+    return {"status": status, "status_reason": reason}
+
+
+def file_status(data: dict) -> tuple[str | None, str | None]:
+    """A parameter file's (status, reason). A file with a ``status`` key says it; a file without one (a design
+    nominal, a hand-written set, a file from before issue 31) has status None, unless it carries the older markers of
+    a failed calibration: ``failed`` (the reason, written by ``calibrate --keep-failed``) or ``converged: false``.
+    An unknown status value is a :class:`UserError` (never read as converged)."""
+    status = data.get("status")
+    if status is None:
+        if isinstance(data.get("failed"), str):
+            return STATUS_FAILED, data["failed"]
+        if data.get("converged") is False:
+            return STATUS_NOT_CONVERGED, "converged: false (a file from before the status key)"
+        return None, None
+    if status not in STATUSES:
+        raise UserError(f"status: expected one of {', '.join(STATUSES)}, got {status!r}")
+    reason = data.get("status_reason")
+    return status, reason if isinstance(reason, str) else None
+
+
+def upload_refusal(data: dict, source: str) -> str | None:
+    """Why the parameter file ``source`` (its JSON object ``data``) must not be uploaded to a sensor, in one line,
+    or None: a calibration that failed or did not converge is never uploaded (docs/interfaces.md)."""
+    status, reason = file_status(data)
+    if status is None or status == STATUS_CONVERGED:
+        return None
+    what = "failed" if status == STATUS_FAILED else "did not converge"
+    because = f": {reason}" if reason else ""
+    return (
+        f"{source}: refused, the calibration in this file {what} (status {status}{because}); nothing was sent to the "
+        "sensor"
+    )
+
+
+def load_params_for_upload(path: str | Path, validate: bool = True) -> tuple[CameraParams, np.ndarray]:
+    """As :func:`load_params_with_sigma`, for sending to a sensor: a file whose calibration failed or did not
+    converge (:func:`upload_refusal`) is a one-line :class:`UserError`, raised before any link is opened. The
+    status is checked whatever ``validate`` says (the range checks are a separate matter)."""
+    path = params_path(path)
+    text = _read_text(path)
+    data = parse_json(text, str(path))
+    if isinstance(data, dict):
+        refusal = upload_refusal(data, str(path))
+        if refusal:
+            raise UserError(refusal)
+    return params_with_sigma_from_text(text, str(path), validate)

@@ -337,9 +337,29 @@ def _csv_header(path: Path) -> list[str]:
             raise UserError(f"{path}: not a CSV file ({exc})") from None
 
 
+def _json_kind(path: Path) -> str | None:
+    """What a JSON file given as a session is, in a few words (a simulation truth file, a camera parameter file, a
+    JSON file), from its first 64 kB; None when it is not JSON text."""
+    try:
+        with path.open(encoding="utf-8-sig", errors="replace") as fh:
+            head = fh.read(65536)
+    except OSError:
+        return None
+    if not head.lstrip().startswith(("{", "[")):
+        return None
+    if '"startracker-companion simulation truth"' in head:
+        return "a simulation truth file (the session it describes is the CSV beside it, without .truth.json)"
+    if '"focal_length_mm"' in head and '"image_size_px"' in head:
+        return "a camera parameter file (give it to --nominal or --params)"
+    return "a JSON file"
+
+
 def _check_header(path: Path, header: list[str]) -> None:
     missing = [c for c in REQUIRED_COLUMNS if c not in MAY_BE_ABSENT and c not in header]
     if missing:
+        what = _json_kind(path) if header and header[0].lstrip().startswith(("{", "[")) else None
+        if what:
+            raise UserError(f"{path}: {what}, not a session (a CSV or Parquet table of star observations)")
         raise UserError(f"{path}: missing required column(s) {', '.join(missing)}")
     if ("ra_deg" in header) != ("dec_deg" in header):
         raise UserError(f"{path}: ra_deg and dec_deg must both be present or both absent")
@@ -707,6 +727,15 @@ class SessionWriter:
             self._close_sink()
         finally:
             self._file.abandon(keep=True)
+
+    def discard(self) -> None:
+        """Close and remove the partial file: nothing of this writer stays (a simulation that failed part way)."""
+        try:
+            self._close_sink()
+        except UserError:
+            pass  # the write is abandoned anyway; the error that got us here is the one to report
+        finally:
+            self._file.abandon(keep=False)
 
     def _close_sink(self) -> None:
         if self._sink is not None:

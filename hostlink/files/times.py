@@ -184,7 +184,15 @@ def frame_times(t0_iso: str, interval_s: float, frames: int) -> tuple[np.ndarray
 
     t_k = t0 (to the millisecond below) + round(k * interval in ms), civil time arithmetic (leap seconds are not
     inserted), as :func:`iso_plus_seconds`."""
-    offsets_ms = np.round(np.arange(frames, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)
+    return frame_times_range(t0_iso, interval_s, 0, frames)
+
+
+def frame_times_range(
+    t0_iso: str, interval_s: float, start: int, stop: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`frame_times` of frames ``start`` .. ``stop - 1`` only (the same values: a long session's times are
+    made chunk by chunk)."""
+    offsets_ms = np.round(np.arange(start, stop, dtype=np.float64) * interval_s * 1000.0).astype(np.int64)
     text = _iso_ms(iso_to_t_us(t0_iso) // 1000 + offsets_ms)
     jd1, jd2 = parse_iso_utc_many(text)
     return text, jd1, jd2

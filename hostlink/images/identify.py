@@ -49,7 +49,7 @@ from hostlink.files.session import Session
 from hostlink.images import solver_adapter
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
-from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels, unit_to_radec
+from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
 from onboard.params import CameraParams
 
 #: Brightest-centroid subsets the engine is tried on after the whole frame (false stars among the brightest
@@ -569,13 +569,11 @@ def anchor_candidates(
 
 def _boresight_and_roll(c: np.ndarray) -> tuple[float, float, float]:
     """Boresight (ra, dec) [deg] and roll [deg]: the angle from the image's -y axis (up) to the celestial north
-    projected into the image, measured toward +x."""
-    bore = c[2]
-    ra, dec = unit_to_radec(bore[None, :])
-    north = np.array([0.0, 0.0, 1.0]) - bore * bore[2]
-    n_cam = c @ north
-    roll = math.degrees(math.atan2(n_cam[0], -n_cam[1])) if np.hypot(n_cam[0], n_cam[1]) > 1e-12 else math.nan
-    return math.degrees(float(ra[0])), math.degrees(float(dec[0])), roll
+    projected into the image, measured toward +x (the one formula: :func:`hostlink.sky.pointing.boresight_radec_roll`,
+    which ``hostlink attitude`` writes too)."""
+    from hostlink.sky.pointing import boresight_radec_roll
+
+    return boresight_radec_roll(c)
 
 
 def _confirm(

@@ -79,6 +79,8 @@ def read_image(path: str | Path) -> RawImage:
     """Read one image file (FITS, TIFF, PNG, JPEG; by suffix) into a :class:`RawImage`. A missing, truncated or
     undecodable file, or one that is not a single 2-D (or colour) image, is a one-line :class:`UserError`."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path}: is a directory, not an image (give its images, e.g. {path}/*.fits)")
     kind = image_kind(path)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
@@ -116,7 +118,57 @@ def _integer_max(dtype: np.dtype) -> float | None:
 # FITS
 
 
+#: FITS files are made of blocks of this many bytes (FITS 4.0 sec. 3.1).
+FITS_BLOCK_BYTES = 2880
+
+
 def _read_fits(path: Path):
+    """A FITS image; astropy's warnings on a damaged file are collected, not printed, and a failure is one line
+    that names what is wrong with the file (never astropy's advice to pass it an option: hostlink has none)."""
+    import warnings
+
+    from astropy.io import fits  # noqa: F401 - imported first: astropy's import installs its own warning logger
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            return _read_fits_checked(path)
+        except UserError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - astropy on a user's file: one line, never a traceback
+            raise UserError(f"{path}: {_fits_problem(path, exc, caught)}") from None
+
+
+def _fits_problem(path: Path, exc: BaseException, caught: list) -> str:
+    """What is wrong with a FITS file astropy could not read, in words about the file."""
+    first = one_line(exc).split(". ")[0]  # astropy appends advice ("try with ignore_missing_...=True") after a stop
+    size = path.stat().st_size
+    if size == 0:
+        return "empty file, not a FITS image"
+    if path.name.lower().endswith(".gz"):  # compressed: its bytes say nothing of the FITS inside
+        return f"cannot read the compressed FITS image ({first})"
+    with path.open("rb") as fh:
+        start = fh.read(30)
+    if not start.startswith(b"SIMPLE  ="):
+        return "not a FITS file (a FITS file starts with the card SIMPLE = T)"
+    texts = " ".join(str(w.message) for w in caught)
+    expected = re.search(r"expected size \((\d+)\)", texts)
+    if expected:
+        return (
+            f"truncated FITS file: {size} bytes where its header describes {expected.group(1)}; copy it again from "
+            "its source"
+        )
+    if size % FITS_BLOCK_BYTES:
+        return (
+            f"truncated or damaged FITS file: {size} bytes, not a whole number of {FITS_BLOCK_BYTES}-byte blocks; "
+            "copy it again from its source"
+        )
+    if "END card" in first:
+        return "damaged FITS header: it has no END card (the file was cut or overwritten)"
+    return f"cannot read the FITS image ({first})"
+
+
+def _read_fits_checked(path: Path):
     from astropy.io import fits
 
     with fits.open(path, memmap=False) as hdus:

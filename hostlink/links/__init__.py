@@ -46,10 +46,16 @@ def split_link_string(link: str) -> tuple[str, str]:
     return scheme, target
 
 
-def open_link(link: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Link:
+def open_link(link, timeout_s: float = DEFAULT_TIMEOUT_S) -> Link:
     """Open the sensor link named by ``link`` (the ``--link`` option, e.g. ``serial:/dev/ttyUSB0@921600``), whose
     replies are awaited at most ``timeout_s`` [s]. Raises UserError (one line) for a malformed string or a transport
-    missing from this build, LinkError when the port cannot be opened. Use as a context manager (closes it)."""
+    missing from this build, LinkError when the port cannot be opened. Use as a context manager (closes it).
+    ``link`` may also be a python-can bus the caller already opened (a ``can.BusABC``): the link then runs on it and
+    leaves it open when closed (:func:`hostlink.links.can_link.link_on_bus`)."""
+    if not isinstance(link, str):
+        from hostlink.links.can_link import link_on_bus
+
+        return link_on_bus(link, timeout_s)
     scheme, target = split_link_string(link)
     try:
         module = importlib.import_module(TRANSPORTS[scheme])

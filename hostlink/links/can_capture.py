@@ -52,10 +52,35 @@ class CaptureImport:
         return sum(f.n_stars for f in self.frames)
 
 
+#: A Vector BLF file starts with this signature (python-can's can.io.blf reads the same file header).
+BLF_SIGNATURE = b"LOGG"
+
+
+def _check_blf_signature(path: Path) -> None:
+    """A ``.blf`` file that is empty or does not start with :data:`BLF_SIGNATURE` is a one-line UserError saying so
+    (python-can's own message would be a struct's "unpack requires a buffer of 72 bytes")."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(BLF_SIGNATURE))
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    if not head:
+        raise UserError(f"{path}: empty file, not a BLF log (a BLF log starts with the signature LOGG)")
+    if head != BLF_SIGNATURE:
+        raise UserError(
+            f"{path}: not a BLF log (it does not start with the signature LOGG; a text log needs its own suffix: "
+            ".asc, .trc, .csv, .log)"
+        )
+
+
 def _messages(path: Path) -> Iterator[can.Message]:
     """The messages of a python-can log; any failure to read it is a one-line UserError."""
+    if path.is_dir():
+        raise UserError(f"{path}: is a directory, not a CAN log file (give one capture file: .blf, .asc, .trc ...)")
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+    if path.suffix.lower() == ".blf":
+        _check_blf_signature(path)
     count = 0
     try:
         with can.LogReader(str(path)) as reader:

@@ -9,7 +9,11 @@ interface (numbers are converted). Examples:
   emulated over TCP by ``hostlink.emulator.slcan_hub``);
 * ``can:slcan:/dev/ttyACM0@500000,tty_baudrate=115200`` -- a real SLCAN (CANable, Lawicel) adapter;
 * ``can:socketcan:can0`` -- a Linux SocketCAN interface (the bit rate is set with ``ip link``, not here);
-* ``can:pcan:PCAN_USBBUS1@250000``, ``can:kvaser:0@500000``, ``can:virtual:test`` -- any other python-can interface.
+* ``can:pcan:PCAN_USBBUS1@250000``, ``can:kvaser:0@500000``, ``can:virtual:test`` -- any other python-can interface;
+* ``can:config`` and ``can:config:CONTEXT`` -- the interface, channel and the rest from python-can's own
+  configuration (environment, ``~/.canrc``; :func:`bus_config`), which also fills what any link string leaves out.
+
+:func:`link_on_bus` runs a link on a ``can.BusABC`` the caller opened (``hostlink.api.open_link(bus)``).
 
 The host node uses identifiers 0x0A0 (COMMAND), 0x0A2 (STAGE_FLOAT) and 0x0C0 (ISO-TP to the sensor); the sensor
 0x0A1 (ACK), 0x0C1 (ISO-TP to the host) and 0x100-0x103 (stream). Loss is counted from gaps in the frame counter,
@@ -35,7 +39,7 @@ import queue
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import can
 import isotp
@@ -71,10 +75,20 @@ _POLL_IDLE_S = 0.02
 
 @dataclass(frozen=True)
 class CanTarget:
+    """A parsed ``can:`` link string. ``interface`` and ``channel`` empty: take them from python-can's configuration
+    (``can:config[:CONTEXT]``); ``bitrate`` the string's, or the default where python-can's configuration gives
+    none (``explicit_bitrate`` False); ``context`` the configuration section (python-can's ``config_context``)."""
+
     interface: str
     channel: str
     bitrate: int | None
     options: dict[str, object] = field(default_factory=dict)
+    context: str | None = None
+    explicit_bitrate: bool = field(default=True, compare=False)
+
+
+#: ``can:config[:CONTEXT]``: the interface and channel (and anything else) from python-can's own configuration.
+CONFIG_TARGET = "config"
 
 
 def _option_value(text: str) -> object:
@@ -95,6 +109,8 @@ def parse_target(target: str) -> CanTarget:
         "e.g. can:socketcan:can0 or can:slcan:socket://127.0.0.1:5000@500000"
     )
     main, *opts = str(target).split(",")
+    if main.split("@")[0].split(":")[0].strip() == CONFIG_TARGET:
+        return _config_target(main, opts, usage)
     interface, sep, rest = main.partition(":")
     if not sep or not interface or not rest:
         raise UserError(usage)
@@ -106,33 +122,85 @@ def parse_target(target: str) -> CanTarget:
         bitrate = int(rate_text)
         if bitrate <= 0:
             raise UserError(usage)
+    options = _options(opts, usage)
+    if interface == "socketcan" and not at:
+        bitrate = None  # SocketCAN's bit rate belongs to the kernel interface (ip link set canX type can bitrate N)
+    if not channel:
+        raise UserError(usage)
+    return CanTarget(interface.strip(), channel, bitrate, options, explicit_bitrate=bool(at))
+
+
+def _options(opts: list[str], usage: str) -> dict[str, object]:
     options: dict[str, object] = {}
     for opt in opts:
         key, eq, value = opt.partition("=")
         if not eq or not key.strip():
             raise UserError(usage)
         options[key.strip()] = _option_value(value.strip())
-    if interface == "socketcan" and not at:
-        bitrate = None  # SocketCAN's bit rate belongs to the kernel interface (ip link set canX type can bitrate N)
-    if not channel:
+    return options
+
+
+def _config_target(main: str, opts: list[str], usage: str) -> CanTarget:
+    """``config[:CONTEXT][@BITRATE]``: python-can's configuration (its ``default`` section, or ``CONTEXT``)."""
+    head, at, rate_text = main.partition("@")
+    _, _, context = head.partition(":")
+    if at and not (rate_text.isdigit() and int(rate_text) > 0):
         raise UserError(usage)
-    return CanTarget(interface.strip(), channel, bitrate, options)
+    bitrate = int(rate_text) if at else DEFAULT_BITRATE
+    return CanTarget("", "", bitrate, _options(opts, usage), context.strip() or None, explicit_bitrate=bool(at))
+
+
+def bus_config(t: CanTarget) -> dict:
+    """The keyword arguments of ``can.Bus`` for a target, resolved as python-can resolves them
+    (``can.util.load_config``: the link string's values first, then ``can.rc``, the environment ``CAN_INTERFACE``,
+    ``CAN_CHANNEL``, ``CAN_BITRATE``, ``CAN_CONFIG`` (with ``_CONTEXT`` suffixes), then the files ``~/.canrc``,
+    ``~/.can``, ``/etc/can.conf``, section ``default`` or the target's context). The default bit rate only where
+    neither the string nor the configuration gives one (and never for SocketCAN, whose rate the kernel sets). A
+    configuration that names no usable interface is a one-line UserError."""
+    given: dict[str, object] = {**t.options}
+    if t.interface:
+        given["interface"] = t.interface
+    if t.channel:
+        given["channel"] = t.channel
+    if t.explicit_bitrate and t.bitrate is not None:
+        given["bitrate"] = t.bitrate
+    try:
+        config = dict(can.util.load_config(config=given, context=t.context))
+    except can.CanInterfaceNotImplementedError as exc:
+        where = f" (context {t.context})" if t.context else ""
+        if not t.interface:
+            raise UserError(
+                f"can:{CONFIG_TARGET}: python-can's configuration{where} names no usable interface ({one_line(exc)}); "
+                "set CAN_INTERFACE and CAN_CHANNEL, or interface and channel in ~/.canrc"
+            ) from None
+        raise UserError(f"CAN interface {t.interface} is not available here ({one_line(exc)})") from None
+    except (ValueError, TypeError) as exc:
+        raise UserError(f"python-can's configuration: {one_line(exc)}") from None
+    if config.get("channel") is None:
+        raise UserError(
+            f"can: no channel for interface {config['interface']} in the link string or python-can's "
+            "configuration (CAN_CHANNEL, or channel in ~/.canrc)"
+        )
+    if config.get("bitrate") is None and config["interface"] != "socketcan" and t.bitrate is not None:
+        config["bitrate"] = t.bitrate
+    if config.get("bitrate") is None:
+        config.pop("bitrate", None)
+    return config
 
 
 def open_bus(t: CanTarget) -> can.BusABC:
     """Open the python-can bus named by a target. One-line UserError when the interface is unknown or its driver is
     missing on this machine, LinkError when the bus cannot be opened."""
-    kwargs = dict(t.options)
-    if t.bitrate is not None:
-        kwargs.setdefault("bitrate", t.bitrate)
-    channel = t.channel
-    if t.interface == "slcan" and "://" in channel:
+    kwargs = bus_config(t)
+    interface, channel = kwargs.pop("interface"), str(kwargs.pop("channel"))
+    t = replace(t, interface=interface, channel=channel)
+    if interface == "slcan" and "://" in channel:
         kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
         if channel.lower().startswith("socket://"):
             channel = _buffered_socket_url(channel)
     with _driver_log() as records:
         try:
-            bus = can.Bus(interface=t.interface, channel=channel, **kwargs)
+            bus = can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
         except (can.CanInterfaceNotImplementedError, ImportError, NameError, AttributeError) as exc:
             # python-can raises the first for an unknown name or a driver it could not load; the others come from
             # interface modules that import without their vendor library and fail on first use (kvaser: NameError)
@@ -183,6 +251,14 @@ def _buffered_socket_url(url: str) -> str:
 def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> CanLink:
     t = parse_target(target)
     return CanLink(open_bus(t), f"{scheme}:{target}", timeout_s)
+
+
+def link_on_bus(bus: can.BusABC, timeout_s: float = DEFAULT_TIMEOUT_S) -> CanLink:
+    """A sensor link on a python-can bus the caller already opened (any ``can.BusABC``). Closing the link stops its
+    reader but leaves the bus open: whoever opened it shuts it down, as python-can's own users expect."""
+    if not isinstance(bus, can.BusABC):
+        raise UserError(f"expected a link string or an open python-can bus (can.BusABC), got {type(bus).__name__}")
+    return CanLink(bus, f"can:{bus.channel_info}", timeout_s, owns_bus=False)
 
 
 # --------------------------------------------------------------------------------------------- ISO-TP
@@ -390,10 +466,11 @@ class CanLink(MessageLink):
     #: A whole parameter table in one STAGE_CHUNK (one ISO-TP message of 59 bytes: 9 CAN frames).
     max_chunk_bytes = TABLE_BYTES
 
-    def __init__(self, bus: can.BusABC, name: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+    def __init__(self, bus: can.BusABC, name: str, timeout_s: float = DEFAULT_TIMEOUT_S, owns_bus: bool = True) -> None:
         super().__init__(timeout_s)
         self.name = name
         self._bus = bus
+        self._owns_bus = owns_bus  # False: a bus the caller opened (link_on_bus), left open on close
         self._tx_lock = threading.Lock()
         self._inbox: queue.SimpleQueue[Message | _Counted | None] = queue.SimpleQueue()
         self._assembler = StreamAssembler()
@@ -517,6 +594,8 @@ class CanLink(MessageLink):
             return
         self._closing.set()
         self._reader.join(1.0)
+        if not self._owns_bus:
+            return
         try:
             self._bus.shutdown()
         except (can.CanError, OSError):

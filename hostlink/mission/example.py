@@ -28,7 +28,7 @@ NEXT_COMMANDS: tuple[str, ...] = (
     "hostlink simulate --camera true-camera.json --frames 1000 --out s.csv",
     "hostlink calibrate s.csv --nominal nominal.json --out cal.json --plot plots/",
     "hostlink replay s.csv --nominal nominal.json --out onboard.json --trace trace.csv",
-    "hostlink attitude s.csv --params cal.json --out attitude.csv",
+    "hostlink attitude s.csv --params cal.json --out attitude.csv --wcs wcs",
 )
 
 _README = """\
@@ -45,10 +45,11 @@ Run from this directory:
 
   s.csv, s.truth.json   1000 simulated frames of the real sky (Hipparcos) with 0.05 px centroid noise, and the truth
   cal.json              batch calibration (bundle adjustment) with the 1-sigma of every parameter
-  plots/                residuals before and after
+  plots/                residual fields before (nominal camera) and after calibration, and the fit's convergence
   onboard.json          the sensor's own recursive estimator run over the session, frame by frame
   trace.csv             that estimator's state after every frame
-  attitude.csv          one attitude per frame (b = C r) with the calibrated camera
+  attitude.csv          one attitude per frame (b = C r, quaternion, boresight RA/Dec/roll) with the calibrated camera
+  wcs/                  one FITS WCS header per frame (TAN-SIP of the calibrated camera), for astropy
 
 Then talk to an emulated sensor (the first line `hostlink emulate` prints is its --link string):
 

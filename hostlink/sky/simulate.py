@@ -38,16 +38,17 @@ and no distortion.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from hostlink.errors import UserError
 from hostlink.files.params import BUILTIN_PREFIX, load_params
-from hostlink.files.session import Session
-from hostlink.files.times import frame_times, parse_iso_utc, parse_iso_utc_many
-from hostlink.files.truth import TRUTH_FORMAT, TRUTH_VERSION
+from hostlink.files.session import Session, SessionWriter, concatenate_sessions
+from hostlink.files.times import frame_times_range, parse_iso_utc, parse_iso_utc_many
+from hostlink.files.truth import TRUTH_FORMAT, TRUTH_PER_FRAME_KEYS, TRUTH_VERSION, TruthWriter
 from hostlink.sky.apparent import StarsJ2000, apparent_from_astrometry, frame_astrometry, stars_at_j2000
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.site import (
@@ -222,9 +223,9 @@ def _ground_rotations(
     return np.stack([x_s, y_s, bore], axis=1)
 
 
-def focal_lengths_mm(cfg: SimConfig) -> np.ndarray:
-    """Per-frame true focal length f_k = f + A sin(2 pi k / P) [mm] (A in um)."""
-    k = np.arange(cfg.frames, dtype=np.float64)
+def focal_lengths_mm(cfg: SimConfig, frames: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame true focal length f_k = f + A sin(2 pi k / P) [mm] (A in um), of every frame or of ``frames``."""
+    k = np.arange(cfg.frames, dtype=np.float64) if frames is None else np.asarray(frames, dtype=np.float64)
     return cfg.camera.focal_length_mm + cfg.focal_drift_um / 1000.0 * np.sin(
         2 * np.pi * k / cfg.focal_drift_period_frames
     )
@@ -256,16 +257,14 @@ def distortion_pad_px(camera: CameraParams) -> float:
 
 @dataclass
 class _SkyContext:
-    """Everything fixed for a session: catalogue, its J2000 data, per-frame ERFA astrometry and zenith."""
+    """Everything fixed for a session: catalogue, its J2000 data, the lookup directions per half-day bucket of frame
+    times, and per frame only what is small (bucket, focal scale; 16 bytes a frame). The per-frame ERFA astrometry,
+    zenith and site velocity are made chunk by chunk (:class:`_ChunkSky`)."""
 
     cfg: SimConfig
     hip: np.ndarray
     mag: np.ndarray
     stars: StarsJ2000
-    astrom: np.ndarray  # (F,) ERFA astrom structs
-    eo: np.ndarray  # (F,)
-    zenith: np.ndarray | None  # (F, 3)
-    site_velocity: np.ndarray | None  # (F, 3) [m/s], true of date
     bucket: np.ndarray  # (F,) lookup bucket index
     lookup: list[np.ndarray]  # per bucket (N, 3) approximate apparent directions
     cos_lookup: float
@@ -274,14 +273,43 @@ class _SkyContext:
     pad_px: float  # ideal points farther than this off the detector cannot be measured on it
 
 
+@dataclass
+class _ChunkSky:
+    """The per-frame sky of frames ``first`` .. ``first + n - 1``: time strings, ERFA astrometry, equation of the
+    origins, zenith and site velocity (true of date; None in space). Indexed by frame - ``first``."""
+
+    first: int
+    t_text: np.ndarray
+    astrom: np.ndarray
+    eo: np.ndarray
+    zenith: np.ndarray | None
+    site_velocity: np.ndarray | None
+
+
+def _session_jd(cfg: SimConfig, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """UTC two-part Julian dates of every frame (16 bytes a frame), made :data:`_CHUNK_FRAMES` at a time so the
+    time strings of a long session are never all in memory (the same values as :func:`frame_times`)."""
+    jd1, jd2 = np.empty(n_frames), np.empty(n_frames)
+    for a in range(0, n_frames, _CHUNK_FRAMES):
+        b = min(n_frames, a + _CHUNK_FRAMES)
+        _, jd1[a:b], jd2[a:b] = frame_times_range(cfg.t0_iso, cfg.frame_interval_s, a, b)
+    return jd1, jd2
+
+
+def _chunk_sky(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray, a: int, b: int) -> _ChunkSky:
+    t_text, _, _ = frame_times_range(cfg.t0_iso, cfg.frame_interval_s, a, b)
+    astrom, eo = frame_astrometry(jd1[a:b], jd2[a:b])
+    site = cfg.site
+    zenith = zenith_true_of_date(jd1[a:b], jd2[a:b], site, cfg.dut1_s) if site is not None else None
+    velocity = site_velocity_true_of_date(jd1[a:b], jd2[a:b], site, cfg.dut1_s) if site is not None else None
+    return _ChunkSky(a, t_text, astrom, eo, zenith, velocity)
+
+
 def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyContext:
     cat = load_catalogue(cfg.maglim)
     if len(cat) < cfg.min_stars:
         raise UserError(f"only {len(cat)} Hipparcos stars have Hp <= {cfg.maglim}: fewer than --min-stars")
     stars = stars_at_j2000(cat)
-    astrom, eo = frame_astrometry(jd1, jd2)
-    zenith = zenith_true_of_date(jd1, jd2, cfg.site, cfg.dut1_s) if cfg.site is not None else None
-    site_velocity = site_velocity_true_of_date(jd1, jd2, cfg.site, cfg.dut1_s) if cfg.site is not None else None
     days = (jd1 - jd1[0]) + (jd2 - jd2[0])
     bucket = np.floor(days / _LOOKUP_BUCKET_DAYS).astype(np.int64)
     lookup = []
@@ -291,7 +319,8 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
             lookup.append(np.zeros((0, 3)))
             continue
         mid = members[members.size // 2]
-        lookup.append(apparent_from_astrometry(stars, astrom[mid], eo[mid]))
+        astrom, eo = frame_astrometry(jd1[mid : mid + 1], jd2[mid : mid + 1])
+        lookup.append(apparent_from_astrometry(stars, astrom[0], eo[0]))
     focal_mm = focal_lengths_mm(cfg)
     radius = field_radius_rad(cfg.camera.with_focal_length_mm(float(focal_mm.min()))) + _LOOKUP_MARGIN_RAD
     if cfg.weather is not None:
@@ -305,10 +334,6 @@ def _build_context(cfg: SimConfig, jd1: np.ndarray, jd2: np.ndarray) -> _SkyCont
         hip=cat.hip,
         mag=cat.mag,
         stars=stars,
-        astrom=astrom,
-        eo=eo,
-        zenith=zenith,
-        site_velocity=site_velocity,
         bucket=bucket,
         lookup=lookup,
         cos_lookup=math.cos(radius),
@@ -345,22 +370,26 @@ def _rank_within_groups(group: np.ndarray) -> np.ndarray:
     return np.arange(n) - run_start
 
 
-def _observe(ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, att: np.ndarray) -> dict[str, np.ndarray]:
-    """Observe the sky in ``frames`` (global indices) with attitudes ``att`` (n, 3, 3): the kept rows, sorted by
-    (frame, magnitude), at most max_stars per frame. Returns global frame, catalogue row, x, y, apparent r."""
+def _observe(
+    ctx: _SkyContext, sky: _ChunkSky, rng: np.random.Generator, frames: np.ndarray, att: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Observe the sky in ``frames`` (global indices, within ``sky``'s chunk) with attitudes ``att`` (n, 3, 3): the
+    kept rows, sorted by (frame, magnitude), at most max_stars per frame. Returns global frame, catalogue row, x, y,
+    apparent r."""
     cfg = ctx.cfg
     pos, star = _candidates(ctx, frames, att[:, 2, :])
     frame = frames[pos]
-    r_app = apparent_from_astrometry(ctx.stars.take(star), ctx.astrom[frame], ctx.eo[frame])
+    local = frame - sky.first
+    r_app = apparent_from_astrometry(ctx.stars.take(star), sky.astrom[local], sky.eo[local])
     r_obs = r_app
     if cfg.site is not None:
-        r_obs = observed_directions_truth(r_app, ctx.zenith[frame], ctx.site_velocity[frame], None)
+        r_obs = observed_directions_truth(r_app, sky.zenith[local], sky.site_velocity[local], None)
     if cfg.weather is not None:
         # the refracted direction is the topocentric one (diurnal aberration can lower a star by 0.03" at 85 deg)
-        zd = zenith_distance_rad(r_obs, ctx.zenith[frame])
+        zd = zenith_distance_rad(r_obs, sky.zenith[local])
         above = zd <= math.radians(MAX_ZENITH_DISTANCE_DEG)  # lower stars are beyond the refraction model
-        pos, star, frame, r_app = pos[above], star[above], frame[above], r_app[above]
-        r_obs = refract_directions_truth(r_obs[above], ctx.zenith[frame], cfg.weather)
+        pos, star, frame, r_app, local = pos[above], star[above], frame[above], r_app[above], local[above]
+        r_obs = refract_directions_truth(r_obs[above], sky.zenith[local], cfg.weather)
     b = np.einsum("nij,nj->ni", att[pos], r_obs)
     # thermal drift: F_k b_x / b_z = F (s_k b_x) / b_z, so scaling b_x, b_y by s_k = F_k / F uses the nominal theta
     scale = ctx.focal_scale[frame]
@@ -393,22 +422,23 @@ def _observe(ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, att
     return {"frame": frame[keep], "star": star[keep], "x": x[keep], "y": y[keep], "r": r_app[keep]}
 
 
-def _simulate_chunk(
-    ctx: _SkyContext, rng: np.random.Generator, frames: np.ndarray, attitude_out: np.ndarray
+def _simulate_frames(
+    ctx: _SkyContext, sky: _ChunkSky, rng: np.random.Generator, frames: np.ndarray, attitude_out: np.ndarray
 ) -> dict[str, np.ndarray]:
-    """All frames of one chunk, redrawing random-attitude frames with too few stars."""
+    """All frames of one chunk, redrawing random-attitude frames with too few stars; ``attitude_out`` (the chunk's
+    frames, 3, 3) receives each frame's attitude."""
     cfg = ctx.cfg
     pending = frames
     parts: list[dict[str, np.ndarray]] = []
     for _ in range(_MAX_ROUNDS):
         if cfg.attitudes is not None:
             att = np.asarray(cfg.attitudes, dtype=np.float64)[pending]
-        elif ctx.zenith is not None:
-            att = _ground_rotations(rng, ctx.zenith[pending], cfg.zenith_range_deg)
+        elif sky.zenith is not None:
+            att = _ground_rotations(rng, sky.zenith[pending - sky.first], cfg.zenith_range_deg)
         else:
             att = random_rotations(rng, pending.size)
-        attitude_out[pending] = att
-        rows = _observe(ctx, rng, pending, att)
+        attitude_out[pending - sky.first] = att
+        rows = _observe(ctx, sky, rng, pending, att)
         counts = np.bincount(np.searchsorted(pending, rows["frame"]), minlength=pending.size)
         ok = np.ones(pending.size, bool) if cfg.attitudes is not None else counts >= cfg.min_stars
         accept = ok[np.searchsorted(pending, rows["frame"])]
@@ -451,28 +481,33 @@ def _misidentify(
     return chosen[first], wrong[first]
 
 
-def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = None) -> SimResult:
-    """Simulate a session and its truth (see the module docstring). ``progress(done_frames, total)`` is called
-    after each chunk of frames. Raises UserError (one line) for an inconsistent configuration or a sky that cannot
-    give ``config.min_stars`` stars per frame."""
-    cfg = config
-    _check_config(cfg)
-    rng = np.random.default_rng(cfg.seed)
-    n_frames = int(cfg.frames)
-    t_text, jd1, jd2 = frame_times(cfg.t0_iso, cfg.frame_interval_s, n_frames)
-    ctx = _build_context(cfg, jd1, jd2)
-    attitude = np.zeros((n_frames, 3, 3))
-    chunks = []
-    for a in range(0, n_frames, _CHUNK_FRAMES):
-        chunks.append(_simulate_chunk(ctx, rng, np.arange(a, min(n_frames, a + _CHUNK_FRAMES)), attitude))
-        if progress is not None:
-            progress(min(n_frames, a + _CHUNK_FRAMES), n_frames)
-    rows = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+@dataclass
+class SimChunk:
+    """One chunk of a simulated session (whole frames, in order): its rows, and its part of the truth: per frame of
+    the chunk ``attitude`` (n, 3, 3), ``focal_length_mm``, ``real_stars_per_frame``; ``misidentified_rows``,
+    ``misidentified_true_star_id`` and ``false_rows`` as rows of the whole session (0-based data rows)."""
+
+    session: Session
+    attitude: np.ndarray
+    focal_length_mm: np.ndarray
+    real_stars_per_frame: np.ndarray
+    misidentified_rows: np.ndarray
+    misidentified_true_star_id: np.ndarray
+    false_rows: np.ndarray
+
+
+def _chunk_rows(
+    ctx: _SkyContext, sky: _ChunkSky, rng: np.random.Generator, frames: np.ndarray, first_row: int
+) -> SimChunk:
+    """Simulate the frames ``frames`` (one chunk): stars, then misidentifications and false stars among them."""
+    cfg = ctx.cfg
+    attitude = np.zeros((frames.size, 3, 3))
+    rows = _simulate_frames(ctx, sky, rng, frames, attitude)
     order = np.lexsort((ctx.mag[rows["star"]], rows["frame"]))
     frame, star, x, y, r_ref = (rows[k][order] for k in ("frame", "star", "x", "y", "r"))
     mag = ctx.mag[star]
     star_id = ctx.hip[star]
-    real_per_frame = np.bincount(frame, minlength=n_frames)
+    real_per_frame = np.bincount(frame - sky.first, minlength=frames.size)
 
     # misidentified: wrong Hipparcos number and the wrong star's reference direction, true centroid and magnitude
     mis_rows = np.zeros(0, np.int64)
@@ -481,9 +516,8 @@ def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = No
         mis_rows, wrong = _misidentify(ctx, rng, frame, star)
         mis_true = star_id[mis_rows].copy()
         star_id[mis_rows] = ctx.hip[wrong]
-        r_ref[mis_rows] = apparent_from_astrometry(
-            ctx.stars.take(wrong), ctx.astrom[frame[mis_rows]], ctx.eo[frame[mis_rows]]
-        )
+        local = frame[mis_rows] - sky.first
+        r_ref[mis_rows] = apparent_from_astrometry(ctx.stars.take(wrong), sky.astrom[local], sky.eo[local])
     is_mis = np.zeros(frame.size, bool)
     is_mis[mis_rows] = True
 
@@ -491,7 +525,7 @@ def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = No
     is_false = np.zeros(frame.size, bool)
     if cfg.false_star_fraction > 0:
         n_false = rng.poisson(cfg.false_star_fraction * real_per_frame)
-        f_frame = np.repeat(np.arange(n_frames), n_false)
+        f_frame = np.repeat(frames, n_false)
         w, h = cfg.camera.image_size_px
         m = f_frame.size
         frame = np.concatenate([frame, f_frame])
@@ -518,7 +552,7 @@ def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = No
         ra_deg[known], dec_deg[known] = np.degrees(ra), np.degrees(dec)
     session = Session(
         frame=frame.astype(np.int64),
-        t_utc=t_text[frame],
+        t_utc=sky.t_text[frame - sky.first],
         star_id=star_id.astype(np.int64),
         x_px=x,
         y_px=y,
@@ -526,8 +560,95 @@ def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = No
         ra_deg=ra_deg,
         dec_deg=dec_deg,
     )
-    truth = _truth(cfg, attitude, mis_rows, mis_true, np.flatnonzero(is_false), real_per_frame)
+    return SimChunk(
+        session=session,
+        attitude=attitude,
+        focal_length_mm=focal_lengths_mm(cfg, frames),
+        real_stars_per_frame=real_per_frame,
+        misidentified_rows=first_row + mis_rows.astype(np.int64),
+        misidentified_true_star_id=np.asarray(mis_true, dtype=np.int64),
+        false_rows=first_row + np.flatnonzero(is_false).astype(np.int64),
+    )
+
+
+def simulate_chunks(config: SimConfig, progress: Callable[[int, int], None] | None = None) -> Iterator[SimChunk]:
+    """Simulate a session (see the module docstring) chunk by chunk: :data:`_CHUNK_FRAMES` frames at a time, each
+    with its own misidentified and false stars, so memory holds one chunk (plus 16 bytes a frame) whatever the
+    session's length. ``progress(done_frames, total)`` is called after each chunk. Raises UserError (one line) for
+    an inconsistent configuration or a sky that cannot give ``config.min_stars`` stars per frame. A session of one
+    chunk (up to 2000 frames) is the same, draw for draw, as before the simulation was chunked."""
+    cfg = config
+    _check_config(cfg)
+    rng = np.random.default_rng(cfg.seed)
+    n_frames = int(cfg.frames)
+    jd1, jd2 = _session_jd(cfg, n_frames)
+    ctx = _build_context(cfg, jd1, jd2)
+    first_row = 0
+    for a in range(0, n_frames, _CHUNK_FRAMES):
+        b = min(n_frames, a + _CHUNK_FRAMES)
+        chunk = _chunk_rows(ctx, _chunk_sky(cfg, jd1, jd2, a, b), rng, np.arange(a, b), first_row)
+        first_row += len(chunk.session)
+        if progress is not None:
+            progress(b, n_frames)
+        yield chunk
+
+
+def simulate(config: SimConfig, progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Simulate a session and its truth in memory (:func:`simulate_chunks`, collected). Raises UserError (one line)
+    for an inconsistent configuration or a sky that cannot give ``config.min_stars`` stars per frame."""
+    chunks = list(simulate_chunks(config, progress))
+    session = concatenate_sessions([c.session for c in chunks])
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(c, name) for c in chunks])
+
+    truth = _truth(
+        config,
+        cat("attitude"),
+        cat("misidentified_rows"),
+        cat("misidentified_true_star_id"),
+        cat("false_rows"),
+        cat("real_stars_per_frame"),
+    )
     return SimResult(session=session, truth=truth)
+
+
+def write_simulation(
+    config: SimConfig,
+    session_path: str | Path,
+    truth_path: str | Path,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[int, int]:
+    """Simulate a session straight to its files, chunk by chunk (:func:`simulate_chunks`): the session through
+    :class:`hostlink.files.session.SessionWriter` (CSV, or Parquet for ``*.parquet``) and the truth through
+    :class:`hostlink.files.truth.TruthWriter`, in memory bounded by one chunk whatever the number of frames. Both
+    files appear only when the whole simulation succeeded. Returns (frames, rows)."""
+    header = _truth_header(config)
+    sessions = SessionWriter(session_path)
+    try:
+        with TruthWriter(truth_path, header, TRUTH_PER_FRAME_KEYS) as truth:
+            _write_chunks(config, progress, sessions, truth)
+            sessions.commit()  # before the truth is written: a truth file always has its session
+    except BaseException:
+        sessions.discard()  # a simulation that failed part way (or was interrupted) leaves no file, not even .partial
+        raise
+    return int(config.frames), int(sessions.rows)
+
+
+def _write_chunks(config: SimConfig, progress, sessions: SessionWriter, truth: TruthWriter) -> None:
+    """Each chunk of the simulation appended to the session and truth writers as it is made."""
+    for chunk in simulate_chunks(config, progress):
+        sessions.append(chunk.session)
+        truth.append(
+            {
+                "attitude": chunk.attitude.reshape(-1, 9),
+                "focal_length_mm": chunk.focal_length_mm,
+                "real_stars_per_frame": chunk.real_stars_per_frame,
+                "misidentified_rows": chunk.misidentified_rows,
+                "misidentified_true_star_id": chunk.misidentified_true_star_id,
+                "false_rows": chunk.false_rows,
+            }
+        )
 
 
 def _realign(order: np.ndarray, old_rows: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -547,6 +668,19 @@ def _truth(
     false_rows: np.ndarray,
     real_per_frame: np.ndarray,
 ) -> dict:
+    return {
+        **_truth_header(cfg),
+        "attitude": attitude.reshape(-1, 9).tolist(),
+        "focal_length_mm": focal_lengths_mm(cfg).tolist(),
+        "real_stars_per_frame": real_per_frame.astype(int).tolist(),
+        "misidentified_rows": [int(v) for v in mis_rows],
+        "misidentified_true_star_id": [int(v) for v in mis_true],
+        "false_rows": [int(v) for v in false_rows],
+    }
+
+
+def _truth_header(cfg: SimConfig) -> dict:
+    """The truth's keys that do not grow with the session (every key but ``TRUTH_PER_FRAME_KEYS``)."""
     refracted = cfg.weather is not None
     return {
         "format": TRUTH_FORMAT,
@@ -580,10 +714,4 @@ def _truth(
         "refraction": refracted,
         "diurnal_aberration": cfg.site is not None,
         "attitude_layout": "per frame c11 c12 c13 c21 c22 c23 c31 c32 c33 (row-major), b = C r",
-        "attitude": attitude.reshape(-1, 9).tolist(),
-        "focal_length_mm": focal_lengths_mm(cfg).tolist(),
-        "real_stars_per_frame": real_per_frame.astype(int).tolist(),
-        "misidentified_rows": [int(v) for v in mis_rows],
-        "misidentified_true_star_id": [int(v) for v in mis_true],
-        "false_rows": [int(v) for v in false_rows],
     }
