@@ -114,7 +114,7 @@ if TYPE_CHECKING:
         replay_prior,
         replay_session,
     )
-    from hostlink.calibration.report import write_rejected
+    from hostlink.calibration.report import iterations_text, write_rejected
     from hostlink.calibration.run import (
         METHODS,
         CalibrationOutcome,
@@ -231,8 +231,11 @@ if TYPE_CHECKING:
     from onboard.recursive import RecursiveConfig, parse_estimate_names
     from onboard.site import Site, Weather
     from protocol.messages import Estimate
+    from protocol.param_table import DISTORTION_UNITS
 
 __all__ = [
+    "DISTORTION_UNITS",
+    "iterations_text",
     "json_text",
     "params_json",
     # data

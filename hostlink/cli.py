@@ -67,8 +67,8 @@ def package_version() -> str:
         return "unknown (not installed)"
 
 
-#: Every help text's last line: the docs/NAME.md pages a help text cites are installed with the package.
-DOCS_NOTE = "docs/NAME.md pages are installed with the package: hostlink --docs prints where"
+#: Every help text's last line: the docs/<page>.md pages a help text cites are installed with the package.
+DOCS_NOTE = "docs/<page>.md pages are installed with the package: hostlink --docs prints where"
 
 
 class _DocsAction(argparse.Action):

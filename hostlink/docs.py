@@ -1,6 +1,6 @@
 """Where the documentation is (issue 31): the Markdown pages ``docs/*.md``, the README and the changelog are
 installed with the package (pyproject.toml ``[tool.setuptools.data-files]``: ``<prefix>/share/doc/
-startracker-companion/``, the pages in its ``docs/``), so a help text that cites ``docs/NAME.md`` points at a file the
+startracker-companion/``, the pages in its ``docs/``), so a help text that cites ``docs/<page>.md`` points at a file the
 user has. ``hostlink --docs`` prints the folder and its pages. From a checkout, the checkout's own ``docs/``."""
 
 from __future__ import annotations

@@ -30,6 +30,16 @@ from protocol.crc import crc32
 #: Distortion keys of a camera parameter file (docs/camera-model.md: radial k1 k2 k3, decentering p1 p2, thin prism
 #: s1 s2), in the order of every parameter vector and table. THE list: every other module imports it.
 DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "s1", "s2")
+#: Units of the distortion coefficients (docs/camera-model.md: radial terms in powers of r^2, the others per px).
+DISTORTION_UNITS = {
+    "k1": "px^-2",
+    "k2": "px^-4",
+    "k3": "px^-6",
+    "p1": "px^-1",
+    "p2": "px^-1",
+    "s1": "px^-1",
+    "s2": "px^-1",
+}
 #: Names of the estimable parameters, in the order of every parameter vector in the project (``--estimate`` names,
 #: the sigma fields below, the onboard estimate's values): focal length, principal point, then the distortion.
 ESTIMATE_NAMES: tuple[str, ...] = ("f", "x0", "y0", *DISTORTION_NAMES)

@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
+from hostlink.api import DISTORTION_UNITS, iterations_text
 from hostlink.calibration.plots import _stages
 from hostlink.cli import main
-from hostlink.commands.calibrate import DISTORTION_UNITS, _iterations_text
 from hostlink.files.session import write_session
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.params import DISTORTION_NAMES
@@ -34,8 +34,8 @@ def test_stages_begin_where_the_number_of_stars_changes():
 def test_the_iteration_count_is_the_live_lines_numbering():
     """The live lines print each evaluated step with its iteration number (iteration 3 ended a stage unevaluated):
     the summary says 5 iterations, as the last live line, and how many were evaluated."""
-    assert _iterations_text(HISTORY) == "5 iterations (4 evaluated steps)"
-    assert _iterations_text(HISTORY[:2]) == "2 iterations"
+    assert iterations_text(HISTORY) == "5 iterations (4 evaluated steps)"
+    assert iterations_text(HISTORY[:2]) == "2 iterations"
 
 
 def test_every_distortion_coefficient_has_its_unit():

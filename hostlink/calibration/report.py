@@ -436,3 +436,12 @@ def write_rejected(path, rejected: RejectedStars) -> None:
                     f"{res:.3f}" if math.isfinite(res) else "",
                 ]
             )
+
+
+def iterations_text(history: list[dict]) -> str:
+    """The iteration count as the live lines number them (the last one printed), and how many of them are the
+    evaluated steps plotted in convergence.png (an iteration that ends a stage with a tiny step is not evaluated)."""
+    if not history:
+        return "0 iterations"
+    last = max(int(h["iteration"]) for h in history)
+    return f"{last} iterations ({len(history)} evaluated steps)" if last != len(history) else f"{last} iterations"

@@ -285,30 +285,10 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
 
 
 #: Units of the Weng distortion coefficients (docs/camera-model.md), printed beside their values.
-DISTORTION_UNITS = {
-    "k1": "px^-2",
-    "k2": "px^-4",
-    "k3": "px^-6",
-    "p1": "px^-1",
-    "p2": "px^-1",
-    "s1": "px^-1",
-    "s2": "px^-1",
-}
-
-
-def _iterations_text(history: list[dict]) -> str:
-    """The iteration count as the live lines number them (the last one printed), and how many of them are the
-    evaluated steps plotted in convergence.png (an iteration that ends a stage with a tiny step is not evaluated)."""
-    if not history:
-        return "0 iterations"
-    last = max(int(h["iteration"]) for h in history)
-    return f"{last} iterations ({len(history)} evaluated steps)" if last != len(history) else f"{last} iterations"
-
-
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     import math
 
-    from hostlink.api import DISTORTION_NAMES
+    from hostlink.api import DISTORTION_NAMES, DISTORTION_UNITS, iterations_text
 
     sig = outcome.sigma()
     p = outcome.params
@@ -331,7 +311,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
         f"rejected stars: {rej['total_stars']} ({rej['voting']} by interstar voting, {rej['gating']} by residual "
         f"gating; {rej['frames_dropped']} frames dropped)",
         f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma; "
-        f"{_iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
+        f"{iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
     ]
     pre = outcome.prepass
     if pre and abs(pre["focal_scale"] - 1.0) > 0.01:
