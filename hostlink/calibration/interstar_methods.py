@@ -29,8 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales, solve_scaled
 from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.model import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales
+from hostlink.calibration.normal import solve_scaled
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import (
     difference_jacobian,

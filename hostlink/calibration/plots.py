@@ -94,7 +94,7 @@ def convergence_png(path: Path, history: list[dict], title: str) -> None:
 def write_calibration_plots(out_dir: Path, outcome, image_size_px: tuple[int, int]) -> tuple[Path, Path]:
     """``residual_field.png`` and ``convergence.png`` of a :class:`hostlink.calibration.run.CalibrationOutcome`
     into ``out_dir`` (created if missing); returns their paths. An unwritable folder is a one-line UserError."""
-    from hostlink.calibration.bundle import residuals
+    from hostlink.calibration.model import residuals
     from hostlink.errors import UserError
 
     out_dir = Path(out_dir)

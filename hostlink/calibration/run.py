@@ -9,21 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.calibration.bundle import (
-    ARCSEC_PER_RAD,
-    DEFAULT_CHUNK_OBS,
-    BundleOptions,
-    ChunkSource,
-    PassRunner,
-    bundle_adjust_chunks,
-    covariance_from_normal,
-    frame_attitudes,
-    frames_of,
-    in_memory_source,
-    residuals,
-    serial_pass,
-    without_rows,
-)
+from hostlink.calibration.bundle import BundleOptions, bundle_adjust_chunks
 from hostlink.calibration.data import (
     MIN_STARS_PER_FRAME,
     SPOOL_SUFFIX,
@@ -39,6 +25,9 @@ from hostlink.calibration.data import (
     take_frames,
 )
 from hostlink.calibration.interstar_methods import calibrate_interstar
+from hostlink.calibration.model import ARCSEC_PER_RAD, DEFAULT_CHUNK_OBS, residuals
+from hostlink.calibration.normal import covariance_from_normal
+from hostlink.calibration.passes import PassRunner, frame_attitudes, serial_pass
 from hostlink.calibration.report import (
     RejectedStars,
     clipped_rms,
@@ -65,6 +54,7 @@ from hostlink.calibration.robust import (
     vote_consistent_stars,
 )
 from hostlink.calibration.seed004 import SEED004_ESTIMATE, calibrate_seed004
+from hostlink.calibration.source import ChunkSource, frames_of, in_memory_source, without_rows
 from hostlink.errors import UserError
 from hostlink.files.session import Session, check_on_detector
 from hostlink.sky.references import ABERRATION_MAX_RAD, SessionReferences
@@ -289,7 +279,7 @@ def calibrate(
 
 
 def _bundle_chunks(source, start, estimate, noise_px, max_iter, progress, excluded, run_pass, warm):
-    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress, screen=False)
+    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress)
     return bundle_adjust_chunks(source, start, options, excluded, run_pass, warm)
 
 
