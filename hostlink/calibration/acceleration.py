@@ -51,9 +51,8 @@ def step_acceleration(
     What it corrects: a principal point d px off is compensated by every frame's attitude, whose rotation adds a
     second-order change of scale, ~0.9 d^2 / F (measured: the focal length a Gauss-Newton step leaves), and the
     distortion's curvature in the principal point adds its own; along the weak principal-point direction these are
-    several tenths of the camera's standard deviation. At 10^4 frames, one step from a principal point (2, -1) px
-    off leaves 0.49 sigma, the accelerated one 0.041 from a 100-frame sample (0.028 from 1000 frames or from all).
-    None when the sample's terms are not finite."""
+    several tenths of the camera's standard deviation (what one step leaves with and without it:
+    docs/calibration.md). None when the sample's terms are not finite."""
     with np.errstate(all="ignore"):
         att = frame_attitudes(sample, theta, sigma_px, huber_k)
         e0 = residuals(sample, theta, att)

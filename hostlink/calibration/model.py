@@ -34,8 +34,8 @@ from onboard.params import ESTIMATE_NAMES, CameraParams
 
 #: Most stars processed at once in a pass over the data: bounds the working arrays (~1.5 kB per star, ~8 MB per pass).
 #: Small enough that each temporary (~1 MB) stays in cache and is reused by the allocator rather than mapped afresh
-#: and page-faulted in: a pass at 5000 stars costs ~0.6 of one at 20 000 (measured at 10^4 frames; 4000-10 000 are
-#: all within 10 % of it), large enough that numpy's per-call overhead stays small.
+#: and page-faulted in, large enough that numpy's per-call overhead stays small (the timings behind the choice:
+#: docs/calibration.md).
 DEFAULT_CHUNK_OBS = 5_000
 
 

@@ -339,10 +339,8 @@ def sample_frames(source: ChunkSource, *frame_sets: np.ndarray) -> list[Calibrat
 #: gathered: ~120 MB for the largest at 20 stars per frame), each used when the session has more than twice as many
 #: frames. Each level of 5-10x more frames starts the next a few of its standard deviations from its minimum, where
 #: one Gauss-Newton step leaves ~1e-2 sigma (the step from s sigma leaves ~1.5e-3 s^2 here), so the full data take
-#: two passes (measured up to 20x the largest level: 10^6 frames); a session ~600x longer (3x10^7 frames) should
-#: take three. The first level's round starts from the nominal (steps of ~60 and ~10 of its sigma): on 100 frames
-#: its three passes cost what one pass over 1000 frames does, and the 1000 then take two (measured: 10^4 frames,
-#: the samples' passes 30 ms instead of 36 ms; 10^3 frames, 4 passes over all of them instead of 6).
+#: two passes. The first level, 100 frames, is where the round from the nominal is cheapest (pass counts and
+#: timings: docs/calibration.md).
 WARM_LEVEL_FRAMES = (100, 1_000, 10_000, 50_000)
 
 
