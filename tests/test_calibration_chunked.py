@@ -9,6 +9,7 @@ import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
+from hostlink.calibration.chunked import estimated_session_rows
 from hostlink.calibration.data import (
     CalibrationData,
     chunk_frame_count,
@@ -337,3 +338,37 @@ def test_round_tolerances_leave_the_camera_within_their_remainder_of_the_minimum
     sigma = np.sqrt(np.diag(tight.covariance))
     assert np.max(np.abs(loose.theta - tight.theta)[cols] / sigma) < 5e-3
     assert len(loose.history) < len(tight.history)  # the looser tolerances save passes
+
+
+def test_one_csv_with_no_option_is_read_in_chunks_with_the_whole_sessions_camera(session_files, tmp_path, monkeypatch):
+    """The default of the bundle method on one CSV is the chunked path (memory bounded by one chunk): the session is
+    never read whole, and the camera, its sigma, the rejections (by reason too) are those of the session in memory."""
+    _, whole_path, _ = session_files
+    import hostlink.files.session as session_module
+
+    # the same file read whole (the CSV holds the centroids to 1e-6 px: the in-memory session itself differs)
+    expected, references = calibrate_session(session_module.read_session(whole_path), SEED004_NOMINAL)
+
+    def whole_read(*_args, **_kwargs):
+        raise AssertionError("the session was read whole")
+
+    monkeypatch.setattr(session_module, "read_session", whole_read)
+    out = tmp_path / "default.json"
+    assert main(["calibrate", str(whole_path), "--nominal", NOMINAL, "--out", str(out), "--quiet"]) == 0
+    got = json.loads(out.read_text())
+    assert got["focal_length_mm"] == pytest.approx(expected.params.focal_length_mm, rel=1e-9)
+    assert got["principal_point_px"] == pytest.approx(list(expected.params.principal_point_px), rel=1e-9)
+    assert got["sigma"]["focal_length_mm"] == pytest.approx(expected.sigma()["focal_length_mm"], rel=1e-6)
+    assert got["n_rejected"] == expected.rejected
+    assert got["rejected_by_reason"] == expected.rejected_stars.counts()
+    assert references.unknown_rows.size == got["references"]["unknown_star_ids"]
+
+
+def test_row_estimate_from_the_file_size_is_close_for_csv_and_exact_for_parquet(session_files):
+    """The reading progress bar's total: a Parquet file's row count from its metadata, a CSV file's from its size
+    over the mean line length of its head (fixed-format columns: within 2 % here, where the 80 frames' ~1700 lines
+    all fit in the sampled head, so the estimate is the line count up to rounding)."""
+    session, whole_path, parts = session_files
+    assert estimated_session_rows([str(p) for p in parts["parquet"]]) == len(session)
+    assert estimated_session_rows(str(whole_path)) == pytest.approx(len(session), rel=0.02)
+    assert estimated_session_rows(str(whole_path) + ".missing") is None

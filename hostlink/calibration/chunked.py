@@ -31,6 +31,7 @@ from hostlink.calibration.outcome import (
     check_focal_scale,
     check_result,
     prepass_report,
+    rejected_counts,
     start_from_prepass,
     time_unknown_note,
 )
@@ -272,19 +273,21 @@ def spool_session(
     weather: Weather | None = None,
     dut1_s: float = 0.0,
     on_frames: Callable[[int], None] | None = None,
+    on_rows: Callable[[int], None] | None = None,
 ) -> tuple[ChunkSource, ReferencesSummary]:
     """Read the session of ``source`` (paths, a glob, .csv or .parquet: :func:`hostlink.files.session.
     read_session_chunks`) ``chunk_frames`` frames at a time, turn each chunk into calibration data with its
     reference directions (:func:`hostlink.calibration.data.session_chunk_data`) and write it to ``directory``
     (:func:`hostlink.calibration.data.save_chunk`), so every later pass reads arrays at disk speed and computes no
     reference twice. Memory: one chunk. ``on_frames`` gets the number of frames read so far after each chunk (a
-    progress bar). Raises UserError as :func:`calibrate_session` does."""
+    progress bar), ``on_rows`` the number of rows (stars) read. Raises UserError as :func:`calibrate_session` does."""
     from hostlink.files.session import read_session_chunks
 
     files: list[str] = []
     offset = 0
     n_identified = 0
     n_unidentified = 0
+    n_few = 0
     unknown: list[np.ndarray] = []
     sources, refraction, time_known = set(), "none", True
     frames_read = 0
@@ -292,9 +295,12 @@ def spool_session(
         frames_read += chunk.n_frames
         if on_frames is not None:
             on_frames(frames_read)
+        if on_rows is not None:
+            on_rows(offset + len(chunk))
         check_on_detector(chunk, nominal.image_size_px, "the session", "the nominal parameters")
         n_identified += int(np.count_nonzero(chunk.star_id))
         data, refs = session_chunk_data(chunk, site, weather, dut1_s, offset)
+        n_few += int(np.count_nonzero(refs.usable)) - data.n_obs
         sources.add(refs.source)
         refraction = refs.refraction
         time_known &= refs.time_known
@@ -312,7 +318,7 @@ def spool_session(
     if not files:
         raise UserError(f"no frame has at least {MIN_STARS_PER_FRAME} identified stars")
     summary = ReferencesSummary(
-        "+".join(sorted(sources)), refraction, n_unidentified, np.concatenate(unknown), time_known
+        "+".join(sorted(sources)), refraction, n_unidentified, np.concatenate(unknown), time_known, n_few
     )
     return ChunkSource(tuple(files), load_chunk, chunk_frame_count), summary
 
@@ -333,6 +339,7 @@ def calibrate_archive(
     dask_workers: int | None = None,
     spool_dir: str | Path | None = None,
     on_frames: Callable[[int], None] | None = None,
+    on_rows: Callable[[int], None] | None = None,
 ) -> tuple[CalibrationOutcome, ReferencesSummary]:
     """Bundle calibration of a session of any length in bounded memory: ``source`` is what
     :func:`hostlink.files.session.read_session_chunks` reads (a path, a glob, several files; CSV or Parquet),
@@ -341,8 +348,10 @@ def calibrate_archive(
     memory O(K^2 + one chunk), time linear in the frames. ``dask``: None (this process), ``"local"`` (a
     LocalCluster of ``dask_workers`` workers, default 2) or a scheduler address (``tcp://host:port``; its workers
     must see ``spool_dir``). ``on_frames``: frames read so far, after each chunk of the reading pass
-    (:func:`spool_session`). Other arguments, the checks and the failure rule as :func:`calibrate_session`; the
-    outcome has no in-memory data (``data`` None; its counts in ``n_stars_used``/``n_frames_used``)."""
+    (:func:`spool_session`); ``on_rows``: rows read so far (against :func:`estimated_session_rows`). Other
+    arguments, the checks and the failure rule as :func:`hostlink.calibration.run.calibrate_session`; the outcome
+    has no in-memory data (``data`` None; its counts in ``n_stars_used``/``n_frames_used``), and its rejected stars
+    counted by reason (:func:`hostlink.calibration.outcome.rejected_counts`)."""
     import tempfile
 
     from hostlink.files.session import DEFAULT_CHUNK_FRAMES
@@ -355,7 +364,9 @@ def calibrate_archive(
     if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
         raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")
     with tempfile.TemporaryDirectory(prefix="hostlink-calibrate-", dir=spool_dir) as tmp:
-        chunks, references = spool_session(source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s, on_frames)
+        chunks, references = spool_session(
+            source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s, on_frames, on_rows
+        )
         try:
             if dask is None:
                 outcome = calibrate_chunks(chunks, nominal, estimate, noise_px, max_iter, progress)
@@ -368,6 +379,42 @@ def calibrate_archive(
                     )
         except ValueError as exc:
             raise UserError(f"calibration failed: {exc}") from None
+    outcome.rejected_by_reason = rejected_counts(outcome, references)
     check_result(outcome, keep_failed)
     outcome.time_note = None if references.time_known else time_unknown_note(outcome)
     return outcome, references
+
+
+#: Bytes of a CSV session's head read to measure its mean line length (:func:`estimated_session_rows`): a few
+#: thousand lines, whose mean length is that of the file to a few per cent when its columns have a fixed format.
+HEAD_SAMPLE_BYTES = 1 << 18
+
+
+def estimated_session_rows(source) -> int | None:
+    """The number of star rows of the session files of ``source`` (as :func:`hostlink.files.session.session_paths`
+    names them), for a progress bar's total: a Parquet file's from its metadata (exact), a CSV file's from its size
+    over the mean length of the lines of its first :data:`HEAD_SAMPLE_BYTES` (an estimate). None when a file cannot
+    be sized (missing, unreadable: the reader then says why)."""
+    from hostlink.files.session import session_paths
+
+    total = 0
+    try:
+        for path in session_paths(source):
+            if path.suffix.lower() == ".parquet":
+                import pyarrow.parquet as pq
+
+                total += int(pq.ParquetFile(path).metadata.num_rows)
+                continue
+            with open(path, "rb") as f:
+                head = f.read(HEAD_SAMPLE_BYTES)
+            lines = head.count(b"\n")
+            if lines < 2:
+                total += max(lines - 1, 0)
+                continue
+            header = head.index(b"\n") + 1
+            size = path.stat().st_size
+            mean = (head.rindex(b"\n") + 1 - header) / (lines - 1)
+            total += round((size - header) / mean)
+    except (OSError, ValueError, UserError, ImportError):
+        return None
+    return total

@@ -10,7 +10,15 @@ import numpy as np
 
 from hostlink.calibration.data import CalibrationData
 from hostlink.calibration.model import ARCSEC_PER_RAD
-from hostlink.calibration.report import RejectedStars, sigma_dict
+from hostlink.calibration.report import (
+    REASON_FEW_IN_FRAME,
+    REASON_FRAME_LEFT,
+    REASON_GATING,
+    REASON_UNKNOWN_ID,
+    REASON_VOTING,
+    RejectedStars,
+    sigma_dict,
+)
 from hostlink.calibration.robust import VOTE_REL_TOL, ScaleParity, estimate_scale_and_parity, max_pair_angle_rad
 from hostlink.errors import UserError
 from hostlink.sky.references import ABERRATION_MAX_RAD, SessionReferences
@@ -58,6 +66,8 @@ class CalibrationOutcome:
     n_frames_used: int = 0
     #: the largest catalogue angle between two stars of one frame [rad] (for :func:`time_unknown_note`)
     field_rad: float = float("nan")
+    #: the chunked path's counts of the rejected stars by reason (``rejected_stars`` needs the session in memory)
+    rejected_by_reason: dict | None = None
     #: why the fit stopped (:class:`hostlink.calibration.lm.Status` of the bundle's last round; None: other methods)
     status: str | None = None
 
@@ -191,6 +201,8 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         }
     if outcome.rejected_stars is not None:
         extras["rejected_by_reason"] = outcome.rejected_stars.counts()
+    elif outcome.rejected_by_reason is not None:
+        extras["rejected_by_reason"] = outcome.rejected_by_reason
     if outcome.time_note:
         extras["time_unknown"] = outcome.time_note
     failure = outcome.failure()
@@ -209,6 +221,23 @@ class ReferencesSummary:
     n_unidentified: int
     unknown_rows: np.ndarray  # session rows (counted through all files) whose star_id Hipparcos does not have
     time_known: bool
+    #: identified stars with a reference direction in frames with fewer than three of them (not calibration data)
+    n_few_in_frame: int = 0
+
+
+def rejected_counts(outcome: CalibrationOutcome, references: ReferencesSummary) -> dict[str, int]:
+    """The stars of a chunked session the calibration did not use, counted by reason (the ``REASON_*`` texts of
+    :func:`hostlink.calibration.report.rejected_stars`, those with a count): unknown star ids, frames with fewer
+    than three identified stars, voting, gating, and frames left with fewer than three after those."""
+    rej = outcome.rejected
+    counts = {
+        REASON_UNKNOWN_ID: int(references.unknown_rows.size),
+        REASON_FEW_IN_FRAME: int(references.n_few_in_frame),
+        REASON_VOTING: int(rej["voting"]),
+        REASON_GATING: int(rej["gating"]),
+        REASON_FRAME_LEFT: int(rej["total_stars"] - rej["voting"] - rej["gating"]),
+    }
+    return {reason: n for reason, n in sorted(counts.items()) if n}
 
 
 def check_result(outcome: CalibrationOutcome, keep_failed: bool) -> None:

@@ -21,10 +21,11 @@ DESCRIPTION = (
     "overrides). Star ids Hipparcos does not have are skipped. A session without time (t_utc empty) is calibrated "
     "against J2000 directions with the stated loss from annual aberration. A fit that does not converge or rejects "
     "more than half of the identified stars fails (exit 2) and writes nothing unless --keep-failed. The result is a "
-    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts. Sessions of any "
-    "length (several files or a glob in time order, Parquet, or --chunk-frames N) are calibrated chunk by chunk: "
+    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts. The bundle "
+    "method reads sessions of any length (one CSV, several files or a glob in time order, Parquet) chunk by chunk: "
     "memory bounded by one chunk, one pass over the frames per iteration, the same camera as the whole session in "
-    "memory to rounding; --dask maps the passes over a Dask cluster."
+    "memory to rounding; the other methods, --rejected, --plot and --hold-out read one CSV whole; --dask maps the "
+    "passes over a Dask cluster."
 )
 
 
@@ -82,7 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         metavar="N",
         help="read and fit the session N frames at a time, in memory bounded by one chunk whatever its length "
-        "(bundle method; implied by several files, a glob, .parquet or --dask; default 10000 frames then)",
+        "(bundle method, which reads in chunks of 10000 frames unless --rejected, --plot or --hold-out ask for the "
+        "session whole)",
     )
     parser.add_argument(
         "--dask",
@@ -229,14 +231,20 @@ def _iteration_line(entry: dict) -> str:
 
 
 def _chunked(args: argparse.Namespace) -> bool:
-    """The chunked path: asked for, or a source only it reads (several files, a glob, Parquet)."""
+    """The chunked path, memory bounded by one chunk: the default of the bundle method for any source. The session is
+    read whole only for one CSV and what needs all its stars at once: another method, --rejected, --plot or
+    --hold-out (several files, a glob, Parquet, --chunk-frames and --dask are chunked whatever else is asked)."""
     one = args.session[0]
     several = len(args.session) > 1 or any(c in one for c in "*?[") or one.endswith(".parquet")
-    return several or args.chunk_frames is not None or args.dask is not None
+    if several or args.chunk_frames is not None or args.dask is not None:
+        return True
+    whole = args.method != "bundle" or args.rejected or args.plot or args.hold_out is not None
+    return not whole
 
 
 def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather):
     """Any number of files, chunk by chunk (bundle only; no per-star output)."""
+    from hostlink.calibration.chunked import estimated_session_rows
     from hostlink.calibration.run import calibrate_archive
     from hostlink.progress import progress_bar
 
@@ -256,9 +264,11 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
         if not args.quiet:
             print(_iteration_line(entry), flush=True)
 
-    with progress_bar("reading session (frames)", None, enabled=not args.quiet) as advance:
+    source = args.session[0] if len(args.session) == 1 else args.session
+    total = estimated_session_rows(source)  # None when a file cannot be sized: the reader says why
+    with progress_bar("reading session (stars)", total, enabled=not args.quiet) as advance:
         return calibrate_archive(
-            args.session[0] if len(args.session) == 1 else args.session,
+            source,
             nominal,
             args.chunk_frames,
             estimate,
@@ -272,7 +282,7 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
             dask=args.dask,
             dask_workers=args.dask_workers,
             spool_dir=args.spool_dir,
-            on_frames=advance,
+            on_rows=advance,
         )
 
 
