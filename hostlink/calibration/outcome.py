@@ -68,6 +68,8 @@ class CalibrationOutcome:
     field_rad: float = float("nan")
     #: the chunked path's counts of the rejected stars by reason (``rejected_stars`` needs the session in memory)
     rejected_by_reason: dict | None = None
+    #: why a fit that did not converge stopped, naming what its model cannot separate (the seed methods')
+    not_converged_reason: str | None = None
     #: why the fit stopped (:class:`hostlink.calibration.lm.Status` of the bundle's last round; None: other methods)
     status: str | None = None
 
@@ -78,9 +80,11 @@ class CalibrationOutcome:
         """Why this result must not be used as a calibration (one line), or None: the fit did not converge, or
         more than :data:`MAX_REJECTED_FRACTION` of the identified stars were rejected."""
         if not self.converged:
+            if self.not_converged_reason:
+                return self.not_converged_reason
             return (
-                f"the fit did not converge in {len(self.history)} iterations (raise --max-iter, or check the "
-                "nominal and the identifications)"
+                f"the fit did not converge: it reached the iteration limit ({len(self.history)} iterations) still "
+                "moving; raise --max-iter, or check the nominal and the identifications"
             )
         rej = self.rejected
         n_in = self.n_stars_used + rej["total_stars"]

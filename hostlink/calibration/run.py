@@ -163,6 +163,7 @@ def calibrate(
         converged=converged,
         stages=stages,
         prepass=prepass_report(prepass, nominal, start),
+        not_converged_reason=getattr(fit, "failure", None),
         voted_out=voted_out,
         gated=gated,
         n_stars_used=fit_data.n_obs,
