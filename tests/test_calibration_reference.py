@@ -4,22 +4,11 @@ session: the same minimum, the same covariance."""
 import numpy as np
 import pytest
 from synthetic_sessions import synthetic_session
+from test_calibration_bundle import FULL_WENG, FULL_WENG_NOMINAL, SEED004, SEED004_NOMINAL
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
 from hostlink.calibration.reference import reference_fit
-from hostlink.files.params import load_params
-from onboard.params import ESTIMATE_NAMES, CameraParams, Distortion
-
-SEED004 = load_params("builtin:seed004_camera")
-SEED004_NOMINAL = load_params("builtin:seed004_nominal")
-FULL_WENG = CameraParams(
-    50.0,
-    5.5,
-    (1030.3, 1018.7),
-    (2048, 2048),
-    Distortion(k1=-3.0e-9, k2=2.0e-15, k3=-4.0e-22, p1=1.5e-7, p2=-2.0e-7, s1=8.0e-8, s2=-6.0e-8),
-)
-FULL_WENG_NOMINAL = CameraParams(50.5, 5.5, (1023.5, 1023.5), (2048, 2048))
+from onboard.params import ESTIMATE_NAMES
 
 
 @pytest.mark.parametrize(
