@@ -56,7 +56,11 @@ def step_acceleration(
     with np.errstate(all="ignore"):
         att = frame_attitudes(sample, theta, sigma_px, huber_k)
         e0 = residuals(sample, theta, att)
-        w = robust_weights(residual_lengths(e0), sigma_px, huber_k)
+        if sample.sigma_px is None:
+            w = robust_weights(residual_lengths(e0), sigma_px, huber_k)
+        else:  # the whitening by each star's noise as a weight 1 / sigma_k^2 on the raw terms
+            inv = 1.0 / sample.sigma_px
+            w = robust_weights(residual_lengths(e0) * inv, sigma_px, huber_k) * inv * inv
         blocks = accumulate_normals(sample, theta, att, cols, w, col_scale)
         try:
             _, _, a_inv = reduced_normal(blocks)

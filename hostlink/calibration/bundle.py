@@ -358,7 +358,7 @@ def _chunked_result(problem: _Problem, rounds: _Rounds, state: LMState) -> Chunk
     or by the one the residuals estimate (degrees of freedom: 2 per star less K and 3 per frame)."""
     final, cols = rounds.final, problem.cols
     dof = max(2 * final.n_obs - cols.size - 3 * final.n_frames, 1)
-    sigma_est = float(np.sqrt(final.sum_e2 / dof))
+    sigma_est = float(np.sqrt(final.sum_z2 / dof))  # px, or the scale of the given per-star noise
     sigma_used = float(problem.opt.noise_px) if problem.opt.noise_px else sigma_est
     return ChunkedBundleResult(
         theta=rounds.theta,

@@ -150,11 +150,19 @@ def calibrate_chunks(
     frames, each with its source rows), in memory O(K^2 + one chunk): the pre-pass on the evenly spaced frames
     gathered from the chunks, one voting pass (:func:`_screen`), the fit (:func:`_fit`: through ``run_pass``, in
     this process or on a Dask cluster, :mod:`hostlink.calibration.distributed`), and one pass for the residual
-    statistics (:func:`_statistics`). The in-memory calibration is this on its data as one chunk (``keep_data``:
-    then the outcome also carries the inlier data, their attitudes and the rejection masks).
+    statistics (:func:`_statistics`). Stars of given noise (the session's ``sigma_px``) are each whitened by it;
+    the outcome's ``noise_scale`` is then the noise the residuals show relative to the given one (1 when it is
+    right), and the covariance is scaled by its square. The in-memory calibration is this on its data as one chunk
+    (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
     Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
     theta0 = nominal.model_vector(np.float64)
     sample, warm = warm_levels(source, source.n_frames())
+    weighted = sample.sigma_px is not None
+    if weighted and noise_px:
+        raise ValueError(
+            "the session's sigma_px column and --noise-px both give the centroid noise: drop --noise-px (the fit "
+            "reports the noise it finds relative to sigma_px)"
+        )
     prepass = scale_and_parity_of_sample(sample, theta0)
     start = start_from_prepass(prepass, nominal, estimate is None or "f" in estimate)
     screened = _screen(source, start.model_vector(np.float64))
@@ -192,6 +200,7 @@ def calibrate_chunks(
         n_frames_used=res.n_frames,
         field_rad=screened.field_rad,
         status=res.status.value,
+        noise_scale=res.sigma_estimated_px if weighted else None,
     )
     if keep_data is not None:
         _add_in_memory_results(outcome, keep_data, voted, res, theta0)

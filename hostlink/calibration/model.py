@@ -272,6 +272,19 @@ def angle_arcsec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.arcsin(np.clip(vector_norms(a - b) / 2.0, 0.0, 1.0)) * ARCSEC_PER_RAD
 
 
+def whitened_by_noise(sigma_px: np.ndarray, e: np.ndarray, *jacobians: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The residuals e (n, 2) and Jacobians (n, 2, k) of stars of known centroid noise ``sigma_px`` (n,) [px], each
+    star's divided by its sigma: unit-variance residuals, so least squares on them is maximum likelihood for
+    stars of different noise (the per-star whitening of the measurement model; Huber weights, the robust scale and
+    the gate then work on them, the fitted scale being the noise relative to the given one). The Jacobians stay
+    stored entry by entry (:func:`observation_terms`' layout)."""
+    inv = 1.0 / sigma_px
+    out = [e * inv[:, None]]
+    for j in jacobians:
+        out.append((j.transpose(1, 2, 0) * inv).transpose(2, 0, 1))
+    return tuple(out)
+
+
 def residual_lengths(e: np.ndarray) -> np.ndarray:
     """|e| of residuals (n, 2): np.linalg.norm(e, axis=1)'s numbers without its per-call overhead."""
     return np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1])

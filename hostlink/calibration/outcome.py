@@ -70,6 +70,9 @@ class CalibrationOutcome:
     rejected_by_reason: dict | None = None
     #: why a fit that did not converge stopped, naming what its model cannot separate (the seed methods')
     not_converged_reason: str | None = None
+    #: stars weighted by the session's sigma_px: the fitted noise relative to the given one (its sigma_px and
+    #: sigma_estimated_px are then this scale, not pixels); None: one noise for every star, in ``sigma_px``
+    noise_scale: float | None = None
     #: why the fit stopped (:class:`hostlink.calibration.lm.Status` of the bundle's last round; None: other methods)
     status: str | None = None
 
@@ -184,8 +187,8 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         "method": outcome.method,
         "estimated": list(outcome.estimate),
         "sigma": outcome.sigma(),
-        "noise_px": outcome.sigma_px,
-        "noise_estimated_px": outcome.sigma_estimated_px,
+        "noise_px": outcome.sigma_px if outcome.noise_scale is None else None,
+        "noise_estimated_px": outcome.sigma_estimated_px if outcome.noise_scale is None else None,
         "residuals": {"before": outcome.before, "after": outcome.after},
         "interstar_rms_rad": {"before": outcome.interstar_before_rad, "after": outcome.interstar_after_rad},
         "n_rejected": outcome.rejected,
@@ -209,6 +212,8 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         extras["rejected_by_reason"] = outcome.rejected_by_reason
     if outcome.time_note:
         extras["time_unknown"] = outcome.time_note
+    if outcome.noise_scale is not None:
+        extras["noise_scale"] = outcome.noise_scale  # fitted noise / the session's sigma_px
     failure = outcome.failure()
     if failure:
         extras["failed"] = failure

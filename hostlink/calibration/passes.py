@@ -21,6 +21,7 @@ from hostlink.calibration.model import (
     observation_terms,
     residual_lengths,
     rotate,
+    whitened_by_noise,
 )
 from hostlink.calibration.normal import NormalBlocks, attitude_normal, normal_blocks, reduced_normal, unit_weight_normal
 from hostlink.calibration.robust import RAYLEIGH_MEDIAN, huber_rho, huber_weights
@@ -82,17 +83,21 @@ def frame_attitudes(
 ) -> np.ndarray:
     """The attitude of every frame (M, 3, 3) that minimises its robust whitened cost at the camera ``theta``:
     TRIAD from the measured directions (:func:`hostlink.calibration.frames.triad_attitudes`), then
-    :data:`ATTITUDE_STEPS` Gauss-Newton steps with the Huber
-    weights of scale ``sigma_px`` (inf: plain least squares). A function of each frame alone, so the same for any
-    split of the frames into chunks. With the attitudes eliminated this way the camera is fitted on the reduced
-    cost sum_f min_C_f rho(e_f) (variable projection, Golub and Pereyra 1973), whose Gauss-Newton matrix is the Schur
-    complement of :func:`reduced_normal`. ``cam``: the stars' :func:`camera_terms` at ``theta`` when already
-    computed (the directions are then (q, F) normalised, the same numbers as ``measured_directions``)."""
+    :data:`ATTITUDE_STEPS` Gauss-Newton steps with the Huber weights of scale ``sigma_px`` (inf: plain least
+    squares), each star whitened by its own noise when ``data`` gives it
+    (:func:`hostlink.calibration.model.whitened_by_noise`; ``sigma_px`` is then a scale of those). A function of
+    each frame alone, so the same for any split of the frames into chunks. With the attitudes eliminated this way
+    the camera is fitted on the reduced cost sum_f min_C_f rho(e_f) (variable projection, Golub and Pereyra 1973),
+    whose Gauss-Newton matrix is the Schur complement of :func:`hostlink.calibration.normal.reduced_normal`.
+    ``cam``: the stars' :func:`camera_terms` at ``theta`` when already computed (the directions are then (q, F)
+    normalised, the same numbers as ``measured_directions``)."""
     b = measured_directions(data, theta) if cam is None else offsets_to_unit(cam.q[:, 0], cam.q[:, 1], theta[0])
     att = triad_attitudes(b, data.r, data.frame_starts)
     for _ in range(ATTITUDE_STEPS):
         att_obs = np.repeat(att, data.counts, axis=0)
         e, jp = attitude_terms(data.x_px, data.y_px, data.r, att_obs, theta, cam)
+        if data.sigma_px is not None:
+            e, jp = whitened_by_noise(data.sigma_px, e, jp)
         w = robust_weights(residual_lengths(e), sigma_px, huber_k)
         a, g = attitude_normal(e, jp, w, data.frame_starts)
         step = np.einsum("mij,mj->mi", inverse_3x3(a), g)
@@ -129,6 +134,8 @@ class PassSums:
     #: and its attitude-rotated reference (the report's residuals in arcsec, ``report.residual_sums``)
     sum_arcsec2: float = 0.0
     max_arcsec: float = 0.0
+    #: sum of the squared residuals the fit weighs: |e|^2 [px^2], or |e / sigma_k|^2 of stars of given noise
+    sum_z2: float = 0.0
 
     def merge(self, other: PassSums) -> PassSums:
         def add(a, b):
@@ -151,6 +158,7 @@ class PassSums:
             regated,
             self.sum_arcsec2 + other.sum_arcsec2,
             max(self.max_arcsec, other.max_arcsec),
+            self.sum_z2 + other.sum_z2,
         )
 
 
@@ -228,7 +236,7 @@ def _regated(sub: CalibrationData, part: PassSums, frame_sums: np.ndarray, req: 
         return failed
     others = np.ones(sub.n_frames, dtype=bool)
     others[affected] = False
-    max_e, max_arcsec, sum_e2, sum_arcsec2, cost = frame_sums[:, others]
+    max_e, max_arcsec, sum_e2, sum_arcsec2, cost, sum_z2 = frame_sums[:, others]
     return PassSums(
         part.s - before.s + after.s,
         part.rhs - before.rhs + after.rhs,
@@ -244,6 +252,7 @@ def _regated(sub: CalibrationData, part: PassSums, frame_sums: np.ndarray, req: 
         None,
         float(np.sum(sum_arcsec2)) + after.sum_arcsec2,
         max(float(max_arcsec.max(initial=0.0)), after.max_arcsec),
+        float(np.sum(sum_z2)) + after.sum_z2,
     )
 
 
@@ -259,13 +268,16 @@ def _checked_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | Non
 
 def _sub_chunk_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | None = None) -> PassSums:
     """The sums of :func:`chunk_pass` for the sub-chunk ``sub``. A final request appends to ``frame_sums`` (when
-    given) each frame's largest |e| and arcsec angle, and its sums of |e|^2, of the squared angles and of the robust
-    cost, (5, M) (:func:`_regated`)."""
+    given) each frame's largest |e| and arcsec angle, and its sums of |e|^2, of the squared angles, of the robust
+    cost and of the weighed squares (``sum_z2``), (6, M) (:func:`_regated`)."""
     cam = camera_terms(sub.x_px, sub.y_px, req.theta)
     att = frame_attitudes(sub, req.theta, req.sigma_px, req.huber_k, cam)
     att_obs = np.repeat(att, sub.counts, axis=0)
     e, jt, jp = observation_terms(sub.x_px, sub.y_px, sub.r, att_obs, req.theta, req.cols, cam)
-    norm = residual_lengths(e)
+    norm_px = residual_lengths(e)  # in pixels, for the residual statistics
+    if sub.sigma_px is not None:
+        e, jt, jp = whitened_by_noise(sub.sigma_px, e, jt, jp)
+    norm = residual_lengths(e) if sub.sigma_px is not None else norm_px  # what the fit weighs and gates
     w = robust_weights(norm, req.sigma_px, req.huber_k)
     rho = huber_rho(norm, req.sigma_px, req.huber_k)
     blocks = NormalBlocks(*normal_blocks(e, jt, jp, w, sub.frame_starts, req.col_scale), e)
@@ -279,22 +291,23 @@ def _sub_chunk_sums(sub: CalibrationData, req: PassRequest, frame_sums: list | N
         arcsec = (float(np.sum(ang * ang)), float(ang.max(initial=0.0)))
         if frame_sums is not None:
             starts = sub.frame_starts[:-1]
-            per_frame = [np.maximum.reduceat(norm, starts), np.maximum.reduceat(ang, starts)]
-            per_frame += [np.add.reduceat(x, starts) for x in (norm * norm, ang * ang, rho)]
+            per_frame = [np.maximum.reduceat(norm_px, starts), np.maximum.reduceat(ang, starts)]
+            per_frame += [np.add.reduceat(x, starts) for x in (norm_px * norm_px, ang * ang, rho, norm * norm)]
             frame_sums.append(np.stack(per_frame))
     return PassSums(
         s,
         rhs,
         float(np.sum(rho)),
-        float(np.sum(norm * norm)),
+        float(np.sum(norm_px * norm_px)),
         sub.n_obs,
         sub.n_frames,
         residual_histogram(norm),
         sub.source_rows()[norm > req.gate_px].astype(np.int64),
-        float(norm.max(initial=0.0)),
+        float(norm_px.max(initial=0.0)),
         *unit,
         None,
         *arcsec,
+        sum_z2=float(np.sum(norm * norm)),
     )
 
 

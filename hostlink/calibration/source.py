@@ -21,6 +21,7 @@ def frames_of(data: CalibrationData, f0: int, f1: int) -> CalibrationData:
         data.frame_number[f0:f1],
         data.star_id[a:b],
         data.source_rows()[a:b],
+        None if data.sigma_px is None else data.sigma_px[a:b],
     )
 
 

@@ -286,6 +286,16 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
         )
 
 
+def _noise_line(outcome) -> str:
+    """The noise the fit found: in pixels, or relative to the session's per-star sigma_px when it weighted by it."""
+    if outcome.noise_scale is not None:
+        return (
+            f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right), stars "
+            "weighted by sigma_px"
+        )
+    return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
+
+
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     import math
 
@@ -311,8 +321,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     lines_after = [
         f"rejected stars: {rej['total_stars']} ({rej['voting']} by interstar voting, {rej['gating']} by residual "
         f"gating; {rej['frames_dropped']} frames dropped)",
-        f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma; "
-        f"{len(outcome.history)} iterations{'' if outcome.converged else ' (NOT converged)'}",
+        _noise_line(outcome) + f"; {len(outcome.history)} iterations{'' if outcome.converged else ' (NOT converged)'}",
     ]
     pre = outcome.prepass
     if pre and abs(pre["focal_scale"] - 1.0) > 0.01:
