@@ -25,7 +25,9 @@ DESCRIPTION = (
     "method reads sessions of any length (one CSV, several files or a glob in time order, Parquet) chunk by chunk: "
     "memory bounded by one chunk, one pass over the frames per iteration, the same camera as the whole session in "
     "memory to rounding; the other methods, --rejected, --plot and --hold-out read one CSV whole; --dask maps the "
-    "passes over a Dask cluster."
+    "passes over a Dask cluster. A session with the optional sigma_px column (each star's 1-sigma centroid noise "
+    "per axis, px) is weighted by it (bundle method; the seed methods do not use it), and the report gives the noise "
+    "the fit finds relative to it."
 )
 
 
