@@ -179,7 +179,7 @@ def _json_safe(value):
 
 
 def result_extras(outcome: CalibrationOutcome, references: SessionReferences | None = None) -> dict:
-    """The extra keys of the result file (INTERFACES.md: the parameter file plus extras), with ``references``
+    """The extra keys of the result file (docs/file-formats.md: the parameter file plus extras), with ``references``
     (where the reference directions came from) when given; non-finite numbers as null. Also the rejected stars by
     reason and the time note when :func:`calibrate_session` set them, and ``failed`` (the reason) for a failed
     result kept on request."""
@@ -195,6 +195,7 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         "degeneracies": outcome.degeneracies,
         "iterations": len(outcome.history),
         "converged": bool(outcome.converged),
+        "stopped": outcome.status,  # the bundle's last round's lm.Status text (None: the seed methods)
         "held": outcome.held,
         "prepass": outcome.prepass,
     }

@@ -131,7 +131,6 @@ def calibrate(
     fit, fit_data, gated = _interstar_with_gating(data, start, method, estimate, progress, consistent)
     theta, normal, est, sigma_est = fit.theta, fit.normal, fit.estimate, fit.sigma_estimated_px
     att = fitted_attitudes(fit_data, theta)
-    u_diag = None
     history, converged, stages = fit.history, fit.converged, fit.stages
     rejected = {
         "voting": int(np.sum(voted_out)),
@@ -158,7 +157,7 @@ def calibrate(
         interstar_before_rad=interstar_rms_rad(fit_data, theta0),
         interstar_after_rad=interstar_rms_rad(fit_data, theta),
         rejected=rejected,
-        degeneracies=degeneracies(normal, est, u_diag),
+        degeneracies=degeneracies(normal, est),  # the seed methods have no attitude blocks to compare with
         history=history,
         converged=converged,
         stages=stages,
