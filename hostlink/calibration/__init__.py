@@ -12,7 +12,10 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``bundle``: the default method, the rounds of the bundle adjustment over the camera and per-frame attitudes.
 - ``reference``: a dense textbook Gauss-Newton / Levenberg-Marquardt solver, the reference the tests hold
   ``bundle`` to.
-- ``run``: one calibration run (pre-pass, voting, fit, held parameters, statistics), in memory or chunked.
+- ``run``: one calibration run: the method chosen, the seed methods with their gating, the in-memory entry.
+- ``chunked``: the bundle's one driver over chunks of frames (pre-pass, voting, fit, held parameters,
+  statistics), for a session in memory (one chunk) or read from files of any length (spooled chunks).
+- ``outcome``: what a run gives (the outcome, the failure rule, the result file's extras).
 - ``distributed``: the passes, and per-sensor runs of a fleet, on a Dask cluster.
 - ``interstar_methods``: seed 000 cosine / sine interstar least squares and its improved two-step iteration.
 - ``seed004``: seed 004's three-step Levenberg-Marquardt.
