@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.lm import COST_ROUNDING, DAMPING_FLOOR, DAMPING_GROWTH, INITIAL_DAMPING, MAX_DAMPING_TRIALS
 from hostlink.calibration.model import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales
 from hostlink.calibration.normal import covariance_from_normal, solve_scaled
 from onboard.camera import unit_vector_jacobians
@@ -53,6 +54,14 @@ ALTERNATION_CONVERGED_SIGMAS = 0.1
 #: Most entries of the pair-covariance gradients (frames x pairs x 2 stars' coordinates) built at once: bounds the
 #: working memory of a batch of frames with the same star count (~16 MB per array in float64).
 PAIR_BLOCK_ELEMENTS = 2_000_000
+#: Levenberg-Marquardt of the seed methods (seed 004 sec. 2.1 and 2.3, after More 1978): the damping starts at this
+#: fraction of the diagonal (More's customary start), then grows and shrinks as the bundle's does
+#: (:mod:`hostlink.calibration.lm`)
+START_DAMPING = 1e-3
+#: A seed method's stage ends at a step below this size sqrt(dx^T N dx), N for unit centroid noise [px]: for a noise
+#: of sigma px that is 1e-4 / sigma of the estimate's standard deviation (2e-3 of it at 0.05 px), below any
+#: reported digit
+STEP_TOL_UNIT_NOISE = 1e-4
 #: Stars used by the first step of the improved method: within this fraction of the half-diagonal from the centre.
 CENTRAL_FRACTION = 0.5
 
@@ -218,11 +227,11 @@ def fit_interstar(
     cols = parameter_columns(estimate)
     scale = parameter_scales(params)[cols]
     theta = theta0.copy()
-    damping = 1e-3 if levenberg_marquardt else 0.0
+    damping = START_DAMPING if levenberg_marquardt else 0.0
     normal, grad, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, scale, frame_mask)
     for _it in range(max_iter):
         accepted = False
-        for _trial in range(12 if levenberg_marquardt else 1):
+        for _trial in range(MAX_DAMPING_TRIALS if levenberg_marquardt else 1):
             damped = normal + damping * np.diag(np.diag(normal))
             dx = solve_scaled(damped, grad)
             trial = theta.copy()
@@ -232,7 +241,7 @@ def fit_interstar(
             if not levenberg_marquardt or (np.isfinite(c_trial) and c_trial <= cost):
                 accepted = True
                 break
-            damping = max(10.0 * damping, 1e-6)
+            damping = max(DAMPING_GROWTH * damping, INITIAL_DAMPING)
         if not accepted:
             break
         step_sigmas = float(np.sqrt(max(dx @ grad, 0.0)))
@@ -241,7 +250,7 @@ def fit_interstar(
         n_new, g_new, c_new, p_new = interstar_normals(data, trial, cols, form, orders, scale, frame_mask)
         theta, normal, grad, cost, n_pairs = trial, n_new, g_new, c_new, p_new
         if levenberg_marquardt:
-            damping = damping / 10.0 if damping > 1e-12 else 0.0
+            damping = damping / DAMPING_GROWTH if damping > DAMPING_FLOOR else 0.0
         entry = {
             "iteration": len(history or []) + 1,
             "stage": label,
@@ -253,7 +262,7 @@ def fit_interstar(
             history.append(entry)
         if progress:
             progress(entry)
-        if step_sigmas < 1e-4 or abs(decrease) < 1e-12:
+        if step_sigmas < STEP_TOL_UNIT_NOISE or abs(decrease) < COST_ROUNDING:
             break
     unscale = 1.0 / scale
     return theta, normal * unscale[:, None] * unscale[None, :], cost, n_pairs
