@@ -200,7 +200,8 @@ class _Problem:
 
     def run(self, gated, theta, sigma, final=False, gate_px=np.inf, first=False, src=None) -> PassSums:
         """A pass over ``src`` (default the full data), checked (:func:`_checked`)."""
-        return _checked(self.run_pass(src or self.source, self.request(gated, theta, sigma, final, gate_px)), first)
+        src = self.source if src is None else src
+        return _checked(self.run_pass(src, self.request(gated, theta, sigma, final, gate_px)), first)
 
 
 def _checked(sums: PassSums, first: bool) -> PassSums:
