@@ -7,6 +7,10 @@ import argparse
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 from hostlink.errors import UserError
 
+#: Sessions of more stars than this print one line per iteration of the fit (it then takes seconds to minutes);
+#: smaller ones only the report.
+ITERATION_LINES_ABOVE_STARS = 200_000
+
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
 DESCRIPTION = (
     "Estimate the camera parameters from a session of identified stars. Methods: bundle (default; camera plus "
@@ -184,7 +188,7 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
     if len(session) == 0:
         raise UserError(f"{path}: no star rows")
     check_on_detector(session, nominal.image_size_px, path, args.nominal)
-    large = len(session) > 200_000
+    large = len(session) > ITERATION_LINES_ABOVE_STARS
 
     def progress(entry: dict) -> None:
         if not args.quiet and large:
@@ -262,12 +266,14 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
     if args.dask_workers is not None and args.dask_workers < 1:
         raise UserError(f"--dask-workers {args.dask_workers}: expected at least 1")
 
-    def progress(entry: dict) -> None:
-        if not args.quiet:
-            print(_iteration_line(entry), flush=True)
-
     source = args.session[0] if len(args.session) == 1 else args.session
     total = estimated_session_rows(source)  # None when a file cannot be sized: the reader says why
+    large = total is None or total > ITERATION_LINES_ABOVE_STARS
+
+    def progress(entry: dict) -> None:
+        if not args.quiet and large:
+            print(_iteration_line(entry), flush=True)
+
     with progress_bar("reading session (stars)", total, enabled=not args.quiet) as advance:
         return calibrate_archive(
             source,
