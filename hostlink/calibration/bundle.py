@@ -192,13 +192,24 @@ class _Problem:
     run_pass: PassRunner
     warm_start: tuple[CalibrationData, ...]
 
-    def request(self, gated, theta, sigma, final=False, gate_px=np.inf) -> PassRequest:
+    def request(
+        self, gated: np.ndarray, theta: np.ndarray, sigma: float, final: bool = False, gate_px: float = np.inf
+    ) -> PassRequest:
         """The pass at ``theta`` with Huber weights of scale ``sigma``, the excluded and ``gated`` rows left out."""
         drop = np.union1d(self.excluded, gated)
         opt = self.opt
         return PassRequest(theta, sigma, self.cols, self.scale, drop, opt.huber_k, opt.chunk_obs, final, gate_px)
 
-    def run(self, gated, theta, sigma, final=False, gate_px=np.inf, first=False, src=None) -> PassSums:
+    def run(
+        self,
+        gated: np.ndarray,
+        theta: np.ndarray,
+        sigma: float,
+        final: bool = False,
+        gate_px: float = np.inf,
+        first: bool = False,
+        src: ChunkSource | None = None,
+    ) -> PassSums:
         """A pass over ``src`` (default the full data), checked (:func:`_checked`)."""
         src = self.source if src is None else src
         return _checked(self.run_pass(src, self.request(gated, theta, sigma, final, gate_px)), first)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.calibration.bundle import BundleOptions, bundle_adjust_chunks
+from hostlink.calibration.bundle import BundleOptions, ChunkedBundleResult, bundle_adjust_chunks
 from hostlink.calibration.data import (
     MIN_STARS_PER_FRAME,
     SPOOL_SUFFIX,
@@ -60,7 +60,18 @@ from onboard.params import ESTIMATE_NAMES, CameraParams
 from onboard.site import Site, Weather
 
 
-def _bundle_chunks(source, start, estimate, noise_px, max_iter, progress, excluded, run_pass, warm):
+def _bundle_chunks(
+    source: ChunkSource,
+    start: CameraParams,
+    estimate: tuple[str, ...],
+    noise_px: float | None,
+    max_iter: int,
+    progress: Callable[[dict], None] | None,
+    excluded: np.ndarray,
+    run_pass: PassRunner,
+    warm: tuple[CalibrationData, ...],
+) -> ChunkedBundleResult:
+    """:func:`hostlink.calibration.bundle.bundle_adjust_chunks` with the run's options."""
     options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress)
     return bundle_adjust_chunks(source, start, options, excluded, run_pass, warm)
 
@@ -219,7 +230,18 @@ def _screen(source: ChunkSource, theta: np.ndarray) -> _Screened:
     )
 
 
-def _fit(source, nominal, start, estimate, noise_px, max_iter, progress, voted, run_pass, warm):
+def _fit(
+    source: ChunkSource,
+    nominal: CameraParams,
+    start: CameraParams,
+    estimate: tuple[str, ...] | None,
+    noise_px: float | None,
+    max_iter: int,
+    progress: Callable[[dict], None] | None,
+    voted: np.ndarray,
+    run_pass: PassRunner,
+    warm: tuple[CalibrationData, ...],
+) -> tuple[ChunkedBundleResult, list[dict]]:
     """The bundle fit from ``start`` without the ``voted`` rows (a session more than twice as long as the smallest
     of :data:`WARM_LEVEL_FRAMES` starts its least-squares round on the ``warm`` samples); with ``estimate`` None,
     every parameter first, then again without those the data cannot determine
@@ -239,7 +261,9 @@ def _fit(source, nominal, start, estimate, noise_px, max_iter, progress, voted, 
     return res, held
 
 
-def _statistics(source: ChunkSource, theta0: np.ndarray, theta: np.ndarray, dropped: np.ndarray):
+def _statistics(
+    source: ChunkSource, theta0: np.ndarray, theta: np.ndarray, dropped: np.ndarray
+) -> tuple[dict, float, float]:
     """One pass over the chunks for the statistics of the inliers (the stars not ``dropped``): the residual
     statistics at the nominal ``theta0`` and the interstar RMS [rad] there and at the result ``theta``."""
     before = None
@@ -257,7 +281,11 @@ def _statistics(source: ChunkSource, theta0: np.ndarray, theta: np.ndarray, drop
 
 
 def _add_in_memory_results(
-    outcome: CalibrationOutcome, data: CalibrationData, voted: np.ndarray, res, theta0: np.ndarray
+    outcome: CalibrationOutcome,
+    data: CalibrationData,
+    voted: np.ndarray,
+    res: ChunkedBundleResult,
+    theta0: np.ndarray,
 ) -> None:
     """What a session held in memory adds to the outcome: the rejection masks, the inlier data and their
     attitudes, the exact statistics at the nominal and the clipped RMS at the result (it needs every residual)."""
