@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from hostlink.calibration.outcome import (
     ReferencesSummary,
     check_focal_scale,
     check_result,
+    check_run_options,
     prepass_report,
     rejected_counts,
     start_from_prepass,
@@ -58,22 +59,6 @@ from hostlink.files.session import check_on_detector
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 from onboard.site import Site, Weather
-
-
-def _bundle_chunks(
-    source: ChunkSource,
-    start: CameraParams,
-    estimate: tuple[str, ...],
-    noise_px: float | None,
-    max_iter: int,
-    progress: Callable[[dict], None] | None,
-    excluded: np.ndarray,
-    run_pass: PassRunner,
-    warm: tuple[CalibrationData, ...],
-) -> ChunkedBundleResult:
-    """:func:`hostlink.calibration.bundle.bundle_adjust_chunks` with the run's options."""
-    options = BundleOptions(estimate=estimate, noise_px=noise_px, max_iter=max_iter, progress=progress)
-    return bundle_adjust_chunks(source, start, options, excluded, run_pass, warm)
 
 
 @dataclass
@@ -179,7 +164,10 @@ def calibrate_chunks(
     screened = _screen(source, start.model_vector(np.float64))
     voted = screened.voted_rows
     check_focal_scale(prepass, start is nominal, voted.size == screened.n_stars)
-    res, held = _fit(source, nominal, start, estimate, noise_px, max_iter, progress, voted, run_pass, warm)
+    options = BundleOptions(
+        estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
+    )
+    res, held = _fit(source, nominal, start, options, estimate is None, voted, run_pass, warm)
     dropped = np.union1d(voted, res.gated_rows)
     before, inter_before_rad, inter_after_rad = _statistics(source, theta0, res.theta, dropped)
     outcome = CalibrationOutcome(
@@ -234,30 +222,28 @@ def _fit(
     source: ChunkSource,
     nominal: CameraParams,
     start: CameraParams,
-    estimate: tuple[str, ...] | None,
-    noise_px: float | None,
-    max_iter: int,
-    progress: Callable[[dict], None] | None,
+    options: BundleOptions,
+    choose: bool,
     voted: np.ndarray,
     run_pass: PassRunner,
     warm: tuple[CalibrationData, ...],
 ) -> tuple[ChunkedBundleResult, list[dict]]:
     """The bundle fit from ``start`` without the ``voted`` rows (a session more than twice as long as the smallest
-    of :data:`WARM_LEVEL_FRAMES` starts its least-squares round on the ``warm`` samples); with ``estimate`` None,
-    every parameter first, then again without those the data cannot determine
+    of :data:`WARM_LEVEL_FRAMES` starts its least-squares round on the ``warm`` samples); with ``choose`` (no
+    estimate given), then again without the parameters the data cannot determine
     (:func:`hostlink.calibration.report.undetermined_parameters`), which are held at nominal. Returns the result and
     the held parameters' records."""
-    res = _bundle_chunks(source, start, estimate or ESTIMATE_NAMES, noise_px, max_iter, progress, voted, run_pass, warm)
-    if estimate is not None:
+    res = bundle_adjust_chunks(source, start, options, voted, run_pass, warm)
+    if not choose:
         return res, []
-    sigma_full = float(noise_px) if noise_px else res.sigma_estimated_px
+    sigma_full = float(options.noise_px) if options.noise_px else res.sigma_estimated_px
     chosen, held = undetermined_parameters(res.normal, res.estimate, sigma_full, nominal, res.theta)
     if held:
         theta_restart = res.theta.copy()
         fixed = [ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n not in chosen]
         theta_restart[fixed] = nominal.model_vector(np.float64)[fixed]
         restart = nominal.with_model_vector(theta_restart)
-        res = _bundle_chunks(source, restart, chosen, noise_px, max_iter, progress, voted, run_pass, ())
+        res = bundle_adjust_chunks(source, restart, replace(options, estimate=chosen), voted, run_pass, ())
     return res, held
 
 
@@ -393,10 +379,7 @@ def calibrate_archive(
 
     from hostlink.files.session import DEFAULT_CHUNK_FRAMES
 
-    if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
-        raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
-    if max_iter < 1:
-        raise UserError(f"--max-iter {max_iter}: expected at least 1")
+    check_run_options(noise_px, max_iter)
     chunk_frames = DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames
     if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
         raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")

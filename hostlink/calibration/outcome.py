@@ -127,6 +127,15 @@ def start_from_prepass(prepass: ScaleParity, nominal: CameraParams, scale_focal:
     return nominal.with_focal_length_mm(nominal.focal_length_mm * prepass.scale)
 
 
+def check_run_options(noise_px: float | None, max_iter: int) -> None:
+    """UserError (one line, naming the option) for a noise that is not a positive number of pixels or fewer than one
+    iteration: the options every calibration run takes."""
+    if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
+        raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
+    if max_iter < 1:
+        raise UserError(f"--max-iter {max_iter}: expected at least 1")
+
+
 def check_focal_scale(prepass: ScaleParity, from_nominal: bool, none_agrees: bool) -> None:
     """ValueError when no star agreed with the catalogue at a nominal focal length (``from_nominal``: the fit was
     not asked to estimate f, so the pre-pass did not rescale it) that the stars' own interstar angles say is off by

@@ -7,7 +7,6 @@ session in memory as one chunk here, a session read from files in chunks by
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -22,6 +21,7 @@ from hostlink.calibration.outcome import (
     ReferencesSummary,
     check_focal_scale,
     check_result,
+    check_run_options,
     prepass_report,
     prepass_start,
     result_extras,
@@ -198,10 +198,7 @@ def calibrate_session(
     identified stars, a mirrored image, a calibration that fails or a result that is not a usable parameter set."""
     if method not in METHODS:
         raise UserError(f"--method {method!r}: expected one of {', '.join(METHODS)}")
-    if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
-        raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
-    if max_iter < 1:
-        raise UserError(f"--max-iter {max_iter}: expected at least 1")
+    check_run_options(noise_px, max_iter)
     if len(session) == 0:
         raise UserError("no star rows in the session")
     check_on_detector(session, nominal.image_size_px, "the session", "the nominal parameters")
