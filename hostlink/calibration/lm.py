@@ -8,9 +8,9 @@ fails). An iteration:
 
 1. solve the (damped) reduced normal equations for the step dx; its size in the camera's standard deviations is
    sqrt(dx^T S dx) / sigma;
-2. termination tests that need no new pass: the step is below the tolerance (:attr:`Status.STEP_TOL`), or what the
-   step leaves, by the contraction measured between undamped steps, is (:attr:`Status.REMAINDER_TOL`); the step is
-   applied either way;
+2. termination tests that need no new pass: the step is below the tolerance (:attr:`Status.STEP_TOL`), or what
+   the step leaves (the step times the contraction measured between undamped steps) is below the remainder
+   tolerance (:attr:`Status.REMAINDER_TOL`); the step is applied either way;
 3. a pass at the moved camera; the step is accepted when the cost does not rise beyond the rounding of its sum,
    else the damping grows (:data:`DAMPING_GROWTH`) and the step is solved again, at most :data:`MAX_DAMPING_TRIALS`
    times (:attr:`Status.NO_DESCENT`), unless the step was already negligible (:attr:`Status.SMALL_STEP`);
