@@ -9,7 +9,7 @@ import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.calibration.bundle import bundle_adjust
-from hostlink.calibration.data import build_data, load_chunk, save_chunk
+from hostlink.calibration.data import SPOOL_FIELDS, build_data, load_chunk, save_chunk
 from hostlink.calibration.model import parameter_columns
 from hostlink.calibration.normal import accumulate_normals, reduced_normal
 from hostlink.calibration.run import calibrate
@@ -100,6 +100,17 @@ def test_spooled_chunk_keeps_the_stars_noise(tmp_path):
             assert back.sigma_px is None
         else:
             np.testing.assert_array_equal(back.sigma_px, data.sigma_px)
+
+
+def test_a_chunk_spooled_without_the_noise_record_reads_as_one_without_noise(tmp_path):
+    """Chunks spooled before the sigma_px record existed end after ``row``: they read back whole, without noise."""
+    _, plain, _, _ = mixed_session(2, 10)
+    with open(tmp_path / "old.spool", "wb") as f:
+        for name in SPOOL_FIELDS[:-1]:
+            np.save(f, np.ascontiguousarray(plain.source_rows() if name == "row" else getattr(plain, name)))
+    back = load_chunk(tmp_path / "old.spool")
+    assert back.sigma_px is None and back.n_obs == plain.n_obs
+    np.testing.assert_array_equal(back.x_px, plain.x_px)
 
 
 @pytest.fixture(scope="module")

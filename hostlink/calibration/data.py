@@ -223,11 +223,18 @@ def save_chunk(path: Path, data: CalibrationData) -> None:
 
 
 def load_chunk(path: str | Path) -> CalibrationData:
-    """A chunk written by :func:`save_chunk`. Raises ValueError naming the file when it is not one (cut short,
-    with data after its arrays, or arrays that do not fit together)."""
+    """A chunk written by :func:`save_chunk` (also one written without the last record, ``sigma_px``, as chunks were
+    before it). Raises ValueError naming the file when it is not one (cut short, with data after its arrays, or
+    arrays that do not fit together)."""
     try:
         with open(path, "rb") as f:
-            arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS}
+            arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS[:-1]}
+            # sigma_px, the last record, is absent from chunks spooled before it existed: read as none
+            at = f.tell()
+            arrays["sigma_px"] = np.zeros(0)
+            if f.read(1):
+                f.seek(at)
+                arrays["sigma_px"] = np.load(f, allow_pickle=False)
             trailing = f.read(1)
     except (OSError, EOFError, ValueError) as exc:
         raise ValueError(f"{path}: not a spooled calibration chunk ({exc})") from exc
