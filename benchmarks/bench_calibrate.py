@@ -76,12 +76,12 @@ def scipy_bundle(data, nominal, max_nfev: int = 100, tol: float | None = None):
 
 
 #: The default method's options, with the robust loss, outlier gating and screening off: plain least squares.
-PLAIN_LS = BundleOptions(huber_k=1e12, gate=1e12, screen=False)
+PLAIN_LS = BundleOptions(huber_k=1e12, gate=1e12)
 
 
 def ours(data, max_iter: int):
     t0 = time.perf_counter()
-    res = bundle_adjust(data, NOMINAL, replace(PLAIN_LS, max_iter=max_iter))
+    res = bundle_adjust(data, NOMINAL, replace(PLAIN_LS, max_iter=max_iter), screen=False)
     elapsed = time.perf_counter() - t0
     e = res_residuals(data, res)
     return res, float(np.sum(e * e)), elapsed

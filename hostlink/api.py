@@ -90,6 +90,7 @@ from typing import TYPE_CHECKING
 # a file does not wait for the image stack). The import statements stay the one list of where each name lives: type
 # checkers read them here, and :func:`_lazy_table` reads the same statements from this file's source.
 if TYPE_CHECKING:
+    from hostlink.calibration.chunked import estimated_session_rows
     from hostlink.calibration.crb import (
         attitude_covariance,
         crb_validation_px,
@@ -234,6 +235,7 @@ if TYPE_CHECKING:
     from protocol.param_table import DISTORTION_UNITS
 
 __all__ = [
+    "estimated_session_rows",
     "DISTORTION_UNITS",
     "iterations_text",
     "json_text",

@@ -5,25 +5,21 @@ import numpy as np
 import pytest
 from synthetic_sessions import synthetic_session
 
-from hostlink.calibration.bundle import (
-    ACCELERATION_MAX_RATIO,
-    BundleOptions,
+from hostlink.calibration.acceleration import ACCELERATION_MAX_RATIO, step_acceleration
+from hostlink.calibration.bundle import BundleOptions, bundle_adjust
+from hostlink.calibration.data import build_data, take_frames
+from hostlink.calibration.frames import apply_attitude_increment, per_frame_products
+from hostlink.calibration.model import observation_terms, parameter_columns, parameter_scales
+from hostlink.calibration.normal import (
     NormalBlocks,
     accumulate_normals,
     attitude_normal,
-    bundle_adjust,
-    frame_attitudes,
     normal_blocks,
-    observation_terms,
-    parameter_columns,
-    parameter_scales,
     reduced_normal,
     solve_scaled,
-    step_acceleration,
     unit_weight_normal,
 )
-from hostlink.calibration.data import build_data, take_frames
-from hostlink.calibration.frames import apply_attitude_increment, per_frame_products
+from hostlink.calibration.passes import frame_attitudes
 from hostlink.calibration.report import degeneracies
 from hostlink.calibration.robust import huber_weights, prepass_frames
 from hostlink.files.params import load_params

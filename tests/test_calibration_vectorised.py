@@ -11,7 +11,6 @@ import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.calibration import interstar_methods
-from hostlink.calibration.bundle import parameter_columns, parameter_scales
 from hostlink.calibration.data import build_data
 from hostlink.calibration.interstar_methods import (
     _sine_terms,
@@ -19,6 +18,7 @@ from hostlink.calibration.interstar_methods import (
     frame_pair_orders,
     interstar_normals,
 )
+from hostlink.calibration.model import parameter_columns, parameter_scales
 from hostlink.calibration.seed004 import calibrate_seed004
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import (

@@ -8,15 +8,10 @@ import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.api import design_nominal
-from hostlink.calibration.bundle import (
-    BundleOptions,
-    accumulate_normals,
-    bundle_adjust,
-    parameter_scales,
-    reduced_normal,
-    residuals,
-)
+from hostlink.calibration.bundle import BundleOptions, bundle_adjust
 from hostlink.calibration.frames import apply_attitude_increment
+from hostlink.calibration.model import parameter_scales, residuals
+from hostlink.calibration.normal import accumulate_normals, reduced_normal
 from hostlink.cli import main
 from hostlink.mission.summary import estimate_rows, nan_to_null
 from onboard.params import CameraParams, Distortion
@@ -36,7 +31,7 @@ def test_bundle_stops_at_a_stationary_point_of_its_cost_on_an_off_centre_strip()
     Measured here: the cost's own slope along that direction (central differences, attitudes following), in
     standard deviations of the step that would remove it."""
     ss = synthetic_session(STRIP, 150, seed=2)
-    res = bundle_adjust(ss.data, STRIP_NOMINAL, BundleOptions(screen=False))
+    res = bundle_adjust(ss.data, STRIP_NOMINAL, BundleOptions(), screen=False)
     theta, att, fit = res.theta, res.attitudes, res.data
     cols = np.arange(10)
     scale = parameter_scales(STRIP_NOMINAL)

@@ -35,6 +35,8 @@ class CalibrationData:
     frame_number: (M,) session frame counter of each frame.
     star_id: (N,) Hipparcos numbers (0 if unknown).
     row: (N,) the row of each star in the session it came from (for reports of rejected stars); default 0..N-1.
+    sigma_px: (N,) each star's 1-sigma centroid noise per axis [px] (the session's optional ``sigma_px`` column),
+    or None: the same unknown noise for every star. Given, the bundle weights each star by it (whitening).
     """
 
     x_px: np.ndarray
@@ -44,6 +46,7 @@ class CalibrationData:
     frame_number: np.ndarray
     star_id: np.ndarray
     row: np.ndarray | None = None
+    sigma_px: np.ndarray | None = None
 
     @property
     def n_obs(self) -> int:
@@ -93,6 +96,7 @@ class CalibrationData:
             frame_number=np.asarray(np.asarray(self.frame_number)[present], dtype=np.int64),
             star_id=np.asarray(np.take(self.star_id, rows), dtype=np.int64),
             row=np.asarray(np.take(self.source_rows(), rows), dtype=np.int64),
+            sigma_px=None if self.sigma_px is None else np.take(self.sigma_px, rows),
         )
         return new, keep, frame_kept
 
@@ -115,6 +119,7 @@ def take_frames(data: CalibrationData, frames: np.ndarray) -> CalibrationData:
         frame_number=np.asarray(data.frame_number, dtype=np.int64)[frames],
         star_id=np.take(np.asarray(data.star_id, dtype=np.int64), rows),
         row=np.take(data.source_rows(), rows).astype(np.int64, copy=False),
+        sigma_px=None if data.sigma_px is None else np.take(data.sigma_px, rows),
     )
 
 
@@ -126,11 +131,12 @@ def build_data(
     frame_number: np.ndarray | None = None,
     star_id: np.ndarray | None = None,
     row: np.ndarray | None = None,
+    sigma_px: np.ndarray | None = None,
 ) -> CalibrationData:
     """Group rows (already in frame order) into frames by consecutive equal ``frame_key``.
 
     ``frame_number`` (indexed by frame_key) gives the session frame counter; default the key itself. ``row``: the
-    session row of each star (default 0..N-1).
+    session row of each star (default 0..N-1); ``sigma_px``: each star's centroid noise [px] (None: not known).
     """
     frame_key = np.asarray(frame_key, dtype=np.int64)
     n = frame_key.shape[0]
@@ -150,6 +156,7 @@ def build_data(
         frame_number=np.asarray(numbers, dtype=np.int64),
         star_id=np.zeros(n, dtype=np.int64) if star_id is None else np.asarray(star_id, dtype=np.int64),
         row=np.arange(n, dtype=np.int64) if row is None else np.asarray(row, dtype=np.int64),
+        sigma_px=None if sigma_px is None else np.asarray(sigma_px, dtype=np.float64),
     )
 
 
@@ -190,14 +197,15 @@ def session_chunk_data(
     references = session_references(session, site, weather, dut1_s, skip_unknown_ids=True)
     rows = np.flatnonzero(references.usable)
     sub = session.select(rows)
-    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id, rows + row_offset)
+    sigma = session_sigma_px(sub, rows + row_offset)
+    data = build_data(sub.x_px, sub.y_px, references.r[rows], sub.frame, None, sub.star_id, rows + row_offset, sigma)
     data, _, _ = data.select(np.ones(data.n_obs, dtype=bool))
     return data, references
 
 
 #: The arrays of a spooled chunk (:func:`save_chunk`), in the order they are written: the frame starts first, so the
-#: frame count is read without the rest (:func:`chunk_frame_count`).
-SPOOL_FIELDS = ("frame_starts", "frame_number", "x_px", "y_px", "r", "star_id", "row")
+#: frame count is read without the rest (:func:`chunk_frame_count`); ``sigma_px`` empty when the session has none.
+SPOOL_FIELDS = ("frame_starts", "frame_number", "x_px", "y_px", "r", "star_id", "row", "sigma_px")
 #: The file name suffix of a spooled chunk.
 SPOOL_SUFFIX = ".spool"
 
@@ -206,19 +214,27 @@ def save_chunk(path: Path, data: CalibrationData) -> None:
     """Write one chunk of calibration data to ``path``: its arrays (:data:`SPOOL_FIELDS`) as numpy ``.npy``
     records one after the other in one file, nothing around them, so :func:`load_chunk` reads them at disk speed (a
     member of an ``.npz`` archive is also checksummed as it is read, which costs about as much as the read)."""
-    arrays = {name: getattr(data, name) for name in SPOOL_FIELDS if name != "row"}
+    arrays = {name: getattr(data, name) for name in SPOOL_FIELDS if name not in ("row", "sigma_px")}
     arrays["row"] = data.source_rows()
+    arrays["sigma_px"] = np.zeros(0) if data.sigma_px is None else data.sigma_px
     with open(path, "wb") as f:
         for name in SPOOL_FIELDS:
             np.save(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
 
 
 def load_chunk(path: str | Path) -> CalibrationData:
-    """A chunk written by :func:`save_chunk`. Raises ValueError naming the file when it is not one (cut short,
-    with data after its arrays, or arrays that do not fit together)."""
+    """A chunk written by :func:`save_chunk` (also one written without the last record, ``sigma_px``, as chunks were
+    before it). Raises ValueError naming the file when it is not one (cut short, with data after its arrays, or
+    arrays that do not fit together)."""
     try:
         with open(path, "rb") as f:
-            arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS}
+            arrays = {name: np.load(f, allow_pickle=False) for name in SPOOL_FIELDS[:-1]}
+            # sigma_px, the last record, is absent from chunks spooled before it existed: read as none
+            at = f.tell()
+            arrays["sigma_px"] = np.zeros(0)
+            if f.read(1):
+                f.seek(at)
+                arrays["sigma_px"] = np.load(f, allow_pickle=False)
             trailing = f.read(1)
     except (OSError, EOFError, ValueError) as exc:
         raise ValueError(f"{path}: not a spooled calibration chunk ({exc})") from exc
@@ -234,9 +250,12 @@ def load_chunk(path: str | Path) -> CalibrationData:
         and arrays["frame_number"].shape == (starts.size - 1,)
         and arrays["r"].shape == (n, 3)
         and all(arrays[name].shape == (n,) for name in ("y_px", "star_id", "row"))
+        and arrays["sigma_px"].shape in ((n,), (0,))
     )
     if not fits:
         raise ValueError(f"{path}: not a spooled calibration chunk (its arrays do not fit together)")
+    if arrays["sigma_px"].size == 0:
+        arrays["sigma_px"] = None
     return CalibrationData(**arrays)
 
 
@@ -262,7 +281,42 @@ def concatenate_data(parts: list[CalibrationData]) -> CalibrationData:
         np.concatenate([p.frame_number for p in parts]),
         np.concatenate([p.star_id for p in parts]),
         np.concatenate([p.source_rows() for p in parts]),
+        _joined_sigma([p.sigma_px for p in parts]),
     )
+
+
+def _joined_sigma(parts: list[np.ndarray | None]) -> np.ndarray | None:
+    """The stars' noise of joined data sets: None when none has it (the parts of one session all have it or not)."""
+    if all(p is None for p in parts):
+        return None
+    if any(p is None for p in parts):
+        raise ValueError("data sets with and without per-star sigma_px cannot be joined")
+    return np.concatenate(parts)
+
+
+def session_sigma_px(session: Session, rows: np.ndarray) -> np.ndarray | None:
+    """The stars' 1-sigma centroid noise per axis [px] from the session's optional ``sigma_px`` column (a typed
+    field where the reader gives one, else the column kept as text), or None without it. ``rows``: the stars' session
+    rows, for the error. Raises :class:`UserError` (one line, naming the file line) for a value that is not a
+    positive finite number of pixels."""
+    typed = getattr(session, "sigma_px", None)
+    raw = typed if typed is not None else session.extra.get("sigma_px")
+    if raw is None:
+        return None
+    values = np.full(len(raw), np.nan)
+    for k, text in enumerate(raw):
+        try:
+            values[k] = float(text)
+        except (TypeError, ValueError):
+            pass
+    bad = np.flatnonzero(~(np.isfinite(values) & (values > 0)))
+    if bad.size:
+        k = int(bad[0])
+        raise UserError(
+            f"sigma_px on line {int(rows[k]) + 2}: {raw[k]!r}: expected a positive number of pixels (the star's "
+            "1-sigma centroid noise per axis)"
+        )
+    return values
 
 
 def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]]:

@@ -16,7 +16,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
-from hostlink.calibration.bundle import ChunkSource, PassRequest, PassSums, chunk_pass, empty_pass
+from hostlink.calibration.passes import PassRequest, PassSums, chunk_pass, empty_pass
+from hostlink.calibration.source import ChunkSource
 from hostlink.errors import UserError, install_hint
 
 #: Workers of the local cluster of ``--dask local`` unless told (one process each, one thread: numpy's own threads

@@ -29,8 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales, solve_scaled
 from hostlink.calibration.data import CalibrationData, frame_chunks
+from hostlink.calibration.lm import COST_ROUNDING, DAMPING_FLOOR, DAMPING_GROWTH, INITIAL_DAMPING, MAX_DAMPING_TRIALS
+from hostlink.calibration.model import DEFAULT_CHUNK_OBS, parameter_columns, parameter_scales
+from hostlink.calibration.normal import covariance_from_normal, solve_scaled
 from onboard.camera import unit_vector_jacobians
 from onboard.interstar import (
     difference_jacobian,
@@ -45,12 +47,21 @@ OPTICAL = ("f", "x0", "y0")
 DISTORTION = tuple(n for n in ESTIMATE_NAMES if n not in OPTICAL)
 #: Rounds of steps (2)-(3) of the improved method (seed 000 sec. 4.1: stable after 6 iterations).
 IMPROVED_ROUNDS = 6
-#: the alternation counts as converged when its last round moved the camera by less than this many joint sigmas
-#: (a move that small changes no reported digit of significance); otherwise the result says "not converged"
+#: the alternation counts as converged when a joint Gauss-Newton step from where it stands is below this many joint
+#: sigmas (it is then that close to its fixed point, the joint minimum: no reported digit of significance changes).
+#: The step of the last round is no such measure: where the blocks trade off, rounds move little while far away
 ALTERNATION_CONVERGED_SIGMAS = 0.1
 #: Most entries of the pair-covariance gradients (frames x pairs x 2 stars' coordinates) built at once: bounds the
 #: working memory of a batch of frames with the same star count (~16 MB per array in float64).
 PAIR_BLOCK_ELEMENTS = 2_000_000
+#: Levenberg-Marquardt of the seed methods (seed 004 sec. 2.1 and 2.3, after More 1978): the damping starts at this
+#: fraction of the diagonal (More's customary start), then grows and shrinks as the bundle's does
+#: (:mod:`hostlink.calibration.lm`)
+START_DAMPING = 1e-3
+#: A seed method's stage ends at a step below this size sqrt(dx^T N dx), N for unit centroid noise [px]: for a noise
+#: of sigma px that is 1e-4 / sigma of the estimate's standard deviation (2e-3 of it at 0.05 px), below any
+#: reported digit
+STEP_TOL_UNIT_NOISE = 1e-4
 #: Stars used by the first step of the improved method: within this fraction of the half-diagonal from the centre.
 CENTRAL_FRACTION = 0.5
 
@@ -63,10 +74,12 @@ class InterstarFit:
     sigma_estimated_px: float
     history: list[dict] = field(default_factory=list)
     stages: list[dict] = field(default_factory=list)  # per-step results (name, theta) for reports and tests
-    #: how far the last alternation round moved the camera, in standard deviations of the joint problem
-    #: (sqrt(d^T N d) / sigma); the improved methods have reached their fixed point only when this is small
+    #: how far a joint Gauss-Newton step from the result would move the camera, in standard deviations of the joint
+    #: problem (:func:`newton_step_sigmas`); the improved methods have reached their fixed point only when it is small
     last_round_step_sigmas: float = 0.0
     converged: bool = True
+    #: why a fit that did not converge stopped, naming what its model cannot separate (None when converged)
+    failure: str | None = None
 
 
 def frame_pair_orders(data: CalibrationData) -> np.ndarray:
@@ -214,11 +227,11 @@ def fit_interstar(
     cols = parameter_columns(estimate)
     scale = parameter_scales(params)[cols]
     theta = theta0.copy()
-    damping = 1e-3 if levenberg_marquardt else 0.0
+    damping = START_DAMPING if levenberg_marquardt else 0.0
     normal, grad, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, scale, frame_mask)
     for _it in range(max_iter):
         accepted = False
-        for _trial in range(12 if levenberg_marquardt else 1):
+        for _trial in range(MAX_DAMPING_TRIALS if levenberg_marquardt else 1):
             damped = normal + damping * np.diag(np.diag(normal))
             dx = solve_scaled(damped, grad)
             trial = theta.copy()
@@ -228,7 +241,7 @@ def fit_interstar(
             if not levenberg_marquardt or (np.isfinite(c_trial) and c_trial <= cost):
                 accepted = True
                 break
-            damping = max(10.0 * damping, 1e-6)
+            damping = max(DAMPING_GROWTH * damping, INITIAL_DAMPING)
         if not accepted:
             break
         step_sigmas = float(np.sqrt(max(dx @ grad, 0.0)))
@@ -237,7 +250,7 @@ def fit_interstar(
         n_new, g_new, c_new, p_new = interstar_normals(data, trial, cols, form, orders, scale, frame_mask)
         theta, normal, grad, cost, n_pairs = trial, n_new, g_new, c_new, p_new
         if levenberg_marquardt:
-            damping = damping / 10.0 if damping > 1e-12 else 0.0
+            damping = damping / DAMPING_GROWTH if damping > DAMPING_FLOOR else 0.0
         entry = {
             "iteration": len(history or []) + 1,
             "stage": label,
@@ -249,7 +262,7 @@ def fit_interstar(
             history.append(entry)
         if progress:
             progress(entry)
-        if step_sigmas < 1e-4 or abs(decrease) < 1e-12:
+        if step_sigmas < STEP_TOL_UNIT_NOISE or abs(decrease) < COST_ROUNDING:
             break
     unscale = 1.0 / scale
     return theta, normal * unscale[:, None] * unscale[None, :], cost, n_pairs
@@ -275,85 +288,132 @@ def calibrate_interstar(
 ) -> InterstarFit:
     """Seed 000's methods: ``form`` 'cos' or 'sin'; ``improved`` selects the two-step iteration of sec. 2.
 
-    ``estimate`` restricts the parameters (the plain methods estimate only its optical part)."""
+    ``estimate`` restricts the parameters (the plain methods estimate only its optical part). The improved method
+    has reached its fixed point when a Gauss-Newton step of the joint problem from where it stands is below
+    :data:`ALTERNATION_CONVERGED_SIGMAS`; when the paper's rounds leave it farther, it continues with joint steps
+    (:func:`_improved`), and a fit that still does not settle says which parameters its angles cannot separate."""
     if form not in ("cos", "sin"):
         raise ValueError(f"unknown interstar form {form!r}")
     optical = tuple(n for n in OPTICAL if n in estimate)
     distortion = tuple(n for n in DISTORTION if n in estimate)
-    orders = frame_pair_orders(data)
-    history: list[dict] = []
-    stages: list[dict] = []
-    theta = nominal.model_vector(np.float64)
+    fit = _Fitter(data, nominal, form, frame_pair_orders(data), [], [], progress)
     if not improved:
         if not optical:
             raise ValueError("the plain interstar methods estimate f, x0, y0: none of them selected")
-        theta, normal, cost, n_pairs = fit_interstar(
-            data, theta, nominal, optical, form, orders, history=history, label="optical", progress=progress
-        )
-        stages.append({"name": "optical", "theta": theta.copy()})
+        theta = fit.run(nominal.model_vector(np.float64), optical, "optical", data)
+        fit.stages.append({"name": "optical", "theta": theta.copy()})
         final = optical
     else:
-        # step 1: the distortion coefficients estimated are 0 (seed 000 sec. 2, step 1); those held keep the nominal
-        theta[[ESTIMATE_NAMES.index(n) for n in distortion]] = 0.0
-        if optical:
-            central = central_frame_subset(data, nominal)
-            source, src_orders = (central, frame_pair_orders(central)) if central.n_frames else (data, orders)
-            theta = fit_interstar(
-                source,
-                theta,
-                nominal,
-                optical,
-                form,
-                src_orders,
-                history=history,
-                label="optical (central field)",
-                progress=progress,
-            )[0]
-            stages.append({"name": "optical (central field)", "theta": theta.copy()})
-        for k in range(rounds):
-            if distortion:
-                theta = fit_interstar(
-                    data,
-                    theta,
-                    nominal,
-                    distortion,
-                    form,
-                    orders,
-                    history=history,
-                    label=f"distortion {k + 1}",
-                    progress=progress,
-                )[0]
-            if optical:
-                theta = fit_interstar(
-                    data,
-                    theta,
-                    nominal,
-                    optical,
-                    form,
-                    orders,
-                    history=history,
-                    label=f"optical {k + 1}",
-                    progress=progress,
-                )[0]
-            stages.append({"name": f"round {k + 1}", "theta": theta.copy()})
+        theta = _improved(fit, optical, distortion, rounds)
         final = optical + distortion
-        # the covariance of the alternation's fixed point is that of the joint problem: evaluate it there
-        cols = parameter_columns(final)
-        normal, _, cost, n_pairs = interstar_normals(data, theta, cols, form, orders, np.ones(cols.size))
-    dof = max(n_pairs - len(final), 1)
-    sigma_px = float(np.sqrt(cost / dof))
-    step_sigmas = 0.0
-    if improved and len(stages) >= 2:
-        cols = parameter_columns(final)
-        delta = (stages[-1]["theta"] - stages[-2]["theta"])[cols]
-        step_sigmas = float(np.sqrt(max(delta @ normal @ delta, 0.0))) / max(sigma_px, 1e-300)
+    cols = parameter_columns(final)
+    # the covariance of the (alternation's) fixed point is that of the joint problem: evaluated there
+    normal, grad, cost, n_pairs = interstar_normals(data, theta, cols, form, fit.orders, np.ones(cols.size))
+    sigma_px = float(np.sqrt(cost / max(n_pairs - len(final), 1)))
+    remainder = newton_step_sigmas(normal, grad, sigma_px) if improved else 0.0
+    converged = remainder < ALTERNATION_CONVERGED_SIGMAS
     return InterstarFit(
         theta=theta,
         estimate=tuple(n for n in ESTIMATE_NAMES if n in final),
         normal=normal,
         sigma_estimated_px=sigma_px,
-        history=history,
-        stages=stages,
-        last_round_step_sigmas=step_sigmas,
-        converged=step_sigmas < ALTERNATION_CONVERGED_SIGMAS,
+        history=fit.history,
+        stages=fit.stages,
+        last_round_step_sigmas=remainder,
+        converged=converged,
+        failure=None if converged else _unsettled_message(form, final, normal, remainder, rounds),
+    )
+
+
+@dataclass
+class _Fitter:
+    """What every stage of a seed-000 fit shares: the data, the nominal, the form, the pair orders, the records."""
+
+    data: CalibrationData
+    nominal: CameraParams
+    form: str
+    orders: np.ndarray
+    history: list[dict]
+    stages: list[dict]
+    progress: Callable[[dict], None] | None
+
+    def run(self, theta: np.ndarray, names: tuple[str, ...], label: str, data: CalibrationData | None = None):
+        """:func:`fit_interstar` over ``names`` from ``theta`` (on ``data``, default all; its pair orders)."""
+        source = self.data if data is None else data
+        orders = self.orders if source is self.data else frame_pair_orders(source)
+        return fit_interstar(
+            source,
+            theta,
+            self.nominal,
+            names,
+            self.form,
+            orders,
+            history=self.history,
+            label=label,
+            progress=self.progress,
+        )[0]
+
+
+def _improved(fit: _Fitter, optical: tuple[str, ...], distortion: tuple[str, ...], rounds: int) -> np.ndarray:
+    """Seed 000 sec. 2: (1) the estimated distortion coefficients 0, (x0, y0, f) from the central field; (2) the
+    distortion with the optical part held, (3) the optical part with the distortion held, ``rounds`` times. Where the
+    two blocks trade off strongly (f with k1; x0, y0 with p1, p2) this block coordinate descent contracts only by the
+    squared canonical correlation per round (~0.99 seen: docs/calibration.md), so after its rounds, if a joint
+    Gauss-Newton step from there is above :data:`ALTERNATION_CONVERGED_SIGMAS`, the same cost is minimised over
+    both blocks at once from there: the fixed point of the alternation is the joint problem's stationary point,
+    which those steps reach (recorded as the stage ``joint``)."""
+    data, nominal = fit.data, fit.nominal
+    theta = nominal.model_vector(np.float64)
+    theta[[ESTIMATE_NAMES.index(n) for n in distortion]] = 0.0  # step 1; parameters held keep the nominal
+    if optical:
+        central = central_frame_subset(data, nominal)
+        source = central if central.n_frames else data
+        theta = fit.run(theta, optical, "optical (central field)", source)
+        fit.stages.append({"name": "optical (central field)", "theta": theta.copy()})
+    for k in range(rounds):
+        if distortion:
+            theta = fit.run(theta, distortion, f"distortion {k + 1}")
+        if optical:
+            theta = fit.run(theta, optical, f"optical {k + 1}")
+        fit.stages.append({"name": f"round {k + 1}", "theta": theta.copy()})
+    final = optical + distortion
+    if optical and distortion and _remainder_sigmas(fit, theta, final) >= ALTERNATION_CONVERGED_SIGMAS:
+        theta = fit.run(theta, final, "joint")
+        fit.stages.append({"name": "joint", "theta": theta.copy()})
+    return theta
+
+
+def _remainder_sigmas(fit: _Fitter, theta: np.ndarray, names: tuple[str, ...]) -> float:
+    """The joint Gauss-Newton step from ``theta`` in standard deviations (:func:`newton_step_sigmas`)."""
+    cols = parameter_columns(names)
+    normal, grad, cost, n_pairs = interstar_normals(fit.data, theta, cols, fit.form, fit.orders, np.ones(cols.size))
+    return newton_step_sigmas(normal, grad, float(np.sqrt(cost / max(n_pairs - cols.size, 1))))
+
+
+def newton_step_sigmas(normal: np.ndarray, grad: np.ndarray, sigma_px: float) -> float:
+    """How far the minimum of the quadratic model lies, in standard deviations of the estimate: the Gauss-Newton
+    step dx = N^-1 g in the metric of N, sqrt(dx^T N dx) / sigma (N and g for unit centroid noise)."""
+    dx = solve_scaled(normal, grad)
+    return float(np.sqrt(max(dx @ grad, 0.0))) / max(sigma_px, 1e-300)
+
+
+def _unsettled_message(form: str, names: tuple[str, ...], normal: np.ndarray, remainder: float, rounds: int) -> str:
+    """Why the improved method did not settle: how far it stands from the joint minimum and the most correlated
+    pair of an optical and a distortion parameter (what the interstar angles of this session cannot separate)."""
+    cov = covariance_from_normal(normal, 1.0)
+    d = np.sqrt(np.abs(np.diag(cov)))
+    corr = cov / np.outer(np.where(d > 0, d, 1.0), np.where(d > 0, d, 1.0))
+    pairs = [(abs(corr[i, j]), a, b, corr[i, j]) for i, a in enumerate(names) for j, b in enumerate(names)]
+    pairs = [p for p in pairs if p[1] in OPTICAL and p[2] in DISTORTION and np.isfinite(p[0])]
+    worst = max(pairs, default=None)
+    what = (
+        f"its interstar angles cannot separate {worst[1]} from {worst[2]} (correlation {worst[3]:+.4f})"
+        if worst is not None
+        else "its interstar angles do not determine the estimated parameters"
+    )
+    name = {"cos": "cosine", "sin": "sine"}[form]
+    return (
+        f"seed 000's improved {name} method did not settle: after {rounds} rounds and a joint refinement it stands "
+        f"{remainder:.3g} sigma from the minimum of its own cost; {what}. Estimate fewer parameters (--estimate) or "
+        "use the bundle method"
     )

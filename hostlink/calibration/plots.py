@@ -163,7 +163,7 @@ def write_calibration_plots(out_dir: Path, outcome, image_size_px: tuple[int, in
     when given: the pattern calibration removes) and ``convergence.png`` of a
     :class:`hostlink.calibration.run.CalibrationOutcome` into ``out_dir`` (created if missing); returns their
     paths. An unwritable folder is a one-line UserError."""
-    from hostlink.calibration.bundle import residuals
+    from hostlink.calibration.model import residuals
     from hostlink.errors import UserError
 
     out_dir = Path(out_dir)

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.calibration.bundle import DEFAULT_CHUNK_OBS, angle_arcsec, observation_residuals, residuals, rotate
 from hostlink.calibration.data import (
     CalibrationData,
     block_gram,
@@ -22,6 +21,7 @@ from hostlink.calibration.data import (
     half_angle_from_dot_rad,
 )
 from hostlink.calibration.frames import wahba_attitudes
+from hostlink.calibration.model import DEFAULT_CHUNK_OBS, angle_arcsec, observation_residuals, residuals, rotate
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
@@ -254,7 +254,7 @@ def _held_cost(normal: np.ndarray, offset: np.ndarray, hold: np.ndarray) -> floa
     """Rise of the quadratic model of the fit's cost (unit noise) when the parameters ``hold`` (bool mask) are moved
     by ``offset`` (nominal - estimate, model-vector units) and the others re-fitted: d_h^T (S_hh - S_hk S_kk^-1 S_kh)
     d_h (the Schur complement of the kept block)."""
-    from hostlink.calibration.bundle import covariance_from_normal
+    from hostlink.calibration.normal import covariance_from_normal
 
     if not np.any(hold):
         return 0.0
@@ -289,7 +289,8 @@ def undetermined_parameters(
        held parameters at nominal, lowers the cost by more than 5-sigma evidence allows (:data:`RELEASE_LIMIT`;
        the likelihood-ratio test, from the quadratic model of the fit: :func:`_held_cost`). A parameter that the data
        place far from its nominal, however loosely, is estimated (an off-centre detector)."""
-    from hostlink.calibration.bundle import covariance_from_normal, parameter_scales
+    from hostlink.calibration.model import parameter_scales
+    from hostlink.calibration.normal import covariance_from_normal
 
     limits = _hold_limits_px(params)
     scales = dict(zip(ESTIMATE_NAMES, parameter_scales(params), strict=True))

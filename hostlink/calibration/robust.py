@@ -37,6 +37,11 @@ VOTE_REL_TOL = 0.03
 VOTE_ABS_TOL_RAD = 1e-3
 VOTE_MIN_AGREEMENT = 0.5
 
+#: Most stars whose frames' star pairs are worked on at once (voting, the pre-pass, the field's widest pair): bounds
+#: the per-pair temporaries (Gram matrices, angles) to a few MB at 30 stars per frame (20 000 stars x 30 pairs x
+#: 8 bytes each); the bundle's per-star passes use :data:`hostlink.calibration.model.DEFAULT_CHUNK_OBS`.
+PAIR_BLOCK_OBS = 20_000
+
 #: median |e| of a 2-D isotropic Gaussian with unit sigma per axis (Rayleigh median sqrt(2 ln 2)).
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
@@ -98,7 +103,7 @@ def _field_rad(pairs: _FramePairs) -> float:
     return float(angle_from_dot_rad(np.float64(pairs.min_dot_r)))
 
 
-def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = 20_000) -> float:
+def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> float:
     """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
     chunks = frame_chunks(data.frame_starts, chunk_obs)
     return max((_field_rad(_frame_pairs(data, f0, f1)) for f0, f1 in chunks), default=0.0)
@@ -122,7 +127,7 @@ def vote_consistent_stars(
     rel_tol: float = VOTE_REL_TOL,
     abs_tol_rad: float = VOTE_ABS_TOL_RAD,
     min_agreement: float = VOTE_MIN_AGREEMENT,
-    chunk_obs: int = 20_000,
+    chunk_obs: int = PAIR_BLOCK_OBS,
 ) -> np.ndarray:
     """(N,) bool: stars whose interstar angles agree with the catalogue for at least ``min_agreement`` of the other
     stars of their frame. ``b`` are measured directions from the nominal camera.
@@ -140,7 +145,7 @@ def consistent_stars_and_field(
     rel_tol: float = VOTE_REL_TOL,
     abs_tol_rad: float = VOTE_ABS_TOL_RAD,
     min_agreement: float = VOTE_MIN_AGREEMENT,
-    chunk_obs: int = 20_000,
+    chunk_obs: int = PAIR_BLOCK_OBS,
 ) -> tuple[np.ndarray, float]:
     """:func:`vote_consistent_stars`, and the largest catalogue angle between two stars of one frame [rad]
     (:func:`max_pair_angle_rad`, from the Gram matrices the vote computes anyway).
@@ -207,14 +212,6 @@ def huber_rho(residual_norm: np.ndarray, scale: float, k: float) -> np.ndarray:
         return 0.5 * t * t
     c = k * scale
     return np.where(t <= c, 0.5 * t * t, c * t - 0.5 * c * c)
-
-
-def huber_cost(residual_norm: np.ndarray, scale: float, k: float, weights: np.ndarray | None = None) -> float:
-    """sum rho(|e|) (:func:`huber_rho`)."""
-    rho = huber_rho(residual_norm, scale, k)
-    if weights is not None:
-        rho = rho * weights
-    return float(np.sum(rho))
 
 
 #: Pre-pass: width of the densest-window (mode) search on log(angle ratio). The search is not bounded (a factor of
@@ -305,7 +302,7 @@ def _chunk_pairs(data: CalibrationData, chunk_obs: int, min_stars: int) -> list[
     return [c for c in chunks if c.nmax >= min_stars]
 
 
-def estimate_scale(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> tuple[float, int]:
+def estimate_scale(data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS) -> tuple[float, int]:
     """F_true / F_nominal from the identified stars themselves: the interstar angles measured through the camera
     ``theta`` (model vector, F in px) against the catalogue's. For a pinhole, tan(angle) scales as 1 / F for pairs
     through the boresight, so the ratio angle_b / angle_r of every long pair votes for F_true / F_nominal; the
@@ -336,7 +333,7 @@ def _estimate_scale(data: CalibrationData, chunks: list[_FramePairs], theta: np.
 
 
 def triple_handedness(
-    data: CalibrationData, b: np.ndarray, consistent: np.ndarray, seed: int = 0, chunk_obs: int = 20_000
+    data: CalibrationData, b: np.ndarray, consistent: np.ndarray, seed: int = 0, chunk_obs: int = PAIR_BLOCK_OBS
 ) -> tuple[int, int]:
     """(triples with opposite handedness, triples examined): for up to :data:`PARITY_TRIPLES_PER_FRAME` random
     triples of ``consistent`` stars per frame, sign(det[b1 b2 b3]) against sign(det[r1 r2 r3]). A rotation keeps
@@ -402,7 +399,7 @@ def _triple_product(v: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return x[i] * (yj * zk - zj * yk) + y[i] * (zj * xk - xj * zk) + z[i] * (xj * yk - yj * xk)
 
 
-def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
+def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS) -> ScaleParity:
     """The pre-pass before voting (:func:`estimate_scale`, then :func:`triple_handedness` over the stars that
     the interstar vote at the rescaled focal length finds consistent), on at most :data:`PREPASS_MAX_FRAMES`
     evenly spaced frames (:func:`prepass_frames`; the chunked path gathers the same frames from its chunks and
@@ -422,7 +419,9 @@ def prepass_frames(n_frames: int, max_frames: int = PREPASS_MAX_FRAMES) -> np.nd
     return np.unique(np.linspace(0, n_frames - 1, max_frames).round().astype(np.int64))
 
 
-def scale_and_parity_of_sample(data: CalibrationData, theta: np.ndarray, chunk_obs: int = 20_000) -> ScaleParity:
+def scale_and_parity_of_sample(
+    data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS
+) -> ScaleParity:
     """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
     # the catalogue side of every pair once, for the three scale iterations, the vote and the triples
     chunks = _chunk_pairs(data, chunk_obs, 2)

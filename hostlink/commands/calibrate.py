@@ -8,6 +8,10 @@ from hostlink.api import UserError
 from hostlink.commands.jsonopt import add_json_argument
 from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 
+#: Sessions of more stars than this print one line per iteration of the fit (it then takes seconds to minutes);
+#: smaller ones only the report.
+ITERATION_LINES_ABOVE_STARS = 200_000
+
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
 DESCRIPTION = (
     "Estimate the camera parameters from a session of identified stars. Methods: bundle (default; camera plus "
@@ -22,10 +26,13 @@ DESCRIPTION = (
     "overrides). Star ids Hipparcos does not have are skipped. A session without time (t_utc empty) is calibrated "
     "against J2000 directions with the stated loss from annual aberration. A fit that does not converge or rejects "
     "more than half of the identified stars fails (exit 2) and writes nothing unless --keep-failed. The result is a "
-    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts. Sessions of any "
-    "length (several files or a glob in time order, Parquet, or --chunk-frames N) are calibrated chunk by chunk: "
+    "camera parameter file plus sigma, residual statistics, degeneracies and rejected-star counts. The bundle "
+    "method reads sessions of any length (one CSV, several files or a glob in time order, Parquet) chunk by chunk: "
     "memory bounded by one chunk, one pass over the frames per iteration, the same camera as the whole session in "
-    "memory to rounding; --dask maps the passes over a Dask cluster."
+    "memory to rounding; the other methods, --rejected, --plot and --hold-out read one CSV whole; --dask maps the "
+    "passes over a Dask cluster. A session with the optional sigma_px column (each star's 1-sigma centroid noise "
+    "per axis, px) is weighted by it (bundle method; the seed methods do not use it), and the report gives the noise "
+    "the fit finds relative to it."
 )
 
 
@@ -88,7 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         metavar="N",
         help="read and fit the session N frames at a time, in memory bounded by one chunk whatever its length "
-        "(bundle method; implied by several files, a glob, .parquet or --dask; default 10000 frames then)",
+        "(bundle method, which reads in chunks of 10000 frames unless --rejected, --plot or --hold-out ask for the "
+        "session whole)",
     )
     parser.add_argument(
         "--dask",
@@ -190,7 +198,7 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
     if len(session) == 0:
         raise UserError(f"{path}: no star rows")
     check_on_detector(session, nominal.image_size_px, path, args.nominal)
-    large = len(session) > 200_000
+    large = len(session) > ITERATION_LINES_ABOVE_STARS
 
     def progress(entry: dict) -> None:
         if not args.quiet and large:
@@ -238,15 +246,20 @@ def _iteration_line(entry: dict) -> str:
 
 
 def _chunked(args: argparse.Namespace) -> bool:
-    """The chunked path: asked for, or a source only it reads (several files, a glob, Parquet)."""
+    """The chunked path, memory bounded by one chunk: the default of the bundle method for any source. The session is
+    read whole only for one CSV and what needs all its stars at once: another method, --rejected, --plot or
+    --hold-out (several files, a glob, Parquet, --chunk-frames and --dask are chunked whatever else is asked)."""
     one = args.session[0]
     several = len(args.session) > 1 or any(c in one for c in "*?[") or one.endswith(".parquet")
-    return several or args.chunk_frames is not None or args.dask is not None
+    if several or args.chunk_frames is not None or args.dask is not None:
+        return True
+    whole = args.method != "bundle" or args.rejected or args.plot or args.hold_out is not None
+    return not whole
 
 
 def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather):
     """Any number of files, chunk by chunk (bundle only; no per-star output)."""
-    from hostlink.api import calibrate_archive, progress_bar
+    from hostlink.api import calibrate_archive, estimated_session_rows, progress_bar
 
     if args.method != "bundle":
         raise UserError(
@@ -260,13 +273,17 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
     if args.dask_workers is not None and args.dask_workers < 1:
         raise UserError(f"--dask-workers {args.dask_workers}: expected at least 1")
 
+    source = args.session[0] if len(args.session) == 1 else args.session
+    total = estimated_session_rows(source)  # None when a file cannot be sized: the reader says why
+    large = total is None or total > ITERATION_LINES_ABOVE_STARS
+
     def progress(entry: dict) -> None:
-        if not args.quiet:
+        if not args.quiet and large:
             print(_iteration_line(entry), flush=True)
 
-    with progress_bar("reading session (frames)", None, enabled=not args.quiet) as advance:
+    with progress_bar("reading session (stars)", total, enabled=not args.quiet) as advance:
         return calibrate_archive(
-            args.session[0] if len(args.session) == 1 else args.session,
+            source,
             nominal,
             args.chunk_frames,
             estimate,
@@ -280,11 +297,20 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
             dask=args.dask,
             dask_workers=args.dask_workers,
             spool_dir=args.spool_dir,
-            on_frames=advance,
+            on_rows=advance,
         )
 
 
-#: Units of the Weng distortion coefficients (docs/camera-model.md), printed beside their values.
+def _noise_line(outcome) -> str:
+    """The noise the fit found: in pixels, or relative to the session's per-star sigma_px when it weighted by it."""
+    if outcome.noise_scale is not None:
+        return (
+            f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right), stars "
+            "weighted by sigma_px"
+        )
+    return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
+
+
 def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     import math
 
@@ -310,8 +336,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     lines_after = [
         f"rejected stars: {rej['total_stars']} ({rej['voting']} by interstar voting, {rej['gating']} by residual "
         f"gating; {rej['frames_dropped']} frames dropped)",
-        f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma; "
-        f"{iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
+        _noise_line(outcome) + f"; {iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
     ]
     pre = outcome.prepass
     if pre and abs(pre["focal_scale"] - 1.0) > 0.01:
