@@ -1,6 +1,6 @@
 """The measurement model of the bundle adjustment: projection, whitening, residuals and their Jacobians.
 
-Per identified star k of frame f (docs/camera_model.md):
+Per identified star k of frame f (docs/camera-model.md):
 
     q(x_k, y_k; theta) = F (C_f r_k)_xy / (C_f r_k)_z
 
