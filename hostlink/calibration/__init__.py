@@ -23,7 +23,7 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
 - ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.
 - ``synthetic``: random star fields through a known camera, exact truth, for judging a method (not the sky simulator).
-- ``status``: the calibration status a result file carries (converged, not converged, failed), which ``upload``
+- ``status``: the calibration status a result file carries (converged, not converged, failed), which `hostlink upload`
   checks.
 - ``holdout``: judging a calibration on stars it did not see.
 - ``replay``: the host driver of the onboard recursive calibration (a session fed frame by frame).
