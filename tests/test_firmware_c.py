@@ -39,9 +39,8 @@ STEP = st.tuples(st.integers(0, 16), st.integers(0, 2**32 - 1), st.integers(0, 2
 
 
 @pytest.fixture(scope="module", autouse=True)
-def library(tmp_path_factory):
-    """Build once into this run's cache (the user's cache is not touched by the tests)."""
-    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+def library():
+    """Built once (or found in the user's cache, keyed by the sources' hash) and loaded."""
     return firmware_c.load_library()
 
 
