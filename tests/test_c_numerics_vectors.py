@@ -245,3 +245,79 @@ def test_c_pair_covariance_matches_python_within_float32_rounding(lib):
     # each entry a sum of at most 4 products of two 3-term dot products: gamma_10 of the sum of |terms| (< 2 |R|
     # on the diagonal), bounded here by gamma_10 of the largest diagonal entry
     assert np.max(np.abs(r_c - r_py)) <= vectors.gamma(10) * 2 * float(np.max(np.diag(r_py)))
+
+
+def test_c_refraction_float32_meets_the_vector_tolerances(lib, docs):
+    worst = 0.0
+    for inp, out, tol in _cases(docs, "refraction_by_addition.float32.json"):
+        r, zen = _f32(inp["r"]), _f32(inp["zenith"])
+        a, b = float(inp["a_rad"]), float(inp["b_rad"])
+        n = r.shape[0]
+        cz, sz, t = np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros((n, 3), np.float32)
+        lib.refraction_zenith_geometry(ptr(r), n, ptr(zen), ptr(cz), ptr(sz), ptr(t))
+        refr = np.array(
+            [lib.refraction_from_true_zenith(float(c), float(s), a, b) for c, s in zip(cz, sz, strict=True)]
+        )
+        app = np.zeros((n, 3), np.float32)
+        lib.refraction_refract_toward_zenith(ptr(r), n, ptr(zen), a, b, ptr(app))
+        worst = max(worst, _within(refr, out["refraction_rad"], tol["refraction_rad"]))
+        worst = max(worst, _within(app, out["apparent"], tol["apparent"]))
+    assert worst <= 1.0
+
+
+def test_c_refraction_fixed_point_is_bit_exact_with_the_vectors(lib, docs):
+    n_checked = 0
+    for inp, out, _ in _cases(docs, "refraction_by_addition.fixed.json"):
+        r, zen, beta = (np.ascontiguousarray(inp[k], np.int64) for k in ("r_q30", "zenith_q30", "beta_q48"))
+        a, b = (int(v) for v in inp["ab_q56"])
+        n = r.shape[0]
+        for with_refraction, name in ((0, "aberrated_q30"), (1, "observed_q30")):
+            got = np.zeros((n, 3), np.int64)
+            lib.refraction_topocentric_observed_q30(ptr(r), n, ptr(zen), ptr(beta), with_refraction, a, b, ptr(got))
+            assert got.tolist() == out[name].tolist()
+            n_checked += n
+    assert n_checked == 4 * 2 * 16
+
+
+def test_c_apparent_place_fixed_point_is_bit_exact_with_the_vectors(lib, docs):
+    for inp, out, _ in _cases(docs, "apparent_place.fixed.json"):
+        inst = estimator_c.FixedInstant()
+        inst.years_q20 = int(inp["years_q20"])
+        inst.deflection_k_q70 = int(inp["deflection_k_q70"])
+        inst.earth_bary_q30[:] = [int(v) for v in inp["earth_bary_q30"]]
+        inst.sun_to_earth_q30[:] = [int(v) for v in inp["sun_to_earth_q30"]]
+        inst.beta_q44[:] = [int(v) for v in inp["beta_q44"]]
+        inst.tod_q30[:] = [int(v) for v in np.ravel(inp["tod_q30"])]
+        r0, pm, plx = (np.ascontiguousarray(inp[k], np.int64) for k in ("r0_q30", "pm_q46", "parallax_q48"))
+        got = np.zeros_like(r0)
+        lib.apparent_place_vectors_q30(ptr(r0), ptr(pm), ptr(plx), r0.shape[0], ref(inst), ptr(got))
+        assert got.tolist() == out["apparent_q30"].tolist()
+
+
+def test_c_attitude_meets_the_vector_tolerance(lib, docs):
+    worst = 0.0
+    for inp, out, tol in _cases(docs, "attitude.float32.json"):
+        b, r, w = _f32(inp["b"]), _f32(inp["r"]), _f32(inp["weights"])
+        c = np.zeros((3, 3), np.float32)
+        assert lib.attitude_from_vectors(ptr(b), ptr(r), ptr(w), b.shape[0], ptr(c)) == 0
+        worst = max(worst, _within(c, out["c"], tol["c"]))
+    assert worst <= 1.0
+    # collinear stars are refused, as onboard.attitude.DegenerateGeometry
+    b = _f32(np.tile([[0.0, 0.0, 1.0]], (3, 1)))
+    c = np.zeros((3, 3), np.float32)
+    assert lib.attitude_from_vectors(ptr(b), ptr(b), None, 3, ptr(c)) == 1
+
+
+def test_c_aberration_change_matches_python_within_float32_rounding(lib):
+    from onboard.apparent import aberration_change
+
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(50, 3))
+    p = _f32(p / np.linalg.norm(p, axis=1)[:, None])
+    v = _f32(rng.normal(size=3) * 1e-4)
+    want = aberration_change(p, v)
+    got = np.zeros_like(p)
+    for k in range(p.shape[0]):
+        lib.apparent_aberration_change(ptr(p[k]), ptr(v), ptr(got[k]))
+    # the same operations in the same order, a 3-term dot product summed in another order at most: gamma_8 of |v|
+    assert np.max(np.abs(got - want)) <= vectors.gamma(8) * 2 * float(np.linalg.norm(v))

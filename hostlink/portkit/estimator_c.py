@@ -30,7 +30,17 @@ from onboard.params import ESTIMATE_NAMES, N_PARAMS, CameraParams
 from protocol.messages import quantise_px
 
 #: The numerical modules of the C core, one per ``onboard`` module (onboard/c/NAME.c and NAME.h).
-NUMERIC_MODULES = ("camera", "ud", "fixedpoint", "interstar", "recursive", "prior")
+NUMERIC_MODULES = (
+    "camera",
+    "ud",
+    "fixedpoint",
+    "interstar",
+    "recursive",
+    "prior",
+    "refraction",
+    "apparent",
+    "attitude",
+)
 #: Flight-code flags (issue 27): C99, all warnings as errors, conversions and shadowing included, and no
 #: contraction of a * b + c into a fused multiply-add (the float32 bound assumes every product is rounded).
 STRICT_FLAGS = (
@@ -163,6 +173,19 @@ class FrameResult(ctypes.Structure):
     ]
 
 
+class FixedInstant(ctypes.Structure):
+    """apparent_instant_t (onboard/c/apparent.h)."""
+
+    _fields_ = [
+        ("years_q20", ctypes.c_int64),
+        ("earth_bary_q30", ctypes.c_int64 * 3),
+        ("sun_to_earth_q30", ctypes.c_int64 * 3),
+        ("deflection_k_q70", ctypes.c_int64),
+        ("beta_q44", ctypes.c_int64 * 3),
+        ("tod_q30", ctypes.c_int64 * 9),
+    ]
+
+
 class FixedCamera(ctypes.Structure):
     """fixedpoint_camera_t (onboard/c/fixedpoint.h)."""
 
@@ -214,6 +237,17 @@ _SIGNATURES = {
     "recursive_save_state": (ctypes.c_size_t, [_P, _P, ctypes.c_size_t]),
     "recursive_restore_state": (ctypes.c_int, [_P, _P, ctypes.c_size_t, _P, _P]),
     "prior_config": (None, [_P, _P, _P, ctypes.c_uint32, _P]),
+    "refraction_zenith_geometry": (None, [_P, ctypes.c_size_t, _P, _P, _P, _P]),
+    "refraction_from_true_zenith": (ctypes.c_float, [ctypes.c_float, ctypes.c_float, ctypes.c_double, ctypes.c_double]),
+    "refraction_rotate_in_vertical": (None, [_P, ctypes.c_float, _P, ctypes.c_float, ctypes.c_float, _P]),
+    "refraction_refract_toward_zenith": (None, [_P, ctypes.c_size_t, _P, ctypes.c_double, ctypes.c_double, _P]),
+    "refraction_topocentric_observed_q30": (
+        None,
+        [_P, ctypes.c_size_t, _P, _P, ctypes.c_int, ctypes.c_int64, ctypes.c_int64, _P],
+    ),
+    "apparent_place_vectors_q30": (None, [_P, _P, _P, ctypes.c_size_t, _P, _P]),
+    "apparent_aberration_change": (None, [_P, _P, _P]),
+    "attitude_from_vectors": (ctypes.c_int, [_P, _P, _P, ctypes.c_size_t, _P]),
 }
 
 
