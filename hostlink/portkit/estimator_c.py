@@ -395,3 +395,51 @@ def frame_result(res: FrameResult) -> recursive.FrameResult:
         focal_score_var=float(res.focal_score_var),
         skipped=skipped,
     )
+
+
+#: RecursiveState fields that the saved state carries (onboard.recursive.save_state), copied back by :func:`stepper`.
+_SYNCED = (
+    "scale",
+    "x_hi",
+    "x_lo",
+    "u",
+    "d",
+    "q",
+    "ring_g",
+    "ring_v",
+    "frames",
+    "updates",
+    "drift_on",
+    "drift_frame",
+    "ring_pos",
+    "ring_count",
+    "nis_count",
+    "inconsistent_run",
+    "nis_sum",
+    "q_drift",
+)
+
+
+def stepper(state: recursive.RecursiveState):
+    """The C estimator in place of ``onboard.firmware.estimator_update`` for a run that starts from ``state`` (a fresh
+    Python state, created as the sensor creates it): a function with estimator_update's signature that runs the frame
+    in C and then mirrors the C state into ``state`` (through the saved-state bytes), so everything that reads the
+    Python state (the replay's trace and estimate) reads the C estimator's. The C state starts as ``state``: its
+    saved bytes must equal the Python's, or the C core and the model disagree on the configuration (a ValueError)."""
+    names = tuple(ESTIMATE_NAMES[int(k)] for k in state.idx)
+    est = CEstimator(state.nominal, names, state.config)
+    if est.save_state() != recursive.save_state(state):
+        raise ValueError("the C estimator does not start from the Python estimator's state (configuration mismatch)")
+
+    def step(py_state, x_px, y_px, r_ref, identified, precision="float32") -> recursive.FrameResult:
+        result = est.update(x_px, y_px, r_ref, identified, precision)
+        mirrored = est.to_python()
+        for name in _SYNCED:
+            value = getattr(mirrored, name)
+            if isinstance(value, np.ndarray):
+                getattr(py_state, name)[...] = value
+            else:
+                setattr(py_state, name, value)
+        return result
+
+    return step
