@@ -26,7 +26,8 @@ FAST = ("--no-estimator", "--sim-frames", "5")  # the banks matter here, not the
 def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path):
     path = tmp_path / "f.img"
     flash = FileFlash(path)
-    store = banks.factory_store(NOMINAL, flash=flash)
+    identity = banks.seeded_identity(3)
+    store = banks.factory_store(NOMINAL, flash=flash, identity=identity)
     nonce = banks.stage_begin(store, banks.TABLE_BYTES)
     table = banks.params_to_table(CAMERA)
     assert banks.stage_chunk(store, 0, table) is None and banks.stage_verify(store, banks.crc32(table)) is None
@@ -35,9 +36,10 @@ def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path)
     on_disk = np.fromfile(path, dtype=np.uint8)
     assert np.array_equal(on_disk, flash.image)  # every erase and program reached the file
     again = FileFlash(path)
-    rebooted = banks.boot(again)
-    assert banks.active_set(rebooted)[:2] == (2, table) and rebooted.nonce_counter == nonce
-    assert banks.stage_begin(rebooted, banks.TABLE_BYTES) == nonce + 1  # the session counter survived too
+    rebooted = banks.boot(again, identity=identity)
+    assert banks.active_set(rebooted)[:2] == (2, table) and rebooted.nonce_counter == store.nonce_counter == 1
+    next_nonce = banks.session_nonce(identity.uid, store.epoch, 2)
+    assert banks.stage_begin(rebooted, banks.TABLE_BYTES) == next_nonce  # the counter and epoch survived too
     again.close()
 
 

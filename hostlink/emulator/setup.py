@@ -115,14 +115,15 @@ def sensor_banks(
     factory set. Either way the sensor's declared design (``onboard.params.PlausibilityLimits``) is ``nominal``'s
     focal length. ``power_cut_after_units``: :class:`~hostlink.emulator.flash.FileFlash`'s test hook."""
     limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
+    identity = banks.random_identity()  # each emulated unit its own: its sessions' nonces are its own
     if flash is None:
-        return banks.factory_store(nominal, limits=limits)
+        return banks.factory_store(nominal, limits=limits, identity=identity)
     from hostlink.emulator.flash import FileFlash
 
     device = FileFlash(flash, power_cut_after_units)
-    store = banks.boot(device, limits)
+    store = banks.boot(device, limits, identity)
     if store.active_record is None:
-        store = banks.factory_store(nominal, flash=device, limits=limits)
+        store = banks.factory_store(nominal, flash=device, limits=limits, identity=identity)
     return store
 
 
