@@ -95,21 +95,35 @@ def sources(modules: tuple[str, ...] = NUMERIC_MODULES) -> list[Path]:
 
 
 def build_library(modules: tuple[str, ...] = NUMERIC_MODULES, extra_flags: tuple[str, ...] = ("-O2",)) -> Path:
-    """Compile the modules into a shared library (cached by a hash of sources, headers, flags and compiler);
-    returns its path. A compile error is a UserError with the compiler's first lines."""
+    """Compile the modules and the estimator seam (onboard/c/estimator_seam.c, which includes the generated
+    st_param_table.h: ``hostlink export-c``'s headers are written beside the library) into a shared library, cached
+    by a hash of sources, headers, flags and compiler; returns its path. A compile error is a UserError with the
+    compiler's first lines."""
+    from hostlink.portkit import export_c
+
     cc = compiler()
     flags = (*STRICT_FLAGS, *extra_flags, "-shared", "-fPIC")
+    generated = {name: text for name, text in export_c.generate_c().items() if name.endswith(".h")}
     digest = hashlib.sha256()
     digest.update(cc.encode())
-    digest.update(" ".join(flags).encode())
+    digest.update(" ".join((*flags, *modules)).encode())
     for path in sorted(c_dir().glob("*.[ch]")):
         digest.update(path.name.encode())
         digest.update(path.read_bytes())
-    lib = _cache_dir() / f"onboard-numerics-{digest.hexdigest()[:20]}.so"
+    for name, text in sorted(generated.items()):
+        digest.update(name.encode())
+        digest.update(text.encode())
+    key = digest.hexdigest()[:20]
+    lib = _cache_dir() / f"onboard-numerics-{key}.so"
     if lib.exists():
         return lib
+    include = _cache_dir() / f"onboard-numerics-{key}-include"
+    include.mkdir(exist_ok=True)
+    for name, text in generated.items():
+        (include / name).write_text(text)
     tmp = lib.with_suffix(f".{os.getpid()}.tmp")
-    cmd = [cc, *flags, "-o", str(tmp), *map(str, sources(modules)), "-lm"]
+    files = [*map(str, sources(modules)), str(c_dir() / "estimator_seam.c")]
+    cmd = [cc, *flags, f"-I{include}", "-o", str(tmp), *files, "-lm"]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     if result.returncode != 0:
         first = " | ".join(result.stderr.strip().splitlines()[:3])
@@ -170,6 +184,16 @@ class FrameResult(ctypes.Structure):
         ("focal_score_var", ctypes.c_double),
         ("skipped", ctypes.c_int32),
         ("reopened", ctypes.c_int32),
+    ]
+
+
+class SeamConfig(ctypes.Structure):
+    """estimator_seam_config_t (onboard/c/estimator_seam.h, the firmware core's)."""
+
+    _fields_ = [
+        ("estimate_mask", ctypes.c_uint32),
+        ("precision", ctypes.c_uint32),
+        ("centroid_noise_px", ctypes.c_float),
     ]
 
 
@@ -248,6 +272,11 @@ _SIGNATURES = {
     "apparent_place_vectors_q30": (None, [_P, _P, _P, ctypes.c_size_t, _P, _P]),
     "apparent_aberration_change": (None, [_P, _P, _P]),
     "attitude_from_vectors": (ctypes.c_int, [_P, _P, _P, ctypes.c_size_t, _P]),
+    "estimator_seam_state_bytes": (ctypes.c_size_t, []),
+    "estimator_seam_start": (ctypes.c_int, [_P, _P, _P]),
+    "estimator_seam_update": (ctypes.c_int, [_P, ctypes.c_uint32, _P, _P, _P, _P]),
+    "estimator_seam_estimate": (None, [_P, _P, _P, _P, _P]),
+    "estimator_seam_cost_flops": (ctypes.c_uint64, [_P, ctypes.c_uint32]),
 }
 
 
