@@ -6,6 +6,7 @@
  * estimate and cost_flops are RecursiveEstimator.estimate and cost_flops. */
 #include "estimator_seam.h"
 
+#include <float.h>
 #include <math.h>
 
 #include "fixedpoint.h"
@@ -72,6 +73,12 @@ int estimator_seam_start(estimator_seam_state_t *state, const estimator_seam_con
     return recursive_create(&state->rec, &nominal, config->estimate_mask, &cfg) == RECURSIVE_OK ? 0 : 1;
 }
 
+/* double -> float32, NaN for a value outside float32's range (a defined conversion in every case). */
+static float to_float(double v)
+{
+    return fabs(v) <= (double)FLT_MAX ? (float)v : (float)NAN;
+}
+
 int estimator_seam_update(estimator_seam_state_t *state, uint32_t n, const double *x_px, const double *y_px,
                           const double *r_ref, const uint8_t *identified)
 {
@@ -99,11 +106,14 @@ int estimator_seam_update(estimator_seam_state_t *state, uint32_t n, const doubl
         status = recursive_update_fixed(&state->rec, state->x_q10, state->y_q10, (const int64_t (*)[3])state->r_q30,
                                         state->usable, n, &result);
     } else {
+        /* each value rounded to float32 (numpy's astype); a value beyond float32's range (no centroid the wire can
+         * carry, no unit-vector component) would make the conversion undefined in C: it becomes NaN, so the row is
+         * not used (numpy would give an infinity that poisons the frame) */
         for (i = 0u; i < n; ++i) {
-            state->x_px[i] = (float)x_px[i];
-            state->y_px[i] = (float)y_px[i];
+            state->x_px[i] = to_float(x_px[i]);
+            state->y_px[i] = to_float(y_px[i]);
             for (c = 0; c < 3; ++c) {
-                state->r_ref[i][c] = (float)r_ref[3u * i + (unsigned)c];
+                state->r_ref[i][c] = to_float(r_ref[3u * i + (unsigned)c]);
             }
         }
         status = recursive_update(&state->rec, state->x_px, state->y_px, (const float (*)[3])state->r_ref,

@@ -317,6 +317,9 @@ int64_t fixedpoint_quantise_px(double value_px)
 {
     const double clip = 1099511627776.0; /* 2^40 px: keeps the Q10 steps inside int64 */
     double v = value_px;
+    if (isnan(v)) {
+        return 0; /* not a centroid: defined here only so that no conversion is undefined (the caller refuses it) */
+    }
     if (v > clip) {
         v = clip;
     } else if (v < -clip) {
@@ -327,5 +330,9 @@ int64_t fixedpoint_quantise_px(double value_px)
 
 int64_t fixedpoint_quantise_unit_q30(double component)
 {
-    return round_half_even(ldexp(component, FIXEDPOINT_Q));
+    /* a unit vector's component is within [-1, 1]; anything beyond +-2 (or NaN) is not one and is clamped so that
+     * the conversion to int64 stays defined (the Python model would produce an unspecified integer) */
+    double v = isnan(component) ? 0.0 : component;
+    v = v > 2.0 ? 2.0 : (v < -2.0 ? -2.0 : v);
+    return round_half_even(ldexp(v, FIXEDPOINT_Q));
 }

@@ -106,7 +106,8 @@ void fixedpoint_difference_residuals_q61(const int64_t (*b_q30)[3], const int64_
 void fixedpoint_residuals_to_float(const int64_t *e_q61, size_t n, float *e);
 
 /* Ground-side conversions (the centroider's output and the catalogue build; double by nature): a centroid [px] to
- * its Q10 steps (round half even, clipped to +-2^40 px first), a unit-vector component to Q30 (round half even). */
+ * its Q10 steps (round half even, clipped to +-2^40 px first; NaN -> 0), a unit-vector component to Q30 (round half
+ * even; clamped to +-2 first, NaN -> 0: only a value that is no unit-vector component is changed). */
 int64_t fixedpoint_quantise_px(double value_px);
 int64_t fixedpoint_quantise_unit_q30(double component);
 

@@ -26,7 +26,7 @@
 #include "refraction.h"
 #include "ud.h"
 
-#define MAX_N 64
+#define MAX_N 256
 
 static double num(void)
 {
