@@ -321,3 +321,17 @@ def test_c_aberration_change_matches_python_within_float32_rounding(lib):
         lib.apparent_aberration_change(ptr(p[k]), ptr(v), ptr(got[k]))
     # the same operations in the same order, a 3-term dot product summed in another order at most: gamma_8 of |v|
     assert np.max(np.abs(got - want)) <= vectors.gamma(8) * 2 * float(np.linalg.norm(v))
+
+
+def test_c_apparent_place_float32_meets_the_vector_tolerances(lib, docs):
+    worst = 0.0
+    for inp, out, tol in _cases(docs, "apparent_place.float32.json"):
+        t = estimator_c.TimeTT(int(inp["t_tt_day"]), int(inp["t_tt_frac"]))
+        tod = np.zeros((3, 3), np.float32)
+        lib.earth_true_of_date_matrix(t, ptr(tod))
+        r0, pm, plx = _f32(inp["r0"]), _f32(inp["pm_rad_yr"]), _f32(inp["parallax_mas"])
+        got = np.zeros_like(r0)
+        lib.apparent_place_vectors(ptr(r0), ptr(pm), ptr(plx), r0.shape[0], float(inp["epoch_jyear"]), t, ptr(got))
+        worst = max(worst, _within(tod, out["tod_matrix"], tol["tod_matrix"]))
+        worst = max(worst, _within(got, out["apparent"], tol["apparent"]))
+    assert worst <= 1.0

@@ -158,10 +158,25 @@ def test_sanitized_core_runs_every_golden_vector_without_a_finding(sil):
         n = inp["b"].shape[0]
         lines.append(f"T {n} {_hex(inp['b'])} {_hex(inp['r'])} {_hex(inp['weights'])}")
         checks.append(lambda g, out=out, tol=tol: g[0] == "0" and _ratio(_floats(g[1:]), out["c"], tol["c"]) <= 1)
+    for inp, out, tol in _cases(docs, "apparent_place.float32.json"):
+        n = inp["r0"].shape[0]
+        lines.append(
+            f"G {n} {_hex(inp['r0'])} {_hex(inp['pm_rad_yr'])} {_hex(inp['parallax_mas'])} "
+            f"{_hex(inp['epoch_jyear'])} {int(inp['t_tt_day'])} {int(inp['t_tt_frac'])}"
+        )
+
+        def apparent(g, out=out, tol=tol):
+            f = _floats(g)
+            return (
+                _ratio(f[:9], out["tod_matrix"], tol["tod_matrix"]) <= 1
+                and _ratio(f[9:], out["apparent"], tol["apparent"]) <= 1
+            )
+
+        checks.append(apparent)
     results = sil(lines)
     failed = [line.split()[0] for line, g, check in zip(lines, results, checks, strict=True) if not check(g)]
     assert failed == []
-    assert len(lines) == 22  # 2 + 1 + 2 + 2 + 3 + 8 + 2 + 2 cases
+    assert len(lines) == 24  # 2 + 1 + 2 + 2 + 3 + 8 + 2 + 2 + 2 cases
 
 
 @pytest.mark.parametrize("precision", ["float32", "fixed"])

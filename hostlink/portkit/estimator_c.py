@@ -40,6 +40,8 @@ NUMERIC_MODULES = (
     "refraction",
     "apparent",
     "attitude",
+    "earth",
+    "timescale",
 )
 #: Flight-code flags (issue 27): C99, all warnings as errors, conversions and shadowing included, and no
 #: contraction of a * b + c into a fused multiply-add (the float32 bound assumes every product is rounded).
@@ -187,6 +189,12 @@ class FrameResult(ctypes.Structure):
     ]
 
 
+class TimeTT(ctypes.Structure):
+    """timescale_time_t (onboard/c/timescale.h): days since J2000 and the day fraction in 2^-32 day."""
+
+    _fields_ = [("day", ctypes.c_int32), ("frac", ctypes.c_uint32)]
+
+
 class SeamConfig(ctypes.Structure):
     """estimator_seam_config_t (onboard/c/estimator_seam.h, the firmware core's)."""
 
@@ -272,6 +280,8 @@ _SIGNATURES = {
     "apparent_place_vectors_q30": (None, [_P, _P, _P, ctypes.c_size_t, _P, _P]),
     "apparent_aberration_change": (None, [_P, _P, _P]),
     "attitude_from_vectors": (ctypes.c_int, [_P, _P, _P, ctypes.c_size_t, _P]),
+    "earth_true_of_date_matrix": (None, [TimeTT, _P]),
+    "apparent_place_vectors": (None, [_P, _P, _P, ctypes.c_size_t, ctypes.c_double, TimeTT, _P]),
     "estimator_seam_state_bytes": (ctypes.c_size_t, []),
     "estimator_seam_start": (ctypes.c_int, [_P, _P, _P]),
     "estimator_seam_update": (ctypes.c_int, [_P, ctypes.c_uint32, _P, _P, _P, _P]),

@@ -15,6 +15,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "timescale.h"
+
 #define APPARENT_PM_FRAC_BITS 46
 #define APPARENT_YEARS_FRAC_BITS 20
 #define APPARENT_PARALLAX_FRAC_BITS 48
@@ -41,5 +43,15 @@ void apparent_place_vectors_q30(const int64_t (*r0_q30)[3], const int64_t (*pm_q
 /* Relativistic aberration change of direction p by velocity v (units of c), float32 (ERFA ab without its 1e-12
  * potential term): (w1 v - (p.v + v^2 / (1 + bm1)) p) / (1 + p.v). */
 void apparent_aberration_change(const float p[3], const float velocity_c[3], float change[3]);
+
+/* float32 ------------------------------------------------------------------------------------------------ */
+/* The Earth's barycentric position [AU], barycentric velocity [AU/day] and heliocentric position [AU], GCRS axes,
+ * at the TT instant: the compact model of onboard.apparent.earth_barycentric_state (Keplerian Earth-Moon
+ * barycentre, circular Moon, the Sun's reflex motion due to Jupiter and Saturn; Standish's elements). */
+void apparent_earth_barycentric_state(timescale_time_t t_tt, float earth_p[3], float earth_v[3], float earth_h[3]);
+/* Catalogue vectors (unit, proper motion [rad/yr], parallax [mas]) at epoch_jyear -> geocentric apparent
+ * directions in the true equator and equinox of date (onboard.apparent.apparent_place_vectors, geocentric). */
+void apparent_place_vectors(const float (*r0)[3], const float (*pm_rad_yr)[3], const float *parallax_mas, size_t n,
+                            double epoch_jyear, timescale_time_t t_tt, float (*out)[3]);
 
 #endif

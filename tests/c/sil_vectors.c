@@ -10,6 +10,7 @@
  *   R n r[n][3] zen[3] beta[3] a b with           refraction_topocentric_observed_q30 -> out[n][3]
  *   A n r0[n][3] pm[n][3] plx[n] years eb[3] e[3] k beta[3] tod[9]  apparent_place_vectors_q30 -> out[n][3]
  *   T n b[n][3] r[n][3] w[n]                      attitude_from_vectors              -> status c[9]
+ *   G n r0[n][3] pm[n][3] plx[n] epoch day frac   apparent_place_vectors (float32)   -> tod[9] out[n][3]
  *   C f_mm pitch x0 y0 w h dist[7] mask           recursive_create (default config)
  *   X fixed n x[n] y[n] r[n][3] ident[n]          recursive_update(_fixed) (x, y, r as double; fixed: Q10/Q30)
  *   Z                                             recursive_save_state               -> bytes (hex) */
@@ -21,6 +22,7 @@
 #include "apparent.h"
 #include "attitude.h"
 #include "camera.h"
+#include "earth.h"
 #include "fixedpoint.h"
 #include "recursive.h"
 #include "refraction.h"
@@ -167,6 +169,22 @@ int main(void)
             status = attitude_from_vectors((const float (*)[3])b, (const float (*)[3])r, w, n, cm);
             printf(" %d", (int)status);
             for (c = 0; c < 9; ++c) fl(cm[c / 3][c % 3]);
+        } else if (op[0] == 'G') {
+            static float pmf[MAX_N][3], plxf[MAX_N], out[MAX_N][3];
+            float tod[3][3];
+            timescale_time_t t;
+            double epoch;
+            n = count();
+            for (i = 0u; i < n; ++i) for (c = 0; c < 3; ++c) r[i][c] = (float)num();
+            for (i = 0u; i < n; ++i) for (c = 0; c < 3; ++c) pmf[i][c] = (float)num();
+            for (i = 0u; i < n; ++i) plxf[i] = (float)num();
+            epoch = num();
+            t.day = (int32_t)inum();
+            t.frac = (uint32_t)inum();
+            earth_true_of_date_matrix(t, tod);
+            apparent_place_vectors((const float (*)[3])r, (const float (*)[3])pmf, plxf, n, epoch, t, out);
+            for (c = 0; c < 9; ++c) fl(tod[c / 3][c % 3]);
+            for (i = 0u; i < n; ++i) for (c = 0; c < 3; ++c) fl(out[i][c]);
         } else if (op[0] == 'C') {
             recursive_camera_t cam;
             recursive_config_t cfg;
