@@ -523,7 +523,7 @@ static recursive_status_t process_frame(recursive_state_t *st, uint8_t *keep, co
     int32_t order[RECURSIVE_MAX_STARS], used_idx[RECURSIVE_MAX_PAIRS];
     uint8_t fail[RECURSIVE_MAX_PAIRS], fail_post[RECURSIVE_MAX_PAIRS], bad[RECURSIVE_MAX_STARS];
     float lin_hi[RECURSIVE_MAX_STATES], lin_lo[RECURSIVE_MAX_STATES], step_state[RECURSIVE_MAX_STATES];
-    float dx[RECURSIVE_MAX_STATES], y[RECURSIVE_MAX_PAIRS], r_used[RECURSIVE_MAX_PAIRS * RECURSIVE_MAX_PAIRS];
+    float dx[RECURSIVE_MAX_STATES], y[RECURSIVE_MAX_PAIRS], *r_used = w->r_used;
     size_t n_order = 0u, n_used = 0u, i, j, p, q, it, max_it, n_bad;
     double nis = 0.0, score = 0.0, score_var = 0.0;
     recursive_status_t status;

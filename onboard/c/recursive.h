@@ -132,6 +132,7 @@ typedef struct {
     float jb_theta[RECURSIVE_MAX_STARS][3][RECURSIVE_N_PARAMS];
     float jb_centroid[RECURSIVE_MAX_STARS][3][2];
     float jb[RECURSIVE_MAX_STARS * 3 * RECURSIVE_MAX_STATES];
+    float r_used[RECURSIVE_MAX_PAIRS * RECURSIVE_MAX_PAIRS]; /* R of the pairs that passed the gate */
     float chol[RECURSIVE_MAX_PAIRS * RECURSIVE_MAX_PAIRS];
     float white[RECURSIVE_MAX_PAIRS * (RECURSIVE_MAX_STATES + 1)];
 } recursive_work_t;
