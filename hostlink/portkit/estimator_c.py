@@ -57,6 +57,9 @@ STRICT_FLAGS = (
 )
 #: The SIL harness's sanitizers: any finding aborts the run.
 SANITIZE_FLAGS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer", "-g")
+#: The C core's compile-time sizes (onboard/c/interstar.h INTERSTAR_MAX_STARS, recursive.h RECURSIVE_MAX_DRIFT_WINDOW).
+MAX_STARS = 32
+MAX_DRIFT_WINDOW = 256
 #: Skip reasons of onboard.recursive.FrameResult, by recursive_skip_t.
 SKIP_TEXT = (
     "",
@@ -351,6 +354,12 @@ class CEstimator:
         self.config = config
         self._camera = c_camera(nominal)
         self._config = c_config(config)
+        if config.max_stars > MAX_STARS or config.drift_window_frames > MAX_DRIFT_WINDOW:
+            raise ValueError(
+                f"max_stars {config.max_stars} / drift window {config.drift_window_frames} frames exceed the C core's "
+                f"compile-time sizes (INTERSTAR_MAX_STARS = {MAX_STARS}, RECURSIVE_MAX_DRIFT_WINDOW = "
+                f"{MAX_DRIFT_WINDOW})"
+            )
         self._state = ctypes.create_string_buffer(int(self.lib.recursive_state_size()))
         self._blob = ctypes.create_string_buffer(1 << 16)
         status = self.lib.recursive_create(
