@@ -62,6 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "per-star front end in integers, Q10 centroids and Q30 unit vectors, its filter in soft float32)",
     )
     parser.add_argument(
+        "--firmware",
+        choices=("python", "c"),
+        default="python",
+        help="the sensor's firmware: python (the reference model, the default) or c (the C core of onboard/c, built "
+        "once with this machine's C compiler and run in the emulator: software in the loop)",
+    )
+    parser.add_argument(
         "--flash",
         metavar="FILE",
         help="keep the sensor's parameter banks, generation and staging-session counters in this NOR-flash image "
@@ -142,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
         flash=args.flash,
         power_cut_after_units=args.power_cut_after,
         precision=args.precision,
+        firmware=args.firmware,
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra
