@@ -200,6 +200,8 @@ _SIGNATURES = {
     "recursive_save_state": (ctypes.c_size_t, [_P, _P, ctypes.c_size_t]),
     "recursive_restore_state": (ctypes.c_int, [_P, _P, ctypes.c_size_t, _P, _P]),
     "prior_config": (None, [_P, _P, _P, ctypes.c_uint32, _P]),
+    "prior_validate_sigma": (ctypes.c_int32, [_P]),
+    "prior_refined_mask": (ctypes.c_uint32, [_P]),
     "refraction_zenith_geometry": (None, [_P, ctypes.c_size_t, _P, _P, _P, _P]),
     "refraction_from_true_zenith": (ctypes.c_float, [ctypes.c_float, ctypes.c_float, ctypes.c_double, ctypes.c_double]),
     "refraction_rotate_in_vertical": (None, [_P, ctypes.c_float, _P, ctypes.c_float, ctypes.c_float, _P]),
