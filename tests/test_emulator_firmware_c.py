@@ -6,6 +6,8 @@ the estimator's C implementation (estimator_seam.c) the sensor answers READ_ESTI
 import json
 import os
 import shutil
+import subprocess
+import sys
 
 import pytest
 from emulator_fixtures import hostlink, running_emulator
@@ -48,3 +50,16 @@ def test_the_c_firmware_streams_uploads_and_refuses_as_the_python_one(transport,
         if not firmware_c.estimator_available():
             run = hostlink("monitor", "--link", link, "--count", "1", "--every-frames", "5")
             assert run.returncode == 0 and "no estimate" in run.stdout, run.stdout  # Modbus carries no NAK text
+
+
+def test_without_a_compiler_the_c_firmware_is_a_one_line_error():
+    env = {**os.environ, "CC": "no-such-compiler"}
+    run = subprocess.run(
+        [sys.executable, "-m", "hostlink.cli", "emulate", "--transport", "serial", "--firmware", "c"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert "no C compiler found ('no-such-compiler' is not on PATH)" in run.stderr
