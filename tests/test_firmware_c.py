@@ -35,7 +35,7 @@ from protocol.param_table import TABLE_BYTES
 pytestmark = pytest.mark.skipif(shutil.which(os.environ.get("CC") or "cc") is None, reason="no C compiler")
 
 #: Random sequences per run: every command kind and NAK code many times, a few seconds of CI.
-EXAMPLES = int(os.environ.get("HOSTLINK_FWC_EXAMPLES", "150"))
+EXAMPLES = int(os.environ.get("HOSTLINK_FWC_EXAMPLES", "300"))
 STEP = st.tuples(st.integers(0, 16), st.integers(0, 2**32 - 1), st.integers(0, 2**16 - 1), st.integers(0, 255))
 
 
@@ -108,7 +108,7 @@ def test_the_checks_agree_on_random_distortions_near_the_bounds():
 
 
 @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
-@given(seed=st.integers(0, 2**16), steps=st.lists(STEP, min_size=1, max_size=40))
+@given(seed=st.integers(0, 2**16), steps=st.lists(STEP, min_size=3, max_size=60))
 def test_random_command_sequences_give_the_same_replies_and_flash_bytes(seed, steps):
     twins = Twins(seed)
     for step in steps:
