@@ -9,38 +9,54 @@ erase or a program after any byte.
 
 Records (little-endian, each a whole number of write units, each closed by a CRC-32 over the bytes before it)::
 
-    bank record  (BANK_RECORD_BYTES = 112, at offset 0 of a sector)
-        magic "BNK1":u32 | seq:u32 | generation:u32 | nonce_counter:u32 | table: 92 bytes | crc32:u32
+    bank record  (BANK_RECORD_BYTES = 120, at offset 0 of a sector)
+        magic "BNK2":u32 | seq:u32 | generation:u32 | nonce_counter:u32 | epoch:u32 | reserved 0xFFFFFFFF |
+        table: 92 bytes | crc32:u32
     stage record (STAGE_RECORD_BYTES = 16, appended after the bank record of the active sector)
-        magic "STG1":u32 | nonce:u32 | crc32:u32 over the 8 bytes before | pad 0xFFFFFFFF
+        magic "STG2":u32 | epoch:u32 | counter:u32 | crc32:u32 over the 12 bytes before
 
 A record whose CRC fails (erased, half-written, half-erased) does not exist. At start-up :func:`boot` makes the
 valid bank record with the highest ``seq`` active, and sets the session counter to the largest value any valid
-record holds. A commit (safe upload step 5) erases the *inactive* sector, programs a bank record there with
-``seq + 1``, the next generation and the current counter, reads it back, and only then switches ``active`` (one
-integer store: the atomic switch). A power cut before the record's last byte leaves it without a valid CRC, so the
-old sector stays active; after it, the new record wins by its ``seq``. Either way the active set is the complete
-old or the complete new one. Staging lives in RAM, so an interrupted upload leaves the active set unchanged.
+record holds (and the flash epoch to that record's). A commit (safe upload step 5) erases the *inactive* sector,
+programs a bank record there with ``seq + 1``, the next generation and the current counter and epoch, reads it back,
+and only then switches ``active`` (one integer store: the atomic switch). A power cut before the record's last byte
+leaves it without a valid CRC, so the old sector stays active; after it, the new record wins by its ``seq``. Either
+way the active set is the complete old or the complete new one. Staging lives in RAM, so an interrupted upload
+leaves the active set unchanged.
 
-Session binding (issue 15): STAGE_BEGIN takes the next counter value as the session's nonce, persists it (a stage
-record, programmed and read back before the nonce is returned), and answers with it. COMMIT must carry that nonce
-and the generation it expects to replace. Because the counter is persisted before a nonce is given out and only
-grows, a nonce is never issued twice, across power cycles too: recorded traffic (whole, in part, reordered) carries
-an old nonce, or an old generation, and commits nothing. No clock and no host randomness are involved. When the
-active sector has no room for another stage record, STAGE_BEGIN first rewrites the active set (same generation and
-table, ``seq + 1``) into the other sector, which then has room again: STAGE_SLOTS = 249 sessions per rewrite.
+Session binding (issues 15 and 33): STAGE_BEGIN takes the next counter value, persists it (a stage record,
+programmed and read back before anything is answered), and answers with the session's nonce, :func:`session_nonce`
+of the device's identity, the flash epoch and that counter. COMMIT must carry that nonce and the generation it
+expects to replace. The nonce is bound to
+
+* the moment: the counter is persisted before a nonce is given out and only grows, and for one device and epoch the
+  nonce is a bijection of the counter (a 4-round Feistel permutation of 32 bits), so a nonce is never issued twice,
+  across power cycles too;
+* the device: the permutation is keyed by the device's unique identity (:class:`DeviceIdentity`: the MCU's 96-bit
+  unique ID, read-only, and a random source, both behind the platform's HAL) and by
+* the flash's life: the epoch, a 32-bit value drawn from the random source when the flash holds no record at all (a
+  new unit, a wiped flash) and carried by every record from then on.
+
+Recorded traffic (whole, in part, reordered) therefore carries an old nonce or an old generation on the sensor that
+produced it, and a nonce of another key on any other sensor or on the same sensor after its flash was wiped: it
+commits nothing (but for a 2**-32 chance per replayed session that the two keys' permutations agree on it; no clock
+is involved). When the active sector has no room for another stage record, STAGE_BEGIN first rewrites the active
+set (same generation and table, ``seq + 1``) into the other sector, which then has room again: STAGE_SLOTS = 248
+sessions per rewrite.
 
 The checks a staged set must pass (step 3) are :func:`onboard.params.check_plausible` with the sensor's declared
 :class:`~onboard.params.PlausibilityLimits`, and :func:`onboard.prior.validate_sigma`, so host and sensor refuse a
 set for the same reason. Buffers are sized at start-up; every step does a bounded amount of work.
 Generations, seqs and nonces are uint32 and do not wrap: past :data:`MAX_COUNTER` (4e9) a commit or session is
-refused.
+refused. The C translation is ``onboard/c/banks.c`` (the platform's flash and identity behind ``banks_hal_t``),
+held to the same replies and flash bytes (docs/port-kit.md, section 6).
 """
 
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -81,10 +97,11 @@ NO_SLOT = -1
 MAX_COUNTER = (1 << 32) - 1
 MAX_GENERATION = MAX_COUNTER
 
-_BANK_MAGIC = 0x314B4E42  # "BNK1"
-_STAGE_MAGIC = 0x31475453  # "STG1"
-_BANK_HEAD = struct.Struct("<IIII")  # magic, seq, generation, nonce_counter
-_STAGE_HEAD = struct.Struct("<II")  # magic, nonce
+_BANK_MAGIC = 0x324B4E42  # "BNK2"
+_STAGE_MAGIC = 0x32475453  # "STG2"
+_BANK_HEAD = struct.Struct("<IIIIII")  # magic, seq, generation, nonce_counter, epoch, reserved
+_RESERVED = 0xFFFFFFFF
+_STAGE_HEAD = struct.Struct("<III")  # magic, epoch, counter
 _CRC = struct.Struct("<I")
 BANK_RECORD_BYTES = _BANK_HEAD.size + TABLE_BYTES + _CRC.size
 STAGE_RECORD_BYTES = 16
@@ -168,11 +185,13 @@ class BankRecord:
     generation: int
     nonce_counter: int
     table: bytes
+    epoch: int = 0  # the flash epoch the record carries (module docstring)
 
 
 def encode_bank_record(record: BankRecord) -> bytes:
     """The BANK_RECORD_BYTES of a bank record (module docstring)."""
-    body = _BANK_HEAD.pack(_BANK_MAGIC, record.seq, record.generation, record.nonce_counter) + bytes(record.table)
+    head = _BANK_HEAD.pack(_BANK_MAGIC, record.seq, record.generation, record.nonce_counter, record.epoch, _RESERVED)
+    body = head + bytes(record.table)
     return body + _CRC.pack(crc32(body))
 
 
@@ -182,25 +201,99 @@ def decode_bank_record(raw: bytes) -> BankRecord | None:
     if len(raw) != BANK_RECORD_BYTES:
         return None
     body = raw[: -_CRC.size]
-    magic, seq, generation, counter = _BANK_HEAD.unpack_from(body)
+    magic, seq, generation, counter, epoch, _ = _BANK_HEAD.unpack_from(body)
     if magic != _BANK_MAGIC or crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
         return None
-    return BankRecord(seq, generation, counter, body[_BANK_HEAD.size :])
+    return BankRecord(seq, generation, counter, body[_BANK_HEAD.size :], epoch)
 
 
-def encode_stage_record(nonce: int) -> bytes:
-    body = _STAGE_HEAD.pack(_STAGE_MAGIC, nonce)
-    return body + _CRC.pack(crc32(body)) + bytes([ERASED_BYTE] * (STAGE_RECORD_BYTES - len(body) - _CRC.size))
+def encode_stage_record(counter: int, epoch: int) -> bytes:
+    """The STAGE_RECORD_BYTES of a stage record holding a session's ``counter`` and the flash ``epoch``."""
+    body = _STAGE_HEAD.pack(_STAGE_MAGIC, epoch, counter)
+    return body + _CRC.pack(crc32(body))
 
 
-def decode_stage_record(raw: bytes) -> int | None:
-    """The nonce of a stage record, or None if it is not one."""
+def decode_stage_record(raw: bytes) -> tuple[int, int] | None:
+    """(counter, epoch) of a stage record, or None if it is not one."""
     raw = bytes(raw[:STAGE_RECORD_BYTES])
+    if len(raw) != STAGE_RECORD_BYTES:
+        return None
     body = raw[: _STAGE_HEAD.size]
-    magic, nonce = _STAGE_HEAD.unpack_from(body)
+    magic, epoch, counter = _STAGE_HEAD.unpack_from(body)
     if magic != _STAGE_MAGIC or crc32(body) != _CRC.unpack_from(raw, len(body))[0]:
         return None
-    return nonce
+    return counter, epoch
+
+
+# ------------------------------------------------------------------------------------------------ session nonces
+#: Bytes of the device's unique identity (a 96-bit MCU unique ID, as STM32 and most Cortex-M parts carry).
+UID_BYTES = 12
+#: Feistel rounds of the nonce permutation and the odd multiplier of its round function (2**32 / golden ratio).
+_NONCE_ROUNDS = 4
+_ROUND_MULTIPLIER = 0x9E3779B1
+
+
+def nonce_keys(uid: bytes, epoch: int) -> tuple[int, ...]:
+    """The nonce permutation's round keys: CRC-32 of the identity, the epoch (u32 LE) and the round number (u8)."""
+    base = bytes(uid) + struct.pack("<I", epoch)
+    return tuple(crc32(base + bytes([i])) for i in range(_NONCE_ROUNDS))
+
+
+def session_nonce(uid: bytes, epoch: int, counter: int) -> int:
+    """The staging session's nonce: a 4-round Feistel permutation of the 32-bit ``counter`` (halves of 16 bits,
+    round function ((R ^ K) * 0x9E3779B1 mod 2**32) >> 16) keyed by :func:`nonce_keys`. A bijection of the counter
+    for one key: a device never issues a nonce twice; another key (device, epoch) maps a counter elsewhere."""
+    left, right = counter >> 16 & 0xFFFF, counter & 0xFFFF
+    for key in nonce_keys(uid, epoch):
+        left, right = right, left ^ ((((right ^ key) * _ROUND_MULTIPLIER) & 0xFFFFFFFF) >> 16)
+    return left << 16 | right
+
+
+class SeededRandom:
+    """A deterministic 32-bit random source (xorshift32 of a nonzero seed): the model of a TRNG where a test needs the
+    same draws in two firmwares. A real sensor draws from its hardware random generator."""
+
+    def __init__(self, seed: int) -> None:
+        self.state = (seed & 0xFFFFFFFF) or 0x6D2B79F5
+
+    def __call__(self) -> int:
+        x = self.state
+        x ^= (x << 13) & 0xFFFFFFFF
+        x ^= x >> 17
+        x ^= (x << 5) & 0xFFFFFFFF
+        self.state = x
+        return x
+
+
+class _GeneratorRandom:
+    """32-bit draws from a numpy Generator seeded from the operating system's entropy."""
+
+    def __init__(self) -> None:
+        self.rng = np.random.default_rng()
+
+    def __call__(self) -> int:
+        return int(self.rng.integers(0, 1 << 32, dtype=np.uint64))
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """What the platform gives the banks to bind a session to the device: its unique ID (UID_BYTES) and a random
+    source (a callable returning a uint32; drawn only for a new epoch)."""
+
+    uid: bytes
+    random32: Callable[[], int]
+
+
+def seeded_identity(seed: int) -> DeviceIdentity:
+    """A reproducible device (tests, the C port's equivalence runs): uid and random source from ``seed``."""
+    gen = SeededRandom(seed * 2654435761 + 1)
+    return DeviceIdentity(b"".join(struct.pack("<I", gen()) for _ in range(UID_BYTES // 4)), SeededRandom(seed + 7))
+
+
+def random_identity() -> DeviceIdentity:
+    """A new device: uid and random source from the operating system's entropy (the model's default)."""
+    gen = _GeneratorRandom()
+    return DeviceIdentity(b"".join(struct.pack("<I", gen()) for _ in range(UID_BYTES // 4)), gen)
 
 
 def _stage_slot_address(sector: int, k: int) -> int:
@@ -231,6 +324,8 @@ class BankStore:
     verified_crc: int  # CRC of the staged set that passed stage_verify (valid only in state VERIFIED)
     stage_nonce: int  # nonce of the current staging session (0: none)
     limits: PlausibilityLimits | None  # the sensor's declared design (None: no focal-length rule)
+    identity: DeviceIdentity = field(default_factory=random_identity)  # the device's uid and random source
+    epoch: int = 0  # the flash epoch (0: the flash holds no record yet; drawn at the first write)
 
 
 def _stage_sector(active: int) -> int:
@@ -238,21 +333,28 @@ def _stage_sector(active: int) -> int:
     return 1 if active == NO_SLOT else active
 
 
-def boot(flash: FlashDevice, limits: PlausibilityLimits | None = None) -> BankStore:
+def boot(
+    flash: FlashDevice, limits: PlausibilityLimits | None = None, identity: DeviceIdentity | None = None
+) -> BankStore:
     """Start-up: the valid bank record with the highest seq becomes active (NO_SLOT if none); the session counter is
-    the largest value any valid record holds; staging is empty."""
+    the largest value any valid record holds, the epoch the first valid record's (sector A's bank record, its stage
+    records, then sector B's: every record of one flash carries the same epoch; 0 when there is none); staging is
+    empty. ``identity``: the device's (default: :func:`random_identity`, a new device)."""
     best, record = NO_SLOT, None
     counter = 0
+    epoch = 0
     for sector in range(N_SECTORS):
         rec = decode_bank_record(flash.read(sector * SECTOR_BYTES, BANK_RECORD_BYTES))
         if rec is not None:
             counter = max(counter, rec.nonce_counter)
+            epoch = epoch or rec.epoch
             if record is None or rec.seq > record.seq:
                 best, record = sector, rec
         for k in range(STAGE_SLOTS):
-            nonce = decode_stage_record(flash.read(_stage_slot_address(sector, k), STAGE_RECORD_BYTES))
-            if nonce is not None:
-                counter = max(counter, nonce)
+            stage = decode_stage_record(flash.read(_stage_slot_address(sector, k), STAGE_RECORD_BYTES))
+            if stage is not None:
+                counter = max(counter, stage[0])
+                epoch = epoch or stage[1]
     return BankStore(
         flash=flash,
         active=best,
@@ -265,6 +367,8 @@ def boot(flash: FlashDevice, limits: PlausibilityLimits | None = None) -> BankSt
         verified_crc=0,
         stage_nonce=0,
         limits=limits,
+        identity=random_identity() if identity is None else identity,
+        epoch=epoch,
     )
 
 
@@ -277,22 +381,32 @@ def _first_free_stage_slot(flash: FlashDevice, sector: int) -> int:
     return free
 
 
-def erased_store(limits: PlausibilityLimits | None = None) -> BankStore:
+def erased_store(limits: PlausibilityLimits | None = None, identity: DeviceIdentity | None = None) -> BankStore:
     """A sensor with blank flash and nothing staged."""
-    return boot(RamFlash(), limits)
+    return boot(RamFlash(), limits, identity)
 
 
 def factory_store(
-    params: CameraParams, flash: FlashDevice | None = None, limits: PlausibilityLimits | None = None
+    params: CameraParams,
+    flash: FlashDevice | None = None,
+    limits: PlausibilityLimits | None = None,
+    identity: DeviceIdentity | None = None,
 ) -> BankStore:
     """A sensor as delivered: ``flash`` (blank, in RAM by default) with ``params`` committed as generation 1 in
-    sector A (validated). The design the sensor declares is ``limits``, by default ``params``' focal length."""
+    sector A (validated), under a new epoch drawn from the device's random source. The design the sensor declares is
+    ``limits``, by default ``params``' focal length."""
     limits = PlausibilityLimits(params.focal_length_mm) if limits is None else limits
     check_plausible(params, limits)
+    identity = random_identity() if identity is None else identity
     flash = RamFlash() if flash is None else flash
     flash.erase(0)
-    flash.program(0, encode_bank_record(BankRecord(1, 1, 0, params_to_table(params))))
-    return boot(flash, limits)
+    flash.program(0, encode_bank_record(BankRecord(1, 1, 0, params_to_table(params), draw_epoch(identity))))
+    return boot(flash, limits, identity)
+
+
+def draw_epoch(identity: DeviceIdentity) -> int:
+    """A new flash epoch from the device's random source (0 means "none": a draw of 0 becomes 1)."""
+    return int(identity.random32()) & 0xFFFFFFFF or 1
 
 
 def active_set(store: BankStore) -> tuple[int, bytes, int] | None:
@@ -365,19 +479,27 @@ def stage_begin(store: BankStore, length: int) -> int | Refusal:
         rec = store.active_record  # no room: rewrite the active set into the other sector (same generation)
         if rec.seq >= MAX_COUNTER:
             return Refusal(NakCode.BANK_WRITE_FAILED, f"bank sequence counter exhausted at {MAX_COUNTER}")
-        refusal = _write_bank(store, BankRecord(rec.seq + 1, rec.generation, store.nonce_counter, rec.table))
+        refusal = _write_bank(store, BankRecord(rec.seq + 1, rec.generation, store.nonce_counter, rec.table, rec.epoch))
         if refusal is not None:
             return refusal
     elif store.stage_free >= STAGE_SLOTS:  # blank flash, stage sector full: start it again
         store.flash.erase(_stage_sector(store.active))
         store.stage_free = 0
-    nonce = store.nonce_counter + 1
+    if store.epoch == 0:  # the flash holds no record: a new unit or a wiped flash starts a new epoch
+        store.epoch = draw_epoch(store.identity)
+    counter = store.nonce_counter + 1
+    nonce = session_nonce(store.identity.uid, store.epoch, counter)
+    if nonce == 0:  # 0 means "no session": the one counter the permutation maps there is skipped
+        counter += 1
+        nonce = session_nonce(store.identity.uid, store.epoch, counter)
+    if counter > MAX_COUNTER:
+        return Refusal(NakCode.BANK_WRITE_FAILED, f"staging-session counter exhausted at {MAX_COUNTER}")
     address = _stage_slot_address(_stage_sector(store.active), store.stage_free)
     store.stage_free += 1  # a half-written slot stays used
-    store.flash.program(address, encode_stage_record(nonce))
-    if decode_stage_record(store.flash.read(address, STAGE_RECORD_BYTES)) != nonce:
+    store.flash.program(address, encode_stage_record(counter, store.epoch))
+    if decode_stage_record(store.flash.read(address, STAGE_RECORD_BYTES)) != (counter, store.epoch):
         return Refusal(NakCode.BANK_WRITE_FAILED, "the staging-session record did not read back; try again")
-    store.nonce_counter = nonce
+    store.nonce_counter = counter
     store.stage_nonce = nonce
     store.stage_state = StageState.RECEIVING
     return nonce
@@ -460,7 +582,7 @@ def commit(store: BankStore, crc: int, nonce: int, expected_generation: int) -> 
     seq = 1 if store.active_record is None else store.active_record.seq + 1
     if generation > MAX_GENERATION or seq > MAX_COUNTER:
         return Refusal(NakCode.BANK_WRITE_FAILED, f"generation counter exhausted at {MAX_GENERATION}; nothing switched")
-    refusal = _write_bank(store, BankRecord(seq, generation, store.nonce_counter, table))
+    refusal = _write_bank(store, BankRecord(seq, generation, store.nonce_counter, table, store.epoch))
     if refusal is not None:
         return refusal
     _clear_staging(store)  # the session is used up: its nonce commits nothing more

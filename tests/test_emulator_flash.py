@@ -26,7 +26,8 @@ FAST = ("--no-estimator", "--sim-frames", "5")  # the banks matter here, not the
 def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path):
     path = tmp_path / "f.img"
     flash = FileFlash(path)
-    store = banks.factory_store(NOMINAL, flash=flash)
+    identity = banks.seeded_identity(3)
+    store = banks.factory_store(NOMINAL, flash=flash, identity=identity)
     nonce = banks.stage_begin(store, banks.TABLE_BYTES)
     table = banks.params_to_table(CAMERA)
     assert banks.stage_chunk(store, 0, table) is None and banks.stage_verify(store, banks.crc32(table)) is None
@@ -35,9 +36,10 @@ def test_a_file_flash_mirrors_every_write_and_boots_what_was_committed(tmp_path)
     on_disk = np.fromfile(path, dtype=np.uint8)
     assert np.array_equal(on_disk, flash.image)  # every erase and program reached the file
     again = FileFlash(path)
-    rebooted = banks.boot(again)
-    assert banks.active_set(rebooted)[:2] == (2, table) and rebooted.nonce_counter == nonce
-    assert banks.stage_begin(rebooted, banks.TABLE_BYTES) == nonce + 1  # the session counter survived too
+    rebooted = banks.boot(again, identity=identity)
+    assert banks.active_set(rebooted)[:2] == (2, table) and rebooted.nonce_counter == store.nonce_counter == 1
+    next_nonce = banks.session_nonce(identity.uid, store.epoch, 2)
+    assert banks.stage_begin(rebooted, banks.TABLE_BYTES) == next_nonce  # the counter and epoch survived too
     again.close()
 
 
@@ -87,11 +89,13 @@ def test_recorded_serial_upload_bytes_replayed_after_a_restart_activate_nothing(
 
 
 @pytest.mark.slow  # Monte Carlo (issue 29: the fast lane is pytest -m 'not slow')
-def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path):
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path, firmware):
     """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times;
     after each restart a recorded upload (whole, a prefix or some of its frames) is replayed on the line and activates
-    nothing. The 200-point acceptance run is ``scripts/flash_power_cuts.py --trials 200`` (docs/hardware.md)."""
-    trials = load_script("flash_power_cuts.py").run_trials(20, seed=15, workdir=tmp_path)
+    nothing; with the Python firmware and with the C core (``--firmware c``). The 200-point acceptance run is
+    ``scripts/flash_power_cuts.py --trials 200 [--firmware c]`` (docs/hardware.md)."""
+    trials = load_script("flash_power_cuts.py").run_trials(20, seed=15, workdir=tmp_path, firmware=firmware)
     assert [t.outcome for t in trials if t.outcome not in ("old", "new")] == []
     assert len(trials) == 20 and sum(t.how.startswith("inside") for t in trials) == 10
     assert [t.replay_outcome for t in trials if t.replay_outcome != "nothing activated"] == []
@@ -113,3 +117,23 @@ def test_the_power_cut_hook_kills_the_emulator_mid_commit(tmp_path):
         emulator.stop()
     image = np.fromfile(flash, dtype=np.uint8)
     assert banks.active_set(banks.boot(banks.RamFlash(image)))[0] == 1
+
+
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_a_recorded_first_upload_replayed_to_another_fresh_sensor_commits_nothing(tmp_path, firmware):
+    """Issue 33: two new units (fresh flash files), the first upload of one recorded on its serial line and sent to the
+    other: its COMMIT is stale there (the nonce is the first sensor's), the factory set stays active."""
+    recorded = bytearray()
+    args = (*FAST, "--firmware", firmware)
+    with EmulatorProcess("serial", args, flash_path=tmp_path / "a.img") as emulator:
+        with open_link(emulator.link) as link:
+            write = link._port.write
+            link._port.write = lambda data: (recorded.extend(data), write(data))[1]  # tap the line
+            assert safe_upload(link, CAMERA).generation == 2
+    with EmulatorProcess("serial", args, flash_path=tmp_path / "b.img") as emulator:
+        with open_link(emulator.link) as link:
+            link._port.write(bytes(recorded))
+            active = read_active_params(link)  # replies in order: the replay has been handled by now
+    assert active.generation == 1 and banks.params_to_table(active.params) != banks.params_to_table(CAMERA)
+    image = np.fromfile(tmp_path / "b.img", dtype=np.uint8)
+    assert banks.boot(banks.RamFlash(image)).nonce_counter == 1  # the replay reached it: its STAGE_BEGIN was answered

@@ -46,7 +46,7 @@ def upload(store, params):
 
 def reboot(store):
     """Power cycle: a fresh boot from a copy of the flash contents (RAM lost)."""
-    return banks.boot(banks.RamFlash(store.flash.image.copy()), store.limits)
+    return banks.boot(banks.RamFlash(store.flash.image.copy()), store.limits, store.identity)
 
 
 def test_factory_store_boots_generation_one_in_sector_a():
@@ -127,6 +127,7 @@ def test_a_power_cut_at_every_byte_of_a_commit_leaves_the_complete_old_or_new_se
 def test_a_power_cut_at_every_byte_of_a_session_record_keeps_the_set_and_never_reissues_an_acked_nonce():
     ready = banks.factory_store(NOMINAL)
     first = banks.stage_begin(ready, TABLE_BYTES)
+    first_counter = ready.nonce_counter
     for budget in range(banks.STAGE_RECORD_BYTES):
         store = copy.deepcopy(ready)
         store.flash.power_budget = budget
@@ -134,17 +135,21 @@ def test_a_power_cut_at_every_byte_of_a_session_record_keeps_the_set_and_never_r
             banks.stage_begin(store, TABLE_BYTES)
         again = reboot(store)
         assert banks.active_set(again)[0] == 1
-        assert banks.stage_begin(again, TABLE_BYTES) > first  # the acknowledged nonce is never given out again
+        nonce = banks.stage_begin(again, TABLE_BYTES)
+        assert again.nonce_counter > first_counter and nonce != first  # the acknowledged nonce is never given again
 
 
 def test_a_full_session_area_rewrites_the_active_set_and_keeps_its_generation():
     store = banks.factory_store(NOMINAL)
     nonces = [banks.stage_begin(store, TABLE_BYTES) for _ in range(3 * banks.STAGE_SLOTS + 5)]
-    assert nonces == list(range(1, len(nonces) + 1))  # strictly increasing, no repeat across rewrites
+    assert len(set(nonces)) == len(nonces) and 0 not in nonces  # no repeat across rewrites
+    assert store.nonce_counter == len(nonces)  # the counter behind them grew by one per session
     gen, table, _ = banks.active_set(store)
     assert (gen, table) == (1, banks.params_to_table(NOMINAL))
     again = reboot(store)
-    assert banks.active_set(again)[:2] == (1, table) and banks.stage_begin(again, TABLE_BYTES) == nonces[-1] + 1
+    assert banks.active_set(again)[:2] == (1, table) and again.epoch == store.epoch
+    expected = banks.session_nonce(store.identity.uid, store.epoch, len(nonces) + 1)
+    assert banks.stage_begin(again, TABLE_BYTES) == expected
     _, crc = stage(again, CAMERA)
     assert banks.stage_verify(again, crc) is None and commit(again, crc) == 2
 
@@ -275,4 +280,5 @@ def test_a_power_cut_at_every_byte_of_a_session_area_rewrite_keeps_the_set_and_t
             banks.stage_begin(store, TABLE_BYTES)
         again = reboot(store)
         assert banks.active_set(again) == factory, budget
-        assert banks.stage_begin(again, TABLE_BYTES) > issued, budget
+        banks.stage_begin(again, TABLE_BYTES)
+        assert again.nonce_counter > issued, budget

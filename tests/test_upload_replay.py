@@ -103,7 +103,8 @@ def test_an_upload_whose_commit_was_lost_cannot_be_completed_by_replaying_it_eve
     assert active(sensor)[0] == 1
     assert committed(replay(sensor, recording)) == [] and active(sensor)[0] == 1
     store = sensor.firmware.store  # power cycle: RAM lost, flash (with its session counter) kept
-    rebooted = EmulatedSensor(Firmware(banks.boot(banks.RamFlash(store.flash.image.copy()), store.limits)), iter(()))
+    flash = banks.RamFlash(store.flash.image.copy())
+    rebooted = EmulatedSensor(Firmware(banks.boot(flash, store.limits, store.identity)), iter(()))
     assert committed(replay(rebooted, recording)) == [] and active(rebooted)[0] == 1
 
 
@@ -153,3 +154,28 @@ def test_every_byte_prefix_of_a_recorded_serial_upload_activates_nothing():
     assert (
         len(line) > 200
     )  # the whole upload, every byte of it (measured: 260 bytes, 12 prefixes hold the whole COMMIT)
+
+
+def fresh_sensor(identity):
+    """A new unit (or a wiped flash): nothing committed, no session record, the device's own identity."""
+    return EmulatedSensor(Firmware(banks.erased_store(banks.PlausibilityLimits(70.0), identity)), iter(()))
+
+
+def test_a_recorded_first_upload_commits_nothing_on_another_fresh_sensor_nor_on_the_same_one_wiped():
+    """Issue 33: the first upload of a fresh flash used to carry nonce 1 on every device. Now the nonce is keyed by
+    the device's unique ID and the flash epoch drawn at its first record: 200 other fresh sensors, and the recording
+    sensor itself with its flash wiped, refuse the replayed COMMIT as stale."""
+    original = fresh_sensor(banks.seeded_identity(1000))
+    recording = record_upload(original, CAMERA)
+    assert active(original)[:2] == (1, banks.params_to_table(CAMERA))
+    twin = fresh_sensor(banks.seeded_identity(1000))  # control: the same device and draws accept the same bytes
+    assert len(committed(replay(twin, recording))) == 1
+    for seed in range(200):
+        other = fresh_sensor(banks.seeded_identity(seed))
+        replies = replay(other, recording)
+        assert committed(replies) == [] and active(other) is None, seed
+        stale = [r for r in replies if isinstance(r, m.Nak) and r.command == m.MsgType.COMMIT]
+        assert [r.code for r in stale] == [m.NakCode.STALE_SESSION], seed
+    wiped = fresh_sensor(original.firmware.store.identity)  # same uid, its random source drawn on: a new epoch
+    assert committed(replay(wiped, recording)) == [] and active(wiped) is None
+    assert committed(replay(original, recording)) == [] and active(original)[0] == 1  # and the sensor itself

@@ -27,6 +27,8 @@ from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, Param
 from onboard.prior import prior_config, refined_mask, sigma_to_dict
 
 PRECISIONS = ("float32", "float64", "fixed")
+#: Which firmware runs the estimator: the Python model (onboard) or the C core (onboard/c).
+FIRMWARE_CORES = ("python", "c")
 
 
 @dataclass
@@ -123,6 +125,7 @@ def replay_chunks(
     on_trace: Callable[[dict[str, list]], None] | None = None,
     keep_trace: bool = False,
     name: str = "the session",
+    firmware_core: str = "python",
 ) -> ReplayResult:
     """Run the onboard estimator over every frame of a session given as consecutive chunks of whole frames (for
     instance :func:`hostlink.files.session.read_session_chunks`), in bounded memory: each chunk's trace (one row
@@ -136,8 +139,14 @@ def replay_chunks(
     Hipparcos apparent place as the sensor computes it from its onboard catalogue); unidentified stars are not
     used. ``on_frame(k, result)`` is called after frame k (counted from 0 over all chunks). A session without
     frames ("NAME: no frames", ``name`` the session's), one where no frame could update the estimate, a diverged
-    or unusable estimate is a one-line :class:`UserError`."""
+    or unusable estimate is a one-line :class:`UserError`. ``firmware_core`` "c" runs each frame through the C
+    firmware core (onboard/c, built with the machine's compiler: ``hostlink.portkit.estimator_c.stepper``) instead
+    of the Python model; float32 and fixed only."""
     dtype = precision_dtype(precision)
+    if firmware_core not in FIRMWARE_CORES:
+        raise UserError(f"--firmware: expected one of {', '.join(FIRMWARE_CORES)}, got {firmware_core!r}")
+    if firmware_core == "c" and precision == "float64":
+        raise UserError("--firmware c: the C core runs float32 or fixed (float64 is the host's Python reference)")
     try:
         config = prior_config(config, nominal, prior_sigma, estimate)
         state = recursive.create(nominal, estimate, config, dtype)
@@ -145,11 +154,19 @@ def replay_chunks(
         raise UserError(f"estimator configuration: {exc}") from None
     if precision == "fixed":
         check_fixed_range(nominal)
+    step = firmware.estimator_update
+    if firmware_core == "c":
+        from hostlink.portkit import estimator_c
+
+        try:
+            step = estimator_c.stepper(state)
+        except ValueError as exc:
+            raise UserError(f"--firmware c: {exc}") from None
     kept: dict[str, list] = {c: [] for c in TRACE_COLUMNS}
     tally = _Tally()
     rows_before = 0
     for session in chunks:
-        trace = _replay_chunk(state, session, precision, on_frame, tally, rows_before)
+        trace = _replay_chunk(state, session, precision, on_frame, tally, rows_before, step)
         rows_before += len(session)
         if on_trace is not None:
             on_trace(trace)
@@ -187,7 +204,7 @@ class _Tally:
 
 
 def _replay_chunk(
-    state, session: Session, precision: str, on_frame, tally: _Tally, rows_before: int
+    state, session: Session, precision: str, on_frame, tally: _Tally, rows_before: int, step=firmware.estimator_update
 ) -> dict[str, list]:
     """The frames of one chunk through the estimator; returns the chunk's trace and counts its frames in ``tally``."""
     references = session_references(session, first_row=rows_before)
@@ -196,7 +213,7 @@ def _replay_chunk(
     for rows in session.frame_slices():
         args = (state, session.x_px[rows], session.y_px[rows], r_all[rows], identified_all[rows], precision)
         try:
-            res = firmware.estimator_update(*args)  # what the sensor runs on each frame, in its precision
+            res = step(*args)  # what the sensor runs on each frame, in its precision (Python model or C core)
         except FixedRangeError as exc:
             frame = int(session.frame[rows.start])
             raise UserError(

@@ -48,6 +48,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "without an FPU: Q30 unit vectors, Q61 residuals; float32 filter update)",
     )
     p.add_argument(
+        "--firmware",
+        default="python",
+        choices=("python", "c"),
+        help="which firmware runs the estimator: python (the reference model, default) or c (the C firmware core, "
+        "onboard/c, built once with the machine's C compiler; float32 and fixed)",
+    )
+    p.add_argument(
         "--estimate",
         metavar="NAMES",
         help="comma-separated parameters to estimate (default all: f,x0,y0,k1,k2,k3,p1,p2,s1,s2)",
@@ -122,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
             prior_sigma=prior_sigma,
             on_trace=None if trace is None else trace.append,
             name=name,
+            firmware_core=args.firmware,
         )
     extras = estimate_extras(result, args.precision)
     save_params(args.out, result.params, extras)

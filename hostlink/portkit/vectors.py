@@ -610,19 +610,21 @@ def _attitude_tolerance(inp: dict, out: dict) -> dict[str, Tolerance]:
 # bank records --------------------------------------------------------------------------------------------------
 def _bank_cases() -> list[dict]:
     table = banks.params_to_table(vector_camera(), np.array([0.05, 2.0, 2.0, 1e-10, 1e-15, np.nan, 0, 0, 0, 0]))
-    good = banks.encode_bank_record(banks.BankRecord(seq=7, generation=3, nonce_counter=41, table=table))
+    epoch = 0x5EED0001
+    good = banks.encode_bank_record(banks.BankRecord(seq=7, generation=3, nonce_counter=41, table=table, epoch=epoch))
     flipped = bytearray(good)
     flipped[50] ^= 0x04
     half = bytearray(good)
     half[96:] = b"\xff" * (len(good) - 96)  # a program cut after 96 bytes
-    stage = banks.encode_stage_record(42)
+    stage = banks.encode_stage_record(42, epoch)
     return [
         {
             "seq": np.array(7, np.uint32),
             "generation": np.array(3, np.uint32),
             "nonce_counter": np.array(41, np.uint32),
+            "epoch": np.array(epoch, np.uint32),
             "table": table,
-            "stage_nonce": np.array(42, np.uint32),
+            "stage_counter": np.array(42, np.uint32),
             "verify_records": good + bytes(flipped) + bytes(half) + b"\xff" * len(good),
             "verify_stage_records": stage + stage[:4] + bytes([stage[4] ^ 1]) + stage[5:] + b"\xff" * len(stage),
         }
@@ -630,22 +632,24 @@ def _bank_cases() -> list[dict]:
 
 
 def _bank_compute(inp: dict, dtype) -> dict:
-    rec = banks.BankRecord(int(inp["seq"]), int(inp["generation"]), int(inp["nonce_counter"]), inp["table"])
+    rec = banks.BankRecord(
+        int(inp["seq"]), int(inp["generation"]), int(inp["nonce_counter"]), inp["table"], int(inp["epoch"])
+    )
     encoded = banks.encode_bank_record(rec)
     size = banks.BANK_RECORD_BYTES
     blobs = inp["verify_records"]
     decoded = [banks.decode_bank_record(blobs[k : k + size]) for k in range(0, len(blobs), size)]
     stages = inp["verify_stage_records"]
     ssize = banks.STAGE_RECORD_BYTES
-    nonces = [banks.decode_stage_record(stages[k : k + ssize]) for k in range(0, len(stages), ssize)]
+    counters = [banks.decode_stage_record(stages[k : k + ssize]) for k in range(0, len(stages), ssize)]
     return {
         "bank_record": encoded,
         "record_crc32": np.array(int.from_bytes(encoded[-4:], "little"), np.uint32),
-        "stage_record": banks.encode_stage_record(int(inp["stage_nonce"])),
+        "stage_record": banks.encode_stage_record(int(inp["stage_counter"]), int(inp["epoch"])),
         "verify_valid": np.array([d is not None for d in decoded]),
         "verify_generation": np.array([d.generation if d else 0 for d in decoded], np.uint32),
-        "verify_stage_nonce": np.array([n if n is not None else 0 for n in nonces], np.uint32),
-        "verify_stage_valid": np.array([n is not None for n in nonces]),
+        "verify_stage_counter": np.array([n[0] if n is not None else 0 for n in counters], np.uint32),
+        "verify_stage_valid": np.array([n is not None for n in counters]),
     }
 
 
@@ -822,9 +826,10 @@ SPECS: tuple[VectorSpec, ...] = (
         "bank_record",
         "bytes",
         "onboard.banks.encode_bank_record, decode_bank_record, encode_stage_record, decode_stage_record",
-        "Bank record (magic BNK1, seq, generation, nonce counter, the 92-byte table, CRC-32) and stage record "
-        "(magic STG1, nonce, CRC-32, pad) bytes, and the verdicts of verification on a valid, a bit-flipped, a "
-        "half-programmed and an erased record. Byte formats: the same for the float32 and fixed-point firmware.",
+        "Bank record (magic BNK2, seq, generation, nonce counter, epoch, reserved, the 92-byte table, CRC-32) and "
+        "stage record (magic STG2, epoch, counter, CRC-32) bytes, and the verdicts of verification on a valid, a "
+        "bit-flipped, a half-programmed and an erased record. Byte formats: the same for the float32 and "
+        "fixed-point firmware.",
         _bank_cases,
         _bank_compute,
         _bytes_exact,
