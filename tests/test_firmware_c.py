@@ -1,0 +1,272 @@
+"""The C firmware core (onboard/c) against the Python reference model: it compiles with the flight-code warnings as
+errors, its refusal texts format numbers as Python does, and the same command sequences give the same replies and
+the same flash images byte for byte (random sequences drawn by hypothesis, power cuts and reboots among them, a
+recorded upload, flash images written by one firmware booted by the other).
+
+``HOSTLINK_FWC_EXAMPLES=10000`` runs 10^4 random sequences (the acceptance run; ``scripts/firmware_c_proof.py`` does
+the same with a seeded generator and prints the figures); the default is a CI-sized run."""
+
+import math
+import os
+import random
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from firmware_twins import LIMITS, N_FIELDS, NOMINAL, SPECIAL_VALUES, TABLES, Twins, aged_image, with_field
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from hostlink.emulator.loopback import LoopbackLink
+from hostlink.emulator.sensor import EmulatedSensor
+from hostlink.links.operations import safe_upload
+from hostlink.portkit import firmware_c
+from hostlink.portkit.export_c import generate_c
+from hostlink.sky.simulate import seed004_camera
+from onboard import banks
+from onboard.firmware import Firmware
+from protocol import messages as m
+from protocol.param_table import TABLE_BYTES
+
+pytestmark = pytest.mark.skipif(shutil.which(os.environ.get("CC") or "cc") is None, reason="no C compiler")
+
+#: Random sequences per run: every command kind and NAK code many times, a few seconds of CI.
+EXAMPLES = int(os.environ.get("HOSTLINK_FWC_EXAMPLES", "150"))
+STEP = st.tuples(st.integers(0, 16), st.integers(0, 2**32 - 1), st.integers(0, 2**16 - 1), st.integers(0, 255))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def library(tmp_path_factory):
+    """Build once into this run's cache (the user's cache is not touched by the tests)."""
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+    return firmware_c.load_library()
+
+
+def test_the_core_and_the_codec_compile_with_the_flight_code_warnings_as_errors(tmp_path):
+    for name, text in {**firmware_c.core_sources(), **generate_c()}.items():
+        (tmp_path / name).write_text(text)
+    for source in sorted(tmp_path.glob("*.c")):
+        cmd = [firmware_c.find_compiler(), *firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-c", str(source)]
+        run = subprocess.run([*cmd, "-o", str(tmp_path / "x.o")], capture_output=True, text=True)
+        assert run.returncode == 0 and run.stderr == "", f"{source.name}:\n{run.stderr}"
+
+
+def test_numbers_are_formatted_as_python_formats_them():
+    """repr, .3g, .6g, .0f and .0% of 20000 doubles: float32 values of every magnitude, random bit patterns
+    (subnormals, infinities, NaN included), halves (ties of .0f) and powers of two (repr's uneven neighbours)."""
+    rng = random.Random(7)
+    xs = [0.0, -0.0, math.inf, -math.inf, math.nan, 0.5, 1.5, 2.5, -0.5, 1023.5, 99.95, 999.5, 1e16, 1e-5, 5e-324]
+    for _ in range(20000):
+        k = rng.random()
+        if k < 0.35:
+            xs.append(float(np.float32(rng.uniform(-1, 1) * 10 ** rng.uniform(-45, 38))))
+        elif k < 0.6:
+            xs.append(struct.unpack("<d", rng.getrandbits(64).to_bytes(8, "little"))[0])
+        elif k < 0.8:
+            xs.append(rng.randint(-(10**7), 10**7) / rng.choice([1, 2, 4, 8, 1000]))
+        else:
+            xs.append(math.ldexp(rng.choice([1.0, -1.0]), rng.randint(-1074, 1023)))
+    for x in xs:
+        for spec in firmware_c.FORMATS:
+            want = repr(x) if spec == "r" else format(x, spec)
+            assert firmware_c.format_c(spec, x) == want[:120], (x, spec)
+
+
+def _on_the_wire(refusal: banks.Refusal | None) -> str | None:
+    """A refusal's text as a NAK carries it (cut at NAK_TEXT_MAX bytes), None for no refusal."""
+    return None if refusal is None else m.nak_text_bytes(refusal.text).decode()
+
+
+def test_the_sensor_checks_give_the_same_verdict_and_text_for_every_field_at_every_edge():
+    """Each of the 23 table fields of four good sets set to each edge value (NaN, infinities, zero, signs, half
+    pixels, the image-size bound, huge and tiny): the reference's check_table and the C core's, text for text."""
+    refused = 0
+    for base in TABLES[:4]:
+        for index in range(N_FIELDS):
+            for value in SPECIAL_VALUES:
+                table = with_field(base, index, value)
+                refusal = banks.check_table(table, LIMITS)
+                assert firmware_c.check_table_c(table, LIMITS) == _on_the_wire(refusal)
+                refused += refusal is not None
+    assert refused > 1000  # most edges break a rule: the texts were compared, not only the acceptances
+
+
+def test_the_checks_agree_on_random_distortions_near_the_bounds():
+    """Random distortion coefficients scaled around the monotonicity and displacement bounds (float32 arithmetic,
+    the same operation order: the same verdict and the same printed numbers)."""
+    rng = np.random.default_rng(3)
+    scales = np.array([1e-9, 1e-15, 1e-21, 1e-5, 1e-5, 1e-5, 1e-5])
+    for _ in range(400):
+        table = TABLES[0]
+        for k in range(7):
+            table = with_field(table, 6 + k, float(rng.normal() * scales[k] * 10 ** rng.uniform(-1, 2.5)))
+        refusal = banks.check_table(table, None)
+        assert firmware_c.check_table_c(table, None) == _on_the_wire(refusal)
+
+
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+@given(seed=st.integers(0, 2**16), steps=st.lists(STEP, min_size=1, max_size=40))
+def test_random_command_sequences_give_the_same_replies_and_flash_bytes(seed, steps):
+    twins = Twins(seed)
+    for step in steps:
+        twins.step(*step)
+
+
+def test_the_sequences_exercise_every_refusal_and_commits():
+    """A seeded run of the same generator: every NAK code the banks and the state machine give appears, and sets are
+    committed (so the equality above covers them)."""
+    rng = random.Random(11)
+    refusals, commits = {}, 0
+    for seed in range(40):
+        twins = Twins(seed)
+        for _ in range(60):
+            twins.step(rng.randrange(17), rng.getrandbits(32), rng.getrandbits(16), rng.getrandbits(8))
+        for code, count in twins.refusals.items():
+            refusals[code] = refusals.get(code, 0) + count
+        commits += twins.commits
+    expected = {c for c in m.NakCode if c not in (m.NakCode.BUSY, m.NakCode.BANK_WRITE_FAILED)}
+    assert set(refusals) >= expected and commits > 20, (refusals, commits)
+
+
+@pytest.mark.parametrize("sessions", [0, 246, 247, 248, 250, 2 * 248 + 3])
+def test_a_session_area_rewrite_and_power_cuts_through_it_agree(sessions):
+    """Sequences started on a flash near or past a session-area rewrite (248 stage records per sector), including a
+    power cut at every 97th byte of a STAGE_BEGIN that rewrites the active set."""
+    image = aged_image(5, sessions)
+    twins = Twins(5, image)
+    rng = random.Random(sessions)
+    for _ in range(30):
+        twins.step(
+            rng.choice([2, 2, 6, 8, 12, 13, 14, 15]), rng.getrandbits(32), rng.getrandbits(16), rng.getrandbits(8)
+        )
+    for budget in range(0, banks.SECTOR_BYTES + banks.BANK_RECORD_BYTES + 16, 97):
+        twins = Twins(5, aged_image(5, banks.STAGE_SLOTS))
+        twins.power_cut(budget, m.StageBegin(tag=1, length=TABLE_BYTES))
+        twins.step(14, 0, 2, 0)
+
+
+def _active(firmware) -> bytes:
+    return firmware.handle_bytes(m.encode(m.ReadActive(tag=9)))
+
+
+def test_a_flash_image_written_by_one_firmware_boots_in_the_other_to_the_same_active_set():
+    rng = random.Random(2)
+    for seed in range(30):
+        twins = Twins(seed)
+        for _ in range(25):
+            twins.step(rng.choice([2, 3, 6, 8, 12, 13, 14, 14, 15]), rng.getrandbits(32), rng.getrandbits(16), 0)
+        py_image, c_image = twins.py.store.flash.image.copy(), twins.c.flash.image.copy()
+        # Python's image in a C sensor, C's image in a Python sensor: the same active set and status, and the next
+        # session gets the same nonce (counter and epoch recovered alike)
+        c_boot = firmware_c.CFirmware(
+            banks.RamFlash(py_image), banks.seeded_identity(seed), LIMITS, with_estimator=False
+        )
+        py_boot = Firmware(banks.boot(banks.RamFlash(c_image), LIMITS, banks.seeded_identity(seed)))
+        for command in (m.ReadActive(tag=1), m.GetStatus(tag=2), m.StageBegin(tag=3, length=TABLE_BYTES)):
+            assert c_boot.handle_bytes(m.encode(command)) == m.encode(py_boot.handle(command)), (seed, command)
+
+
+def _recorded_upload(seed: int) -> list[bytes]:
+    """The command bytes of a bench upload (safe_upload of the seed-004 camera over the loopback link) to a Python
+    sensor of identity ``seed``."""
+    sensor = EmulatedSensor(
+        Firmware(banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, banks.seeded_identity(seed))), iter(())
+    )
+    sent = []
+
+    def tap(data):
+        sent.append(data)
+        return data
+
+    safe_upload(LoopbackLink(sensor, timeout_s=0.5, tamper=tap), seed004_camera())
+    return sent
+
+
+def test_a_recorded_upload_gives_the_same_replies_and_flash_bytes_and_replayed_commits_nothing():
+    recording = _recorded_upload(21)
+    twins = Twins(21)  # the recording device: the upload commits, in both firmwares alike
+    for data in recording:
+        twins.send(data)
+    assert twins.commits == 1 and twins.generation() == 2
+    for data in recording:  # replayed to the same sensor: nothing more
+        twins.send(data)
+    assert twins.commits == 1 and twins.generation() == 2
+    other = Twins(22)  # another sensor, fresh from the factory: nothing in either firmware
+    for data in recording:
+        other.send(data)
+    assert other.commits == 0 and other.generation() == 1
+    twins.check_flash()
+    other.check_flash()
+
+
+def test_the_message_handler_gives_the_same_verdict_on_fuzzed_bytes():
+    """2000 inputs (valid commands with bytes changed, cut or appended; random bytes after a real type byte): the C
+    handler never crashes and answers exactly when and what the Python one answers. ``scripts/firmware_c_proof.py
+    --fuzz 100000`` is the long run."""
+    rng = random.Random(4)
+    twins = Twins(4)
+    answered = 0
+    for _ in range(2000):
+        answered += twins.send(fuzz_input(rng, twins)) is not None
+    assert 200 < answered < 2000  # both verdicts occur
+
+
+def fuzz_input(rng: random.Random, twins: Twins) -> bytes:
+    """A mutated command: a real one with 1-3 bytes changed, cut short, extended, or random bytes after a type."""
+    seeds = [
+        m.GetStatus(tag=1), m.StreamControl(tag=2, enable=True), m.StageBegin(tag=3, length=TABLE_BYTES),
+        m.StageChunk(tag=4, offset=8, data=TABLES[0][8:40]), m.StageVerify(tag=5, crc32=7), m.ReadStaged(tag=6),
+        m.Commit(tag=7, crc32=1, nonce=twins.nonce, expected_generation=1), m.ReadActive(tag=8),
+        m.ReadEstimate(tag=9),
+    ]  # fmt: skip
+    raw = bytearray(m.encode(rng.choice(seeds)))
+    how = rng.randrange(4)
+    if how == 0:
+        for _ in range(rng.randint(1, 3)):
+            raw[rng.randrange(len(raw))] = rng.getrandbits(8)
+    elif how == 1:
+        raw = raw[: rng.randrange(len(raw))]
+    elif how == 2:
+        raw += bytes(rng.getrandbits(8) for _ in range(rng.randint(1, 8)))
+    else:
+        raw = bytearray([rng.choice([s.type_id for s in m.MESSAGES])]) + bytes(
+            rng.getrandbits(8) for _ in range(rng.randint(0, 110))
+        )
+    return bytes(raw)
+
+
+SIL_HARNESS = Path(__file__).with_name("c") / "sil_harness.c"
+
+
+def test_the_sil_harness_runs_clean_under_address_and_undefined_behaviour_sanitizers(tmp_path):
+    """A standalone C program (tests/c/sil_harness.c: a RAM flash HAL with power cuts, 20000 commands drawn from a
+    seeded generator, reboots) built with -fsanitize=address,undefined: no sanitizer report, every reply decodes."""
+    for name, text in {**firmware_c.core_sources(), **generate_c()}.items():
+        (tmp_path / name).write_text(text)
+    shutil.copy(SIL_HARNESS, tmp_path / SIL_HARNESS.name)
+    exe = tmp_path / "sil"
+    sources = sorted(str(p) for p in tmp_path.glob("*.c"))
+    flags = [*firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-g", "-O1", "-fsanitize=address,undefined"]
+    build = subprocess.run(
+        [
+            firmware_c.find_compiler(),
+            *flags,
+            "-fno-sanitize-recover=all",
+            f"-I{tmp_path}",
+            *sources,
+            "-o",
+            str(exe),
+            "-lm",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    if build.returncode != 0 and "sanitize" in build.stderr and "cannot" in build.stderr:
+        pytest.skip("the compiler has no sanitizer runtime")
+    assert build.returncode == 0, build.stderr
+    run = subprocess.run([str(exe), "20000"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and "runtime error" not in run.stderr and "Sanitizer" not in run.stderr, run.stderr
+    assert "commands 20000" in run.stdout and "replies 0 undecodable" in run.stdout, run.stdout
