@@ -1,0 +1,328 @@
+"""What the C firmware core costs on a Cortex-M, measured on the emulated processor (``hostlink costs --target``):
+the golden vectors run there and checked as on the host, a replayed session's recursive updates at 8, 16 and 32
+stars, the upload commands (stage chunk, verify, commit with its flash writes) and refraction by addition, each
+with its exact instruction count and the deepest stack it reached; flash and static RAM from the linked image.
+
+The checks are the host's (tests/test_c_numerics_vectors.py): fixed-point outputs equal to the vectors' integers,
+float32 outputs within each output's stated tolerance (hostlink/portkit/vectors.py). The session's estimate on the
+target is compared with the Python sensor's (onboard.firmware.RecursiveEstimator) fed the same frames: within 0.01
+of its 1-sigma, issue 27's acceptance for the host build.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hostlink.portkit import vectors
+from hostlink.portkit.cortexm import Arg, Machine, Target
+from hostlink.portkit.estimator_c import FixedCamera, FixedInstant, TimeTT
+
+#: Star counts of the update rows (issue 28).
+UPDATE_STARS = (8, 16, 32)
+#: Stars of the refraction-by-addition row (a frame's catalogue stars).
+REFRACTION_STARS = 32
+#: Frame period the share is quoted against [s] (a 10 Hz sensor).
+FRAME_PERIOD_S = 0.1
+#: The estimate after the session within this many of its 1-sigma of the Python sensor's (issue 27's acceptance).
+ESTIMATE_AGREEMENT_SIGMA = 0.01
+
+
+@dataclass(frozen=True)
+class VectorResult:
+    """One vector file on the target: the worst |got - expected| / tolerance over its outputs (0 when bit-exact;
+    fixed point and bytes must be exact) and whether it passed."""
+
+    file: str
+    worst_ratio: float
+    passed: bool
+
+
+@dataclass(frozen=True)
+class Row:
+    what: str
+    stars: int | None
+    precision: str
+    instructions: int
+    cycles: int | None
+    stack_bytes: int
+    note: str = ""
+
+
+@dataclass
+class TargetReport:
+    target: Target
+    flash_bytes: int
+    ram_bytes: int
+    state_bytes: int
+    stack_bytes: int = 0
+    vectors: list[VectorResult] = field(default_factory=list)
+    rows: list[Row] = field(default_factory=list)
+    session: dict = field(default_factory=dict)
+
+    @property
+    def vectors_passed(self) -> bool:
+        return bool(self.vectors) and all(v.passed for v in self.vectors)
+
+    def as_json(self) -> dict:
+        return {
+            "target": self.target.name,
+            "description": self.target.description,
+            "precision": self.target.precision,
+            "clock_hz": self.target.clock_hz,
+            "flash_bytes": self.flash_bytes,
+            "ram_bytes": self.ram_bytes,
+            "estimator_state_bytes": self.state_bytes,
+            "stack_bytes": self.stack_bytes,
+            "vectors_passed": self.vectors_passed,
+            "vectors": [{"file": v.file, "worst_ratio": v.worst_ratio, "passed": v.passed} for v in self.vectors],
+            "session": self.session,
+            "rows": [
+                {
+                    "what": r.what,
+                    "stars": r.stars,
+                    "precision": r.precision,
+                    "instructions": r.instructions,
+                    "cycles": r.cycles,
+                    "stack_bytes": r.stack_bytes,
+                }
+                for r in self.rows
+            ],
+        }
+
+
+# --------------------------------------------------------------------------------------------- vectors
+def _cases(doc: dict):
+    for case in doc["cases"]:
+        inp = {k: vectors.decode_array(v) for k, v in case["inputs"].items()}
+        out = {k: vectors.decode_array(v) for k, v in case["outputs"].items()}
+        tol = {
+            k: (vectors.decode_array(v["abs"]) if isinstance(v["abs"], dict) else v["abs"])
+            for k, v in case["tolerance"].items()
+        }
+        yield inp, out, tol
+
+
+def _within(got, expected, tol) -> float:
+    """The largest |got - expected| / tolerance (<= 1 passes; 0 when equal)."""
+    g = np.asarray(got, np.float64)
+    diff = np.abs(g - np.asarray(expected, np.float64).reshape(g.shape))
+    t = np.broadcast_to(np.asarray(tol, np.float64), diff.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(np.max(np.where(diff == 0, 0.0, diff / t), initial=0.0))
+
+
+def _exact(got, expected) -> float:
+    return 0.0 if np.asarray(got).tolist() == np.asarray(expected).tolist() else float("inf")
+
+
+def _f32(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _i64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def _i32(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int32)
+
+
+def _pixel_to_direction_float32(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        theta, x, y = _f32(inp["theta"]), _f32(inp["x_px"]), _f32(inp["y_px"])
+        n = x.size
+        u, v, b = np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros((n, 3), np.float32)
+        m.call("camera_ideal_offsets", x, y, n, theta, u, v)
+        m.call("camera_offsets_to_unit", u, v, n, Arg("f32", float(theta[0])), b)
+        b2 = np.zeros((n, 3), np.float32)
+        m.call("camera_pixels_to_unit", x, y, n, theta, b2)
+        worst = max(worst, _exact(b2, b))  # pixels_to_unit is the two steps
+        for name, got in (("u_ideal_px", u), ("v_ideal_px", v), ("b", b)):
+            worst = max(worst, _within(got, out[name], tol[name]))
+    return worst
+
+
+def _camera_jacobians(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        theta, x, y = _f32(inp["theta"]), _f32(inp["x_px"]), _f32(inp["y_px"])
+        n = x.size
+        b, jt, jc = np.zeros((n, 3), np.float32), np.zeros((n, 3, 10), np.float32), np.zeros((n, 3, 2), np.float32)
+        m.call("camera_unit_vector_jacobians", x, y, n, theta, b, jt, jc)
+        for name, got in (("b", b), ("j_theta", jt), ("j_centroid", jc)):
+            worst = max(worst, _within(got, out[name], tol[name]))
+    return worst
+
+
+def _pixel_to_direction_fixed(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    table = m.read(m.address("fixedpoint_rsqrt_table_q30"), 25 * 8)
+    const = {k: vectors.decode_array(v) for k, v in doc["constants"].items()}
+    worst = max(worst, _exact(np.frombuffer(table, "<i8"), const["rsqrt_table_q30"]))
+    for inp, out, _ in _cases(doc):
+        cam = FixedCamera()
+        w, h = (int(v) for v in inp["image_size_px"])
+        status, _ = m.call("fixedpoint_camera", _f32(inp["theta"]), Arg("i32", w), Arg("i32", h), cam, returns="i32")
+        worst = max(worst, _exact(status, 0))
+        got = [cam.s, cam.x0_q, cam.y0_q, cam.qw, cam.f_w]
+        worst = max(worst, _exact(got, [int(out[k]) for k in ("s", "x0_q", "y0_q", "qw", "f_w")]))
+        worst = max(worst, _exact(list(cam.coef_m), out["coef_m"]), _exact(list(cam.coef_e), out["coef_e"]))
+        worst = max(worst, _exact(np.array(cam.theta_q), out["theta_q"]))
+        for k in range(inp["x_q10"].size):
+            u, v, b = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(3, np.int64)
+            xq, yq = Arg("i64", int(inp["x_q10"][k])), Arg("i64", int(inp["y_q10"][k]))
+            status, _ = m.call("fixedpoint_ideal_offsets_q30", xq, yq, cam, u, v, returns="i32")
+            m.call("fixedpoint_offsets_to_unit_q30", Arg("i64", int(u[0])), Arg("i64", int(v[0])), cam, b)
+            worst = max(worst, _exact(status, 0), _exact([u[0], v[0]], [out["u_ideal_q30"][k], out["v_ideal_q30"][k]]))
+            worst = max(worst, _exact(b, out["b_q30"][k]))
+    return worst
+
+
+def _interstar_fixed(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, _ in _cases(doc):
+        pi, pj = _i32(inp["pair_i"]), _i32(inp["pair_j"])
+        e = np.zeros(pi.size, np.int64)
+        m.call("fixedpoint_difference_residuals_q61", _i64(inp["b_q30"]), _i64(inp["r_q30"]), pi, pj, pi.size, e)
+        worst = max(worst, _exact(e, out["e_q61"]))
+    return worst
+
+
+def _interstar_float32(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        b, r, jb = _f32(inp["b"]), _f32(inp["r"]), _f32(inp["jb"])
+        pi, pj = _i32(inp["pair_i"]), _i32(inp["pair_j"])
+        e, h = np.zeros(pi.size, np.float32), np.zeros((pi.size, 10), np.float32)
+        m.call("interstar_difference_residuals", b, r, pi, pj, pi.size, e)
+        m.call("interstar_difference_jacobian", b, jb, 10, pi, pj, pi.size, h)
+        worst = max(worst, _within(e, out["e"], tol["e"]), _within(h, out["h"], tol["h"]))
+        ci, cj = np.zeros(pi.size, np.int32), np.zeros(pi.size, np.int32)
+        n_pairs, _ = m.call("interstar_independent_pairs", b.shape[0], ci, cj, returns="u32")
+        worst = max(worst, _exact([n_pairs, *ci, *cj], [pi.size, *pi, *pj]))
+    return worst
+
+
+def _ud_update(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        u, d, xi, h = (np.array(inp[k], dtype=np.float32, order="C") for k in ("u", "d", "xi", "h"))
+        s = np.zeros(1, np.float32)
+        innovation, _ = m.call("ud_bierman_update", u, d, xi, h, Arg("f32", float(inp["y"])), d.size, s, returns="f32")
+        got = {"u": u, "d": d, "xi": xi, "innovation": np.float32(innovation), "innovation_variance": s[0]}
+        for name, value in got.items():
+            worst = max(worst, _within(value, out[name], tol[name]))
+    return worst
+
+
+def _refraction_float32(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        r, zen = _f32(inp["r"]), _f32(inp["zenith"])
+        a, b = float(inp["a_rad"]), float(inp["b_rad"])
+        n = r.shape[0]
+        cz, sz, t = np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros((n, 3), np.float32)
+        m.call("refraction_zenith_geometry", r, n, zen, cz, sz, t)
+        refr = [
+            m.call(
+                "refraction_from_true_zenith",
+                Arg("f32", float(c)),
+                Arg("f32", float(s)),
+                Arg("f64", a),
+                Arg("f64", b),
+                returns="f32",
+            )[0]
+            for c, s in zip(cz, sz, strict=True)
+        ]
+        app = np.zeros((n, 3), np.float32)
+        m.call("refraction_refract_toward_zenith", r, n, zen, Arg("f64", a), Arg("f64", b), app)
+        worst = max(worst, _within(np.float32(refr), out["refraction_rad"], tol["refraction_rad"]))
+        worst = max(worst, _within(app, out["apparent"], tol["apparent"]))
+    return worst
+
+
+def _refraction_fixed(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, _ in _cases(doc):
+        r, zen, beta = (_i64(inp[k]) for k in ("r_q30", "zenith_q30", "beta_q48"))
+        a, b = (int(v) for v in inp["ab_q56"])
+        n = r.shape[0]
+        for with_refraction, name in ((0, "aberrated_q30"), (1, "observed_q30")):
+            got = np.zeros((n, 3), np.int64)
+            args = (r, n, zen, beta, Arg("i32", with_refraction), Arg("i64", a), Arg("i64", b), got)
+            m.call("refraction_topocentric_observed_q30", *args)
+            worst = max(worst, _exact(got, out[name]))
+    return worst
+
+
+def _apparent_fixed(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, _ in _cases(doc):
+        inst = FixedInstant()
+        inst.years_q20 = int(inp["years_q20"])
+        inst.deflection_k_q70 = int(inp["deflection_k_q70"])
+        inst.earth_bary_q30[:] = [int(v) for v in inp["earth_bary_q30"]]
+        inst.sun_to_earth_q30[:] = [int(v) for v in inp["sun_to_earth_q30"]]
+        inst.beta_q44[:] = [int(v) for v in inp["beta_q44"]]
+        inst.tod_q30[:] = [int(v) for v in np.ravel(inp["tod_q30"])]
+        r0, pm, plx = (_i64(inp[k]) for k in ("r0_q30", "pm_q46", "parallax_q48"))
+        got = np.zeros_like(r0)
+        m.call("apparent_place_vectors_q30", r0, pm, plx, r0.shape[0], inst, got)
+        worst = max(worst, _exact(got, out["apparent_q30"]))
+    return worst
+
+
+def _apparent_float32(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        t = TimeTT(int(inp["t_tt_day"]), int(inp["t_tt_frac"]))
+        day, frac = Arg("i32", t.day), Arg("u32", t.frac)  # a two-word structure by value: two core words
+        tod = np.zeros((3, 3), np.float32)
+        m.call("earth_true_of_date_matrix", day, frac, tod)
+        r0, pm, plx = _f32(inp["r0"]), _f32(inp["pm_rad_yr"]), _f32(inp["parallax_mas"])
+        got = np.zeros_like(r0)
+        epoch = Arg("f64", float(inp["epoch_jyear"]))
+        m.call("apparent_place_vectors", r0, pm, plx, r0.shape[0], epoch, day, frac, got)
+        worst = max(worst, _within(tod, out["tod_matrix"], tol["tod_matrix"]))
+        worst = max(worst, _within(got, out["apparent"], tol["apparent"]))
+    return worst
+
+
+def _attitude(m: Machine, doc: dict) -> float:
+    worst = 0.0
+    for inp, out, tol in _cases(doc):
+        b, r, w = _f32(inp["b"]), _f32(inp["r"]), _f32(inp["weights"])
+        c = np.zeros((3, 3), np.float32)
+        status, _ = m.call("attitude_from_vectors", b, r, w, b.shape[0], c, returns="i32")
+        worst = max(worst, _exact(status, 0), _within(c, out["c"], tol["c"]))
+    return worst
+
+
+#: Vector file -> its check on the target (the host's, tests/test_c_numerics_vectors.py).
+VECTOR_CHECKS = {
+    "pixel_to_direction.float32.json": _pixel_to_direction_float32,
+    "pixel_to_direction.fixed.json": _pixel_to_direction_fixed,
+    "camera_jacobians.float32.json": _camera_jacobians,
+    "interstar_residual.float32.json": _interstar_float32,
+    "interstar_residual.fixed.json": _interstar_fixed,
+    "ud_update.float32.json": _ud_update,
+    "refraction_by_addition.float32.json": _refraction_float32,
+    "refraction_by_addition.fixed.json": _refraction_fixed,
+    "apparent_place.float32.json": _apparent_float32,
+    "apparent_place.fixed.json": _apparent_fixed,
+    "attitude.float32.json": _attitude,
+}
+
+
+def run_vectors(m: Machine, docs: dict[str, dict] | None = None) -> list[VectorResult]:
+    """Every golden vector file with a C function on the target, checked as on the host."""
+    docs = vectors.generate_vectors() if docs is None else docs
+    out = []
+    for name, check in VECTOR_CHECKS.items():
+        m.reset_scratch()
+        worst = check(m, docs[name])
+        out.append(VectorResult(name, worst, worst <= 1.0))
+    return out
