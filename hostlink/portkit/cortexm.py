@@ -403,6 +403,14 @@ class Machine:
         self.uc.mem_write(address, bytes(data) if data is not None else bytes(int(n_bytes)))
         return address
 
+    def mark(self) -> int:
+        """The scratch allocation point, for :meth:`release`."""
+        return self._scratch
+
+    def release(self, mark: int) -> None:
+        """Free the scratch allocated since :meth:`mark`."""
+        self._scratch = mark
+
     def read(self, address: int, n_bytes: int) -> bytes:
         return bytes(self.uc.mem_read(address, n_bytes))
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from hostlink.portkit import vectors
 from hostlink.portkit.cortexm import Arg, Machine, Target
-from hostlink.portkit.estimator_c import FixedCamera, FixedInstant, TimeTT
+from hostlink.portkit.estimator_c import FixedCamera, FixedInstant, SeamConfig, TimeTT
 
 #: Star counts of the update rows (issue 28).
 UPDATE_STARS = (8, 16, 32)
@@ -326,3 +326,247 @@ def run_vectors(m: Machine, docs: dict[str, dict] | None = None) -> list[VectorR
         worst = check(m, docs[name])
         out.append(VectorResult(name, worst, worst <= 1.0))
     return out
+
+
+# --------------------------------------------------------------------------------------------- the estimator
+def _frame_rows(frame, n_stars: int):
+    """The first ``n_stars`` identified stars of a frame (x, y, r, identified), or None if it has fewer."""
+    x, y, r, ident = frame
+    rows = np.flatnonzero(np.asarray(ident, bool))[:n_stars]
+    if rows.size < n_stars:
+        return None
+    return (
+        np.ascontiguousarray(x[rows], np.float64),
+        np.ascontiguousarray(y[rows], np.float64),
+        np.ascontiguousarray(r[rows], np.float64),
+        np.ones(n_stars, np.uint8),
+    )
+
+
+def measure_updates(m: Machine, nominal, frames: list, n_stars: int, precision: str, noise_px: float = 0.05):
+    """The estimator seam (onboard/c/estimator_seam.h, the path firmware.c takes) started cold from the nominal
+    set on the target and fed ``frames`` cut to their first ``n_stars`` identified stars; the Python seam
+    (onboard.firmware.RecursiveEstimator) fed the same. Returns (per-update :class:`~hostlink.portkit.cortexm.Call`
+    list, the target's estimate minus the Python one in units of the Python 1-sigma, worst over parameters)."""
+    from onboard import banks
+    from onboard.firmware import RecursiveEstimator
+    from onboard.params import ESTIMATE_NAMES
+    from onboard.recursive import RecursiveConfig
+    from protocol.param_table import decode_table
+
+    table = banks.params_to_table(nominal, np.full(10, np.nan))
+    py = RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(centroid_noise_px=noise_px), precision=precision)
+    py_state = py.start(banks.table_to_params(table), banks.table_to_sigma(table))
+    cfg = SeamConfig((1 << len(ESTIMATE_NAMES)) - 1, int(precision == "fixed"), noise_px)
+    m.reset_scratch()
+    n_state, _ = m.call("estimator_seam_state_bytes", returns="u32")
+    state = m.alloc(n_state + 16)
+    status, _ = m.call("estimator_seam_start", state, cfg, _f32(decode_table(table)), returns="i32")
+    if status != 0:
+        raise ValueError(f"the target's estimator refused the nominal set (status {status})")
+    calls = []
+    mark = m.mark()
+    for frame in frames:
+        cut = _frame_rows(frame, n_stars)
+        if cut is None:
+            continue
+        x, y, r, ident = cut
+        py.update(py_state, x, y, r, ident.astype(bool))
+        status, cost = m.call("estimator_seam_update", state, n_stars, x, y, r, ident, returns="i32")
+        m.release(mark)
+        if status != 0:
+            raise ValueError(f"the target's update failed (status {status}) where the Python one did not")
+        calls.append(cost)
+    values, sigma = np.zeros(10, np.float32), np.zeros(10, np.float32)
+    mask, count = np.zeros(1, np.uint32), np.zeros(1, np.uint32)
+    m.call("estimator_seam_estimate", state, values, sigma, mask, count)
+    v_py, s_py, m_py, n_py = py.estimate(py_state)
+    if (int(mask[0]), int(count[0])) != (int(m_py), int(n_py)):
+        raise ValueError("the target's estimator used other frames than the Python sensor's")
+    deviation = float(np.max(np.abs(values.astype(np.float64) - np.asarray(v_py, np.float64)) / np.asarray(s_py)))
+    return calls, deviation
+
+
+# --------------------------------------------------------------------------------------------- the commands
+#: Bytes per STAGE_CHUNK (hostlink.links.serial_link's chunk: the smallest a link sends, so the most chunks).
+CHUNK_BYTES = 32
+
+
+def _fw_call(m: Machine, fw: int, message) -> tuple[object, object, dict]:
+    """One command through firmware_handle (sil_handle) on the target: (decoded reply, Call, flash operations)."""
+    from protocol import messages as msg
+
+    raw = np.frombuffer(msg.encode(message), np.uint8).copy()
+    reply = np.zeros(128, np.uint8)
+    n = np.zeros(1, np.uint32)
+    erases, programmed = m.read_u32("cortexm_flash_erases"), m.read_u32("cortexm_flash_programmed_bytes")
+    mark = m.mark()
+    result, cost = m.call("sil_handle", fw, raw, raw.size, reply, reply.size, n, returns="i32")
+    m.release(mark)
+    if result != 0:
+        raise ValueError(f"the target's firmware gave no reply to {type(message).__name__} (result {result})")
+    flash = {
+        "sector_erases": m.read_u32("cortexm_flash_erases") - erases,
+        "programmed_bytes": m.read_u32("cortexm_flash_programmed_bytes") - programmed,
+    }
+    return msg.decode(bytes(reply[: int(n[0])])), cost, flash
+
+
+def measure_commands(m: Machine, factory, new_set, precision: str) -> dict[str, tuple]:
+    """A whole upload on the target's firmware (firmware.c through sil_binding.c, booted on a fresh flash with
+    ``factory`` as generation 1): STAGE_BEGIN, the table in CHUNK_BYTES chunks, STAGE_VERIFY, COMMIT. Returns
+    command -> (Call, flash operations) (the chunk's worst); every reply must be the Ack a Python sensor gives."""
+    from onboard import banks
+    from protocol import messages as msg
+    from protocol.param_table import TABLE_BYTES, table_crc
+
+    m.reset_scratch()
+    m.write(0x6000_0000, b"\xff" * banks.FLASH_BYTES)  # a fresh (erased) flash device
+    fw_bytes, _ = m.call("sil_firmware_bytes", returns="u32")
+    est_bytes, _ = m.call("sil_estimator_bytes", returns="u32")
+    fw, est = (m.alloc(fw_bytes + 16) + 15) & ~15, (m.alloc(est_bytes + 16) + 15) & ~15
+    callbacks = [m.address(f) | 1 for f in ("cortexm_flash_read", "cortexm_flash_erase", "cortexm_flash_program")]
+    budget_flops, frame_s = 50e6, 0.1  # onboard.firmware.EstimatorBudget's defaults
+    result, boot = m.call(
+        "sil_boot",
+        fw,
+        *callbacks,
+        m.address("cortexm_random32") | 1,
+        np.arange(12, dtype=np.uint8),  # the device's unique ID
+        Arg("u32", 0),  # no plausibility limits
+        Arg("f64", 0.0),
+        Arg("f64", 0.0),
+        Arg("f64", 0.0),
+        np.frombuffer(b"design value\0", np.uint8).copy(),
+        np.frombuffer(banks.params_to_table(factory), np.uint8).copy(),
+        est,
+        Arg("u32", 0x3FF),
+        Arg("u32", int(precision == "fixed")),
+        Arg("f32", 0.05),
+        Arg("f64", budget_flops),
+        Arg("f64", frame_s),
+        returns="i32",
+    )
+    if result != 0:
+        raise ValueError(f"the target's firmware did not boot (result {result})")
+    table = banks.params_to_table(new_set)
+    out: dict[str, tuple] = {"boot (factory set)": (boot, {})}
+    reply, cost, flash = _fw_call(m, fw, msg.StageBegin(tag=1, length=TABLE_BYTES))
+    _expect_ack(reply, "STAGE_BEGIN")
+    nonce = int(reply.value)
+    out["stage begin"] = (cost, flash)
+    worst = None
+    for k, offset in enumerate(range(0, TABLE_BYTES, CHUNK_BYTES)):
+        chunk = msg.StageChunk(tag=2 + k, offset=offset, data=bytes(table[offset : offset + CHUNK_BYTES]))
+        reply, cost, flash = _fw_call(m, fw, chunk)
+        _expect_ack(reply, "STAGE_CHUNK")
+        if worst is None or cost.instructions > worst[0].instructions:
+            worst = (cost, flash)
+    out["stage chunk"] = worst
+    crc = table_crc(bytes(table))
+    reply, cost, flash = _fw_call(m, fw, msg.StageVerify(tag=20, crc32=crc))
+    _expect_ack(reply, "STAGE_VERIFY")
+    out["stage verify"] = (cost, flash)
+    reply, cost, flash = _fw_call(m, fw, msg.Commit(tag=21, crc32=crc, nonce=nonce, expected_generation=1))
+    _expect_ack(reply, "COMMIT")
+    out["commit"] = (cost, flash)
+    reply, _, _ = _fw_call(m, fw, msg.ReadActive(tag=22))
+    if not isinstance(reply, msg.ParamTable) or bytes(reply.table) != bytes(table):
+        raise ValueError("the target's active set after COMMIT is not the uploaded table")
+    return out
+
+
+def _expect_ack(reply, what: str) -> None:
+    from protocol import messages as msg
+
+    if not isinstance(reply, msg.Ack):
+        raise ValueError(f"the target's firmware refused {what}: {reply}")
+
+
+# --------------------------------------------------------------------------------------------- the report
+#: Refraction's site constants for the row (A, B of R = A tan z + B tan^3 z at sea level, 10 C [rad]).
+_REFRACTION_AB_RAD = (2.9e-4, -3.0e-7)
+
+
+def _refraction_cost(m: Machine, docs: dict, precision: str, n: int):
+    """Refraction by addition of ``n`` directions (the vector file's first case, repeated to n) on the target."""
+    m.reset_scratch()
+    if precision == "fixed":
+        inp = next(_cases(docs["refraction_by_addition.fixed.json"]))[0]
+        r = _i64(np.resize(inp["r_q30"], (n, 3)))
+        a, b = (int(v) for v in inp["ab_q56"])
+        args = (r, n, _i64(inp["zenith_q30"]), _i64(inp["beta_q48"]), Arg("i32", 1), Arg("i64", a), Arg("i64", b))
+        return m.call("refraction_topocentric_observed_q30", *args, np.zeros((n, 3), np.int64))[1]
+    inp = next(_cases(docs["refraction_by_addition.float32.json"]))[0]
+    r = _f32(np.resize(inp["r"], (n, 3)))
+    a, b = (Arg("f64", v) for v in _REFRACTION_AB_RAD)
+    return m.call("refraction_refract_toward_zenith", r, n, _f32(inp["zenith"]), a, b, np.zeros((n, 3), np.float32))[1]
+
+
+def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -> TargetReport:
+    """Everything ``hostlink costs --target`` prints for one target (module docstring): ``frames`` are a replayed
+    session's (x, y, r, identified) per frame, each with at least 32 identified stars."""
+    say = progress or (lambda _text: None)
+    say(f"{tgt.name}: building the image")
+    m = Machine(tgt)
+    docs = vectors.generate_vectors()
+    say(f"{tgt.name}: golden vectors")
+    results = run_vectors(m, docs)
+    fw_bytes, _ = m.call("sil_firmware_bytes", returns="u32")
+    est_bytes, _ = m.call("sil_estimator_bytes", returns="u32")
+    report = TargetReport(tgt, m.image.flash_bytes, m.image.ram_bytes + fw_bytes + est_bytes, est_bytes)
+    report.vectors = results
+    rows: list[Row] = []
+    deviations = {}
+    for n in UPDATE_STARS:
+        say(f"{tgt.name}: recursive updates at {n} stars")
+        calls, deviation = measure_updates(m, nominal, frames, n, tgt.precision)
+        worst = max(calls, key=lambda c: c.instructions)
+        rows.append(
+            Row("recursive update", n, tgt.precision, worst.instructions, None, max(c.stack_bytes for c in calls))
+        )
+        deviations[str(n)] = {"updates": len(calls), "estimate_vs_python_sigma": deviation}
+    say(f"{tgt.name}: an upload's commands")
+    for what, (cost, flash) in measure_commands(m, nominal, new_set, tgt.precision).items():
+        if what in ("stage chunk", "stage verify", "commit"):
+            rows.append(Row(what, None, tgt.precision, cost.instructions, None, cost.stack_bytes, str(flash)))
+    cost = _refraction_cost(m, docs, tgt.precision, REFRACTION_STARS)
+    rows.append(
+        Row("refraction by addition", REFRACTION_STARS, tgt.precision, cost.instructions, None, cost.stack_bytes)
+    )
+    report.rows = rows
+    report.stack_bytes = max(r.stack_bytes for r in rows)
+    report.session = deviations
+    return report
+
+
+def format_reports(reports: list[TargetReport]) -> str:
+    """The table ``hostlink costs --target`` prints."""
+    lines = []
+    for rep in reports:
+        t = rep.target
+        mhz = t.clock_hz / 1e6
+        lines.append(f"{t.name}: {t.description}")
+        lines.append(
+            f"  flash {rep.flash_bytes} bytes (text + rodata + data), RAM {rep.ram_bytes} bytes (data + bss + the "
+            f"firmware and estimator state, of which estimator {rep.state_bytes}), deepest stack {rep.stack_bytes} "
+            f"bytes; golden vectors {'all passed' if rep.vectors_passed else 'FAILED'} "
+            f"({sum(v.passed for v in rep.vectors)}/{len(rep.vectors)} files)"
+        )
+        lines.append(
+            f"  {'what':<24} {'stars':>5} {'precision':<9} {'instructions':>13} {'cycles':>8} {'stack':>6} "
+            f"{'ms @' + format(mhz, 'g') + ' MHz*':>14} {'% of 10 Hz*':>11}"
+        )
+        for r in rep.rows:
+            ms = r.instructions / t.clock_hz * 1e3
+            lines.append(
+                f"  {r.what:<24} {'-' if r.stars is None else r.stars:>5} {r.precision:<9} {r.instructions:>13} "
+                f"{'-' if r.cycles is None else r.cycles:>8} {r.stack_bytes:>6} {ms:>14.2f} "
+                f"{100 * ms / 1e3 / FRAME_PERIOD_S:>10.1f}%"
+            )
+        lines.append("")
+    lines.append(
+        "* at one instruction per cycle, a lower bound (the emulator counts instructions exactly but models no "
+        "cycles: loads, taken branches, divisions, soft-float calls and flash wait states cost more)"
+    )
+    return "\n".join(lines)
