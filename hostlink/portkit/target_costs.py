@@ -347,7 +347,8 @@ def measure_updates(m: Machine, nominal, frames: list, n_stars: int, precision: 
     """The estimator seam (onboard/c/estimator_seam.h, the path firmware.c takes) started cold from the nominal
     set on the target and fed ``frames`` cut to their first ``n_stars`` identified stars; the Python seam
     (onboard.firmware.RecursiveEstimator) fed the same. Returns (per-update :class:`~hostlink.portkit.cortexm.Call`
-    list, the target's estimate minus the Python one in units of the Python 1-sigma, worst over parameters)."""
+    list, the target's estimate minus the Python one in units of the Python 1-sigma, worst over parameters, the
+    target's (estimate, 1-sigma) in float32)."""
     from onboard import banks
     from onboard.firmware import RecursiveEstimator
     from onboard.params import ESTIMATE_NAMES
@@ -384,7 +385,7 @@ def measure_updates(m: Machine, nominal, frames: list, n_stars: int, precision: 
     if (int(mask[0]), int(count[0])) != (int(m_py), int(n_py)):
         raise ValueError("the target's estimator used other frames than the Python sensor's")
     deviation = float(np.max(np.abs(values.astype(np.float64) - np.asarray(v_py, np.float64)) / np.asarray(s_py)))
-    return calls, deviation
+    return calls, deviation, (values, sigma)
 
 
 # --------------------------------------------------------------------------------------------- the commands
@@ -520,7 +521,7 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -
     deviations = {}
     for n in UPDATE_STARS:
         say(f"{tgt.name}: recursive updates at {n} stars")
-        calls, deviation = measure_updates(m, nominal, frames, n, tgt.precision)
+        calls, deviation, _ = measure_updates(m, nominal, frames, n, tgt.precision)
         worst = max(calls, key=lambda c: c.instructions)
         rows.append(
             Row("recursive update", n, tgt.precision, worst.instructions, None, max(c.stack_bytes for c in calls))
