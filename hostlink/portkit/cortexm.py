@@ -195,7 +195,7 @@ def build_image(tgt: Target) -> Path:
     for name, text in sorted(sources.items()):
         digest.update(name.encode() + b"\0" + text.encode() + b"\0")
     digest.update(" ".join((version, tgt.triple, tgt.cpu, *WARNING_FLAGS, *CODE_FLAGS, *MUSL_MATH)).encode())
-    digest.update(_LINKER_SCRIPT.encode())
+    digest.update(_LINKER_SCRIPT.encode() + b"with its map")
     root = _cache_root()
     elf = root / f"{tgt.name}-{digest.hexdigest()[:24]}.elf"
     if elf.is_file():
@@ -253,7 +253,9 @@ def build_image(tgt: Target) -> Path:
         (work / "image.ld").write_text(_LINKER_SCRIPT)
         out = work / "image.elf"
         cmd = ["cc", *target_flags, "-nostartfiles", "-T", "image.ld", "-Wl,--gc-sections", "-Wl,--no-entry"]
+        cmd.append(f"-Wl,-Map={work / 'image.map'}")
         _checked(_zig(*cmd, *map(str, objects), "-o", str(out), cwd=work), f"the {tgt.name} image did not link")
+        os.replace(work / "image.map", elf.with_suffix(".map"))
         os.replace(out, elf)
     return elf
 
@@ -262,6 +264,35 @@ def _checked(run: subprocess.CompletedProcess, what: str) -> None:
     if run.returncode != 0:
         lines = [ln for ln in (run.stderr or run.stdout).strip().splitlines() if ln.strip()]
         raise UserError(f"{what}: {' | '.join(lines[:3])}")
+
+
+def flash_breakdown(elf: Path) -> dict[str, int]:
+    """Flash bytes by origin, from the linker's map beside the image: "core" (onboard/c), "codec" (the generated
+    wire codec), "binding and glue" (sil_binding.c, cortexm_glue.c: not flight code), "runtime" (the compiler runtime:
+    soft float, integer division, the libm functions, memcpy/memset). Input sections of .text, .rodata and .data."""
+    out = {"core": 0, "codec": 0, "binding and glue": 0, "runtime": 0}
+    section = ""
+    for line in Path(elf).with_suffix(".map").read_text().splitlines():
+        parts = line.split()
+        if len(parts) < 5 or not all(c in "0123456789abcdef" for c in parts[0]):
+            continue
+        name = parts[-1]
+        if name.startswith("."):  # an output section
+            section = name
+            continue
+        if section not in (".text", ".rodata", ".data", ".ARM.exidx") or ":(" not in name:
+            continue
+        size = int(parts[2], 16)
+        origin = name.split(":(")[0]
+        if "core_st_" in origin:
+            out["codec"] += size
+        elif "core_" in origin:
+            out["core"] += size
+        elif "glue_" in origin:
+            out["binding and glue"] += size
+        else:
+            out["runtime"] += size
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------ ELF
@@ -354,7 +385,8 @@ class Machine:
         from unicorn import arm_const
 
         self.target = tgt
-        self.image = read_elf(build_image(tgt))
+        self.elf = build_image(tgt)
+        self.image = read_elf(self.elf)
         self._uc_mod = unicorn
         self._arm = arm_const
         uc = unicorn.Uc(unicorn.UC_ARCH_ARM, unicorn.UC_MODE_THUMB | unicorn.UC_MODE_MCLASS)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.portkit import vectors
-from hostlink.portkit.cortexm import Arg, Machine, Target
+from hostlink.portkit.cortexm import Arg, Machine, Target, flash_breakdown
 from hostlink.portkit.estimator_c import FixedCamera, FixedInstant, SeamConfig, TimeTT
 
 #: Star counts of the update rows (issue 28).
@@ -60,6 +60,7 @@ class TargetReport:
     vectors: list[VectorResult] = field(default_factory=list)
     rows: list[Row] = field(default_factory=list)
     session: dict = field(default_factory=dict)
+    flash_by_origin: dict = field(default_factory=dict)
 
     @property
     def vectors_passed(self) -> bool:
@@ -73,6 +74,7 @@ class TargetReport:
             "clock_hz": self.target.clock_hz,
             "flash_bytes": self.flash_bytes,
             "ram_bytes": self.ram_bytes,
+            "flash_by_origin": self.flash_by_origin,
             "estimator_state_bytes": self.state_bytes,
             "stack_bytes": self.stack_bytes,
             "vectors_passed": self.vectors_passed,
@@ -517,6 +519,7 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -
     est_bytes, _ = m.call("sil_estimator_bytes", returns="u32")
     report = TargetReport(tgt, m.image.flash_bytes, m.image.ram_bytes + fw_bytes + est_bytes, est_bytes)
     report.vectors = results
+    report.flash_by_origin = flash_breakdown(m.elf)
     rows: list[Row] = []
     deviations = {}
     for n in UPDATE_STARS:
@@ -554,6 +557,7 @@ def format_reports(reports: list[TargetReport]) -> str:
             f"bytes; golden vectors {'all passed' if rep.vectors_passed else 'FAILED'} "
             f"({sum(v.passed for v in rep.vectors)}/{len(rep.vectors)} files)"
         )
+        lines.append("  flash by origin: " + ", ".join(f"{k} {v}" for k, v in rep.flash_by_origin.items()))
         lines.append(
             f"  {'what':<24} {'stars':>5} {'precision':<9} {'instructions':>13} {'cycles':>8} {'stack':>6} "
             f"{'ms @' + format(mhz, 'g') + ' MHz*':>14} {'% of 10 Hz*':>11}"
