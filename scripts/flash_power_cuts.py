@@ -120,10 +120,14 @@ def session_counter(flash: Path) -> int:
     return banks.boot(banks.RamFlash(np.fromfile(flash, dtype=np.uint8))).nonce_counter
 
 
-def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial", replays: bool = True) -> list[Trial]:
+def run_trials(
+    n_trials: int, seed: int, workdir: Path, transport: str = "serial", replays: bool = True, firmware: str = "python"
+) -> list[Trial]:
     """``n_trials`` power cuts on one flash file in ``workdir``; returns each trial's outcome. Reading the active set
     writes nothing to flash, so the emulator restarted to check a trial is already armed for the next one. With
-    ``replays`` (serial only), a recorded upload is sent again after each restart (module docstring)."""
+    ``replays`` (serial only), a recorded upload is sent again after each restart (module docstring). ``firmware``:
+    the emulator's (``hostlink emulate --firmware``: python or c)."""
+    emulator_args = (*EMULATOR_ARGS, "--firmware", firmware)
     rng = random.Random(seed)
     replay_rng = random.Random(seed + 1)  # its own stream: the cut points do not depend on whether replays run
     replays = replays and transport == "serial"
@@ -133,10 +137,10 @@ def run_trials(n_trials: int, seed: int, workdir: Path, transport: str = "serial
 
     def start(k: int) -> EmulatorProcess:
         hook = () if k >= n_trials or cut_units[k] is None else ("--power-cut-after", str(cut_units[k]))
-        return EmulatorProcess(transport, (*EMULATOR_ARGS, *hook), flash_path=flash)
+        return EmulatorProcess(transport, (*emulator_args, *hook), flash_path=flash)
 
     trials = []
-    emulator = EmulatorProcess(transport, EMULATOR_ARGS, flash_path=flash)
+    emulator = EmulatorProcess(transport, emulator_args, flash_path=flash)
     try:
         t0 = time.monotonic()
         first = bytearray()
@@ -192,9 +196,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--transport", default="serial", choices=("serial", "can", "modbus"))
     parser.add_argument("--no-replays", action="store_true", help="power cuts only (replays need --transport serial)")
+    parser.add_argument("--firmware", default="python", choices=("python", "c"), help="the emulated sensor's firmware")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        trials = run_trials(args.trials, args.seed, Path(tmp), args.transport, not args.no_replays)
+        trials = run_trials(args.trials, args.seed, Path(tmp), args.transport, not args.no_replays, args.firmware)
     counts = Counter(t.outcome if t.outcome in ("old", "new") else "other" for t in trials)
     for t in trials:
         if t.outcome not in ("old", "new"):

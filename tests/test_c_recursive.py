@@ -212,3 +212,21 @@ def _configs_equal(a: estimator_c.Config, b: estimator_c.Config) -> bool:
         if x != y:
             return False
     return True
+
+
+def test_c_prior_refuses_the_sigmas_python_refuses():
+    from onboard.params import ParameterError
+
+    lib = estimator_c.load()
+    rng = np.random.default_rng(12)
+    pool = np.array([np.nan, 0.0, 1e-9, 0.5, 3.0, -0.1, -np.inf, np.inf, 1e30])
+    for _ in range(300):
+        sigma = np.ascontiguousarray(rng.choice(pool, 10), dtype=np.float64)
+        try:
+            prior.validate_sigma(sigma)
+            want = -1
+        except ParameterError as exc:
+            want = prior.SIGMA_FILE_FIELDS.index(exc.field)
+        assert lib.prior_validate_sigma(ptr(sigma)) == want
+        mask = sum(1 << k for k, ok in enumerate(prior.refined_mask(sigma)) if ok)
+        assert lib.prior_refined_mask(ptr(sigma)) == mask

@@ -88,11 +88,13 @@ def test_recorded_serial_upload_bytes_replayed_after_a_restart_activate_nothing(
     assert active.generation == 3 and banks.params_to_table(active.params) == banks.params_to_table(NOMINAL)
 
 
-def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path):
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_kill_9_at_random_points_of_uploads_leaves_the_complete_old_or_new_set(tmp_path, firmware):
     """20 power cuts (seed 15): 10 from inside at an exact flash write unit, 10 kill -9 from outside at random times;
     after each restart a recorded upload (whole, a prefix or some of its frames) is replayed on the line and activates
-    nothing. The 200-point acceptance run is ``scripts/flash_power_cuts.py --trials 200`` (docs/hardware.md)."""
-    trials = load_script("flash_power_cuts.py").run_trials(20, seed=15, workdir=tmp_path)
+    nothing; with the Python firmware and with the C core (``--firmware c``). The 200-point acceptance run is
+    ``scripts/flash_power_cuts.py --trials 200 [--firmware c]`` (docs/hardware.md)."""
+    trials = load_script("flash_power_cuts.py").run_trials(20, seed=15, workdir=tmp_path, firmware=firmware)
     assert [t.outcome for t in trials if t.outcome not in ("old", "new")] == []
     assert len(trials) == 20 and sum(t.how.startswith("inside") for t in trials) == 10
     assert [t.replay_outcome for t in trials if t.replay_outcome != "nothing activated"] == []

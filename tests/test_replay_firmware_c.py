@@ -15,7 +15,7 @@ from hostlink.cli import main
 from hostlink.errors import UserError
 from hostlink.files.params import load_params
 from hostlink.files.session import write_session
-from hostlink.portkit import estimator_c
+from hostlink.portkit import estimator_c, firmware_c
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.prior import sigma_from_dict
 
@@ -65,5 +65,21 @@ def test_replay_firmware_c_refuses_float64_in_one_line(session_files, capsys):
 
 def test_no_compiler_is_a_one_line_error(monkeypatch):
     monkeypatch.setenv("CC", "no-such-compiler-27")
-    with pytest.raises(UserError, match="no C compiler found"):
-        estimator_c.build_library()
+    with pytest.raises(UserError, match="no C compiler found") as exc:
+        firmware_c.find_compiler()  # what replay --firmware c builds with
+    assert "\n" not in str(exc.value)
+
+
+def test_replay_firmware_c_refuses_more_stars_than_its_buffers_in_one_line(session_files, capsys):
+    args = ["replay", str(session_files / "session.csv"), "--nominal", str(session_files / "nominal.json")]
+    code = main([*args, "--out", str(session_files / "y.json"), "--max-stars", "40", "--firmware", "c"])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "INTERSTAR_MAX_STARS = 32" in err
+
+
+def test_the_binding_sizes_are_the_headers(session_files):
+    text = (estimator_c.c_dir() / "interstar.h").read_text()
+    assert f"#define INTERSTAR_MAX_STARS {estimator_c.MAX_STARS}" in text
+    text = (estimator_c.c_dir() / "recursive.h").read_text()
+    assert f"#define RECURSIVE_MAX_DRIFT_WINDOW {estimator_c.MAX_DRIFT_WINDOW}" in text

@@ -109,6 +109,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the emulated sensor's arithmetic: float32 (a single-precision FPU, the default) or fixed (no FPU: the "
         "onboard estimator's per-star front end in integers, its filter in soft float32)",
     )
+    parser.add_argument(
+        "--firmware",
+        choices=("python", "c"),
+        default="python",
+        help="the emulated sensor's firmware: python (the reference model, the default) or c (the C core of onboard/c, "
+        "built once with this machine's C compiler)",
+    )
     add_site_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -146,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         min_stars=args.min_stars,
         max_stars=args.max_stars,
         precision=args.precision,
+        firmware=args.firmware,
     )
     if args.camera:
         cfg.camera = load_params(args.camera)

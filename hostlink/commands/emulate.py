@@ -62,6 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "per-star front end in integers, Q10 centroids and Q30 unit vectors, its filter in soft float32)",
     )
     parser.add_argument(
+        "--firmware",
+        choices=("python", "c"),
+        default=None,
+        help="the sensor's firmware: python (the reference model, the default) or c (the C core of onboard/c, built "
+        "once with this machine's C compiler and run in the emulator: software in the loop); the default can be set "
+        "with the environment variable HOSTLINK_FIRMWARE (a test run of the link suites against the C core)",
+    )
+    parser.add_argument(
         "--flash",
         metavar="FILE",
         help="keep the sensor's parameter banks, generation and staging-session counters in this NOR-flash image "
@@ -105,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     import importlib
     import json
     import math
+    import os
     import signal
     import sys
     import threading
@@ -142,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
         flash=args.flash,
         power_cut_after_units=args.power_cut_after,
         precision=args.precision,
+        firmware=args.firmware or os.environ.get("HOSTLINK_FIRMWARE") or "python",
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra

@@ -9,7 +9,7 @@ from hostlink.errors import UserError
 from hostlink.files.params import load_params
 from onboard import banks
 from onboard.firmware import PRECISIONS, EstimatorBudget, Firmware, RecursiveEstimator
-from onboard.params import CameraParams, PlausibilityLimits
+from onboard.params import ESTIMATE_NAMES, CameraParams, PlausibilityLimits, check_plausible
 from onboard.recursive import RecursiveConfig, parse_estimate_names
 
 DEFAULT_NOMINAL = "builtin:seed004_nominal"
@@ -65,11 +65,14 @@ def build_sensor(
     flash: str | None = None,
     power_cut_after_units: int | None = None,
     precision: str = "float32",
+    firmware: str = "python",
 ) -> EmulatedSensor:
     """Firmware with the factory set ``nominal`` in bank A, fed by ``replay`` or by the simulator; ``budget`` models
     the sensor's processor (which exposures its estimator processes; default :class:`EstimatorBudget`); ``flash``:
     the flash image file (:func:`sensor_banks`; ``power_cut_after_units``: its test hook); ``precision``: the
-    sensor's arithmetic (``onboard.firmware.PRECISIONS``: "float32", or "fixed" for a sensor without an FPU)."""
+    sensor's arithmetic (``onboard.firmware.PRECISIONS``: "float32", or "fixed" for a sensor without an FPU);
+    ``firmware``: "python" (the reference model, ``onboard.firmware``) or "c" (the C core, ``onboard/c``, built and
+    run in this process: :func:`c_firmware`)."""
     from hostlink.sky.simulate import SimConfig, simulate
 
     nominal_params = load_params(nominal or DEFAULT_NOMINAL)
@@ -83,9 +86,16 @@ def build_sensor(
         from hostlink.calibration.replay import check_fixed_range
 
         check_fixed_range(nominal_params)
+    if firmware not in FIRMWARES:
+        raise UserError(f"--firmware: expected one of {', '.join(FIRMWARES)}, got {firmware!r}")
     config = RecursiveConfig(centroid_noise_px=noise_px)
-    seam = RecursiveEstimator(names, config, precision=precision) if estimator else None
-    firmware = Firmware(sensor_banks(nominal_params, flash, power_cut_after_units), seam, budget)
+    if firmware == "c":
+        sensor_firmware = c_firmware(
+            nominal_params, flash, power_cut_after_units, budget, names if estimator else None, noise_px, precision
+        )
+    else:
+        seam = RecursiveEstimator(names, config, precision=precision) if estimator else None
+        sensor_firmware = Firmware(sensor_banks(nominal_params, flash, power_cut_after_units), seam, budget)
     if replay:
         from hostlink.files.session import read_session
 
@@ -103,7 +113,7 @@ def build_sensor(
         raise UserError(f"{replay or 'simulated session'}: {exc}") from None
     if first is None:
         raise UserError(f"{replay}: the session has no frames")
-    return EmulatedSensor(firmware, _chain(first, source))
+    return EmulatedSensor(sensor_firmware, _chain(first, source))
 
 
 def sensor_banks(
@@ -125,6 +135,49 @@ def sensor_banks(
     if store.active_record is None:
         store = banks.factory_store(nominal, flash=device, limits=limits, identity=identity)
     return store
+
+
+#: The firmwares ``hostlink emulate --firmware`` runs: the Python reference model and the C core.
+FIRMWARES = ("python", "c")
+
+
+def c_firmware(
+    nominal: CameraParams,
+    flash: str | None = None,
+    power_cut_after_units: int | None = None,
+    budget: EstimatorBudget | None = None,
+    estimate_names: tuple[str, ...] | None = ESTIMATE_NAMES,
+    noise_px: float = 0.05,
+    precision: str = "float32",
+):
+    """The C firmware core (``hostlink.portkit.firmware_c``) over the same banks as :func:`sensor_banks`: RAM or the
+    ``flash`` file, booted, the factory set ``nominal`` written first when the flash holds no set; a new device
+    identity. ``estimate_names`` None: no estimator. A build without the estimator's C implementation has none
+    either: READ_ESTIMATE then answers NO_ESTIMATE ("this sensor has no onboard estimator")."""
+    from hostlink.portkit.firmware_c import CFirmware
+
+    limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
+    check_plausible(nominal, limits)  # what factory_store checks before it writes the set
+    identity = banks.random_identity()
+    if flash is None:
+        device = banks.RamFlash()
+    else:
+        from hostlink.emulator.flash import FileFlash
+
+        device = FileFlash(flash, power_cut_after_units)
+    blank = banks.boot(device, limits, identity).active_record is None  # reads only: the same boot rules as the core
+    mask = 0 if estimate_names is None else sum(1 << ESTIMATE_NAMES.index(n) for n in estimate_names)
+    return CFirmware(
+        device,
+        identity,
+        limits,
+        factory=nominal if blank else None,
+        budget=budget,
+        estimate_mask=mask,
+        precision=precision,
+        centroid_noise_px=noise_px,
+        with_estimator=estimate_names is not None,
+    )
 
 
 def _chain(first, rest):

@@ -5,7 +5,8 @@ are the same on serial, CAN and Modbus, and against real or emulated sensors.
 * :func:`safe_upload`: the six-step safe upload (issue 6):
   1. the host reads the active set (its generation) and checks the new set's plausibility
      (``onboard.params.check_plausible``, the sensor's own rules, and ``onboard.prior.validate_sigma``);
-  2. the host opens a staging session (the sensor answers with a fresh nonce) and stages its float32 table
+  2. the host opens a staging session (the sensor answers with a fresh nonce, bound to that sensor and that
+     moment: an opaque value to the host, never 0) and stages its float32 table
      (``protocol.param_table``: the camera parameters and their 1-sigma prior, which the sensor's estimator restarts
      from) on the sensor in chunks;
   3. the sensor verifies the staged bytes against the CRC-32 and its plausibility rules (NAK naming the rule);

@@ -50,6 +50,9 @@ class BenchConfig:
     poll_every_frames: int = 25
     #: the sensor's arithmetic (``onboard.firmware.PRECISIONS``): "float32" (an FPU) or "fixed" (no FPU)
     precision: str = "float32"
+    #: the emulated sensor's firmware (``hostlink emulate --firmware``): "python" (the reference model) or "c" (the
+    #: C core, onboard/c)
+    firmware: str = "python"
     #: how long the host waits for the emulated sensor's reply or next frame [s]: longer than a link's default 2 s,
     #: since the sensor is a process on the same machine, which a loaded machine can stall for seconds (the bench
     #: measures the mission, not the machine's scheduling)

@@ -58,11 +58,11 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
 
     t = time.perf_counter()
     args = ["--replay", str(replay_path), "--nominal", str(nominal_path), "--noise-px", repr(cfg.noise_px)]
-    args += ["--precision", cfg.precision]
+    args += ["--precision", cfg.precision, "--firmware", cfg.firmware]
     flash = out / "sensor-flash.img"  # the sensor's NOR-flash banks (--flash); a fresh sensor for every run
     flash.unlink(missing_ok=True)
     with EmulatorProcess(cfg.transport, [*args, *cfg.emulator_args], flash_path=flash) as emulator:
-        say(f"[2/6] emulated {cfg.precision} sensor on {emulator.link}")
+        say(f"[2/6] emulated {cfg.precision} sensor ({cfg.firmware} firmware) on {emulator.link}")
         with open_link(emulator.link, cfg.link_timeout_s) as link:
             generation_before = read_active_params(link).generation
             streamed = stream_calibration_phase(run, link, t, out, say, show_progress)

@@ -256,6 +256,7 @@ def summarise(run: BenchRun) -> dict:
         | {"site": asdict(cfg.site) if cfg.site else None, "weather": asdict(cfg.weather) if cfg.weather else None},
         "transport": cfg.transport,
         "precision": cfg.precision,
+        "firmware": cfg.firmware,
         "reference_directions": run.ref_info.source,
         "refraction": run.ref_info.refraction,
         "residual_before": outcome.before,

@@ -1,10 +1,10 @@
-"""The C numerical core (``onboard/c``: camera, ud, fixedpoint, interstar, recursive, prior) built with the machine's
-C compiler and bound with ctypes, so the host runs the firmware's estimator beside the Python model
+"""The C numerical core (``onboard/c``: camera, ud, fixedpoint, interstar, recursive, prior, refraction, apparent,
+earth, timescale, attitude) bound with ctypes, so the host runs the firmware's estimator beside the Python model
 (``hostlink replay --firmware c``) and the tests prove the two equal.
 
-:func:`build_library` compiles the sources once into a shared library, cached under a hash of the sources, the
-flags and the compiler's path (a changed source rebuilds; nothing is downloaded), with the flight-code flags of
-:data:`STRICT_FLAGS` (C99, every warning an error, no fused multiply-add). :class:`CEstimator` holds one estimator
+The library is the firmware core's (:func:`hostlink.portkit.firmware_c.load_library`: built once with the machine's
+C compiler, the flight-code flags and no fused multiply-add, cached under a hash of the sources; nothing is
+downloaded); :func:`load` declares the numerical functions' signatures on it. :class:`CEstimator` holds one estimator
 state (``recursive_state_t``, allocated once) and exchanges it with ``onboard.recursive`` through the saved-state
 bytes both write (``onboard.recursive.save_state``), so a Python state and a C state can be set equal at any frame.
 """
@@ -12,11 +12,6 @@ bytes both write (``onboard.recursive.save_state``), so a Python state and a C s
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
 from dataclasses import fields
 from functools import cache
 from pathlib import Path
@@ -24,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import onboard
-from hostlink.errors import UserError
+from hostlink.portkit import firmware_c
 from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, N_PARAMS, CameraParams
 from protocol.messages import quantise_px
@@ -43,20 +38,14 @@ NUMERIC_MODULES = (
     "earth",
     "timescale",
 )
-#: Flight-code flags (issue 27): C99, all warnings as errors, conversions and shadowing included, and no
-#: contraction of a * b + c into a fused multiply-add (the float32 bound assumes every product is rounded).
-STRICT_FLAGS = (
-    "-std=c99",
-    "-Wall",
-    "-Wextra",
-    "-Werror",
-    "-pedantic",
-    "-Wconversion",
-    "-Wshadow",
-    "-ffp-contract=off",
-)
+#: Flight-code flags (issue 27): the firmware core's warnings as errors (C99, conversions and shadowing included) and
+#: no contraction of a * b + c into a fused multiply-add (the float32 bound assumes every product is rounded).
+STRICT_FLAGS = (*firmware_c.WARNING_FLAGS, "-ffp-contract=off")
 #: The SIL harness's sanitizers: any finding aborts the run.
 SANITIZE_FLAGS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer", "-g")
+#: The C core's compile-time sizes (onboard/c/interstar.h INTERSTAR_MAX_STARS, recursive.h RECURSIVE_MAX_DRIFT_WINDOW).
+MAX_STARS = 32
+MAX_DRIFT_WINDOW = 256
 #: Skip reasons of onboard.recursive.FrameResult, by recursive_skip_t.
 SKIP_TEXT = (
     "",
@@ -71,67 +60,9 @@ def c_dir() -> Path:
     return Path(onboard.__file__).parent / "c"
 
 
-def compiler() -> str:
-    """The machine's C compiler ($CC, else cc), or a one-line UserError."""
-    cc = os.environ.get("CC") or "cc"
-    path = shutil.which(cc)
-    if path is None:
-        raise UserError(f"no C compiler found ({cc!r} is not on PATH): the C firmware core needs one")
-    return path
-
-
-def _cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    try:
-        path = Path(base) / "hostlink" / "c"
-        path.mkdir(parents=True, exist_ok=True)
-        return path
-    except OSError:
-        path = Path(tempfile.gettempdir()) / f"hostlink-c-{os.getuid()}"
-        path.mkdir(parents=True, exist_ok=True)
-        return path
-
-
 def sources(modules: tuple[str, ...] = NUMERIC_MODULES) -> list[Path]:
+    """The numerical modules' C files (the SIL harness builds them with its own flags)."""
     return [c_dir() / f"{m}.c" for m in modules]
-
-
-def build_library(modules: tuple[str, ...] = NUMERIC_MODULES, extra_flags: tuple[str, ...] = ("-O2",)) -> Path:
-    """Compile the modules and the estimator seam (onboard/c/estimator_seam.c, which includes the generated
-    st_param_table.h: ``hostlink export-c``'s headers are written beside the library) into a shared library, cached
-    by a hash of sources, headers, flags and compiler; returns its path. A compile error is a UserError with the
-    compiler's first lines."""
-    from hostlink.portkit import export_c
-
-    cc = compiler()
-    flags = (*STRICT_FLAGS, *extra_flags, "-shared", "-fPIC")
-    generated = {name: text for name, text in export_c.generate_c().items() if name.endswith(".h")}
-    digest = hashlib.sha256()
-    digest.update(cc.encode())
-    digest.update(" ".join((*flags, *modules)).encode())
-    for path in sorted(c_dir().glob("*.[ch]")):
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
-    for name, text in sorted(generated.items()):
-        digest.update(name.encode())
-        digest.update(text.encode())
-    key = digest.hexdigest()[:20]
-    lib = _cache_dir() / f"onboard-numerics-{key}.so"
-    if lib.exists():
-        return lib
-    include = _cache_dir() / f"onboard-numerics-{key}-include"
-    include.mkdir(exist_ok=True)
-    for name, text in generated.items():
-        (include / name).write_text(text)
-    tmp = lib.with_suffix(f".{os.getpid()}.tmp")
-    files = [*map(str, sources(modules)), str(c_dir() / "estimator_seam.c")]
-    cmd = [cc, *flags, f"-I{include}", "-o", str(tmp), *files, "-lm"]
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    if result.returncode != 0:
-        first = " | ".join(result.stderr.strip().splitlines()[:3])
-        raise UserError(f"building the C firmware core failed: {first}")
-    os.replace(tmp, lib)
-    return lib
 
 
 # ------------------------------------------------------------------------------------------------ ctypes mirror
@@ -269,6 +200,8 @@ _SIGNATURES = {
     "recursive_save_state": (ctypes.c_size_t, [_P, _P, ctypes.c_size_t]),
     "recursive_restore_state": (ctypes.c_int, [_P, _P, ctypes.c_size_t, _P, _P]),
     "prior_config": (None, [_P, _P, _P, ctypes.c_uint32, _P]),
+    "prior_validate_sigma": (ctypes.c_int32, [_P]),
+    "prior_refined_mask": (ctypes.c_uint32, [_P]),
     "refraction_zenith_geometry": (None, [_P, ctypes.c_size_t, _P, _P, _P, _P]),
     "refraction_from_true_zenith": (ctypes.c_float, [ctypes.c_float, ctypes.c_float, ctypes.c_double, ctypes.c_double]),
     "refraction_rotate_in_vertical": (None, [_P, ctypes.c_float, _P, ctypes.c_float, ctypes.c_float, _P]),
@@ -292,8 +225,10 @@ _SIGNATURES = {
 
 @cache
 def load() -> ctypes.CDLL:
-    """The built library with every function's signature declared (built on first use, then cached)."""
-    lib = ctypes.CDLL(str(build_library()))
+    """The firmware core's library (``hostlink.portkit.firmware_c.load_library``: every onboard/c module, built once
+    with the machine's compiler and cached by source hash; no compiler is a one-line UserError) with the numerical
+    functions' signatures declared."""
+    lib = firmware_c.load_library()
     for name, (restype, argtypes) in _SIGNATURES.items():
         fn = getattr(lib, name)
         fn.restype = restype
@@ -351,6 +286,12 @@ class CEstimator:
         self.config = config
         self._camera = c_camera(nominal)
         self._config = c_config(config)
+        if config.max_stars > MAX_STARS or config.drift_window_frames > MAX_DRIFT_WINDOW:
+            raise ValueError(
+                f"max_stars {config.max_stars} / drift window {config.drift_window_frames} frames exceed the C core's "
+                f"compile-time sizes (INTERSTAR_MAX_STARS = {MAX_STARS}, RECURSIVE_MAX_DRIFT_WINDOW = "
+                f"{MAX_DRIFT_WINDOW})"
+            )
         self._state = ctypes.create_string_buffer(int(self.lib.recursive_state_size()))
         self._blob = ctypes.create_string_buffer(1 << 16)
         status = self.lib.recursive_create(

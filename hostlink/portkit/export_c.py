@@ -787,8 +787,22 @@ def generate_c() -> dict[str, str]:
     }
 
 
+def firmware_core_files() -> dict[str, str]:
+    """File name -> text of the C firmware core as shipped (``onboard/c``, package data of ``onboard``; port-kit.md),
+    every header and C file, with one implementation of the estimator seam: ``estimator_seam.c`` when present, else
+    ``estimator_none.c`` (a build without an estimator), so ``cc *.c`` links."""
+    from importlib import resources
+
+    folder = resources.files("onboard").joinpath("c")
+    files = {p.name: p.read_text() for p in folder.iterdir() if p.name.endswith((".c", ".h"))}
+    if "estimator_seam.c" in files:
+        files.pop("estimator_none.c", None)
+    return dict(sorted(files.items()))
+
+
 def write_c(directory: str | Path) -> list[Path]:
-    """Write the generated files into ``directory`` (created if needed; each file atomically). Returns the paths."""
+    """Write the generated files and the firmware core (:func:`firmware_core_files`) into ``directory`` (created if
+    needed; each file atomically). Returns the paths."""
     from hostlink.errors import UserError
     from hostlink.files.atomic import write_text
 
@@ -796,7 +810,7 @@ def write_c(directory: str | Path) -> list[Path]:
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: not a directory")
     paths = []
-    for name, text in generate_c().items():
+    for name, text in {**generate_c(), **firmware_core_files()}.items():
         path = out / name
         write_text(path, text)
         paths.append(path)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.portkit.export_c import generate_c
+from hostlink.portkit.export_c import firmware_core_files, generate_c
 from onboard import banks
 from onboard.firmware import Counters, EstimatorBudget
 from onboard.params import CameraParams, PlausibilityLimits
@@ -63,16 +63,8 @@ _RANDOM = ctypes.CFUNCTYPE(ctypes.c_uint32, ctypes.c_void_p)
 
 # ------------------------------------------------------------------------------------------------------ sources
 def core_sources() -> dict[str, str]:
-    """File name -> text of the firmware core as shipped (``onboard/c``): every header and C file, the estimator
-    implementation chosen (``estimator_seam.c`` when present, else ``estimator_none.c``)."""
-    files = {
-        p.name: p.read_text()
-        for p in resources.files("onboard").joinpath("c").iterdir()
-        if p.name.endswith((".c", ".h"))
-    }
-    if "estimator_seam.c" in files:
-        files.pop("estimator_none.c", None)
-    return dict(sorted(files.items()))
+    """File name -> text of the firmware core as shipped (``hostlink.portkit.export_c.firmware_core_files``)."""
+    return firmware_core_files()
 
 
 def estimator_available() -> bool:
