@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "print operations and memory per frame of each onboard function (float32 and fixed point) at N stars"
+HELP = (
+    "print operations and memory per frame of each onboard function (float32 and fixed point) at N stars, or "
+    "(--target) the C core's size, stack and instructions measured on an emulated Cortex-M"
+)
 DESCRIPTION = (
     "Prints, per onboard function a port needs, the multiplications, additions, divisions, square roots, "
     "trigonometric calls, shifts and comparisons of one frame at N stars (P = 2N - 3 pairs, K estimated "

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import json
 import os
 import struct
 import subprocess
@@ -253,9 +254,9 @@ def build_image(tgt: Target) -> Path:
         (work / "image.ld").write_text(_LINKER_SCRIPT)
         out = work / "image.elf"
         cmd = ["cc", *target_flags, "-nostartfiles", "-T", "image.ld", "-Wl,--gc-sections", "-Wl,--no-entry"]
-        cmd.append(f"-Wl,-Map={work / 'image.map'}")
         _checked(_zig(*cmd, *map(str, objects), "-o", str(out), cwd=work), f"the {tgt.name} image did not link")
-        os.replace(work / "image.map", elf.with_suffix(".map"))
+        origins = {str(o.name): sorted(read_elf(o).symbols) for o in objects}
+        elf.with_suffix(".symbols.json").write_text(json.dumps(origins))
         os.replace(out, elf)
     return elf
 
@@ -267,31 +268,24 @@ def _checked(run: subprocess.CompletedProcess, what: str) -> None:
 
 
 def flash_breakdown(elf: Path) -> dict[str, int]:
-    """Flash bytes by origin, from the linker's map beside the image: "core" (onboard/c), "codec" (the generated
-    wire codec), "binding and glue" (sil_binding.c, cortexm_glue.c: not flight code), "runtime" (the compiler runtime:
-    soft float, integer division, the libm functions, memcpy/memset). Input sections of .text, .rodata and .data."""
-    out = {"core": 0, "codec": 0, "binding and glue": 0, "runtime": 0}
-    section = ""
-    for line in Path(elf).with_suffix(".map").read_text().splitlines():
-        parts = line.split()
-        if len(parts) < 5 or not all(c in "0123456789abcdef" for c in parts[0]):
+    """Flash bytes by origin: "core" (onboard/c), "codec" (the generated wire codec), "binding and glue"
+    (sil_binding.c, cortexm_glue.c: not flight code) as the sizes of the image's functions and objects each object
+    file defines (recorded at the build), "runtime" the rest (the compiler runtime: soft float, 64-bit division,
+    the libm functions, memcpy/memset; and alignment padding)."""
+    image = read_elf(elf)
+    origins = json.loads(Path(elf).with_suffix(".symbols.json").read_text())
+    out = {"core": 0, "codec": 0, "binding and glue": 0}
+    seen: set[str] = set()
+    for obj, names in origins.items():
+        key = "codec" if obj.startswith("core_st_") else "core" if obj.startswith("core_") else None
+        key = "binding and glue" if obj.startswith("glue_") else key
+        if key is None:
             continue
-        name = parts[-1]
-        if name.startswith("."):  # an output section
-            section = name
-            continue
-        if section not in (".text", ".rodata", ".data", ".ARM.exidx") or ":(" not in name:
-            continue
-        size = int(parts[2], 16)
-        origin = name.split(":(")[0]
-        if "core_st_" in origin:
-            out["codec"] += size
-        elif "core_" in origin:
-            out["core"] += size
-        elif "glue_" in origin:
-            out["binding and glue"] += size
-        else:
-            out["runtime"] += size
+        for name in names:
+            if name in image.symbols and name not in seen and not name.startswith("$"):
+                seen.add(name)
+                out[key] += image.symbols[name][1]
+    out["runtime"] = image.flash_bytes - sum(out.values())
     return out
 
 
