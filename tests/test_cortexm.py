@@ -32,6 +32,23 @@ def test_thumb_instruction_lengths_follow_the_encoding():
     assert thumb_instructions(bytes.fromhex("01207047")) == 2
 
 
+def test_m0plus_cycle_table_follows_the_trm():
+    from hostlink.portkit.cortexm import m0plus_cycles
+
+    # Cortex-M0+ TRM table 3-1: ADDS 1, LDR 2, PUSH {r4-r7, lr} 1 + 5, POP {r4, pc} 3 + 1, BEQ 1 (+1 taken), B 2,
+    # BX LR 2, MOV PC, r0 2, MULS 1 (single-cycle multiplier), BL 3
+    assert m0plus_cycles(0x1840) == (1, False)
+    assert m0plus_cycles(0x6800) == (2, False)
+    assert m0plus_cycles(0xB5F0) == (6, False)
+    assert m0plus_cycles(0xBD10) == (4, False)
+    assert m0plus_cycles(0xD000) == (1, True)
+    assert m0plus_cycles(0xE7FE) == (2, False)
+    assert m0plus_cycles(0x4770) == (2, False)
+    assert m0plus_cycles(0x4687) == (2, False)
+    assert m0plus_cycles(0x4348) == (1, False)
+    assert m0plus_cycles(0xF000, 0xF800) == (3, False)
+
+
 def test_missing_tools_are_a_one_line_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "unicorn", None)  # import unicorn raises ImportError
     with pytest.raises(UserError, match=r"pip install 'startracker-companion\[cortexm\]'"):
@@ -60,6 +77,16 @@ def test_every_golden_vector_passes_on_the_emulated_processor(machine):
             assert r.worst_ratio <= 1.0, r  # float32: within each output's stated tolerance
     # the image holds the whole core and fits the mapped memories
     assert machine.image.flash_bytes > 50_000 and machine.image.sections[".text"] < cortexm.FLASH_MAP_BYTES
+
+
+@needs_tools
+def test_a_hand_counted_call_has_its_instructions_and_cycles(machine):
+    # cortexm_random32 is `ldr r0, [pc, #0]; bx lr` on the M0+ (2 instructions, 2 + 2 cycles by the TRM) and
+    # `movw r0, #0xf491; movt r0, #0x2545; bx lr` on the M4F (3); the return trap is not counted
+    value, cost = machine.call("cortexm_random32", 0, returns="u32")
+    assert value == 0x2545F491 and cost.instructions == (2 if machine.target.name == "cortex-m0plus" else 3)
+    assert cost.cycles == (4 if machine.models_cycles else None)
+    assert machine.models_cycles == (machine.target.name == "cortex-m0plus")
 
 
 def _frames(n_frames: int):
@@ -93,9 +120,11 @@ def test_instruction_counts_are_exact_run_to_run():
             m = Machine(TARGETS[name])
             calls, _, _ = measure_updates(m, _nominal(), frames, 8, TARGETS[name].precision)
             refraction = _refraction_cost(m, docs, TARGETS[name].precision, 32)
-            counts.append(([c.instructions for c in calls], [c.stack_bytes for c in calls], refraction))
+            counts.append(([(c.instructions, c.cycles) for c in calls], [c.stack_bytes for c in calls], refraction))
         assert counts[0] == counts[1]
-        assert len(counts[0][0]) == 2 and min(counts[0][0]) > 10_000
+        assert len(counts[0][0]) == 2 and min(n for n, _ in counts[0][0]) > 10_000
+        if name == "cortex-m0plus":  # every instruction takes at least one cycle
+            assert all(cycles >= n for n, cycles in counts[0][0])
 
 
 @needs_tools

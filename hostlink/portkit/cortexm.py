@@ -19,7 +19,10 @@ linker script that keeps every function of the core and drops unused runtime (fl
 Measurement (:class:`Machine`): the emulator runs one call at a time, the arguments placed per the AAPCS (the
 ``-eabihf`` VFP variant on the M4F); data the host passes lives in a scratch region outside the image. Instructions
 are counted exactly (every executed translated block adds its instruction count, decoded from the Thumb encoding:
-stable run to run); cycles are not modelled (unicorn has no timing model): ``None``. The stack's high-water mark: the
+stable run to run). Unicorn has no timing model: on the Cortex-M0+, whose timing is fixed per instruction, cycles
+are added from the TRM's table (:func:`m0plus_cycles`, zero-wait-state memory, the single-cycle multiplier; a
+conditional branch's outcome from the next block's address); on the M4F (pipelined loads, variable-latency divide,
+branch refill) they are not modelled: ``None``. The stack's high-water mark: the
 stack region is painted before a call and the deepest overwritten word found after it.
 """
 
@@ -356,12 +359,48 @@ def thumb_instructions(code: bytes) -> int:
     return n
 
 
+def m0plus_cycles(halfword: int, second: int | None = None) -> tuple[int, bool]:
+    """Cycles of one ARMv6-M instruction on a Cortex-M0+ with zero-wait-state memory and the single-cycle multiplier
+    (Cortex-M0+ Technical Reference Manual, ARM DDI 0484C, table 3-1 "Cortex-M0+ instruction summary"), and
+    whether it is a conditional branch (then this is the not-taken count; taken costs one more). ``halfword``: the
+    first 16 bits, ``second``: the next 16 for a 32-bit instruction.
+
+    Loads and stores 2; LDM/STM/PUSH 1 + N; POP 1 + N, POP with PC 3 + N (N registers besides PC); B<cond> 1 not
+    taken, 2 taken; B 2; BX, BLX 2; ADD or MOV to PC 2; BL 3; MSR, MRS 3, DMB/DSB/ISB 3 (32-bit); every other
+    instruction 1 (data processing, MULS)."""
+    h = halfword
+    if second is not None:
+        if (h & 0xF800) == 0xF000 and (second & 0xD000) == 0xD000:
+            return 3, False  # BL
+        return 3, False  # MSR, MRS, DMB, DSB, ISB (ARMv6-M's other 32-bit instructions)
+    if 0x4800 <= h <= 0x9FFF:  # LDR literal, LDR/STR register, immediate, halfword, SP-relative
+        return 2, False
+    if (h & 0xFE00) == 0xB400:  # PUSH
+        return 1 + bin(h & 0x1FF).count("1"), False
+    if (h & 0xFE00) == 0xBC00:  # POP
+        n = bin(h & 0xFF).count("1")
+        return (3 + n, False) if h & 0x100 else (1 + n, False)
+    if (h & 0xF000) == 0xC000:  # LDM, STM
+        return 1 + bin(h & 0xFF).count("1"), False
+    if (h & 0xF000) == 0xD000 and (h & 0x0F00) < 0x0E00:  # B<cond>
+        return 1, True
+    if (h & 0xF800) == 0xE000:  # B
+        return 2, False
+    if (h & 0xFF00) == 0x4700:  # BX, BLX
+        return 2, False
+    if (h & 0xFF00) in (0x4400, 0x4600) and (h & 0x87) == 0x87:  # ADD / MOV with the PC as destination
+        return 2, False
+    return 1, False
+
+
 @dataclass(frozen=True)
 class Call:
-    """What one call cost: instructions executed, the deepest stack [bytes] below the caller's stack pointer."""
+    """What one call cost: instructions executed, the deepest stack [bytes] below the caller's stack pointer, and
+    cycles where the target's timing is modelled (the Cortex-M0+; None on the M4F)."""
 
     instructions: int
     stack_bytes: int
+    cycles: int | None = None
 
 
 class Arg:
@@ -396,20 +435,43 @@ class Machine:
             uc.reg_write(arm_const.UC_ARM_REG_C1_C0_2, uc.reg_read(arm_const.UC_ARM_REG_C1_C0_2) | (0xF << 20))
             uc.reg_write(arm_const.UC_ARM_REG_FPEXC, 0x4000_0000)
         self.uc = uc
-        self._block_instructions: dict[tuple[int, int], int] = {}
+        self._blocks: dict[tuple[int, int], tuple[int, int, int | None]] = {}
         self._count = 0
-        self._counting = False
+        self._cycles = 0
+        self._pending_fallthrough: int | None = None  # a block ended in a conditional branch: its not-taken address
+        self.models_cycles = not tgt.hard_float and tgt.name == "cortex-m0plus"
         uc.hook_add(unicorn.UC_HOOK_BLOCK, self._on_block)
         self._return = self.address("cortexm_return")
         self._scratch = SCRATCH_BASE
 
     def _on_block(self, uc, address, size, _data) -> None:
         key = (address, size)
-        n = self._block_instructions.get(key)
-        if n is None:
-            n = thumb_instructions(bytes(uc.mem_read(address, size)))
-            self._block_instructions[key] = n
+        block = self._blocks.get(key)
+        if block is None:
+            block = self._decode_block(bytes(uc.mem_read(address, size)), address)
+            self._blocks[key] = block
+        if self._pending_fallthrough is not None:  # the previous block's conditional branch: taken costs one more
+            self._cycles += int(address != self._pending_fallthrough)
+            self._pending_fallthrough = None
+        n, cycles, fallthrough = block
         self._count += n
+        self._cycles += cycles
+        self._pending_fallthrough = fallthrough
+
+    def _decode_block(self, code: bytes, address: int) -> tuple[int, int, int | None]:
+        """(instructions, cycles with a final conditional branch not taken, that branch's not-taken address)."""
+        n = i = cycles = 0
+        fallthrough = None
+        while i + 1 < len(code):
+            first = code[i] | code[i + 1] << 8
+            wide = (first >> 11) in (0b11101, 0b11110, 0b11111)
+            second = (code[i + 2] | code[i + 3] << 8) if wide and i + 3 < len(code) else None
+            c, conditional = m0plus_cycles(first, second) if self.models_cycles else (0, False)
+            i += 4 if wide else 2
+            n += 1
+            cycles += c
+            fallthrough = address + i if conditional else None
+        return n, cycles, fallthrough
 
     def address(self, symbol: str) -> int:
         if symbol not in self.image.symbols:
@@ -521,12 +583,16 @@ class Machine:
                 uc.reg_write(getattr(arm, f"UC_ARM_REG_S{k}"), v)
         uc.reg_write(arm.UC_ARM_REG_SP, sp)
         uc.reg_write(arm.UC_ARM_REG_LR, self._return | 1)
-        self._count = 0
+        self._count = self._cycles = 0
+        self._pending_fallthrough = None
         uc.emu_start(entry | 1, self._return)
+        if self._pending_fallthrough is not None:  # the last branch went to the return trap: taken
+            self._cycles += int(self._return != self._pending_fallthrough)
         painted = bytes(uc.mem_read(STACK_TOP - STACK_PAINT_BYTES, STACK_PAINT_BYTES - (STACK_TOP - sp)))
         first = next((i for i, b in enumerate(painted) if b != _PAINT), len(painted))
         stack_bytes = len(painted) - first
-        return self._return_value(returns), Call(self._count, stack_bytes)
+        cycles = self._cycles if self.models_cycles else None
+        return self._return_value(returns), Call(self._count, stack_bytes, cycles)
 
     def _return_value(self, returns):
         arm, uc = self._arm, self.uc

@@ -533,10 +533,10 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -
     say(f"{tgt.name}: an upload's commands")
     for what, (cost, flash) in measure_commands(m, nominal, new_set, tgt.precision).items():
         if what in ("stage chunk", "stage verify", "commit"):
-            rows.append(Row(what, None, tgt.precision, cost.instructions, None, cost.stack_bytes, str(flash)))
+            rows.append(Row(what, None, tgt.precision, cost.instructions, cost.cycles, cost.stack_bytes, str(flash)))
     cost = _refraction_cost(m, docs, tgt.precision, REFRACTION_STARS)
     rows.append(
-        Row("refraction by addition", REFRACTION_STARS, tgt.precision, cost.instructions, None, cost.stack_bytes)
+        Row("refraction by addition", REFRACTION_STARS, tgt.precision, cost.instructions, cost.cycles, cost.stack_bytes)
     )
     report.rows = rows
     report.stack_bytes = max(r.stack_bytes for r in rows)
@@ -559,19 +559,20 @@ def format_reports(reports: list[TargetReport]) -> str:
         )
         lines.append("  flash by origin: " + ", ".join(f"{k} {v}" for k, v in rep.flash_by_origin.items()))
         lines.append(
-            f"  {'what':<24} {'stars':>5} {'precision':<9} {'instructions':>13} {'cycles':>8} {'stack':>6} "
+            f"  {'what':<24} {'stars':>5} {'precision':<9} {'instructions':>13} {'cycles':>13} {'stack':>6} "
             f"{'ms @' + format(mhz, 'g') + ' MHz*':>14} {'% of 10 Hz*':>11}"
         )
         for r in rep.rows:
-            ms = r.instructions / t.clock_hz * 1e3
+            ms = (r.instructions if r.cycles is None else r.cycles) / t.clock_hz * 1e3
             lines.append(
                 f"  {r.what:<24} {'-' if r.stars is None else r.stars:>5} {r.precision:<9} {r.instructions:>13} "
-                f"{'-' if r.cycles is None else r.cycles:>8} {r.stack_bytes:>6} {ms:>14.2f} "
+                f"{'-' if r.cycles is None else r.cycles:>13} {r.stack_bytes:>6} {ms:>14.2f} "
                 f"{100 * ms / 1e3 / FRAME_PERIOD_S:>10.1f}%"
             )
         lines.append("")
     lines.append(
-        "* at one instruction per cycle, a lower bound (the emulator counts instructions exactly but models no "
-        "cycles: loads, taken branches, divisions, soft-float calls and flash wait states cost more)"
+        "* from the modelled cycles where there are (Cortex-M0+: the TRM's per-instruction timing, zero wait "
+        "states), else at one instruction per cycle, a lower bound (the emulator counts instructions exactly; "
+        "pipelined loads, taken branches, divisions and flash wait states cost more)"
     )
     return "\n".join(lines)
