@@ -11,6 +11,7 @@ of its 1-sigma, issue 27's acceptance for the host build.
 
 from __future__ import annotations
 
+import ctypes
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -303,6 +304,59 @@ def _attitude(m: Machine, doc: dict) -> float:
     return worst
 
 
+class _BankRecord(ctypes.Structure):
+    """banks_record_t (onboard/c/banks.h)."""
+
+    _fields_ = [
+        ("seq", ctypes.c_uint32),
+        ("generation", ctypes.c_uint32),
+        ("nonce_counter", ctypes.c_uint32),
+        ("epoch", ctypes.c_uint32),
+        ("table", ctypes.c_uint8 * 92),
+    ]
+
+
+def _as_bytes(value) -> bytes:
+    return value if isinstance(value, bytes) else bytes(np.asarray(value, np.uint8))
+
+
+def _bank_record(m: Machine, doc: dict) -> float:
+    from onboard import banks
+
+    worst = 0.0
+    size, ssize = banks.BANK_RECORD_BYTES, banks.STAGE_RECORD_BYTES
+    for inp, out, _ in _cases(doc):
+        rec = _BankRecord(int(inp["seq"]), int(inp["generation"]), int(inp["nonce_counter"]), int(inp["epoch"]))
+        rec.table[:] = list(_as_bytes(inp["table"]))
+        encoded = np.zeros(size, np.uint8)
+        m.call("banks_encode_bank_record", rec, encoded)
+        worst = max(worst, _exact(list(encoded.tobytes()), list(_as_bytes(out["bank_record"]))))
+        worst = max(worst, _exact(int.from_bytes(encoded[-4:].tobytes(), "little"), int(out["record_crc32"])))
+        stage = np.zeros(ssize, np.uint8)
+        m.call("banks_encode_stage_record", Arg("u32", int(inp["stage_counter"])), Arg("u32", int(inp["epoch"])), stage)
+        worst = max(worst, _exact(list(stage.tobytes()), list(_as_bytes(out["stage_record"]))))
+        blobs = _as_bytes(inp["verify_records"])
+        valid, generation = [], []
+        for k in range(0, len(blobs), size):
+            got = _BankRecord()
+            ok, _ = m.call(
+                "banks_decode_bank_record", np.frombuffer(blobs[k : k + size], np.uint8).copy(), got, returns="i32"
+            )
+            valid.append(bool(ok))
+            generation.append(got.generation if ok else 0)
+        worst = max(worst, _exact(valid, out["verify_valid"]), _exact(generation, out["verify_generation"]))
+        stages = _as_bytes(inp["verify_stage_records"])
+        svalid, counters = [], []
+        for k in range(0, len(stages), ssize):
+            counter, epoch = np.zeros(1, np.uint32), np.zeros(1, np.uint32)
+            raw = np.frombuffer(stages[k : k + ssize], np.uint8).copy()
+            ok, _ = m.call("banks_decode_stage_record", raw, counter, epoch, returns="i32")
+            svalid.append(bool(ok))
+            counters.append(int(counter[0]) if ok else 0)
+        worst = max(worst, _exact(svalid, out["verify_stage_valid"]), _exact(counters, out["verify_stage_counter"]))
+    return worst
+
+
 #: Vector file -> its check on the target (the host's, tests/test_c_numerics_vectors.py).
 VECTOR_CHECKS = {
     "pixel_to_direction.float32.json": _pixel_to_direction_float32,
@@ -316,6 +370,7 @@ VECTOR_CHECKS = {
     "apparent_place.float32.json": _apparent_float32,
     "apparent_place.fixed.json": _apparent_fixed,
     "attitude.float32.json": _attitude,
+    "bank_record.bytes.json": _bank_record,
 }
 
 
