@@ -238,7 +238,7 @@ __all__ = [
 TARGET_COST_FRAMES = 4
 
 
-def target_costs(targets: list[str], frames: int = TARGET_COST_FRAMES, progress=None) -> list:
+def target_costs(targets: list[str], frames: int = TARGET_COST_FRAMES, progress=None, optimise: str = "O2") -> list:
     """The C firmware core measured on emulated Cortex-M processors (``hostlink costs --target``;
     hostlink.portkit.target_costs): a seed-004 session simulated with at least 32 stars per frame (Hp <= 8) is
     replayed through the target's estimator at 8, 16 and 32 stars, an upload of a refined set through its firmware.
@@ -262,4 +262,4 @@ def target_costs(targets: list[str], frames: int = TARGET_COST_FRAMES, progress=
     rows = [(session.x_px[r], session.y_px[r], refs.r[r], refs.usable[r]) for r in session.frame_slices()]
     nominal = load_params(BUILTIN_PREFIX + "seed004_nominal")
     refined = seed004_camera()  # the upload: the true camera as a refined set
-    return [tc.measure_target(t, nominal, refined, rows, progress) for t in chosen]
+    return [tc.measure_target(t, nominal, refined, rows, progress, optimise) for t in chosen]

@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=4, metavar="N", help="--target: updates per star count (default 4)"
     )
     parser.add_argument("--json", action="store_true", help="--target: print the measurements as one JSON object")
+    parser.add_argument(
+        "--optimise", choices=("O2", "Os"), default="O2", help="--target: the build's optimisation (default O2)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -53,7 +56,8 @@ def _run_targets(args: argparse.Namespace) -> int:
     from hostlink.portkit.target_costs import format_reports
 
     names = ["cortex-m4f", "cortex-m0plus"] if "all" in args.target else list(dict.fromkeys(args.target))
-    reports = target_costs(names, args.frames, progress=lambda text: print(text, file=sys.stderr, flush=True))
+    progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+    reports = target_costs(names, args.frames, progress=progress, optimise=args.optimise)
     if args.json:
         print(json.dumps({"targets": {r.target.name: r.as_json() for r in reports}}, indent=1))
     else:

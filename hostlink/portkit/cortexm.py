@@ -56,8 +56,9 @@ FLASH_DEVICE_BASE, FLASH_DEVICE_BYTES = 0x6000_0000, 64 << 10
 _PAINT = 0xA5
 #: Code generation on top of the flight-code warnings (firmware_c.WARNING_FLAGS): optimised, one section per
 #: function and object (the linker keeps the core's and drops unused runtime), no fused multiply-add.
+#: Optimisation levels ``--optimise`` offers (-O2: the host build's; -Os: for size, as flight images often are).
+OPTIMISE = ("O2", "Os")
 CODE_FLAGS = (
-    "-O2",
     "-ffp-contract=off",
     "-ffunction-sections",
     "-fdata-sections",
@@ -187,7 +188,7 @@ def image_sources() -> dict[str, str]:
     }
 
 
-def build_image(tgt: Target) -> Path:
+def build_image(tgt: Target, optimise: str = "O2") -> Path:
     """The target's ELF image, built once per sources and toolchain (cached); a compile or link error is a
     one-line UserError with the compiler's first lines."""
     from hostlink.portkit.firmware_c import WARNING_FLAGS
@@ -198,10 +199,13 @@ def build_image(tgt: Target) -> Path:
     digest = hashlib.sha256()
     for name, text in sorted(sources.items()):
         digest.update(name.encode() + b"\0" + text.encode() + b"\0")
-    digest.update(" ".join((version, tgt.triple, tgt.cpu, *WARNING_FLAGS, *CODE_FLAGS, *MUSL_MATH)).encode())
+    if optimise not in OPTIMISE:
+        raise UserError(f"--optimise must be one of {', '.join(OPTIMISE)}, got {optimise!r}")
+    flags = (*CODE_FLAGS, f"-{optimise}")
+    digest.update(" ".join((version, tgt.triple, tgt.cpu, *WARNING_FLAGS, *flags, *MUSL_MATH)).encode())
     digest.update(_LINKER_SCRIPT.encode() + b"with its map")
     root = _cache_root()
-    elf = root / f"{tgt.name}-{digest.hexdigest()[:24]}.elf"
+    elf = root / f"{tgt.name}-{optimise}-{digest.hexdigest()[:24]}.elf"
     if elf.is_file():
         return elf
     root.mkdir(parents=True, exist_ok=True)
@@ -224,7 +228,7 @@ def build_image(tgt: Target) -> Path:
                 "cc",
                 *target_flags,
                 *WARNING_FLAGS,
-                *CODE_FLAGS,
+                *flags,
                 *libc_headers,
                 f"-I{work}",
                 "-c",
@@ -239,7 +243,7 @@ def build_image(tgt: Target) -> Path:
             cmd = [
                 "cc",
                 *target_flags,
-                "-O2",
+                f"-{optimise}",
                 "-ffunction-sections",
                 "-w",
                 *libc_headers,
@@ -413,12 +417,13 @@ class Arg:
 class Machine:
     """The target's image loaded into a unicorn Cortex-M, ready for calls (:meth:`call`)."""
 
-    def __init__(self, tgt: Target) -> None:
+    def __init__(self, tgt: Target, optimise: str = "O2") -> None:
         _, unicorn = _require_tools()
         from unicorn import arm_const
 
         self.target = tgt
-        self.elf = build_image(tgt)
+        self.elf = build_image(tgt, optimise)
+        self.optimise = optimise
         self.image = read_elf(self.elf)
         self._uc_mod = unicorn
         self._arm = arm_const

@@ -62,6 +62,7 @@ class TargetReport:
     rows: list[Row] = field(default_factory=list)
     session: dict = field(default_factory=dict)
     flash_by_origin: dict = field(default_factory=dict)
+    optimise: str = "O2"
 
     @property
     def vectors_passed(self) -> bool:
@@ -73,6 +74,7 @@ class TargetReport:
             "description": self.target.description,
             "precision": self.target.precision,
             "clock_hz": self.target.clock_hz,
+            "optimise": self.optimise,
             "flash_bytes": self.flash_bytes,
             "ram_bytes": self.ram_bytes,
             "flash_by_origin": self.flash_by_origin,
@@ -561,12 +563,12 @@ def _refraction_cost(m: Machine, docs: dict, precision: str, n: int):
     return m.call("refraction_refract_toward_zenith", r, n, _f32(inp["zenith"]), a, b, np.zeros((n, 3), np.float32))[1]
 
 
-def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -> TargetReport:
+def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None, optimise: str = "O2") -> TargetReport:
     """Everything ``hostlink costs --target`` prints for one target (module docstring): ``frames`` are a replayed
     session's (x, y, r, identified) per frame, each with at least 32 identified stars."""
     say = progress or (lambda _text: None)
     say(f"{tgt.name}: building the image")
-    m = Machine(tgt)
+    m = Machine(tgt, optimise)
     docs = vectors.generate_vectors()
     say(f"{tgt.name}: golden vectors")
     results = run_vectors(m, docs)
@@ -574,6 +576,7 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -
     est_bytes, _ = m.call("sil_estimator_bytes", returns="u32")
     report = TargetReport(tgt, m.image.flash_bytes, m.image.ram_bytes + fw_bytes + est_bytes, est_bytes)
     report.vectors = results
+    report.optimise = optimise
     report.flash_by_origin = flash_breakdown(m.elf)
     rows: list[Row] = []
     deviations = {}
@@ -582,7 +585,14 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None) -
         calls, deviation, _ = measure_updates(m, nominal, frames, n, tgt.precision)
         worst = max(calls, key=lambda c: c.instructions)
         rows.append(
-            Row("recursive update", n, tgt.precision, worst.instructions, None, max(c.stack_bytes for c in calls))
+            Row(
+                "recursive update",
+                n,
+                tgt.precision,
+                worst.instructions,
+                worst.cycles,
+                max(c.stack_bytes for c in calls),
+            )
         )
         deviations[str(n)] = {"updates": len(calls), "estimate_vs_python_sigma": deviation}
     say(f"{tgt.name}: an upload's commands")
@@ -605,7 +615,7 @@ def format_reports(reports: list[TargetReport]) -> str:
     for rep in reports:
         t = rep.target
         mhz = t.clock_hz / 1e6
-        lines.append(f"{t.name}: {t.description}")
+        lines.append(f"{t.name} (-{rep.optimise}): {t.description}")
         lines.append(
             f"  flash {rep.flash_bytes} bytes (text + rodata + data), RAM {rep.ram_bytes} bytes (data + bss + the "
             f"firmware and estimator state, of which estimator {rep.state_bytes}), deepest stack {rep.stack_bytes} "
