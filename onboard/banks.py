@@ -48,7 +48,8 @@ The checks a staged set must pass (step 3) are :func:`onboard.params.check_plaus
 :class:`~onboard.params.PlausibilityLimits`, and :func:`onboard.prior.validate_sigma`, so host and sensor refuse a
 set for the same reason. Buffers are sized at start-up; every step does a bounded amount of work.
 Generations, seqs and nonces are uint32 and do not wrap: past :data:`MAX_COUNTER` (4e9) a commit or session is
-refused.
+refused. The C translation is ``onboard/c/banks.c`` (the platform's flash and identity behind ``banks_hal_t``),
+held to the same replies and flash bytes (docs/port-kit.md, section 6).
 """
 
 from __future__ import annotations

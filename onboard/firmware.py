@@ -24,7 +24,9 @@ READ_ESTIMATE      an estimator with at least one update (NO_ESTIMATE)
 =================  ======================================================================================
 
 Pure: no I/O, no clock, no threads (time comes in with each frame). The estimator is plugged in through a small
-seam (:class:`EstimatorSeam`); :class:`RecursiveEstimator` adapts ``onboard.recursive`` to it.
+seam (:class:`EstimatorSeam`); :class:`RecursiveEstimator` adapts ``onboard.recursive`` to it. The C translation is
+``onboard/c/firmware.c`` (the seam: ``estimator_seam.h``), held to the same replies byte for byte
+(docs/port-kit.md, section 6).
 
 Precision: the sensor's arithmetic is one option of its estimator, ``RecursiveEstimator(precision=...)``
 (:data:`PRECISIONS`): ``"float32"``, a single-precision FPU, or ``"fixed"``, a sensor without one, whose per-star front

@@ -116,3 +116,23 @@ def test_the_power_cut_hook_kills_the_emulator_mid_commit(tmp_path):
         emulator.stop()
     image = np.fromfile(flash, dtype=np.uint8)
     assert banks.active_set(banks.boot(banks.RamFlash(image)))[0] == 1
+
+
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_a_recorded_first_upload_replayed_to_another_fresh_sensor_commits_nothing(tmp_path, firmware):
+    """Issue 33: two new units (fresh flash files), the first upload of one recorded on its serial line and sent to the
+    other: its COMMIT is stale there (the nonce is the first sensor's), the factory set stays active."""
+    recorded = bytearray()
+    args = (*FAST, "--firmware", firmware)
+    with EmulatorProcess("serial", args, flash_path=tmp_path / "a.img") as emulator:
+        with open_link(emulator.link) as link:
+            write = link._port.write
+            link._port.write = lambda data: (recorded.extend(data), write(data))[1]  # tap the line
+            assert safe_upload(link, CAMERA).generation == 2
+    with EmulatorProcess("serial", args, flash_path=tmp_path / "b.img") as emulator:
+        with open_link(emulator.link) as link:
+            link._port.write(bytes(recorded))
+            active = read_active_params(link)  # replies in order: the replay has been handled by now
+    assert active.generation == 1 and banks.params_to_table(active.params) != banks.params_to_table(CAMERA)
+    image = np.fromfile(tmp_path / "b.img", dtype=np.uint8)
+    assert banks.boot(banks.RamFlash(image)).nonce_counter == 1  # the replay reached it: its STAGE_BEGIN was answered
