@@ -95,6 +95,7 @@ class Target:
     precision: str
     clock_hz: float
     description: str
+    cycles_modelled: bool = False
 
 
 TARGETS: dict[str, Target] = {
@@ -117,6 +118,7 @@ TARGETS: dict[str, Target] = {
         "fixed",
         64e6,
         "ARMv6-M, no FPU: the fixed-point front end in integers, the filter in soft float32",
+        cycles_modelled=True,
     ),
 }
 
@@ -352,15 +354,22 @@ def read_elf(path: Path) -> Image:
 
 
 # ------------------------------------------------------------------------------------------------ the machine
-def thumb_instructions(code: bytes) -> int:
-    """Instructions in a run of Thumb code: a halfword whose top five bits are 0b11101, 0b11110 or 0b11111 starts
-    a 32-bit instruction (ARMv7-M ARM A5.1), any other a 16-bit one."""
-    n = i = 0
+def thumb_decode(code: bytes):
+    """The instructions of a run of Thumb code as (offset, first halfword, second halfword or None): a halfword
+    whose top five bits are 0b11101, 0b11110 or 0b11111 starts a 32-bit instruction (ARMv7-M ARM A5.1), any other a
+    16-bit one."""
+    i = 0
     while i + 1 < len(code):
-        top = code[i + 1] >> 3
-        i += 4 if top in (0b11101, 0b11110, 0b11111) else 2
-        n += 1
-    return n
+        first = code[i] | code[i + 1] << 8
+        wide = (first >> 11) in (0b11101, 0b11110, 0b11111)
+        second = (code[i + 2] | code[i + 3] << 8) if wide and i + 3 < len(code) else None
+        yield i, first, second
+        i += 4 if wide else 2
+
+
+def thumb_instructions(code: bytes) -> int:
+    """Instructions in a run of Thumb code (:func:`thumb_decode`)."""
+    return sum(1 for _ in thumb_decode(code))
 
 
 def m0plus_cycles(halfword: int, second: int | None = None) -> tuple[int, bool]:
@@ -425,7 +434,6 @@ class Machine:
         self.elf = build_image(tgt, optimise)
         self.optimise = optimise
         self.image = read_elf(self.elf)
-        self._uc_mod = unicorn
         self._arm = arm_const
         uc = unicorn.Uc(unicorn.UC_ARCH_ARM, unicorn.UC_MODE_THUMB | unicorn.UC_MODE_MCLASS)
         uc.ctl_set_cpu_model(getattr(arm_const, tgt.unicorn_cpu))
@@ -444,7 +452,7 @@ class Machine:
         self._count = 0
         self._cycles = 0
         self._pending_fallthrough: int | None = None  # a block ended in a conditional branch: its not-taken address
-        self.models_cycles = not tgt.hard_float and tgt.name == "cortex-m0plus"
+        self.models_cycles = tgt.cycles_modelled
         uc.hook_add(unicorn.UC_HOOK_BLOCK, self._on_block)
         self._return = self.address("cortexm_return")
         self._scratch = SCRATCH_BASE
@@ -465,17 +473,13 @@ class Machine:
 
     def _decode_block(self, code: bytes, address: int) -> tuple[int, int, int | None]:
         """(instructions, cycles with a final conditional branch not taken, that branch's not-taken address)."""
-        n = i = cycles = 0
+        n = cycles = 0
         fallthrough = None
-        while i + 1 < len(code):
-            first = code[i] | code[i + 1] << 8
-            wide = (first >> 11) in (0b11101, 0b11110, 0b11111)
-            second = (code[i + 2] | code[i + 3] << 8) if wide and i + 3 < len(code) else None
+        for offset, first, second in thumb_decode(code):
             c, conditional = m0plus_cycles(first, second) if self.models_cycles else (0, False)
-            i += 4 if wide else 2
             n += 1
             cycles += c
-            fallthrough = address + i if conditional else None
+            fallthrough = address + offset + (2 if second is None else 4) if conditional else None
         return n, cycles, fallthrough
 
     def address(self, symbol: str) -> int:
