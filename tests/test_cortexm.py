@@ -188,6 +188,7 @@ def test_costs_target_json_reports_the_issue_fields(capsys, name):
     precision = TARGETS[name].precision
     assert rep["vectors_passed"] is True
     assert rep["flash_bytes"] > 0 and rep["ram_bytes"] > rep["estimator_state_bytes"] > 0 and rep["stack_bytes"] > 0
+    assert rep["ram_bytes"] == sum(rep["ram_parts"].values())
     rows = {(r["what"], r["stars"]) for r in rep["rows"]}
     assert {("recursive update", n) for n in (8, 16, 32)} <= rows
     assert {("stage chunk", None), ("stage verify", None), ("commit", None), ("refraction by addition", 32)} <= rows

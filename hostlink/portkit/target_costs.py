@@ -57,6 +57,8 @@ class TargetReport:
     flash_bytes: int
     ram_bytes: int
     state_bytes: int
+    firmware_state_bytes: int = 0
+    image_ram_bytes: int = 0
     stack_bytes: int = 0
     vectors: list[VectorResult] = field(default_factory=list)
     rows: list[Row] = field(default_factory=list)
@@ -78,6 +80,11 @@ class TargetReport:
             "flash_bytes": self.flash_bytes,
             "ram_bytes": self.ram_bytes,
             "flash_by_origin": self.flash_by_origin,
+            "ram_parts": {
+                "data_bss": self.image_ram_bytes,
+                "firmware_state": self.firmware_state_bytes,
+                "estimator_state": self.state_bytes,
+            },
             "estimator_state_bytes": self.state_bytes,
             "stack_bytes": self.stack_bytes,
             "vectors_passed": self.vectors_passed,
@@ -574,7 +581,8 @@ def measure_target(tgt: Target, nominal, new_set, frames: list, progress=None, o
     results = run_vectors(m, docs)
     fw_bytes, _ = m.call("sil_firmware_bytes", returns="u32")
     est_bytes, _ = m.call("sil_estimator_bytes", returns="u32")
-    report = TargetReport(tgt, m.image.flash_bytes, m.image.ram_bytes + fw_bytes + est_bytes, est_bytes)
+    ram = m.image.ram_bytes + fw_bytes + est_bytes  # the statics a flight image holds: its own, firmware_t, the state
+    report = TargetReport(tgt, m.image.flash_bytes, ram, est_bytes, fw_bytes, m.image.ram_bytes)
     report.vectors = results
     report.optimise = optimise
     report.flash_by_origin = flash_breakdown(m.elf)
