@@ -257,6 +257,8 @@ class CFirmware:
             {"float32": 0, "fixed": 1}[precision], centroid_noise_px, budget.flops_per_s, budget.min_frame_period_s,
         )  # fmt: skip
         self._raise_power_cut()
+        if result == 2:
+            raise RuntimeError("the flash could not be read while booting the C firmware")
         if result != 0:
             raise ValueError("the estimator budget needs flops_per_s > 0 and min_frame_period_s > 0")
         self.flash = flash

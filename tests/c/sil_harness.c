@@ -2,7 +2,8 @@
  * (tests/test_firmware_c.py): a RAM NOR flash behind the HAL (erase to 0xFF, program clears bits in whole 8-byte
  * units, a power budget that cuts an operation part-way), a seeded generator of commands (uploads, refused and
  * mutated commands, random bytes), power cuts and reboots. Every reply must decode; a NOR rule broken by the core
- * (a program that is not whole aligned units) stops the run with exit status 1. Usage: sil N (commands). */
+ * (a program that is not whole aligned units) stops the run with exit status 1. Usage: sil N [fuzz]: N commands; with
+ * "fuzz" every one of them is mutated (a byte changed, cut, or random bytes after its type byte). */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -132,6 +133,7 @@ static void good_table(uint8_t table[ST_PARAM_TABLE_BYTES], uint32_t variant)
 int main(int argc, char **argv)
 {
     const long n_commands = argc > 1 ? atol(argv[1]) : 10000;
+    const int fuzz_all = argc > 2 && strcmp(argv[2], "fuzz") == 0;
     uint8_t buf[ST_MSG_MAX_BYTES];
     uint8_t reply[FIRMWARE_REPLY_MAX_BYTES];
     uint8_t table[ST_PARAM_TABLE_BYTES];
@@ -195,10 +197,16 @@ int main(int argc, char **argv)
             fprintf(stderr, "encode failed for type %u\n", cmd.type);
             return 1;
         }
-        if (a % 7u == 0u) { /* a mutated message: a byte changed, cut or random bytes appended */
+        if (fuzz_all || a % 7u == 0u) { /* a mutated message: a byte changed, cut, or random bytes after the type */
             buf[next_random() % n] = (uint8_t)next_random();
             if (a % 3u == 0u) {
                 n = next_random() % (n + 1u);
+            } else if (fuzz_all && a % 3u == 1u) {
+                size_t i;
+                n = 1u + next_random() % 300u;
+                for (i = 1u; i < n; ++i) {
+                    buf[i] = (uint8_t)next_random();
+                }
             }
         }
         if (a % 97u == 1u) { /* a power cut somewhere in this command's flash writes */
