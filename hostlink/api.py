@@ -200,9 +200,11 @@ if TYPE_CHECKING:
     from hostlink.mission.example import write_example
     from hostlink.mission.run import run_bench
     from hostlink.mission.summary import summary_table
+    from hostlink.mission.target_costs import TARGET_COST_FRAMES, target_costs
     from hostlink.portkit.costs import cost_table, cost_table_text
     from hostlink.portkit.export_c import write_c as export_c
     from hostlink.portkit.export_ground import write_ground as export_ground
+    from hostlink.portkit.target_costs import format_reports as format_target_costs
     from hostlink.portkit.vectors import write_vectors
     from hostlink.progress import progress_bar
     from hostlink.sky.attitude import (
@@ -344,6 +346,9 @@ __all__ = [
     # port kit
     "cost_table",
     "cost_table_text",
+    "target_costs",
+    "format_target_costs",
+    "TARGET_COST_FRAMES",
     "export_c",
     "export_ground",
     "write_vectors",
