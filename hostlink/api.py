@@ -92,7 +92,7 @@ from hostlink.images.centroid import (
     centroid_images,
     centroid_pixels,
 )
-from hostlink.images.identify import FrameIdentity, Identification, identify_session
+from hostlink.images.identify import FrameIdentity, Identification, identify_iteratively, identify_session
 from hostlink.images.read import RawImage, read_image
 from hostlink.links import Link, open_link
 from hostlink.links.base import CommandRefused
@@ -192,6 +192,7 @@ __all__ = [
     "render_stars",
     # sky
     "identify_session",
+    "identify_iteratively",
     "session_references",
     "simulate",
     "solve_attitudes",
