@@ -115,7 +115,7 @@ def test_own_matcher_without_the_engine_identifies_with_no_wrong_identity(simula
 
 def _ambiguous_truth(true_ids: np.ndarray) -> np.ndarray:
     """The true stars that another catalogue star, at most one magnitude fainter (the identifier's
-    AMBIGUITY_MAG_MARGIN), within 4 px (its EXTEND_RADIUS_PX, at the nominal focal length) could be: from the
+    AMBIGUITY_MAG_MARGIN), within 4 px (the largest match radius its frames reach) could be: from the
     catalogue alone, not from the identifier."""
     from hostlink.sky.apparent import stars_at_j2000
     from hostlink.sky.catalogue import load_catalogue

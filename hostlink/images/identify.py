@@ -73,9 +73,13 @@ MIN_VERIFIED_FRACTION = 0.6
 #: Triples of verified stars must agree on the parity at least this often (1.0 for a clean frame; a near-collinear
 #: triple with centroid noise can flip, so not all are required).
 PARITY_MIN_AGREEMENT = 0.9
-#: Extension: a centroid within this radius [px] of a predicted catalogue star (or 4 x the fit's rms residual,
-#: whichever is larger) is a candidate; the nearest other predicted star must be at least twice as far.
-EXTEND_RADIUS_PX = 4.0
+#: Extension: a centroid within this many rms residuals of the verified stars (or :data:`EXTEND_RADIUS_PX`,
+#: whichever is larger) of a predicted catalogue star is a candidate; the nearest other predicted star must be at
+#: least twice as far. The radius follows the camera model's error: several px for an uncalibrated wide lens, about
+#: a pixel once calibrated, where a fixed 4 px let false stars meet faint catalogue stars by chance (a 50-deg
+#: field holds ~0.5 Hp <= 7.5 stars per square degree: 4 px of 0.94' is a 7 % chance per false star, 1.5 px 1 %).
+EXTEND_RADIUS_RESIDUALS = 4.0
+EXTEND_RADIUS_PX = 1.5
 #: Extension: catalogue stars down to this many magnitudes fainter than the faintest proposed match are predicted.
 EXTEND_MAG_MARGIN = 1.0
 #: Second pass: field-of-view tolerance once the identified frames have measured the focal length.
@@ -343,9 +347,9 @@ def _extend(
 
 def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
     """The radius [px] within which a centroid is matched to a predicted catalogue star: :data:`EXTEND_RADIUS_PX`,
-    or 4 x the verified stars' rms residual when larger."""
+    or :data:`EXTEND_RADIUS_RESIDUALS` x the verified stars' rms residual when larger."""
     rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * theta[0] * v.scale
-    return max(EXTEND_RADIUS_PX, 4.0 * rms_px)
+    return max(EXTEND_RADIUS_PX, EXTEND_RADIUS_RESIDUALS * rms_px)
 
 
 #: A star is ambiguous when another catalogue star at most this much fainter than its own identity [mag] is
