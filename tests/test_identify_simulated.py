@@ -61,11 +61,12 @@ def test_identifies_99_percent_with_no_wrong_identity_and_reports_parity_and_sca
     session = _mirror(blind) if mirrored else blind
     result = identify_session(session, _nominal(focal_error), maglim=MAGLIM)
     star_id = result.session.star_id
-    detectable = truth != 0
+    # a star another catalogue star could be is left unidentified (alpha Cen B, 16" from A, and one more pair)
+    detectable = (truth != 0) & ~_ambiguous_truth(truth)
     wrong = (star_id != 0) & (star_id != truth)
     assert np.count_nonzero(wrong) == 0
     # false stars (truth 0) are never given an identity
-    assert np.count_nonzero(star_id[~detectable]) == 0
+    assert np.count_nonzero(star_id[truth == 0]) == 0
     assert np.count_nonzero(star_id[detectable] == truth[detectable]) >= 0.99 * np.count_nonzero(detectable)
     assert result.n_frames_identified == blind.n_frames
     assert all(f.mirrored == mirrored for f in result.frames)

@@ -226,6 +226,54 @@ class _Verified:
     parity_agreement: float
     attitude: np.ndarray | None
     residual_rad: np.ndarray | None
+    #: the camera vector the attitude and residuals are of: the nominal at ``scale``, its focal length and radial
+    #: term refined on the frame's verified stars when they are enough (:func:`_refine_radial`)
+    theta: np.ndarray | None = None
+
+
+#: :func:`_refine_radial` needs at least this many verified stars (two parameters beyond the attitude's three, with
+#: room for the centroid noise to average).
+REFINE_MIN_STARS = 10
+REFINE_ITERATIONS = 3
+#: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
+_K1 = 3
+
+
+def _refine_radial(
+    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's own focal length and radial term k1 (Gauss-Newton on sum |b(x, y; f, k1) - C r|^2, derivatives
+    by forward differences of :func:`onboard.camera.pixels_to_unit`, the attitude C refitted by Markley's SVD after
+    each step): a wide lens's unmodelled distortion, which grows as the cube of the radius, is then out of the
+    predictions of the frame's other stars, and the match radius can follow the centroid noise instead of the
+    lens. Returns (theta, C); the nominal's when the step does not lower the residual."""
+    best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
+    current, att = np.array(theta, dtype=np.float64), c
+    r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
+    steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
+    for _ in range(REFINE_ITERATIONS):
+        b = pixels_to_unit(x_px, y_px, current)
+        residual = (b - r @ att.T).ravel()
+        columns = []
+        for index, step in steps.items():
+            shifted = current.copy()
+            shifted[index] += step
+            columns.append(((pixels_to_unit(x_px, y_px, shifted) - b) / step).ravel())
+        jac = np.stack(columns, axis=1)
+        norm = np.linalg.norm(jac, axis=0)
+        if not np.all(norm > 0):
+            break
+        delta = np.linalg.lstsq(jac / norm, -residual, rcond=None)[0] / norm
+        for (index, _), d in zip(steps.items(), delta, strict=True):
+            current[index] += d
+        try:
+            att = attitude_from_vectors(pixels_to_unit(x_px, y_px, current), r)
+        except DegenerateGeometry:
+            break
+        cost = float(np.sum((pixels_to_unit(x_px, y_px, current) - r @ att.T) ** 2))
+        if cost < best[2]:
+            best = (current.copy(), att, cost)
+    return best[0], best[1]
 
 
 #: Pruning a matcher's proposal: a star agreeing with fewer than this fraction of the others is dropped, and the vote
@@ -271,7 +319,10 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
         c = attitude_from_vectors(b[keep], r[keep])
     except DegenerateGeometry:
         return _Verified(keep, mirrored, scale, agreement, None, None)
-    return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c))
+    if np.count_nonzero(keep) >= REFINE_MIN_STARS:
+        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_s)
+        b = pixels_to_unit(data.x_px, data.y_px, theta_s)
+    return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
 
 
 def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
@@ -293,6 +344,8 @@ def _predict(
     none = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     theta_s = np.array(theta, dtype=np.float64)
     theta_s[0] *= v.scale
+    if v.theta is not None:
+        theta_s = v.theta
     width, height = image_size_px
     corners_x = np.array([-0.5, width - 0.5, -0.5, width - 0.5])
     corners_y = np.array([-0.5, -0.5, height - 0.5, height - 0.5])
@@ -348,7 +401,8 @@ def _extend(
 def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
     """The radius [px] within which a centroid is matched to a predicted catalogue star: :data:`EXTEND_RADIUS_PX`,
     or :data:`EXTEND_RADIUS_RESIDUALS` x the verified stars' rms residual when larger."""
-    rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * theta[0] * v.scale
+    focal_px = v.theta[0] if v.theta is not None else theta[0] * v.scale
+    rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * focal_px
     return max(EXTEND_RADIUS_PX, EXTEND_RADIUS_RESIDUALS * rms_px)
 
 
