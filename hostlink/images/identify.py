@@ -871,6 +871,7 @@ def identify_session(
     own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
     them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
+    check_field(nominal)
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
@@ -959,6 +960,31 @@ def identify_session(
     out = _with_identities(session, star_id, catalogue)
     name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
     return Identification(out, tuple(results[k][0] for k in todo), name, fov)
+
+
+#: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
+#: describes: at 60 deg off axis a fisheye's equidistant image (r = f theta) lies 40 % inside the pinhole's
+#: (r = f tan theta), more than the polynomial's few-% corrections can bend, and at 90 deg the pinhole has none.
+MAX_DIAGONAL_FIELD_DEG = 120.0
+
+
+def diagonal_field_deg(camera: CameraParams) -> float:
+    """The detector's diagonal field through the pinhole of ``camera`` [deg]."""
+    width, height = camera.image_size_px
+    return math.degrees(2.0 * math.atan(0.5 * math.hypot(width, height) / camera.focal_length_px))
+
+
+def check_field(camera: CameraParams) -> None:
+    """A one-line :class:`UserError` for a lens too wide for the camera model (:data:`MAX_DIAGONAL_FIELD_DEG`)."""
+    from hostlink.errors import UserError
+
+    field = diagonal_field_deg(camera)
+    if field > MAX_DIAGONAL_FIELD_DEG:
+        raise UserError(
+            f"the nominal camera sees {field:.0f} deg across the diagonal: a lens this wide (a fisheye) is outside "
+            f"the camera model (a pinhole with polynomial distortion, up to {MAX_DIAGONAL_FIELD_DEG:.0f} deg); "
+            "check the nominal focal length"
+        )
 
 
 def _field_sr(camera: CameraParams) -> float:
