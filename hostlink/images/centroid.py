@@ -363,6 +363,11 @@ _HOT_BOX_HALF_PX = 2
 #: degrees of freedom (pure noise around the one pixel); a bright star whose core is sharper than the Gaussian
 #: model fits neither model well, and the spike far worse: it is no hot pixel.
 _HOT_FIT_SIGMAS = 5.0
+#: Hot-pixel test: the star model's width ranges from this fraction of the frame's PSF sigma (at least
+#: :data:`_MIN_PSF_SIGMA_PX`) to the full sigma. The frame's sigma is measured on its most significant stars, which an
+#: 8-bit or JPEG camera widens (saturated cores, blooming, compression); a faint star's in-focus core can be half as
+#: wide (on granasat 0.45-0.5 px against the frame's 0.91 px: stars the plate solver names, lost as "hot" before).
+_HOT_SHARPEST_FRACTION = 0.5
 #: Hot-pixel test: sub-pixel positions of the star model tried around the brightest pixel's centre [px].
 _HOT_POSITIONS_PX = np.linspace(-0.5, 0.5, 5)
 
@@ -392,7 +397,8 @@ def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma
     likelihood-ratio test. Over the (2h+1)^2 pixels d around the brightest one (h = :data:`_HOT_BOX_HALF_PX`), in
     units of the local noise, two linear models each with a flat background: a spike (amplitude on the central pixel
     only) and the pixel-integrated Gaussian of sigma ``psf_sigma_px`` (:func:`hostlink.sky.render.
-    pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions; chi^2 = |d|^2 - d^T Q d for each
+    pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions and of three widths from
+    :data:`_HOT_SHARPEST_FRACTION` of it to all of it; chi^2 = |d|^2 - d^T Q d for each
     model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit``: the star model is
     rejected (both have 2 free amplitudes: under a true star the difference is noise of a few units, under a spike
     of amplitude A it grows as (A / noise)^2). A sharp star (sigma 0.5-0.8 px), whose neighbours hold little of
@@ -412,10 +418,10 @@ def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma
     flat = np.ones(offsets.size**2)
     spike = np.zeros(offsets.size**2)
     spike[spike.size // 2] = 1.0
+    widths = np.geomspace(max(_MIN_PSF_SIGMA_PX, _HOT_SHARPEST_FRACTION * psf_sigma_px), psf_sigma_px, 3)
     stars = [
-        np.outer(
-            pixel_integrated_gaussian(offsets, dy, psf_sigma_px), pixel_integrated_gaussian(offsets, dx, psf_sigma_px)
-        ).ravel()
+        np.outer(pixel_integrated_gaussian(offsets, dy, width), pixel_integrated_gaussian(offsets, dx, width)).ravel()
+        for width in widths
         for dy in _HOT_POSITIONS_PX
         for dx in _HOT_POSITIONS_PX
     ]
