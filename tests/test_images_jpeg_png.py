@@ -160,3 +160,23 @@ def _found(det, sx: np.ndarray, sy: np.ndarray) -> np.ndarray:
     if det.x_px.size == 0:
         return np.zeros(sx.size, dtype=bool)
     return np.hypot(det.x_px[:, None] - sx[None], det.y_px[:, None] - sy[None]).min(axis=0) < 2.0
+
+
+@pytest.mark.parametrize("fmt", ["PNG", "JPEG"])
+def test_the_detection_threshold_follows_the_measured_noise_of_8_bit_frames(fmt):
+    """The threshold is N x the local noise as the detection filter sees it (the noise map corrected on the filtered
+    image): a star-free 8-bit frame (background 20 ADU, Gaussian noise 3 ADU, 1280 x 960) gives no detection at the
+    default 5 sigma, stored losslessly or as JPEG (whose blocks correlate the noise); and at 3.5 sigma the Gaussian
+    rate of about ten noise peaks (measured 12 PNG, 9 JPEG; 7-11 on float noise), not hundreds: the bound of 50 is
+    what a JPEG whose block noise went uncorrected would exceed."""
+    import io
+
+    from hostlink.images.centroid import centroid_pixels
+
+    rng = np.random.default_rng(4)
+    frame = np.clip(np.round(20.0 + 3.0 * rng.standard_normal((960, 1280))), 0, 255).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(frame, "L").save(buffer, format=fmt, **({"quality": 90} if fmt == "JPEG" else {}))
+    pixels = np.asarray(Image.open(buffer), dtype=np.float64)
+    assert centroid_pixels(pixels, CentroidOptions(), saturation_adu=255).report.detected == 0
+    assert centroid_pixels(pixels, CentroidOptions(threshold_sigma=3.5), saturation_adu=255).report.detected < 50
