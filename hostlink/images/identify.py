@@ -235,6 +235,8 @@ class _Verified:
 #: room for the centroid noise to average).
 REFINE_MIN_STARS = 10
 REFINE_ITERATIONS = 3
+#: ... and k2 too from this many (a wide lens's distortion is not a pure cube of the radius).
+REFINE_K2_STARS = 20
 #: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
 _K1 = 3
 
@@ -242,15 +244,18 @@ _K1 = 3
 def _refine_radial(
     x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The frame's own focal length and radial term k1 (Gauss-Newton on sum |b(x, y; f, k1) - C r|^2, derivatives
-    by forward differences of :func:`onboard.camera.pixels_to_unit`, the attitude C refitted by Markley's SVD after
-    each step): a wide lens's unmodelled distortion, which grows as the cube of the radius, is then out of the
-    predictions of the frame's other stars, and the match radius can follow the centroid noise instead of the
-    lens. Returns (theta, C); the nominal's when the step does not lower the residual."""
+    """The frame's own focal length and radial terms k1 (and k2 from :data:`REFINE_K2_STARS` stars): Gauss-Newton on
+    sum |b(x, y; f, k1, k2) - C r|^2, derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`,
+    the attitude C refitted by Markley's SVD after each step. A wide lens's unmodelled distortion, which grows as the
+    cube of the radius and faster, is then out of the predictions of the frame's other stars and out of the
+    interstar angles its later candidates are verified by, and the match radius can follow the centroid noise
+    instead of the lens. Returns (theta, C); the given ones when no step lowers the residual."""
     best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
     current, att = np.array(theta, dtype=np.float64), c
     r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
     steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
+    if x_px.size >= REFINE_K2_STARS:
+        steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
     for _ in range(REFINE_ITERATIONS):
         b = pixels_to_unit(x_px, y_px, current)
         residual = (b - r @ att.T).ravel()
@@ -323,6 +328,11 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
         theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_s)
         b = pixels_to_unit(data.x_px, data.y_px, theta_s)
     return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
+
+
+def _absolute_scale(v: _Verified, theta: np.ndarray) -> float:
+    """F / F_nominal of a verification (its camera vector's focal length over the nominal's ``theta``)."""
+    return float(v.theta[0] / theta[0]) if v.theta is not None else v.scale
 
 
 def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
@@ -704,6 +714,7 @@ def _confirm(
     if v.attitude is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
     mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
+    theta_frame = theta  # the camera later rounds verify through: the frame's own once refined
     for round_no in range(MAX_EXTEND_ROUNDS):
         taken = np.zeros(n, dtype=bool)
         taken[rows[v.keep]] = True
@@ -712,7 +723,9 @@ def _confirm(
             break  # nothing new: the solution is complete at this depth
         rows = np.concatenate([rows[v.keep], new_rows])
         stars = np.concatenate([stars[v.keep], new_stars])
-        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta, v.mirrored)
+        if v.theta is not None:
+            theta_frame = v.theta  # a wide lens's edge stars verify through the lens the frame measured
+        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored)
         if v.attitude is None:
             return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
         # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
@@ -725,7 +738,7 @@ def _confirm(
         ident,
         n_candidates=max(n_proposed, int(rows.size)),
         mirrored=v.mirrored,
-        scale=v.scale,
+        scale=_absolute_scale(v, theta),
         n_ambiguous=n_ambiguous,
     )
     if n_ok < MIN_VERIFIED:
@@ -737,8 +750,8 @@ def _confirm(
     completeness = _completeness(sky, theta, v, image_size_px, stars[v.keep])
     if completeness < MIN_COMPLETENESS:
         return replace(ident, status=f"only {100 * completeness:.0f} % of the bright stars in the field found"), hip_out
-    if scale is not None and abs(v.scale / scale - 1.0) > SCALE_AGREEMENT:
-        return replace(ident, status=f"scale {v.scale:.4f} disagrees with the session's {scale:.4f}"), hip_out
+    if scale is not None and abs(ident.scale / scale - 1.0) > SCALE_AGREEMENT:
+        return replace(ident, status=f"scale {ident.scale:.4f} disagrees with the session's {scale:.4f}"), hip_out
     hip_out[rows[v.keep]] = sky.hip[stars[v.keep]]
     ra, dec, roll = _boresight_and_roll(v.attitude)
     rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * 206264.80624709636
@@ -922,11 +935,17 @@ def identify_session(
         scale = float(np.median(scales)) if scales else math.nan
         hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
         hips = hips[hips != 0]
+        # as deep as the identified frames see, but no deeper than the field's size needs: the matcher works on the
+        # brightest centroids, and a 50-deg field's pairs to Hp 7.5 take 40 s to index (to Hp 5.5, a second)
+        field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
         depth = (
-            float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
-            + FALLBACK_MAG_MARGIN
+            min(
+                float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
+                + FALLBACK_MAG_MARGIN,
+                field_depth + FALLBACK_MAG_MARGIN,
+            )
             if hips.size
-            else fallback_depth_mag(sky.mag, _field_sr(nominal))
+            else field_depth
         )
         half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
         pairs = pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
