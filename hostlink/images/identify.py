@@ -33,6 +33,13 @@ Per frame:
 
 After every frame has been tried once, the frames not yet identified are tried again by the engine with the field
 of view the identified frames measured and a tolerance of :data:`REFINED_FOV_TOLERANCE`, then by the own matcher.
+
+From 8 to 50 deg fields (issue 30): a frame with :data:`REFINE_MIN_STARS` verified stars refines its own focal
+length and radial terms on them (:func:`_refine_radial`), and its later candidates are predicted and verified
+through that camera, so the match radius (:func:`_match_radius_px`) follows the centroid noise, not the lens; a star
+that two catalogue stars could be is left unidentified (:func:`_ambiguous`); the own matcher's catalogue depth
+follows the field (:func:`fallback_depth_mag`); a nominal wider than :data:`MAX_DIAGONAL_FIELD_DEG` (a fisheye) is
+refused. :func:`identify_iteratively` identifies, calibrates and identifies again until a round adds nothing.
 """
 
 from __future__ import annotations
