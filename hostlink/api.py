@@ -171,7 +171,13 @@ if TYPE_CHECKING:
         centroid_images,
         centroid_pixels,
     )
-    from hostlink.images.identify import FrameIdentity, Identification, identify_session
+    from hostlink.images.identify import (
+        MAX_ROUNDS,
+        FrameIdentity,
+        Identification,
+        identify_iteratively,
+        identify_session,
+    )
     from hostlink.images.read import RawImage, read_image
     from hostlink.links import Link, open_link
     from hostlink.links.base import CommandRefused
@@ -307,6 +313,8 @@ __all__ = [
     "render_stars",
     # sky
     "identify_session",
+    "identify_iteratively",
+    "MAX_ROUNDS",
     "session_references",
     "simulate",
     "simulate_chunks",

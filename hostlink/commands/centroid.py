@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "find star centroids in images (FITS, TIFF, PNG) and write them as a session of unidentified stars"
+HELP = "find star centroids in images (FITS, TIFF, PNG, JPEG) and write them as a session of unidentified stars"
 DESCRIPTION = (
-    "Read each IMAGE (FITS, 8/16-bit TIFF, PNG; a colour image as the mean of its channels), subtract a dark or "
-    "median frame if given, then a local background (SEP), detect stars (SEP's matched filter and deblending), "
-    "reject hot pixels (single-pixel spikes), saturated stars (a pixel at the clip level), blended stars (deblended "
-    "from a neighbour, or elongated: an unresolved pair) and stars cut by the image edge, and centroid the rest by "
+    "Read each IMAGE (FITS, 8/16-bit TIFF, 8/16-bit grey or RGB PNG, JPEG; a colour image as the mean of its "
+    "channels), subtract a dark or median frame if given, then a local background (SEP), detect stars (SEP's "
+    "matched filter and deblending), reject hot pixels (a single bright pixel that fits better than a star of the "
+    "frame's measured PSF), blended stars (deblended from a neighbour, or elongated: an unresolved pair) and stars "
+    "cut by the image edge, keep saturated stars (flagged; --reject-saturated drops them), and centroid the rest by "
     "fitting the pixel-integrated Gaussian PSF of the frame's width, started at SEP's windowed centroid. Writes "
     "SESSION.csv: one frame per image in time order, star_id 0, x_px/y_px with (0, 0) the centre of the top-left "
-    "pixel, mag the instrumental magnitude (-2.5 log10 flux), extra columns flux_adu, image and time_source. The "
+    "pixel, mag the instrumental magnitude (-2.5 log10 flux), extra columns flux_adu, sigma_px (the centroid's "
+    "1-sigma noise per axis, its Cramer-Rao bound from flux, noise and PSF), saturated, image and time_source. The "
     "time of each image comes from one option (--time, --times, --time-pattern, --date, --time-unknown) or else from "
     "the file (FITS DATE-AVG or DATE-OBS + EXPTIME/2; EXIF DateTimeOriginal); an image with no known time is an "
     "error. Exit 2 when no star is found in any image."
@@ -24,7 +26,9 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (.fits/.fit, .tif/.tiff, .png)")
+    parser.add_argument(
+        "images", nargs="+", metavar="IMAGE", help="image files (.fits/.fit, .tif/.tiff, .png, .jpg/.jpeg)"
+    )
     parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
     background = parser.add_mutually_exclusive_group()
     background.add_argument("--dark", metavar="FILE", help="dark frame to subtract from every image first")
@@ -66,10 +70,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ADU",
         help="level at which the detector clips (default: the file type's maximum, or FITS SATURATE)",
     )
-    parser.add_argument(
+    saturated = parser.add_mutually_exclusive_group()
+    saturated.add_argument(
         "--keep-saturated",
         action="store_true",
-        help="keep saturated stars (windowed centroid, ranked first) instead of rejecting them",
+        help="keep saturated stars (the default): windowed centroid, ranked first, flagged in the saturated column",
+    )
+    saturated.add_argument(
+        "--reject-saturated", action="store_true", help="reject saturated stars instead of keeping them"
     )
     parser.add_argument(
         "--psf-sigma-px", type=float, metavar="PX", help="PSF sigma for the centroid window (default: measured)"
@@ -104,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         psf_sigma_px=args.psf_sigma_px,
         gain_e_per_adu=args.gain,
         method=args.centroid,
-        keep_saturated=args.keep_saturated,
+        keep_saturated=not args.reject_saturated,
         max_stars=args.max_stars,
     )
     times = TimeOptions(
@@ -121,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"frame {k} {f.path}: {f.kept} stars of {f.detected} detections (rejected: {f.rejected_hot} hot, "
                 f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge"
-                f"{f'; {f.saturated_kept} saturated kept' if args.keep_saturated else ''}); "
+                f"; {f.saturated_kept} saturated kept); "
                 f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
                 f"time {f.time_utc or 'unknown'} ({f.time_source})"
             )

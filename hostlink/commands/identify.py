@@ -18,7 +18,10 @@ DESCRIPTION = (
     "detector (the parity is found and reported). The tetra3rs pattern engine proposes matches; frames it cannot "
     "match are tried again with the project's own pair-anchored matcher at the focal length the identified frames "
     "measured. Every match is then verified with the project's interstar test, and a frame is accepted only when "
-    "enough stars verify. Writes the session with the identified star_id (and ra_deg/dec_deg when the file has "
+    "enough stars verify; a star that two catalogue stars could be is left unidentified. Then the session is "
+    "calibrated and identified again with the calibrated camera, round after round until one adds nothing (--rounds; "
+    "each round's additions are printed and reported). Works from under 10 to about 50 deg fields. Writes the "
+    "session with the identified star_id (and ra_deg/dec_deg when the file has "
     "those columns); frames that fail keep star_id 0 and are reported. Exit 2 when no frame is identified."
 )
 
@@ -35,6 +38,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--maglim", type=float, metavar="MAG", help="use only catalogue stars at least this bright (Hp; default all)"
     )
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        default=None,
+        metavar="N",
+        help="identify, calibrate, identify again with the calibrated camera, until a round adds nothing, at most N "
+        "rounds (default 4; 1: identify once with the nominal)",
+    )
     parser.add_argument("--report", metavar="REPORT.json", help="write the per-frame report (attitude, parity, scale)")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_json_argument(parser, "the per-frame report (REPORT.json's object)")
@@ -45,9 +56,10 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from hostlink.api import (
+        MAX_ROUNDS,
         UserError,
         check_on_detector,
-        identify_session,
+        identify_iteratively,
         load_params,
         read_session,
         write_json,
@@ -59,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
     check_on_detector(session, nominal.image_size_px, Path(args.session).name, args.nominal)
     if args.maglim is not None and not math.isfinite(args.maglim):
         raise UserError(f"--maglim must be a finite magnitude, got {args.maglim}")
-    result = identify_session(session, nominal, maglim=args.maglim)
+    rounds = MAX_ROUNDS if args.rounds is None else args.rounds
+    if rounds < 1:
+        raise UserError(f"--rounds must be at least 1, got {rounds}")
+    result = identify_iteratively(session, nominal, maglim=args.maglim, max_rounds=rounds)
     if not result.frames:
         raise UserError(f"{args.session}: no unidentified star (every star_id is already set)")
     if args.report:
@@ -86,9 +101,18 @@ def run(args: argparse.Namespace) -> int:
                 )
             else:
                 print(f"frame {f.frame}: not identified ({f.status}; {f.n_centroids} centroids)")
+        for r in result.rounds:
+            verdict = "" if r["kept"] else " (nothing new: the round before stands)"
+            print(
+                f"round {r['round']} ({r['camera']}, f {r['focal_length_px']:.2f} px): {r['stars_identified']} stars "
+                f"in {r['frames_identified']} frames, {r['added']} added, {r['lost']} lost, {r['renamed']} renamed"
+                f"{verdict}"
+            )
         parity = "mirrored (flip x before calibrate)" if result.mirrored else "normal"
+        camera = result.camera or nominal  # the last round's camera: its scale is relative to it
+        focal_ratio = result.scale * camera.focal_length_px / nominal.focal_length_px
         print(
             f"identified {result.n_identified} stars in {result.n_frames_identified} of {len(result.frames)} frames "
-            f"({result.engine}); parity {parity}; focal length {result.scale:.4f} x nominal; wrote {args.out}"
+            f"({result.engine}); parity {parity}; focal length {focal_ratio:.4f} x nominal; wrote {args.out}"
         )
     return 0

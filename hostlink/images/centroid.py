@@ -10,12 +10,13 @@ Per image:
    filter actually sees (:func:`_filtered_noise_correction`: clipped, skewed or correlated noise);
 2. detect: SEP's matched-filter detection (``sep.extract``) at ``threshold_sigma`` x the local noise with a minimum
    footprint, its multi-threshold deblending (32 levels, contrast 0.005);
-3. reject, each counted: a *hot pixel* (a single-pixel spike: the mean of the 4 pixels next to the brightest one is
-   below ``hot_pixel_ratio`` of it; a star's PSF integrated over pixels gives >= 0.23 down to sigma 0.5 px),
-   *saturated* (a pixel of the footprint at the image's clip level; kept instead with ``keep_saturated``),
-   *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour; or Gaussian-windowed second moments more
-   elongated than the frame's own PSF, :func:`_unresolved_pairs`: two stars closer than the deblender can split),
-   *edge* (footprint truncated by the image border, ``OBJ_TRUNC``);
+3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
+   frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
+   flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour; or Gaussian-windowed
+   second moments more elongated than the frame's own PSF, :func:`_unresolved_pairs`: two stars closer than the
+   deblender can split), *edge* (footprint truncated by the image border, ``OBJ_TRUNC``); a *saturated* star (a
+   pixel of the footprint at the image's clip level) is kept, flagged and counted (``keep_saturated``, the default:
+   the brightest stars are the anchors of identification), or rejected and counted;
 4. centroid: SEP's windowed centroid (``sep.winpos``, Source Extractor's XWIN_IMAGE: the iterated Gaussian-weighted
    first moment, which converges to the maximum of the image correlated with the window) with the window sigma
    equal to the frame's PSF sigma (the median over its most significant stars of the half-light radius / 1.1774,
@@ -25,7 +26,10 @@ Per image:
    and local background free, sigma fixed at the frame's) with the weights of shot + read noise when the gain is
    known: maximum likelihood at every signal-to-noise ratio (measured at 0.99-1.08 x the bound from peak SNR 15 to
    250, :func:`centroid_crb_px`, tests/test_images_centroid.py);
-5. flux: the linear least-squares amplitude of the pixel-integrated Gaussian PSF (the renderer's model,
+5. noise: each star's 1-sigma centroid noise per axis ``sigma_px``, the Cramer-Rao bound of its centroid
+   (:func:`centroid_sigma_px`, :func:`centroid_crb_px`) from its flux, the local noise and the PSF: the fit reaches
+   it (step 4), so it is each star's weight in the calibration;
+6. flux: the linear least-squares amplitude of the pixel-integrated Gaussian PSF (the renderer's model,
    :func:`hostlink.sky.render.pixel_integrated_gaussian`) at the centroid, F = sum (I - b) P / sum P^2 over +-3 PSF
    sigmas [ADU, the star's total flux], with b the local background (median of the surrounding ring: it removes what
    the mesh background leaves, e.g. on skewed noise clipped at zero): the maximum-likelihood flux where background
@@ -90,6 +94,10 @@ CENTROID_METHODS = ("psf-fit", "window")
 _PSF_SHAPE_STARS = 5
 #: ... whose ellipticity is known to this standard deviation.
 _PSF_SHAPE_MAX_SIGMA = 0.1
+#: Floor of a saturated star's ``sigma_px`` [px]: its clipped core carries no PSF-fit information and its windowed
+#: centroid follows the core's asymmetries: measured 0.33 px per axis over the 446 saturated stars of the granasat
+#: JPEG frames after calibration, against 0.19 px for their unsaturated stars (docs/realsky.md).
+SATURATED_SIGMA_PX = 0.3
 #: SEP's buffers: a noisy frame at a low threshold can hold many more pixels above threshold than SEP's default.
 _SEP_PIXSTACK = 3_000_000
 _SEP_SUB_OBJECTS = 4096
@@ -101,15 +109,17 @@ class CentroidOptions:
     ``min_area_px``: minimum footprint [px] above threshold; ``dark`` / ``median``: a frame to subtract first (a file);
     ``median_of_inputs``: subtract the per-pixel median of all the images given (they must be taken at different
     pointings, at least 3); ``saturation_adu``: the clip level (default: from the file, the integer type's maximum);
-    ``psf_sigma_px``: the centroid window (default: measured per frame); ``hot_pixel_ratio``, ``max_ellipticity``:
-    rejection limits (module docstring); ``gain_e_per_adu``: the detector's gain, when known, adds the stars' own
-    shot noise to the weights of the PSF fit (without it: 1.13-1.17 x the bound instead of 1.0 for stars whose shot
-    noise dominates) and to the noise of the blend test (without it the test counts background noise only and
-    rejects about 1 % of moderately bright single stars); ``background_box_px``: SEP's background mesh;
-    ``max_stars``: keep the brightest N per image (None: all); ``method``: ``psf-fit`` (default) or ``window``
-    (:data:`CENTROID_METHODS`); ``keep_saturated``: keep saturated stars instead of rejecting them (for cameras whose
-    brightest stars, the best anchors of identification, always saturate): windowed centroid (a clipped core does
-    not follow the PSF), ranked first, counted in ``FrameReport.saturated_kept``."""
+    ``psf_sigma_px``: the centroid window (default: measured per frame); ``hot_pixel_chi2``, ``max_ellipticity``:
+    rejection limits (module docstring, :func:`_hot_pixels`); ``gain_e_per_adu``: the detector's gain, when known, adds
+    the stars' own shot noise to the weights of the PSF fit (without it: 1.13-1.17 x the bound instead of 1.0 for stars
+    whose shot noise dominates), to ``sigma_px`` and to the noise of the blend test (without it the test counts
+    background noise only and rejects about 1 % of moderately bright single stars); ``background_box_px``: SEP's
+    background mesh; ``max_stars``: keep the brightest N per image (None: all); ``method``: ``psf-fit`` (default) or
+    ``window`` (:data:`CENTROID_METHODS`); ``keep_saturated`` (default True): keep saturated stars (the brightest stars
+    of a frame, the anchors of every pattern matcher: an 8-bit camera saturates its brightest stars in most exposures)
+    with a windowed centroid (a clipped core does not follow the PSF), ranked first, flagged in the ``saturated`` column
+    with a ``sigma_px`` of at least :data:`SATURATED_SIGMA_PX`, counted in ``FrameReport.saturated_kept``; False rejects
+    them."""
 
     threshold_sigma: float = 5.0
     min_area_px: int = 3
@@ -118,9 +128,9 @@ class CentroidOptions:
     median_of_inputs: bool = False
     saturation_adu: float | None = None
     psf_sigma_px: float | None = None
-    hot_pixel_ratio: float = 0.2
+    hot_pixel_chi2: float = 25.0
     max_ellipticity: float = 0.1
-    keep_saturated: bool = False
+    keep_saturated: bool = True
     gain_e_per_adu: float | None = None
     method: str = "psf-fit"
     background_box_px: int = 64
@@ -165,19 +175,23 @@ class FrameReport:
 @dataclass
 class Detections:
     """The stars kept in one image, brightest first: centroid [px] (camera convention), flux [ADU], instrumental
-    magnitude; ``report`` the counts."""
+    magnitude; ``report`` the counts; ``sigma_px`` each centroid's 1-sigma noise per axis [px]
+    (:func:`centroid_sigma_px`); ``saturated`` True for a kept saturated star."""
 
     x_px: np.ndarray
     y_px: np.ndarray
     flux_adu: np.ndarray
     mag: np.ndarray
     report: FrameReport = field(default_factory=lambda: FrameReport(path=""))
+    sigma_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    saturated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 @dataclass
 class CentroidResult:
-    """The session (one frame per image, in time order; ``star_id`` 0; extra columns ``flux_adu``, ``image``,
-    ``time_source``) and one :class:`FrameReport` per frame."""
+    """The session (one frame per image, in time order; ``star_id`` 0; extra columns ``flux_adu``, ``sigma_px`` (each
+    centroid's 1-sigma noise per axis [px], :func:`centroid_sigma_px`), ``saturated`` (1 for a kept saturated star),
+    ``image``, ``time_source``) and one :class:`FrameReport` per frame."""
 
     session: Session
     frames: list[FrameReport]
@@ -230,7 +244,7 @@ def centroid_pixels(
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
         raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
     report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms)))
-    empty = Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report)
+    empty = Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), np.zeros(0, bool))
     if objects.size == 0:
         return empty
     keep = np.ones(objects.size, bool)
@@ -245,8 +259,14 @@ def centroid_pixels(
 
         peak_raw = ndimage.maximum(raw, labels=segmap, index=np.arange(1, objects.size + 1))
         saturated = np.asarray(peak_raw) >= level
-    hot = _hot_pixels(sub, objects, options.hot_pixel_ratio) & ~saturated
     blended = (objects["flag"] & sep.OBJ_MERGED) != 0
+    # hot pixels: the frame's PSF measured first on the detections that are neither single-pixel spikes by a coarse
+    # screen nor clipped, then every detection tested against it (a sharp star passes, a spike does not)
+    psf_hot = options.psf_sigma_px
+    if psf_hot is None:
+        screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~edge & ~blended
+        psf_hot = _frame_psf_sigma_px(sub, objects[screened] if np.any(screened) else objects)
+    hot = _hot_pixels(sub, rms, objects, psf_hot, options.hot_pixel_chi2) & ~saturated
     rejections = (hot, blended, edge) if options.keep_saturated else (saturated, hot, blended, edge)
     for mask in rejections:
         mask &= keep
@@ -280,6 +300,8 @@ def centroid_pixels(
         fit = ~clipped
         x[fit], y[fit] = _psf_fit_centroids(sub, rms, x[fit], y[fit], sigma, options.gain_e_per_adu)
     flux = _psf_fluxes(sub, x, y, sigma)
+    sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
+    sigma_px[clipped] = np.maximum(sigma_px[clipped], SATURATED_SIGMA_PX)
     # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
     flux[clipped] = np.maximum(flux[clipped], good["flux"][clipped])
     order = np.argsort(-flux, kind="stable")
@@ -288,7 +310,7 @@ def centroid_pixels(
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(flux > 0, -2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
     report.kept = int(order.size)
-    return Detections(x[order], y[order], flux[order], mag[order], report)
+    return Detections(x[order], y[order], flux[order], mag[order], report, sigma_px[order], clipped[order])
 
 
 def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float, np.ndarray]:
@@ -331,16 +353,86 @@ def _check_options(options: CentroidOptions) -> None:
         raise UserError(f"max-stars must be >= 1, got {options.max_stars}")
 
 
-def _hot_pixels(sub: np.ndarray, objects: np.ndarray, ratio: float) -> np.ndarray:
-    """Single-pixel spikes: the mean of the 4 edge neighbours of the brightest (unfiltered) pixel is below ``ratio``
-    of it. A pixel-integrated Gaussian of sigma s has a neighbour/peak ratio of at least
-    [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1] (0.23 at s = 0.5 px, 0.60 at s = 1 px)."""
+#: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
+#: the 4 edge neighbours of the brightest pixel below this fraction of it (a pixel-integrated Gaussian of sigma s has
+#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.60 at s = 1 px).
+_SPIKE_SCREEN_RATIO = 0.2
+#: Hot-pixel test box: +-2 px around the brightest pixel (a PSF of sigma <= 1.5 px puts most of its flux inside).
+_HOT_BOX_HALF_PX = 2
+#: Hot-pixel test: a spike model fits when its chi^2 is within this many standard deviations sqrt(2 dof) of its
+#: degrees of freedom (pure noise around the one pixel); a bright star whose core is sharper than the Gaussian
+#: model fits neither model well, and the spike far worse: it is no hot pixel.
+_HOT_FIT_SIGMAS = 5.0
+#: Hot-pixel test: the star model's width ranges from this fraction of the frame's PSF sigma (at least
+#: :data:`_MIN_PSF_SIGMA_PX`) to the full sigma. The frame's sigma is measured on its most significant stars, which an
+#: 8-bit or JPEG camera widens (saturated cores, blooming, compression); a faint star's in-focus core can be half as
+#: wide (on granasat 0.45-0.5 px against the frame's 0.91 px: stars the plate solver names, lost as "hot" before).
+_HOT_SHARPEST_FRACTION = 0.5
+#: Hot-pixel test: sub-pixel positions of the star model tried around the brightest pixel's centre [px].
+_HOT_POSITIONS_PX = np.linspace(-0.5, 0.5, 5)
+
+
+def _single_pixel_spikes(sub: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """The coarse screen of :data:`_SPIKE_SCREEN_RATIO` (not a rejection: it keeps spikes out of the PSF
+    measurement that the rejection test :func:`_hot_pixels` then uses)."""
     h, w = sub.shape
     c = np.clip(objects["xpeak"].astype(np.int64), 1, w - 2)
     r = np.clip(objects["ypeak"].astype(np.int64), 1, h - 2)
     peak = sub[r, c]
     neighbours = (sub[r - 1, c] + sub[r + 1, c] + sub[r, c - 1] + sub[r, c + 1]) / 4.0
-    return neighbours < ratio * peak
+    return neighbours < _SPIKE_SCREEN_RATIO * peak
+
+
+def _projectors(columns: list[np.ndarray]) -> np.ndarray:
+    """(M, P, P) orthogonal projectors onto the span of each design matrix (P, 2) of ``columns``."""
+    out = []
+    for a in columns:
+        q, _ = np.linalg.qr(a)
+        out.append(q @ q.T)
+    return np.stack(out)
+
+
+def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma_px: float, chi2_limit: float):
+    """Hot pixels: detections that a single bright pixel explains better than a star of the frame's own PSF, by a
+    likelihood-ratio test. Over the (2h+1)^2 pixels d around the brightest one (h = :data:`_HOT_BOX_HALF_PX`), in
+    units of the local noise, two linear models each with a flat background: a spike (amplitude on the central pixel
+    only) and the pixel-integrated Gaussian of sigma ``psf_sigma_px`` (:func:`hostlink.sky.render.
+    pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions and of three widths from
+    :data:`_HOT_SHARPEST_FRACTION` of it to all of it; chi^2 = |d|^2 - d^T Q d for each
+    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit``: the star model is
+    rejected (both have 2 free amplitudes: under a true star the difference is noise of a few units, under a spike
+    of amplitude A it grows as (A / noise)^2). A sharp star (sigma 0.5-0.8 px), whose neighbours hold little of
+    its flux, still fits its PSF better than a spike; a faint star, whose neighbours are lost in the noise, fits
+    both about as well and is kept; and only a spike that fits the pixels (its chi^2 within :data:`_HOT_FIT_SIGMAS`
+    standard deviations of its degrees of freedom: nothing but noise around one pixel) is one, so a bright star
+    whose real core is sharper than the Gaussian (the spike then fits far worse still) is kept. Returns (N,) bool."""
+    h, w = sub.shape
+    half = _HOT_BOX_HALF_PX
+    if objects.size == 0:
+        return np.zeros(0, dtype=bool)
+    c = np.clip(objects["xpeak"].astype(np.int64), half, w - 1 - half)
+    r = np.clip(objects["ypeak"].astype(np.int64), half, h - 1 - half)
+    offsets = np.arange(-half, half + 1)
+    cut = sub[r[:, None, None] + offsets[None, :, None], c[:, None, None] + offsets[None, None, :]]
+    d = cut.reshape(objects.size, -1) / np.maximum(rms[r, c], 1e-12)[:, None]
+    flat = np.ones(offsets.size**2)
+    spike = np.zeros(offsets.size**2)
+    spike[spike.size // 2] = 1.0
+    widths = np.geomspace(max(_MIN_PSF_SIGMA_PX, _HOT_SHARPEST_FRACTION * psf_sigma_px), psf_sigma_px, 3)
+    stars = [
+        np.outer(pixel_integrated_gaussian(offsets, dy, width), pixel_integrated_gaussian(offsets, dx, width)).ravel()
+        for width in widths
+        for dy in _HOT_POSITIONS_PX
+        for dx in _HOT_POSITIONS_PX
+    ]
+    q = _projectors([np.column_stack([m, flat]) for m in [spike, *stars]])
+    explained = np.einsum("np,mpq,nq->nm", d, q, d)  # d^T Q d for every detection and model
+    total = np.einsum("np,np->n", d, d)
+    chi2_spike = total - explained[:, 0]
+    chi2_star = total - np.max(explained[:, 1:], axis=1)
+    dof = d.shape[1] - 2
+    spike_fits = chi2_spike <= dof + _HOT_FIT_SIGMAS * math.sqrt(2.0 * dof)
+    return spike_fits & (chi2_star - chi2_spike > chi2_limit)
 
 
 def _psf_fluxes(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -544,6 +636,8 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
         mag=cat("mag"),
         extra={
             "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
+            "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
+            "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
             "image": np.array(
                 [Path(d.report.path).name for (_, d, _), c in zip(frames, counts, strict=True) for _ in range(c)],
                 dtype=object,
@@ -738,6 +832,7 @@ def centroid_crb_px(
     read_noise_e: float,
     gain_e_per_adu: float = 1.0,
     half_width_px: int | None = None,
+    star_shot_noise: bool = True,
 ) -> tuple[float, float]:
     """Cramer-Rao bound (standard deviation per axis [px]) of an unbiased centroid of a star of ``flux_e`` [e-] at
     ``(x_px, y_px)`` imaged with a circular Gaussian PSF of ``psf_sigma_px`` integrated over square pixels
@@ -750,7 +845,9 @@ def centroid_crb_px(
     I = sum_i (d mu_i / dp)(d mu_i / dp)^T / (mu_i + sigma_r^2 + g^2 / 12), mu_i = B + N P_i(x, y): exact for
     Poisson and for Gaussian noise alone, and for both the shifted-Poisson approximation (Huang et al. 2013, Nat.
     Methods 10:653, eq. S5), with the model's derivatives from :func:`psf_model` (tested against finite
-    differences). Returns sqrt(diag(I^-1)) for x and y."""
+    differences). ``star_shot_noise`` False leaves mu_i out of the variance (Gaussian noise alone, the detector's
+    gain unknown: ``read_noise_e`` then holds the whole measured pixel noise, background shot noise included).
+    Returns sqrt(diag(I^-1)) for x and y."""
     sigma = float(psf_sigma_px)
     half = int(half_width_px if half_width_px is not None else math.ceil(6 * sigma) + 2)
     cols = np.arange(math.floor(x_px) - half, math.floor(x_px) + half + 2, dtype=np.float64)
@@ -759,7 +856,42 @@ def centroid_crb_px(
     p0 = np.array([x_px, y_px, flux_e, background_e], dtype=np.float64)
     mu, jac = psf_model(cols, rows, p0, sigma)
     jac = jac.reshape(-1, 4).T
-    variance = mu.ravel() + read_noise_e**2 + gain_e_per_adu**2 / 12.0
+    variance = (mu.ravel() if star_shot_noise else 0.0) + read_noise_e**2 + gain_e_per_adu**2 / 12.0
     fisher = (jac / variance) @ jac.T
     cov = np.linalg.inv(fisher)
     return float(math.sqrt(cov[0, 0])), float(math.sqrt(cov[1, 1]))
+
+
+def centroid_sigma_px(
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    flux_adu: np.ndarray,
+    rms_adu: np.ndarray,
+    psf_sigma_px: float,
+    gain_e_per_adu: float | None,
+) -> np.ndarray:
+    """Each star's 1-sigma centroid noise per axis [px] (the ``sigma_px`` column): the larger of the x and y
+    Cramer-Rao bounds of :func:`centroid_crb_px` for its PSF-fit ``flux_adu``, the local pixel noise ``rms_adu``
+    (the background map at the star: sky shot noise, read noise and quantisation as measured) and the frame's PSF.
+    With the gain the star's own shot noise is added (electrons: flux x gain, noise rms x gain); without it the
+    bound counts the measured pixel noise alone (the background-limited bound: a bright star's is then too small by
+    its shot noise). A star with no positive flux gets NaN."""
+    out = np.full(np.shape(x_px), np.nan)
+    gain = float(gain_e_per_adu) if gain_e_per_adu else 1.0
+    h, w = rms_adu.shape
+    for k, (x, y, f) in enumerate(zip(x_px, y_px, flux_adu, strict=True)):
+        noise = float(rms_adu[min(max(int(round(y)), 0), h - 1), min(max(int(round(x)), 0), w - 1)]) if h else 0.0
+        if not (f > 0 and noise > 0 and np.isfinite(x) and np.isfinite(y)):
+            continue
+        sx, sy = centroid_crb_px(
+            float(x),
+            float(y),
+            float(f) * gain,
+            psf_sigma_px,
+            0.0,
+            noise * gain,
+            0.0,
+            star_shot_noise=bool(gain_e_per_adu),
+        )
+        out[k] = max(sx, sy)
+    return out

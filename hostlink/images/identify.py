@@ -33,6 +33,13 @@ Per frame:
 
 After every frame has been tried once, the frames not yet identified are tried again by the engine with the field
 of view the identified frames measured and a tolerance of :data:`REFINED_FOV_TOLERANCE`, then by the own matcher.
+
+From 8 to 50 deg fields (issue 30): a frame with :data:`REFINE_MIN_STARS` verified stars refines its own focal
+length and radial terms on them (:func:`_refine_radial`), and its later candidates are predicted and verified
+through that camera, so the match radius (:func:`_match_radius_px`) follows the centroid noise, not the lens; a star
+that two catalogue stars could be is left unidentified (:func:`_ambiguous`); the own matcher's catalogue depth
+follows the field (:func:`fallback_depth_mag`); a nominal wider than :data:`MAX_DIAGONAL_FIELD_DEG` (a fisheye) is
+refused. :func:`identify_iteratively` identifies, calibrates and identifies again until a round adds nothing.
 """
 
 from __future__ import annotations
@@ -73,9 +80,13 @@ MIN_VERIFIED_FRACTION = 0.6
 #: Triples of verified stars must agree on the parity at least this often (1.0 for a clean frame; a near-collinear
 #: triple with centroid noise can flip, so not all are required).
 PARITY_MIN_AGREEMENT = 0.9
-#: Extension: a centroid within this radius [px] of a predicted catalogue star (or 4 x the fit's rms residual,
-#: whichever is larger) is a candidate; the nearest other predicted star must be at least twice as far.
-EXTEND_RADIUS_PX = 4.0
+#: Extension: a centroid within this many rms residuals of the verified stars (or :data:`EXTEND_RADIUS_PX`,
+#: whichever is larger) of a predicted catalogue star is a candidate; the nearest other predicted star must be at
+#: least twice as far. The radius follows the camera model's error: several px for an uncalibrated wide lens, about
+#: a pixel once calibrated, where a fixed 4 px let false stars meet faint catalogue stars by chance (a 50-deg
+#: field holds ~0.5 Hp <= 7.5 stars per square degree: 4 px of 0.94' is a 7 % chance per false star, 1.5 px 1 %).
+EXTEND_RADIUS_RESIDUALS = 4.0
+EXTEND_RADIUS_PX = 1.5
 #: Extension: catalogue stars down to this many magnitudes fainter than the faintest proposed match are predicted.
 EXTEND_MAG_MARGIN = 1.0
 #: Second pass: field-of-view tolerance once the identified frames have measured the focal length.
@@ -87,8 +98,11 @@ MIN_COMPLETENESS = 0.5
 #: within this fraction (the identified frames of the real set scatter by +-0.05 %; distortion sampled by a few
 #: stars moves a frame's scale by ~0.1 %).
 SCALE_AGREEMENT = 0.002
-#: Extension rounds (the second uses the attitude refitted with the first round's stars).
+#: Extension rounds (the second uses the attitude refitted with the first round's stars); then more, each to the
+#: depth the verified stars reached plus :data:`EXTEND_MAG_MARGIN`, until one adds nothing, at most
+#: :data:`MAX_EXTEND_ROUNDS` in all.
 EXTEND_ROUNDS = 2
+MAX_EXTEND_ROUNDS = 6
 
 
 @dataclass(frozen=True)
@@ -96,7 +110,8 @@ class FrameIdentity:
     """What identification found in one frame.
 
     frame: the session's frame counter; n_centroids: its unidentified rows (star_id 0); n_candidates: matches
-    proposed (engine and extension); n_identified: verified and written; status: ``identified`` or why not;
+    proposed (engine and extension); n_identified: verified and written; n_ambiguous: verified but left unidentified
+    because two catalogue stars could be them (:func:`_ambiguous`); status: ``identified`` or why not;
     attitude: C (3, 3) with b = C r for J2000 directions r (None when not identified); ra_deg, dec_deg: the
     boresight; roll_deg: the angle from the image's -y axis (up) to the projected celestial north, toward +x;
     mirrored: the parity (True: the image is the sky's mirror image; None when unknown); scale: F / F_nominal;
@@ -115,6 +130,7 @@ class FrameIdentity:
     mirrored: bool | None = None
     scale: float = math.nan
     residual_arcsec: float = math.nan
+    n_ambiguous: int = 0
 
     def as_dict(self) -> dict:
         """JSON-ready report of this frame."""
@@ -124,6 +140,7 @@ class FrameIdentity:
             "centroids": self.n_centroids,
             "candidates": self.n_candidates,
             "identified": self.n_identified,
+            "ambiguous": self.n_ambiguous,
             "ra_deg": _finite(self.ra_deg),
             "dec_deg": _finite(self.dec_deg),
             "roll_deg": _finite(self.roll_deg),
@@ -147,6 +164,10 @@ class Identification:
     frames: tuple[FrameIdentity, ...]
     engine: str
     nominal_fov_deg: float
+    #: one record per round of :func:`identify_iteratively` (empty for a single :func:`identify_session`)
+    rounds: tuple[dict, ...] = ()
+    #: the camera the final round identified with (the nominal, or the calibration of the round before)
+    camera: CameraParams | None = None
 
     @property
     def n_identified(self) -> int:
@@ -177,6 +198,7 @@ class Identification:
             "stars_identified": self.n_identified,
             "parity": None if self.mirrored is None else ("mirrored" if self.mirrored else "normal"),
             "scale": _finite(self.scale),
+            "rounds": list(self.rounds),
             "per_frame": [f.as_dict() for f in self.frames],
         }
 
@@ -211,6 +233,59 @@ class _Verified:
     parity_agreement: float
     attitude: np.ndarray | None
     residual_rad: np.ndarray | None
+    #: the camera vector the attitude and residuals are of: the nominal at ``scale``, its focal length and radial
+    #: term refined on the frame's verified stars when they are enough (:func:`_refine_radial`)
+    theta: np.ndarray | None = None
+
+
+#: :func:`_refine_radial` needs at least this many verified stars (two parameters beyond the attitude's three, with
+#: room for the centroid noise to average).
+REFINE_MIN_STARS = 10
+REFINE_ITERATIONS = 3
+#: ... and k2 too from this many (a wide lens's distortion is not a pure cube of the radius).
+REFINE_K2_STARS = 20
+#: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
+_K1 = 3
+
+
+def _refine_radial(
+    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's own focal length and radial terms k1 (and k2 from :data:`REFINE_K2_STARS` stars): Gauss-Newton on
+    sum |b(x, y; f, k1, k2) - C r|^2, derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`,
+    the attitude C refitted by Markley's SVD after each step. A wide lens's unmodelled distortion, which grows as the
+    cube of the radius and faster, is then out of the predictions of the frame's other stars and out of the
+    interstar angles its later candidates are verified by, and the match radius can follow the centroid noise
+    instead of the lens. Returns (theta, C); the given ones when no step lowers the residual."""
+    best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
+    current, att = np.array(theta, dtype=np.float64), c
+    r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
+    steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
+    if x_px.size >= REFINE_K2_STARS:
+        steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
+    for _ in range(REFINE_ITERATIONS):
+        b = pixels_to_unit(x_px, y_px, current)
+        residual = (b - r @ att.T).ravel()
+        columns = []
+        for index, step in steps.items():
+            shifted = current.copy()
+            shifted[index] += step
+            columns.append(((pixels_to_unit(x_px, y_px, shifted) - b) / step).ravel())
+        jac = np.stack(columns, axis=1)
+        norm = np.linalg.norm(jac, axis=0)
+        if not np.all(norm > 0):
+            break
+        delta = np.linalg.lstsq(jac / norm, -residual, rcond=None)[0] / norm
+        for (index, _), d in zip(steps.items(), delta, strict=True):
+            current[index] += d
+        try:
+            att = attitude_from_vectors(pixels_to_unit(x_px, y_px, current), r)
+        except DegenerateGeometry:
+            break
+        cost = float(np.sum((pixels_to_unit(x_px, y_px, current) - r @ att.T) ** 2))
+        if cost < best[2]:
+            best = (current.copy(), att, cost)
+    return best[0], best[1]
 
 
 #: Pruning a matcher's proposal: a star agreeing with fewer than this fraction of the others is dropped, and the vote
@@ -256,7 +331,15 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
         c = attitude_from_vectors(b[keep], r[keep])
     except DegenerateGeometry:
         return _Verified(keep, mirrored, scale, agreement, None, None)
-    return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c))
+    if np.count_nonzero(keep) >= REFINE_MIN_STARS:
+        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_s)
+        b = pixels_to_unit(data.x_px, data.y_px, theta_s)
+    return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
+
+
+def _absolute_scale(v: _Verified, theta: np.ndarray) -> float:
+    """F / F_nominal of a verification (its camera vector's focal length over the nominal's ``theta``)."""
+    return float(v.theta[0] / theta[0]) if v.theta is not None else v.scale
 
 
 def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
@@ -278,6 +361,8 @@ def _predict(
     none = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     theta_s = np.array(theta, dtype=np.float64)
     theta_s[0] *= v.scale
+    if v.theta is not None:
+        theta_s = v.theta
     width, height = image_size_px
     corners_x = np.array([-0.5, width - 0.5, -0.5, width - 0.5])
     corners_y = np.array([-0.5, -0.5, height - 0.5, height - 0.5])
@@ -311,9 +396,7 @@ def _extend(
     near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
     if near.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    focal_px = theta[0] * v.scale
-    rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * focal_px
-    radius = max(EXTEND_RADIUS_PX, 4.0 * rms_px)
+    radius = _match_radius_px(theta, v)
     d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2  # (centroids, predicted)
     rows, stars = [], []
     for i in range(x_px.shape[0]):
@@ -330,6 +413,44 @@ def _extend(
         rows.append(i)
         stars.append(int(near[j]))
     return np.asarray(rows, dtype=np.int64), np.asarray(stars, dtype=np.int64)
+
+
+def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
+    """The radius [px] within which a centroid is matched to a predicted catalogue star: :data:`EXTEND_RADIUS_PX`,
+    or :data:`EXTEND_RADIUS_RESIDUALS` x the verified stars' rms residual when larger."""
+    focal_px = v.theta[0] if v.theta is not None else theta[0] * v.scale
+    rms_px = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * focal_px
+    return max(EXTEND_RADIUS_PX, EXTEND_RADIUS_RESIDUALS * rms_px)
+
+
+#: A star is ambiguous when another catalogue star at most this much fainter than its own identity [mag] is
+#: predicted within the match radius of its centroid (the depth the extension matches to, :data:`EXTEND_MAG_MARGIN`).
+AMBIGUITY_MAG_MARGIN = EXTEND_MAG_MARGIN
+
+
+def _ambiguous(
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    stars: np.ndarray,
+    sky: _Sky,
+    theta: np.ndarray,
+    v: _Verified,
+    image_size_px: tuple[int, int],
+    mag_limit: float,
+) -> np.ndarray:
+    """(K,) bool over the candidates (centroids ``x_px, y_px`` named ``stars``): another catalogue star, no fainter
+    than its own identity by more than :data:`AMBIGUITY_MAG_MARGIN` and within ``mag_limit``, is predicted by the
+    verified solution within :func:`_match_radius_px` of the centroid: two catalogue stars could be this star (a
+    close pair the detector does not resolve, or either of two), so it is left unidentified."""
+    near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
+    out = np.zeros(stars.size, dtype=bool)
+    if near.size < 2:
+        return out
+    radius = _match_radius_px(theta, v)
+    d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
+    other = (d2 <= radius * radius) & (near[None, :] != stars[:, None])
+    bright_enough = sky.mag[near][None, :] <= sky.mag[stars][:, None] + AMBIGUITY_MAG_MARGIN
+    return np.any(other & bright_enough, axis=1)
 
 
 def _completeness(sky: _Sky, theta: np.ndarray, v: _Verified, image_size_px, identified: np.ndarray) -> float:
@@ -598,17 +719,33 @@ def _confirm(
     if v.attitude is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
     mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
-    for _ in range(EXTEND_ROUNDS):
+    theta_frame = theta  # the camera later rounds verify through: the frame's own once refined
+    for round_no in range(MAX_EXTEND_ROUNDS):
         taken = np.zeros(n, dtype=bool)
         taken[rows[v.keep]] = True
         new_rows, new_stars = _extend(x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px)
+        if round_no >= EXTEND_ROUNDS and new_rows.size == 0:
+            break  # nothing new: the solution is complete at this depth
         rows = np.concatenate([rows[v.keep], new_rows])
         stars = np.concatenate([stars[v.keep], new_stars])
-        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta, v.mirrored)
+        if v.theta is not None:
+            theta_frame = v.theta  # a wide lens's edge stars verify through the lens the frame measured
+        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored)
         if v.attitude is None:
             return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
+        # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
+        mag_limit = max(mag_limit, float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN)
+    ambiguous = v.keep & _ambiguous(x_px[rows], y_px[rows], stars, sky, theta, v, image_size_px, mag_limit)
+    n_ambiguous = int(np.count_nonzero(ambiguous))
+    v = replace(v, keep=v.keep & ~ambiguous)
     n_ok = int(np.count_nonzero(v.keep))
-    ident = replace(ident, n_candidates=max(n_proposed, int(rows.size)), mirrored=v.mirrored, scale=v.scale)
+    ident = replace(
+        ident,
+        n_candidates=max(n_proposed, int(rows.size)),
+        mirrored=v.mirrored,
+        scale=_absolute_scale(v, theta),
+        n_ambiguous=n_ambiguous,
+    )
     if n_ok < MIN_VERIFIED:
         return replace(ident, status=f"only {n_ok} stars verified (need {MIN_VERIFIED})"), hip_out
     if n_ok < MIN_VERIFIED_FRACTION * rows.size:
@@ -618,8 +755,8 @@ def _confirm(
     completeness = _completeness(sky, theta, v, image_size_px, stars[v.keep])
     if completeness < MIN_COMPLETENESS:
         return replace(ident, status=f"only {100 * completeness:.0f} % of the bright stars in the field found"), hip_out
-    if scale is not None and abs(v.scale / scale - 1.0) > SCALE_AGREEMENT:
-        return replace(ident, status=f"scale {v.scale:.4f} disagrees with the session's {scale:.4f}"), hip_out
+    if scale is not None and abs(ident.scale / scale - 1.0) > SCALE_AGREEMENT:
+        return replace(ident, status=f"scale {ident.scale:.4f} disagrees with the session's {scale:.4f}"), hip_out
     hip_out[rows[v.keep]] = sky.hip[stars[v.keep]]
     ra, dec, roll = _boresight_and_roll(v.attitude)
     rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * 206264.80624709636
@@ -715,9 +852,21 @@ def identify_frame(
     return best
 
 
-#: Fallback matcher: catalogue depth when no frame has been identified to tell how deep the camera sees [Hp mag]
-#: (37622 Hipparcos stars; their pairs within a 10 deg field fit in ~100 MB).
-FALLBACK_MAGLIM = 8.0
+#: Fallback matcher: when no frame has been identified to tell how deep the camera sees, the catalogue depth is the
+#: magnitude at which a field of the camera's size holds this many catalogue stars on average (Hp 8.0 on a 10 x 10 deg
+#: field, 6.5 on 27 x 20 deg, 5.3 on 50 x 37 deg: a camera that sees a wider field is built for brighter stars, and
+#: the pair index, which grows with the square of the stars within a field's diameter, stays ~100 MB).
+FALLBACK_STARS_PER_FIELD = 90
+
+
+def fallback_depth_mag(sky_mag: np.ndarray, field_sr: float) -> float:
+    """The magnitude at which the catalogue (magnitudes ``sky_mag``, whole sky) holds on average
+    :data:`FALLBACK_STARS_PER_FIELD` stars in a field of ``field_sr`` [sr]."""
+    wanted = int(round(FALLBACK_STARS_PER_FIELD * 4.0 * math.pi / max(field_sr, 1e-9)))
+    mags = np.sort(sky_mag[np.isfinite(sky_mag)])
+    return float(mags[min(max(wanted, 1), mags.size) - 1])
+
+
 #: Fallback matcher: catalogue depth beyond the 90th percentile of the magnitudes the engine identified in the
 #: session (the extension step adds a few stars fainter than the camera's usual depth; the pair index grows with the
 #: square of the star count, so they should not set it) [mag].
@@ -732,6 +881,7 @@ def identify_session(
     maglim: float | None = None,
     use_engine: bool = True,
     progress=None,
+    database_fov_deg: float | None = None,
 ) -> Identification:
     """Identify every frame's unidentified rows (module docstring). ``nominal``: the camera as its user knows it
     (focal length within 10 %); ``catalogue``: default the bundled Hipparcos; ``maglim``: only stars at least this
@@ -739,6 +889,7 @@ def identify_session(
     own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
     them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
+    check_field(nominal)
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
@@ -749,7 +900,9 @@ def identify_session(
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
     sky = _sky(catalogue)
     engine = use_engine and solver_adapter.engine_available()
-    database = solver_adapter.pattern_database(catalogue, fov, maglim) if engine else None
+    database = (
+        solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
+    )  # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
     results: dict[int, tuple[FrameIdentity, np.ndarray]] = {}
@@ -778,21 +931,26 @@ def identify_session(
             if progress is not None:
                 progress(done + 1, len(todo))
     failed = [k for k in todo if k not in results or results[k][0].status != "identified"]
-    engine_scale_known = any(results[k][0].status == "identified" for k in results)
     # the own matcher: at the engine's measured scale, or without the engine by a scan of scales (slow, ~0.1 s per
-    # scale and frame of a 3.8 deg field: only when the engine is not there; a session the engine matched nowhere
-    # is not rescanned)
+    # scale and frame: only when the engine is not there; a session the engine matched nowhere is not rescanned)
+    engine_scale_known = any(results[k][0].status == "identified" for k in results)
     if failed and (engine_scale_known or not engine):
         found = [k for k in todo if k in results and results[k][0].status == "identified"]
         scales = [results[k][0].scale for k in found]
         scale = float(np.median(scales)) if scales else math.nan
         hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
         hips = hips[hips != 0]
+        # as deep as the identified frames see, but no deeper than the field's size needs: the matcher works on the
+        # brightest centroids, and a 50-deg field's pairs to Hp 7.5 take 40 s to index (to Hp 5.5, a second)
+        field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
         depth = (
-            float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
-            + FALLBACK_MAG_MARGIN
+            min(
+                float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
+                + FALLBACK_MAG_MARGIN,
+                field_depth + FALLBACK_MAG_MARGIN,
+            )
             if hips.size
-            else FALLBACK_MAGLIM
+            else field_depth
         )
         half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
         pairs = pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
@@ -828,6 +986,40 @@ def identify_session(
     return Identification(out, tuple(results[k][0] for k in todo), name, fov)
 
 
+#: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
+#: describes: at 60 deg off axis a fisheye's equidistant image (r = f theta) lies 40 % inside the pinhole's
+#: (r = f tan theta), more than the polynomial's few-% corrections can bend, and at 90 deg the pinhole has none.
+MAX_DIAGONAL_FIELD_DEG = 120.0
+
+
+def diagonal_field_deg(camera: CameraParams) -> float:
+    """The detector's diagonal field through the pinhole of ``camera`` [deg]."""
+    width, height = camera.image_size_px
+    return math.degrees(2.0 * math.atan(0.5 * math.hypot(width, height) / camera.focal_length_px))
+
+
+def check_field(camera: CameraParams) -> None:
+    """A one-line :class:`UserError` for a lens too wide for the camera model (:data:`MAX_DIAGONAL_FIELD_DEG`)."""
+    from hostlink.errors import UserError
+
+    field = diagonal_field_deg(camera)
+    if field > MAX_DIAGONAL_FIELD_DEG:
+        raise UserError(
+            f"the nominal camera sees {field:.0f} deg across the diagonal: a lens this wide (a fisheye) is outside "
+            f"the camera model (a pinhole with polynomial distortion, up to {MAX_DIAGONAL_FIELD_DEG:.0f} deg); "
+            "check the nominal focal length"
+        )
+
+
+def _field_sr(camera: CameraParams) -> float:
+    """The detector's field [sr] through the pinhole of ``camera`` (4 asin(sin(a) sin(b)) for a rectangle of half
+    angles a, b about the axis)."""
+    width, height = camera.image_size_px
+    a = math.atan(0.5 * width / camera.focal_length_px)
+    b = math.atan(0.5 * height / camera.focal_length_px)
+    return 4.0 * math.asin(math.sin(a) * math.sin(b))
+
+
 def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue) -> Session:
     """``session`` with ``star_id``; when the file has ra_deg/dec_deg, the newly identified rows get theirs (the
     geocentric apparent place at the frame's time, docs/file-formats.md; the J2000 place when the time is unknown)."""
@@ -848,3 +1040,89 @@ def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue
             stars = stars_at_j2000(catalogue, cat_rows)
             ra[new], dec[new] = np.degrees(stars.ra_rad), np.degrees(stars.dec_rad)
     return replace(out, ra_deg=ra, dec_deg=dec)
+
+
+#: :func:`identify_iteratively`: rounds at most (the first with the nominal camera). Each later round identifies
+#: with the camera calibrated on the round before; on the real sets the second round adds the field-edge stars an
+#: uncalibrated model misplaces and the third adds nothing.
+MAX_ROUNDS = 4
+
+
+def identify_iteratively(
+    session: Session,
+    nominal: CameraParams,
+    catalogue: Catalogue | None = None,
+    maglim: float | None = None,
+    use_engine: bool = True,
+    max_rounds: int = MAX_ROUNDS,
+    progress=None,
+) -> Identification:
+    """Identify, calibrate, identify again with the calibrated camera, until a round adds nothing (at most
+    ``max_rounds``; 1: :func:`identify_session` alone). Every round identifies the session's originally
+    unidentified rows afresh (lost in space: the module docstring's checks apply in every round) with the camera
+    the round before calibrated (:func:`hostlink.calibration.run.calibrate_session`, default method and
+    parameters, the session's time or J2000 directions); the field edge, where an uncalibrated model errs most, is
+    where the new stars are. A round is kept only when it identifies more stars than the one before; a calibration
+    that fails (:meth:`CalibrationOutcome.failure`) ends the rounds. The result's ``rounds`` hold, per round: the
+    camera used (focal length [px], where it came from), frames and stars identified, and the stars it added, lost
+    and renamed against the round before."""
+    from hostlink.calibration.run import calibrate_session
+    from hostlink.errors import UserError
+
+    if max_rounds < 1:
+        raise UserError(f"rounds must be at least 1, got {max_rounds}")
+    if catalogue is None:
+        from hostlink.sky.catalogue import load_catalogue
+
+        catalogue = load_catalogue()
+    width = nominal.image_size_px[0]
+    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
+
+    def one_round(camera: CameraParams) -> Identification:
+        return identify_session(session, camera, catalogue, maglim, use_engine, progress, database_fov_deg=fov)
+
+    result = one_round(nominal)
+    new = session.star_id == 0
+    rounds = [_round_record(1, "nominal", nominal, result, np.zeros_like(session.star_id), new)]
+    camera = nominal
+    for number in range(2, max_rounds + 1):
+        if result.n_frames_identified == 0:
+            break
+        try:
+            outcome, _ = calibrate_session(result.session, camera, keep_failed=True)
+        except UserError as exc:
+            rounds[-1]["calibration"] = f"failed: {exc}"
+            break
+        failure = outcome.failure()
+        rounds[-1]["calibration"] = failure or f"residual {outcome.after.get('rms_px', math.nan):.3f} px"
+        if failure:
+            break
+        trial = one_round(outcome.params)
+        record = _round_record(
+            number, f"calibrated in round {number - 1}", outcome.params, trial, result.session.star_id, new
+        )
+        rounds.append(record)
+        if trial.n_identified <= result.n_identified:
+            record["kept"] = False  # nothing new: the round before stands
+            break
+        result, camera = trial, outcome.params
+    return replace(result, rounds=tuple(rounds), camera=camera)
+
+
+def _round_record(
+    number: int, source: str, camera: CameraParams, result: Identification, before: np.ndarray, new: np.ndarray
+) -> dict:
+    """One round's report (:func:`identify_iteratively`): over the rows the session left unidentified (``new``), the
+    stars this round identified, added (unidentified the round before), lost and renamed against ``before``."""
+    now = result.session.star_id
+    return {
+        "round": number,
+        "camera": source,
+        "focal_length_px": float(camera.focal_length_px),
+        "frames_identified": result.n_frames_identified,
+        "stars_identified": int(np.count_nonzero(new & (now != 0))),
+        "added": int(np.count_nonzero(new & (now != 0) & (before == 0))),
+        "lost": int(np.count_nonzero(new & (now == 0) & (before != 0))),
+        "renamed": int(np.count_nonzero(new & (now != 0) & (before != 0) & (now != before))),
+        "kept": True,
+    }

@@ -258,3 +258,52 @@ def engine_pixels_to_unit(calibration: EngineCalibration, u_px: np.ndarray, v_px
     xi_eta = np.array([camera.pixel_to_tanplane(float(u), float(v)) for u, v in zip(u_px, v_px, strict=True)])
     xyz = np.column_stack([xi_eta.reshape(-1, 2), np.ones(len(u_px))])
     return xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class EngineImageSolve:
+    """The engine alone on one image (its own source extractor, then its lost-in-space solve): its centroids
+    ``x_px, y_px`` (detector pixels, the project's convention) and ``brightness``, brightest first, and where it
+    solved, the indices into them of its matched stars ``rows`` with their Hipparcos numbers ``hip``."""
+
+    x_px: np.ndarray
+    y_px: np.ndarray
+    brightness: np.ndarray
+    rows: np.ndarray
+    hip: np.ndarray
+
+    @property
+    def solved(self) -> bool:
+        return self.rows.size > 0
+
+
+def engine_solve_image(database, pixels: np.ndarray, fov_deg: float) -> EngineImageSolve:
+    """tetra3rs from the image (``extract_centroids`` with its defaults, then ``solve_from_centroids`` at the nominal
+    horizontal field ``fov_deg`` within :data:`FOV_MARGIN`, the engine's other defaults): what an established solver
+    makes of the same image, for side-by-side comparisons (benchmarks/bench_realsky.py). The engine's centroids are
+    offsets from the image centre ((width - 1) / 2, (height - 1) / 2 in the project's convention, checked on the
+    shared real frames against the project's own centroids of the same stars)."""
+    import tetra3rs
+
+    height, width = pixels.shape
+    extracted = tetra3rs.extract_centroids(np.ascontiguousarray(pixels, dtype=np.float64))
+    cs = extracted.centroids
+    u = np.array([c.x for c in cs], dtype=np.float64)
+    v = np.array([c.y for c in cs], dtype=np.float64)
+    brightness = np.array([c.brightness for c in cs], dtype=np.float64)
+    x_px, y_px = u + 0.5 * (width - 1), v + 0.5 * (height - 1)
+    none = np.zeros(0, dtype=np.int64)
+    if u.size < MIN_CENTROIDS:
+        return EngineImageSolve(x_px, y_px, brightness, none, none)
+    result = database.solve_from_centroids(
+        np.ascontiguousarray(np.stack([u, v, brightness], axis=1)),
+        fov_estimate_deg=float(fov_deg),
+        image_width=int(width),
+        image_height=int(height),
+        fov_max_error_deg=float(fov_deg) * FOV_MARGIN,
+    )
+    if not result:
+        return EngineImageSolve(x_px, y_px, brightness, none, none)
+    rows = np.asarray(result.matched_centroids, dtype=np.int64)
+    hip = np.asarray(result.matched_catalog_ids, dtype=np.int64)
+    return EngineImageSolve(x_px, y_px, brightness, rows, hip)
