@@ -24,7 +24,7 @@ from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, N_PARAMS, CameraParams
 from protocol.messages import quantise_px
 
-#: The numerical modules of the C core, one per ``onboard`` module (onboard/c/NAME.c and NAME.h).
+#: The numerical modules of the C core, one per ``onboard`` module (onboard/c/<module>.c and NAME.h).
 NUMERIC_MODULES = (
     "camera",
     "ud",

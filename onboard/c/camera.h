@@ -1,4 +1,4 @@
-/* camera.h: the camera model of CAMERA_MODEL.md in float32, a translation of onboard/camera.py (the sensor's
+/* camera.h: the camera model of docs/camera-model.md in float32, a translation of onboard/camera.py (the sensor's
  * per-frame direction and the Jacobians the recursive estimator linearises with).
  *
  * theta = (F_px, x0_px, y0_px, k1, k2, k3, p1, p2, s1, s2), the model vector (CameraParams.model_vector).
