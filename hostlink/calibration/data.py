@@ -208,7 +208,9 @@ def save_chunk(path: Path, data: CalibrationData) -> None:
     member of an ``.npz`` archive is also checksummed as it is read, which costs about as much as the read)."""
     arrays = {name: getattr(data, name) for name in SPOOL_FIELDS if name != "row"}
     arrays["row"] = data.source_rows()
-    with open(path, "wb") as f:
+    from hostlink.files.atomic import atomic_open
+
+    with atomic_open(path, binary=True, durable=False) as f:  # scratch: never fsync-ed, never through a link
         for name in SPOOL_FIELDS:
             np.save(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
 
