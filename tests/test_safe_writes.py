@@ -250,3 +250,68 @@ def test_temporary_names_are_unpredictable_and_created_exclusively(tmp_path):
     os.close(fd)
     with pytest.raises(FileExistsError):
         os.open(first, atomic._CREATE_FLAGS, 0o666)  # the flags never open what is there
+
+
+@pytest.mark.parametrize(
+    "link",
+    [
+        "serial:spy://loop://?file={out}@115200",
+        "can:slcan:spy://loop://?file={out}@500000",
+        "modbus-rtu:spy://loop://?file={out}@19200,unit=1",
+    ],
+    ids=["serial", "can-slcan", "modbus-rtu"],
+)
+def test_a_port_url_that_would_write_a_file_is_refused_unless_allowed(link, tmp_path, monkeypatch):
+    from hostlink.errors import UserError
+    from hostlink.links import open_link
+
+    monkeypatch.delenv("HOSTLINK_ALLOW_URL_FILES", raising=False)
+    out = tmp_path / "spied.txt"
+    with pytest.raises(UserError, match="HOSTLINK_ALLOW_URL_FILES=1"):
+        open_link(link.format(out=out), timeout_s=0.2)
+    assert not out.exists()  # refused before pyserial opened anything
+
+
+def test_a_spy_url_is_opened_when_allowed_and_its_file_is_written(tmp_path, monkeypatch):
+    from hostlink.links import open_link
+
+    monkeypatch.setenv("HOSTLINK_ALLOW_URL_FILES", "1")
+    out = tmp_path / "spied.txt"
+    master, slave = os.openpty()  # spy:// wraps a device port
+    try:
+        with open_link(f"serial:spy://{os.ttyname(slave)}?file={out}@115200", timeout_s=0.2):
+            pass
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert out.exists()  # the user asked for it: pyserial's spy handler made its log
+
+
+def test_the_pattern_database_cache_is_never_unpickled_and_is_written_safely(tmp_path, monkeypatch, planted):
+    """The identification cache lives in the user's cache folder: a file planted there must not run code when read
+    (it was read with pickle.load). It is now the engine's own format; a pickle that would create a marker file when
+    unpickled, planted under the cache's name, is regenerated over, and the marker never appears."""
+    pytest.importorskip("tetra3rs")
+    import pickle
+
+    from hostlink.images import solver_adapter as sa
+    from hostlink.sky.catalogue import cache_dir, load_catalogue
+
+    catalogue = load_catalogue(maglim=5.0)  # (the Hipparcos cache is read from the real cache folder first)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    fov_min, fov_max = 10.0 / (1 + sa.FOV_MARGIN), 10.0 * (1 + sa.FOV_MARGIN)
+    target = cache_dir() / sa._cache_name(fov_min, fov_max, 5.0, len(catalogue))
+    target.parent.mkdir(parents=True)
+    marker = tmp_path / "code-ran"
+
+    class _Payload:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    target.write_bytes(pickle.dumps(_Payload()))
+    first = sa.pattern_database(catalogue, 10.0, 5.0)
+    assert not marker.exists()
+    assert target.is_file() and not target.is_symlink()
+    again = sa.pattern_database(catalogue, 10.0, 5.0)  # read back from the cache (the engine's format)
+    assert again.num_patterns == first.num_patterns > 0
+    _check(planted, [target])

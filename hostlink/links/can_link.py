@@ -44,6 +44,7 @@ import numpy as np
 
 from hostlink.errors import LinkError, UserError, one_line
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol import can_frames as cf
 from protocol.messages import (
     Ack,
@@ -137,6 +138,8 @@ def open_bus(t: CanTarget) -> can.BusABC:
     if t.bitrate is not None:
         kwargs.setdefault("bitrate", t.bitrate)
     channel = t.channel
+    if "://" in channel:
+        refuse_file_writing_url(channel, f"--link can:{t.interface}:")
     if t.interface == "slcan" and "://" in channel:
         kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
         if channel.lower().startswith("socket://"):

@@ -34,6 +34,7 @@ import numpy as np
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import DEFAULT_TIMEOUT_S, CommandRefused, Link
 from hostlink.links.modbus_adapter import ModbusAdapterError, RegisterClient
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol import modbus_map as mm
 from protocol.messages import (
     ESTIMATE_FIELDS,
@@ -120,6 +121,7 @@ def parse_target(scheme: str, target: str) -> dict:
             port, baud = main, str(DEFAULT_RTU_BAUD)
         if not port or not baud.isdigit():
             raise UserError(usage)
+        refuse_file_writing_url(port, f"--link {scheme}:")  # pymodbus opens the port with pyserial's serial_for_url
         kw.update(serial_port=port, baud=int(baud), framing="rtu")
         return kw
     hostport = main[len("tcp://") :] if main.startswith("tcp://") else main

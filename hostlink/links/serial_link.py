@@ -18,6 +18,7 @@ import serial
 
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol.framing import FrameSplitter, FramingError, decode_frame, encode_frame, seq_gap
 from protocol.messages import CentroidFrame, DecodeError, EndOfStream, Message, decode, encode
 
@@ -132,6 +133,7 @@ def _reason(exc: BaseException) -> str:
 def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> SerialLink:
     """Open ``serial:TARGET`` (see the module docstring)."""
     url, baud = parse_target(target)
+    refuse_file_writing_url(url, f"--link {scheme}:{target}:")
     try:
         port = serial.serial_for_url(url, baudrate=baud, timeout=_READ_SLICE_S, write_timeout=timeout_s)
     except (serial.SerialException, OSError, ValueError) as exc:
