@@ -280,6 +280,7 @@ class StreamAssembler:
 
     def reset(self) -> None:
         self._start: int | None = None  # the stream's first frame counter, once the sensor told it (begin_at)
+        self._awaiting_start = False  # a stream was started (forget_sequence) and its ACK has not come yet
         self.lost_at_start = 0  # frames lost up to the last one delivered before begin_at
         self._delivered: list[int] = []  # counters delivered since forget_sequence, until the start is known
         self.t_base_us: int | None = None
@@ -298,6 +299,7 @@ class StreamAssembler:
             self._frame, self._stars, self._last_frame = None, bytearray(), None
             self.lost = self.corrupt = self.incomplete = self.refused_between = self._refused_pending = 0
             self._start, self._delivered = None, []
+            self._awaiting_start = True
 
     def begin_at(self, first_frame: int) -> None:
         """The stream began with frame counter ``first_frame`` (the ACK of STREAM_CONTROL enable): loss is counted
@@ -309,7 +311,7 @@ class StreamAssembler:
                 return
             self._start = first_frame % (1 << 32)
             fresh = [c for c in self._delivered if not self._precedes_start(c)]
-            self._delivered = []
+            self._delivered, self._awaiting_start = [], False
             if fresh:
                 self.lost = (fresh[-1] - self._start + 1) % (1 << 32) - len(fresh)
                 self._last_frame = fresh[-1]
@@ -395,7 +397,7 @@ class StreamAssembler:
             return None
         if self._precedes_start(number):
             return None  # the end of a stream stopped before this one began: neither lost nor corrupt
-        if self._start is None:
+        if self._awaiting_start:  # (only between a start and its ACK: a capture's assembler records nothing)
             self._delivered.append(number)
         if self._last_frame is not None:
             self.lost += (number - self._last_frame - 1) % (1 << 32)
