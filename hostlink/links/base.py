@@ -53,12 +53,16 @@ DEFAULT_TIMEOUT_S = 2.0
 #: Commands that may be sent again (same tag) when their reply is lost on a noisy line: doing them twice is doing
 #: them once. Never COMMIT or STAGE_BEGIN (a second one would be refused as stale, or open a new staging session).
 IDEMPOTENT_COMMANDS = (GetStatus, StreamControl, StageChunk, StageVerify, ReadStaged, ReadActive, ReadEstimate)
-#: Sends of an idempotent command within one timeout (the first and the repeats, evenly spaced: every 250 ms at the
-#: default 2 s). On a line losing 1 % of its bytes a 30-byte reply frame is lost with probability 0.26, and 8 sends
-#: all fail with 0.26**8 = 2e-5 (2 sends: 0.07); 250 ms is far more than a reply's round trip on the slowest line
-#: supported (115200 baud: a reply waits behind at most one 250-byte stream frame, 22 ms), so a slow reply is seldom
-#: asked for twice, and a duplicate reply is dropped by its tag.
-COMMAND_SENDS = 8
+#: Sends of an idempotent command within one timeout (the first and the repeats, evenly spaced: every 125 ms at the
+#: default 2 s). On a line losing 1 % of its bytes a 30-byte reply frame is lost with probability 0.26 and a 110-byte
+#: parameter table with 0.67: 16 sends all fail with 4e-10 and 2e-3 (2 sends: 0.07 and 0.45). 125 ms is several
+#: times a reply's round trip on the slowest line supported (115200 baud: a table reply takes 10 ms, behind at most
+#: one 250-byte stream frame, 22 ms), so a slow reply is seldom asked for twice, and a duplicate is dropped by its tag.
+COMMAND_SENDS = 16
+
+
+class NoReply(LinkError):
+    """No reply to a command within the link's timeout (the command or its reply lost, or the sensor gone)."""
 
 
 class CommandRefused(SensorRefused):
@@ -210,22 +214,28 @@ class MessageLink(Link):
         """Forget the last sequence number seen, so the next message does not count as a gap. Optional."""
 
     # -------------------------------------------------------------------------------- request/reply
-    def request(self, command: Message, expect: type) -> Message:
+    def request(self, command: Message, expect: type, *, fresh_tags: bool = False) -> Message:
         """Send ``command`` with a fresh tag and return the reply of type ``expect`` that echoes the tag.
-        Stream messages arriving meanwhile are queued for :meth:`recv_frame`; stale replies are dropped."""
+        Stream messages arriving meanwhile are queued for :meth:`recv_frame`; stale replies are dropped.
+        Idempotent commands are sent again with the same tag while no reply comes; ``fresh_tags``: sent again too,
+        each time as a new command with a new tag, only the reply to the latest counting (STAGE_BEGIN: each one
+        opens a new staging session and voids the earlier ones). NoReply after the link's timeout."""
         tag = next(self._tags)
         command = type(command)(**{**command.__dict__, "tag": tag})
         self._send(command)
         start = time.monotonic()
         deadline = start + self.timeout_s
-        sends = COMMAND_SENDS if isinstance(command, IDEMPOTENT_COMMANDS) else 1
+        sends = COMMAND_SENDS if isinstance(command, IDEMPOTENT_COMMANDS) or fresh_tags else 1
         next_send = start + self.timeout_s / sends
         while True:
             now = time.monotonic()
             remaining = deadline - now
             if remaining <= 0:
-                raise LinkError(f"{self.name}: no reply to {command.TYPE.name} within {self.timeout_s:g} s")
+                raise NoReply(f"{self.name}: no reply to {command.TYPE.name} within {self.timeout_s:g} s")
             if sends > 1 and now >= next_send:  # the command or its reply was lost: send it again
+                if fresh_tags:
+                    tag = next(self._tags)
+                    command = type(command)(**{**command.__dict__, "tag": tag})
                 self._send(command)
                 next_send += self.timeout_s / sends
             msg = self._receive(min(remaining, max(0.0, next_send - now)) if sends > 1 else remaining)
@@ -271,7 +281,7 @@ class MessageLink(Link):
         Optional: a transport that numbers stream messages from the stream's start (serial) needs nothing more."""
 
     def stage_begin(self, length: int) -> int:
-        return int(self.request(StageBegin(length=length), Ack).value)
+        return int(self.request(StageBegin(length=length), Ack, fresh_tags=True).value)
 
     def stage_chunk(self, offset: int, data: bytes) -> None:
         self.request(StageChunk(offset=offset, data=bytes(data)), Ack)
@@ -283,7 +293,18 @@ class MessageLink(Link):
         return self.request(ReadStaged(), ParamTable)
 
     def commit(self, crc32: int, nonce: int = 0, expected_generation: int = 0) -> int:
-        return int(self.request(Commit(crc32=crc32, nonce=nonce, expected_generation=expected_generation), Ack).value)
+        """COMMIT is sent once (a second one could never match: the first voids the session). When no reply comes,
+        the active set says whether it ran (the next generation with this CRC: done, its reply was lost); if not,
+        the staging session is still live and COMMIT is sent once more."""
+        command = Commit(crc32=crc32, nonce=nonce, expected_generation=expected_generation)
+        try:
+            return int(self.request(command, Ack).value)
+        except NoReply:
+            pass
+        active = self.read_active()
+        if active.generation == expected_generation + 1 and active.crc32 == crc32:
+            return int(active.generation)
+        return int(self.request(command, Ack).value)
 
     def read_active(self) -> ParamTable:
         return self.request(ReadActive(), ParamTable)
