@@ -310,7 +310,8 @@ class ModbusLink(Link):
                     heard = now  # the device answered, the answer was damaged on the way: it is there
                 elif now - t0 >= wait_s:
                     self.timer.timed_out()  # nothing came: perhaps a device slower than the wait
-                if not retry or min(now - max(start, heard), (now - start) / _PATIENCE_TIMEOUTS) >= self.timeout_s:
+                silent_s = now - max(start, heard)  # since the first try or the last damaged answer
+                if not retry or max(silent_s, (now - start) / _PATIENCE_TIMEOUTS) >= self.timeout_s:
                     raise LinkError(f"{self.name}: {exc}") from None
                 self.stats.corrupt_frames += 1
                 self.timer.exchanged(answer_registers + request_registers, ok=False)
