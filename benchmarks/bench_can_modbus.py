@@ -20,12 +20,12 @@ import socket
 import sys
 import threading
 import time
-from pathlib import Path
 
 import can
 
 from hostlink.emulator.process import EmulatorProcess
 from hostlink.emulator.slcan_hub import HubFrame, format_slcan_frame
+from hostlink.files.atomic import write_text
 from hostlink.links import open_link
 from hostlink.links.can_link import (
     StreamAssembler,
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         f"({slcan / fastest:.2f} x), bufsocket:// {slcan_buf:.0f} stars/s ({slcan_buf / fastest:.2f} x)"
     )
     if args.out:
-        Path(args.out).write_text(json.dumps(results, indent=2))
+        write_text(args.out, json.dumps(results, indent=2))
     return 0
 
 

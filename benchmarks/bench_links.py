@@ -22,9 +22,9 @@ import importlib
 import json
 import sys
 import time
-from pathlib import Path
 
 from hostlink.emulator.process import EmulatorProcess
+from hostlink.files.atomic import write_text
 from hostlink.links import TRANSPORTS, open_link, split_link_string
 from protocol.framing import FrameSplitter, decode_frame, encode_frame
 from protocol.messages import decode, encode
@@ -143,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         for r in results:
             r.pop("frames_sample")
-        Path(args.out).write_text(
+        write_text(
+            args.out,
             json.dumps(
                 {
                     "links": results,
@@ -152,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
                     "host_decode_over_fastest_line": decode_rate / fastest,
                 },
                 indent=2,
-            )
+            ),
         )
     return 0
 

@@ -56,6 +56,7 @@ import can
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import atomic_open
 from hostlink.files.params import load_params, params_from_text, params_json, params_with_sigma_from_text
 from hostlink.files.session import Session, read_session
 from hostlink.links.can_link import IsoTpChannel, StreamAssembler
@@ -403,7 +404,8 @@ def session_promises_kept(s: Session) -> bool:
 def session_text_handled(text: str, path: Path) -> bool:
     """Write ``text`` to ``path`` and read it as every command does: only UserError may come out; False if an accepted
     session breaks a promise (:func:`session_promises_kept`). Any other exception propagates."""
-    path.write_bytes(text.encode("utf-8", errors="surrogateescape"))
+    with atomic_open(path, binary=True, durable=False) as handle:  # scratch: never through a planted link
+        handle.write(text.encode("utf-8", errors="surrogateescape"))
     try:
         session = read_session(path)
     except UserError:

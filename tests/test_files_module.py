@@ -44,11 +44,12 @@ def test_a_failed_write_keeps_the_old_file_and_removes_the_temporary(tmp_path):
 
 
 def test_a_kept_partial_file_stays_beside_the_target_until_committed(tmp_path):
-    # the session writer's PATH.partial: rows received before a failure are kept, then renamed or left for the user
+    # the session writer's partial file: rows received before a failure are kept, then renamed or left for the user
     path = tmp_path / "s.csv"
-    partial = tmp_path / "s.csv.partial"
-    writer = AtomicFile(path, temporary=partial, newline="")
+    writer = AtomicFile(path, suffix=".partial", newline="")
     writer.open().write("frame\n1\n")
+    partial = writer.temporary
+    assert partial.parent == tmp_path and partial.name.startswith(".s.csv.") and partial.name.endswith(".partial")
     writer.abandon(keep=True)
     assert partial.read_text() == "frame\n1\n" and not path.exists()
     writer.commit()

@@ -55,8 +55,9 @@ def test_a_noisy_line_delivers_no_corrupt_centroid_and_counts_its_loss_exactly(t
     assert r.down["bytes_dropped"] > 0 and r.down["bits_flipped"] > 0  # the line really was noisy
     assert r.corrupt_detected > 0  # and the link saw it
     assert r.corrupt_accepted == 0
-    assert r.reported_loss == r.true_loss
-    assert r.frames_spanned >= frames and r.frames_received >= 2  # the stream went on to the end
+    assert r.reported_loss == r.true_loss  # counted from frame 0: frames lost before the first received included
+    # the stream went on to the end (on CAN at 1 % byte drops 0.01 % of the frames arrive whole: one may be all)
+    assert r.frames_spanned >= frames and r.frames_received >= 1
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="counts open file descriptors in Linux /proc")

@@ -39,9 +39,9 @@ def test_a_release_that_did_not_take_delivers_no_frame_twice_and_counts_no_loss(
         with open_link(info["link"]) as link:
             release, calls = link._release, [0]
 
-            def unreliable_release(seq, deadline=None):
+            def unreliable_release(seq):
                 calls[0] += 1
-                release(seq + 1 if calls[0] % 3 == 0 else seq, deadline)  # answered OK, but releases nothing
+                release(seq + 1 if calls[0] % 3 == 0 else seq)  # answered OK, but releases nothing
 
             link._release = unreliable_release
             result = stream_frames(link, None, frame_timeout_s=20.0)

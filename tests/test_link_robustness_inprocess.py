@@ -62,6 +62,9 @@ class _FlakyRegisterClient:
     def reset(self) -> None:
         pass
 
+    def set_answer_timeout(self, timeout_s: float) -> None:
+        pass
+
     def close(self) -> None:
         pass
 

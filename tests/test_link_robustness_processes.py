@@ -20,13 +20,14 @@ _GRACE_S = 15.0
 
 def _wait_for_written_frames(out, proc: subprocess.Popen) -> None:
     """Until the stream's partial file holds a data row (``hostlink stream`` writes each frame as it arrives)."""
-    partial = out.with_name(out.name + ".partial")
     deadline = time.monotonic() + _FIRST_FRAME_WAIT_S
     while time.monotonic() < deadline and proc.poll() is None:
-        if partial.exists() and partial.read_text().count("\n") >= 2:
-            return
+        # the partial file is created exclusively under a random name beside OUT (.OUT.<random>.partial)
+        for partial in out.parent.glob(f".{out.name}.*.partial"):
+            if partial.read_text().count("\n") >= 2:
+                return
         time.sleep(0.05)
-    raise AssertionError(f"no frame reached {partial} ({proc.poll()=})")
+    raise AssertionError(f"no frame reached a partial file of {out} ({proc.poll()=})")
 
 
 def _as_in_a_terminal() -> None:

@@ -263,7 +263,8 @@ def test_a_parquet_stream_interrupted_leaves_a_readable_partial_file(tmp_path):
         writer.append(s.select(s.frame < 3))
         raise KeyboardInterrupt
     assert not (tmp_path / "s.parquet").exists()
-    partial = tmp_path / "s.parquet.partial"
+    partial = writer.partial
+    assert partial.parent == tmp_path and partial.name.endswith(".partial")
     _assert_same(_read_as_parquet(partial), s.select(s.frame < 3))
 
 

@@ -217,7 +217,9 @@ def save_chunk(path: Path, data: CalibrationData) -> None:
     arrays = {name: getattr(data, name) for name in SPOOL_FIELDS if name not in ("row", "sigma_px")}
     arrays["row"] = data.source_rows()
     arrays["sigma_px"] = np.zeros(0) if data.sigma_px is None else data.sigma_px
-    with open(path, "wb") as f:
+    from hostlink.files.atomic import atomic_open
+
+    with atomic_open(path, binary=True, durable=False) as f:  # scratch: never fsync-ed, never through a link
         for name in SPOOL_FIELDS:
             np.save(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
 

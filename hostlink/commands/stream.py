@@ -10,9 +10,10 @@ HELP = "record N centroid frames from a sensor into a session file (CSV or Parqu
 DESCRIPTION = (
     "Starts the sensor's centroid stream, records --frames frames with a progress bar, stops the stream and writes "
     "SESSION.csv (frame, t_utc, star_id, x_px, y_px, mag), or SESSION.parquet, frame by frame as they arrive (into "
-    "SESSION.csv.partial, renamed at the end; after Ctrl-C or a dropped link the frames received are kept). Lost "
-    "messages are counted from sequence numbers and reported. Centroids arrive in fixed point (2^-10 px) and are "
-    "written exactly."
+    "a partial file .SESSION.csv.<random>.partial beside it, created exclusively and renamed at the end; after "
+    "Ctrl-C or a dropped link the frames received are kept). Lost messages are counted from the stream's start "
+    "(frames lost before the first one received included) and reported. Centroids arrive in fixed point (2^-10 px) "
+    "and are written exactly."
 )
 
 
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     note = f"; the sensor's stream ended after {result.frames_received} frames" if result.ended else ""
     print(
         f"{args.out}: {result.frames_received} frames, {result.n_stars} stars; lost {result.lost_messages} "
-        f"message(s) by sequence number, {result.corrupt_frames} corrupt{note}",
+        f"message(s) since the stream's start, {result.corrupt_frames} corrupt{note}",
         file=sys.stderr,
     )
     return 0

@@ -6,8 +6,11 @@ compares every frame received with the frame the sensor sent under the same fram
 simulator options, on the wire's fixed-point grid). Scores:
 
 * ``corrupt_accepted``: frames received whose counter, time or any star differ from the sensor's (must be 0);
-* ``true_loss``: frames the sensor sent between the first and the last frame received that did not arrive;
+* ``true_loss``: frames the sensor sent from its first, frame 0 (the emulator starts fresh, and its simulated
+  source numbers exposures from 0), up to the last frame received, that did not arrive;
 * ``reported_loss``: what the link counted (``Link.stats.lost_messages`` over the same span; must equal true_loss).
+
+The link is opened with the commands' defaults (``--timeout`` 2 s, no link string options), as a user gets it.
 
 Used by ``tests/test_link_fault_relay.py`` (short runs) and ``scripts/link_faults.py`` (the 2,000-frame run).
 """
@@ -25,11 +28,10 @@ from hostlink.emulator.sensor import session_frames
 from hostlink.emulator.setup import DEFAULT_CAMERA
 from hostlink.files.params import load_params
 from hostlink.links import open_link
+from hostlink.links.base import DEFAULT_TIMEOUT_S
 from hostlink.links.operations import StreamResult, stream_frames
 from protocol.messages import CentroidFrame, dequantise_px, quantise_px
 
-#: Response time of the emulated Modbus device on 127.0.0.1 [ms]: a failed exchange costs this much.
-_LOCAL_RESPONSE_MS = 40
 #: Centroid noise of the emulator's simulator (its --noise-px default), so the truth rebuilt here is its frames.
 _NOISE_PX = 0.05
 
@@ -91,13 +93,13 @@ def stream_through_faults(
     seed: int = 0,
     sim_frames: int = 50,
     rtu: bool = False,
-    frame_timeout_s: float = 20.0,
-    command_timeout_s: float = 10.0,
+    frame_timeout_s: float | None = None,
+    command_timeout_s: float = DEFAULT_TIMEOUT_S,
     emulator_args: tuple[str, ...] = (),
     both_directions: bool = False,
 ) -> FaultRunResult:
     """Stream from an emulated sensor through a relay with ``ber`` bit errors and ``drop`` byte drops in the sensor ->
-    host direction until the sensor has streamed ``n_frames`` frames from the first one received (frame counters);
+    host direction until the sensor has streamed ``n_frames`` frames from frame 0 (frame counters);
     score them (see the module docstring). ``rtu``: Modbus RTU (over TCP). ``both_directions``: the same faults on the
     host -> sensor line too (its own seed). A link error (the stream did not complete) propagates."""
     args = ("--sim-frames", str(sim_frames), "--seed", str(seed), "--no-estimator", *emulator_args)
@@ -105,8 +107,6 @@ def stream_through_faults(
     up = FaultModel(ber=ber, drop=drop, seed=seed + 1) if both_directions else FaultModel(seed=seed + 1)
     with EmulatorProcess(transport, args) as emulator:
         link_string = emulator.info["link_rtu"] if rtu else emulator.link
-        if transport == "modbus":
-            link_string += f",response_timeout_ms={_LOCAL_RESPONSE_MS}"
         relayed, relay = relay_link(link_string, down, up)
         try:
             t0 = time.monotonic()
@@ -115,9 +115,8 @@ def stream_through_faults(
 
                 def snapshot(frame: CentroidFrame) -> None:
                     at_last_frame[:] = [(link.stats.lost_messages, link.stats.corrupt_frames)]
-                    first = result.frames[0].frame if result.frames else frame.frame
-                    if (frame.frame - first) % (1 << 32) >= n_frames - 1:
-                        raise _SpanDone  # the sensor has streamed n_frames frames since the first one received
+                    if frame.frame >= n_frames - 1:
+                        raise _SpanDone  # the sensor has streamed n_frames frames from frame 0
 
                 result = StreamResult()
                 try:
@@ -131,8 +130,8 @@ def stream_through_faults(
             relay.close()
     frames = result.frames
     counters = [f.frame for f in frames]
-    span = (counters[-1] - counters[0] + 1) if counters else 0
-    truth = _truth(sim_frames, seed, span + counters[0] + 1 if counters else 0)
+    span = counters[-1] + 1 if counters else 0  # frames 0 .. the last received
+    truth = _truth(sim_frames, seed, span)
     with_mag = transport != "can"  # CAN star frames carry no magnitude (protocol/can_frames.py)
     corrupt = sum(1 for f in frames if f.frame not in truth or not _same_on_the_wire(f, truth[f.frame], with_mag))
     return FaultRunResult(

@@ -7,7 +7,9 @@ unit per ``os.pwrite`` in address order, so a process killed during an erase or 
 a power cut after that many units leaves the flash. No fsync: the power cut modelled is the sensor's (the process
 dies; the host's page cache keeps what was written), not the host machine's.
 
-The file is locked (``fcntl.flock``) while an emulator uses it: two sensors never share one flash.
+The file is locked (``fcntl.flock``) while an emulator uses it: two sensors never share one flash. A new image is
+created whole (blank, through :mod:`hostlink.files.atomic`); an existing one is opened with ``O_NOFOLLOW``: a
+symbolic link at the flash path is refused, never written through.
 
 Test hook: ``power_cut_after_units`` = N makes the process SIGKILL itself right after the N-th write unit it writes
 (``hostlink emulate --power-cut-after N``): a power cut placed at an exact unit of an erase or program, whatever the
@@ -24,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.atomic import write_bytes
 from onboard.banks import ERASED_BYTE, FLASH_BYTES, SECTOR_BYTES, WRITE_BYTES, nor_erase, nor_program
 
 
@@ -35,9 +38,18 @@ class FileFlash:
         self.path = Path(path)
         self.power_cut_after_units = power_cut_after_units
         self.units_written = 0
+        if not os.path.lexists(self.path):  # a new image: blank flash, created whole
+            try:
+                write_bytes(self.path, bytes([ERASED_BYTE]) * FLASH_BYTES)
+            except UserError as exc:
+                raise UserError(f"--flash {exc}") from None
         try:
-            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            self._fd = os.open(self.path, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
         except OSError as exc:
+            if os.path.islink(self.path):
+                raise UserError(
+                    f"--flash {self.path}: a symbolic link (refused: the flash is written in place)"
+                ) from None
             raise UserError(f"--flash {self.path}: cannot open ({exc.strerror})") from None
         try:
             fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -45,7 +57,7 @@ class FileFlash:
             os.close(self._fd)
             raise UserError(f"--flash {self.path}: in use by another emulated sensor") from None
         size = os.fstat(self._fd).st_size
-        if size == 0:  # a new image: blank flash
+        if size == 0:  # an empty file: blank flash
             self.image = np.full(FLASH_BYTES, ERASED_BYTE, dtype=np.uint8)
             os.pwrite(self._fd, self.image.tobytes(), 0)
         elif size == FLASH_BYTES:

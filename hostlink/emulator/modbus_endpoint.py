@@ -149,9 +149,12 @@ class RegisterSensor:
             )
         else:
             raise ModbusAdapterError(f"command code {code} is not in the register map", ILLEGAL_VALUE)
+        started = self.sensor.streams_started
         reply = self.sensor.handle(cmd)
-        if isinstance(cmd, StreamControl) and cmd.enable and isinstance(reply, Ack):
-            self._window, self._window_seq = None, None  # a new stream starts with a fresh exposure
+        if self.sensor.streams_started != started:
+            # a new stream starts with a fresh exposure, its messages numbered from 1 (window_seq 0 = none yet); a
+            # repeated enable while the stream runs keeps the window, so the frame in it is not lost
+            self._window, self._window_seq, self._stream_seq = None, None, 0
         self._set_result(code, reply)
 
     def _set_result(self, code: int, reply: Message) -> None:

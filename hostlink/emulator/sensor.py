@@ -25,7 +25,7 @@ from hostlink.files.session import Session
 from hostlink.files.times import iso_to_t_us
 from onboard.camera import radec_to_unit
 from onboard.firmware import Firmware
-from protocol.messages import MAX_STARS, CentroidFrame, EndOfStream, Message, StreamControl
+from protocol.messages import MAX_STARS, Ack, CentroidFrame, EndOfStream, Message, StreamControl
 
 
 @dataclass(frozen=True)
@@ -105,18 +105,38 @@ class EmulatedSensor:
         self._ended = False
         self._end_sent = False
         self.frames_sent = 0
+        #: streams started so far (STREAM_CONTROL enable while not streaming): an endpoint restarts its stream
+        #: message numbering when this changes
+        self.streams_started = 0
+        self._next: SourceFrame | None = None  # the next exposure, taken from the source to learn its counter
+        self._first_frame = 0  # frame counter of the current stream's first exposure
 
     @property
     def streaming(self) -> bool:
         return self.firmware.streaming
 
     def handle(self, command: Message) -> Message:
-        """Decide one command (the firmware does) and return its reply."""
+        """Decide one command (the firmware does) and return its reply. The ACK of STREAM_CONTROL(enable) carries
+        the frame counter of the stream's first exposure (low 32 bits; the same for a repeated enable while the
+        stream runs), so that the host counts the frames lost before the first one it receives."""
         with self._lock:
+            was_streaming = self.firmware.streaming
             reply = self.firmware.handle(command)
-            if isinstance(command, StreamControl) and command.enable:
-                self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
+            if isinstance(command, StreamControl) and command.enable and isinstance(reply, Ack):
+                if not was_streaming:
+                    self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
+                    self.streams_started += 1
+                    self._first_frame = self._peek_frame_counter()
+                reply = Ack(tag=reply.tag, command=reply.command, value=self._first_frame & 0xFFFFFFFF)
             return reply
+
+    def _peek_frame_counter(self) -> int:
+        if self._next is None and not self._ended:
+            try:
+                self._next = next(self._source)
+            except StopIteration:
+                self._ended = True
+        return self._next.frame.frame if self._next is not None else 0
 
     def next_stream_message(self) -> CentroidFrame | EndOfStream | None:
         """While streaming: the next exposure (already seen by the firmware and, if its budget allowed, by the
@@ -131,7 +151,7 @@ class EmulatedSensor:
                 self._end_sent = True
                 return EndOfStream(frames_sent=self.frames_sent)
             try:
-                item = next(self._source)
+                item, self._next = (self._next, None) if self._next is not None else (next(self._source), None)
             except StopIteration:
                 self._ended = True
                 self._end_sent = True

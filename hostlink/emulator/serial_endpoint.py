@@ -91,7 +91,11 @@ def serve(
         while not stop.is_set():
             for cmd in line.commands(0.0 if sensor.streaming else _IDLE_WAIT_S):
                 if is_command(cmd):
-                    line.send(sensor.handle(cmd))
+                    started = sensor.streams_started
+                    reply = sensor.handle(cmd)
+                    if sensor.streams_started != started:
+                        line.stream_seq = 0  # a new stream: its messages are numbered from 0
+                    line.send(reply)
                 else:
                     line.send(
                         Nak(

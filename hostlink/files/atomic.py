@@ -1,18 +1,22 @@
 """The one atomic file writer (docs/architecture.md: hostlink/files): every file the host writes goes through it.
 
-A file is written whole or not at all: the bytes go to a temporary file in the same directory (``PATH.<pid>.tmp``,
-or a name the caller chooses, such as a session's ``PATH.partial``), which is flushed, ``fsync``-ed and renamed onto
-``PATH`` (``os.replace``: atomic on POSIX and Windows within one file system); the directory is then ``fsync``-ed so
-the rename itself survives a power cut. A reader therefore sees the old file or the new one, never half of either.
-A write that fails removes its temporary file and raises a one-line :class:`hostlink.errors.UserError` naming
-``PATH``. The process id in the default temporary name keeps two processes writing the same file (a catalogue cache
-filled by two commands at once) from mixing their bytes.
+A file is written whole or not at all, and never through a symbolic link: the bytes go to a temporary file created
+exclusively in the same directory (``os.open`` with ``O_CREAT | O_EXCL | O_NOFOLLOW``: a file or symbolic link
+already at that name is never opened, a new name is drawn instead) under an unpredictable name
+(``.NAME.<16 random hex digits>.tmp``, or ``.partial`` for a session being streamed: 64 bits from the operating
+system's random source, so a name cannot be planted in advance). It is flushed, ``fsync``-ed and renamed onto
+``PATH`` (``os.replace``: atomic on POSIX and Windows within one file system; a symbolic link at ``PATH`` is
+replaced by the file, the file it pointed to is left alone); the directory is then ``fsync``-ed so the rename itself
+survives a power cut. A reader therefore sees the old file or the new one, never half of either. A write that fails
+removes its temporary file and raises a one-line :class:`hostlink.errors.UserError` naming ``PATH``. Two processes
+writing the same file (a catalogue cache filled by two commands at once) never share a temporary file.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import secrets
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,33 +39,66 @@ def cannot_write(path: str | Path, exc: OSError) -> UserError:
     return UserError(f"{path}: cannot write ({exc.strerror or exc})")
 
 
-class AtomicFile:
-    """``PATH`` written through a temporary file in its directory and renamed into place by :meth:`commit`.
+#: Random bytes in a temporary file's name (64 bits: a name cannot be guessed ahead and planted).
+_TOKEN_BYTES = 8
+#: Names drawn before giving up when every one is taken (each is taken with probability ~0 unless planted).
+_NAME_TRIES = 16
+#: Flags of a temporary file: created here and now, never an existing file, never through a symbolic link.
+_CREATE_FLAGS = (
+    os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+) | getattr(os, "O_BINARY", 0)
 
-    ``temporary``: the temporary file's path (default ``PATH.<pid>.tmp``; it must be in PATH's directory).
-    ``binary``: open in ``"wb"`` mode; otherwise text, UTF-8, with ``newline`` as :func:`open` takes it.
-    Missing parent directories are created. Use :meth:`open` to get the handle, then :meth:`commit` or
-    :meth:`abandon`; or use it as a context manager: a normal exit commits, an exception abandons (removes the
-    temporary file unless ``keep_on_error``)."""
+
+def _token() -> str:
+    return secrets.token_hex(_TOKEN_BYTES)
+
+
+def temporary_name(path: Path, suffix: str = ".tmp") -> Path:
+    """A fresh temporary file name next to ``path``: ``.NAME.<random hex>SUFFIX`` (hidden, unpredictable)."""
+    return path.with_name(f".{path.name}.{_token()}{suffix}")
+
+
+def create_exclusive(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:
+    """Create a new temporary file next to ``path`` (:func:`temporary_name`) and return its descriptor (open for
+    writing) and name. A name already taken (by anything, a planted symbolic link included) is never opened: the
+    next one is drawn. Raises OSError (FileExistsError after _NAME_TRIES taken names)."""
+    for _ in range(_NAME_TRIES):
+        temporary = temporary_name(path, suffix)
+        try:
+            return os.open(temporary, _CREATE_FLAGS, 0o666), temporary  # mode as open() gives, less the umask
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{_NAME_TRIES} temporary names next to {path.name} are taken")
+
+
+class AtomicFile:
+    """``PATH`` written through a temporary file created exclusively in its directory (:func:`create_exclusive`)
+    and renamed onto it by :meth:`commit`.
+
+    ``suffix``: the temporary name's ending (``.tmp``; a session being streamed: ``.partial``); :attr:`temporary` is
+    its path once :meth:`open` has created it. ``binary``: open in ``"wb"`` mode; otherwise text, UTF-8, with
+    ``newline`` as :func:`open` takes it. ``durable``: ``fsync`` the file and its directory at :meth:`commit` (off
+    only for scratch files that do not outlive the process). Missing parent directories are created. Use :meth:`open`
+    to get the handle, then :meth:`commit` or :meth:`abandon`; or use it as a context manager: a normal exit
+    commits, an exception abandons (removes the temporary file unless ``keep_on_error``)."""
 
     def __init__(
         self,
         path: str | Path,
         *,
-        temporary: str | Path | None = None,
+        suffix: str = ".tmp",
         binary: bool = False,
         newline: str | None = None,
         keep_on_error: bool = False,
+        durable: bool = True,
     ) -> None:
         self.path = file_path(path)
-        self.temporary = (
-            Path(temporary) if temporary is not None else self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
-        )
-        if self.temporary.parent != self.path.parent:
-            raise ValueError(f"{self.temporary}: the temporary file must be in the directory of {self.path}")
+        self.suffix = suffix
+        self.temporary: Path | None = None
         self.binary = binary
         self.newline = newline
         self.keep_on_error = keep_on_error
+        self.durable = durable
         self.handle: IO | None = None
 
     def open(self) -> IO:
@@ -69,28 +106,32 @@ class AtomicFile:
         if self.handle is None:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
+                fd, self.temporary = create_exclusive(self.path, self.suffix)
                 if self.binary:
-                    self.handle = self.temporary.open("wb")
+                    self.handle = os.fdopen(fd, "wb")
                 else:
-                    self.handle = self.temporary.open("w", encoding="utf-8", newline=self.newline)
+                    self.handle = os.fdopen(fd, "w", encoding="utf-8", newline=self.newline)
             except OSError as exc:
                 raise cannot_write(self.path, exc) from None
         return self.handle
 
     def commit(self) -> None:
-        """Flush, fsync and close the temporary file, rename it onto ``path`` and fsync the directory. A temporary
-        file already closed (kept by :meth:`abandon`) is renamed as it is."""
+        """Flush, fsync and close the temporary file, rename it onto ``path`` (replacing a symbolic link there, never
+        writing through it) and fsync the directory. A temporary file already closed (kept by :meth:`abandon`) is
+        renamed as it is."""
         handle = self.open()
         try:
             if not handle.closed:
                 handle.flush()
-                os.fsync(handle.fileno())
+                if self.durable:
+                    os.fsync(handle.fileno())
                 handle.close()
             os.replace(self.temporary, self.path)
         except OSError as exc:
             self.abandon(keep=False)
             raise cannot_write(self.path, exc) from None
-        _fsync_directory(self.path.parent)
+        if self.durable:
+            _fsync_directory(self.path.parent)
 
     def abandon(self, keep: bool = False) -> None:
         """Close without renaming; the temporary file is removed unless ``keep``."""
@@ -99,11 +140,11 @@ class AtomicFile:
                 self.handle.close()
             except OSError:
                 pass  # the write is abandoned anyway; the error that got us here is the one to report
-        if not keep:
+        if not keep and self.temporary is not None:
             try:
                 self.temporary.unlink(missing_ok=True)
             except OSError:
-                pass  # never created (a name too long, a folder not writable): the error that got us here stands
+                pass  # the error that got us here stands
 
     def __enter__(self) -> IO:
         return self.open()
@@ -132,10 +173,18 @@ def _fsync_directory(directory: Path) -> None:
 
 
 @contextmanager
-def atomic_open(path: str | Path, *, binary: bool = False, newline: str | None = None) -> Iterator[IO]:
+def atomic_open(
+    path: str | Path, *, binary: bool = False, newline: str | None = None, durable: bool = True
+) -> Iterator[IO]:
     """``with atomic_open(PATH) as handle:`` write PATH atomically (see :class:`AtomicFile`)."""
-    with AtomicFile(path, binary=binary, newline=newline) as handle:
+    with AtomicFile(path, binary=binary, newline=newline, durable=durable) as handle:
         yield handle
+
+
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_open(path, binary=True) as handle:
+        handle.write(data)
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -623,10 +623,11 @@ def _python_numbers(
 
 
 class SessionWriter:
-    """The one session writer: rows are appended in chunks (whole frames) as they come, into ``PATH.partial``,
-    which :meth:`commit` renames to ``PATH`` (atomic: a reader never sees half a file). The columns are those of the
-    first chunk. Use as a context manager: leaving the block normally commits; leaving it by an exception keeps the
-    partial file.
+    """The one session writer: rows are appended in chunks (whole frames) as they come, into a partial file next to
+    ``PATH`` (``.NAME.<random>.partial``, created exclusively: :class:`hostlink.files.atomic.AtomicFile`; its path is
+    :attr:`partial` once the first chunk is written), which :meth:`commit` renames to ``PATH`` (atomic: a reader
+    never sees half a file). The columns are those of the first chunk. Use as a context manager: leaving the block
+    normally commits; leaving it by an exception keeps the partial file.
 
     CSV (any ending but ``.parquet``): the partial file holds every row written so far (flushed per chunk), so a
     process that is killed loses nothing it had received. Angles are written with 10 decimals of a degree
@@ -643,15 +644,19 @@ class SessionWriter:
         from hostlink.files.columnar import is_parquet
 
         self.path = file_path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
         self.float_format = float_format
         self.rows = 0
         self.columnar = is_parquet(self.path)
-        self._file = AtomicFile(self.path, temporary=self.partial, newline="", binary=self.columnar)
+        self._file = AtomicFile(self.path, suffix=".partial", newline="", binary=self.columnar)
         self._handle = None
         self._writer = None
         self._sink = None
         self._header: list[str] | None = None
+
+    @property
+    def partial(self) -> Path | None:
+        """The partial file (None before the first chunk)."""
+        return self._file.temporary
 
     def _open(self, session: Session) -> None:
         if self.columnar:

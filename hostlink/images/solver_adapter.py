@@ -27,14 +27,13 @@ from __future__ import annotations
 
 import math
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.atomic import atomic_open
+from hostlink.files.atomic import atomic_open, write_bytes
 from hostlink.sky.catalogue import Catalogue, cache_dir
 
 ENGINE_NAME = "tetra3rs"
@@ -111,7 +110,7 @@ def _catalogue_binary(catalogue: Catalogue, maglim: float | None) -> bytes:
 
 def _cache_name(fov_min_deg: float, fov_max_deg: float, maglim: float | None, n_stars: int) -> str:
     mag = "all" if maglim is None else f"{maglim:.2f}"
-    return f"{ENGINE_NAME}-{engine_version()}-fov{fov_min_deg:.3f}-{fov_max_deg:.3f}-mag{mag}-n{n_stars}.db"
+    return f"{ENGINE_NAME}-{engine_version()}-fov{fov_min_deg:.3f}-{fov_max_deg:.3f}-mag{mag}-n{n_stars}.bin"
 
 
 def pattern_database(catalogue: Catalogue, fov_deg: float, maglim: float | None = None):
@@ -124,13 +123,11 @@ def pattern_database(catalogue: Catalogue, fov_deg: float, maglim: float | None 
     fov_max = fov_deg * (1.0 + FOV_MARGIN)
     path = cache_dir() / _cache_name(fov_min, fov_max, maglim, len(catalogue))
     if path.is_file():
-        try:
-            with path.open("rb") as handle:
-                db = pickle.load(handle)
-            if isinstance(db, tetra3rs.SolverDatabase):
-                return db
-        except (OSError, pickle.UnpicklingError, ValueError, EOFError, TypeError):
-            pass  # regenerate below
+        # the engine's own file format (save_to_file / load_from_file), not pickle: a cache file placed in the user's
+        # cache folder by someone else can give a wrong database at worst, never run code
+        db = _load_database(tetra3rs, path)
+        if db is not None:
+            return db
     binary = path.with_name(f"{path.stem}.{os.getpid()}.gdr3.bin")  # per process: two may generate at once
     try:
         with atomic_open(binary, binary=True) as handle:
@@ -142,12 +139,33 @@ def pattern_database(catalogue: Catalogue, fov_deg: float, maglim: float | None 
         raise UserError(f"{ENGINE_NAME}: cannot build the pattern database ({exc})") from None
     finally:
         Path(binary).unlink(missing_ok=True)
-    try:
-        with atomic_open(path, binary=True) as handle:
-            pickle.dump(db, handle)
-    except UserError:
-        pass  # the next run generates it again
+    _save_database(db, path)
     return db
+
+
+def _load_database(tetra3rs, path: Path):  # noqa: ANN001, ANN202 - the engine module and its database
+    """The cached database at ``path`` (the engine's format), or None when it cannot be read."""
+    try:
+        db = tetra3rs.SolverDatabase.load_from_file(str(path))
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException:  # noqa: BLE001 - a damaged file makes the Rust engine panic (pyo3: a BaseException)
+        return None
+    return db if isinstance(db, tetra3rs.SolverDatabase) else None
+
+
+def _save_database(db, path: Path) -> None:  # noqa: ANN001 - the engine's database
+    """Write the database to the cache (the engine saves it in a private temporary folder; the bytes then go through
+    the one atomic writer). A cache that cannot be written is not an error: the next run generates it again."""
+    import tempfile
+
+    try:
+        with tempfile.TemporaryDirectory(prefix="startracker-db-") as private:  # mode 0700: nothing planted there
+            saved = Path(private) / "db.bin"
+            db.save_to_file(str(saved))
+            write_bytes(path, saved.read_bytes())
+    except (OSError, UserError, ValueError, RuntimeError):
+        pass
 
 
 def solve_frame(

@@ -37,6 +37,7 @@ import logging
 import math
 import queue
 import threading
+from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -47,8 +48,19 @@ import numpy as np
 
 from hostlink.errors import LinkError, UserError, one_line
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol import can_frames as cf
-from protocol.messages import CentroidFrame, DecodeError, EncodeError, EndOfStream, Message, decode, encode
+from protocol.messages import (
+    Ack,
+    CentroidFrame,
+    DecodeError,
+    EncodeError,
+    EndOfStream,
+    Message,
+    StreamControl,
+    decode,
+    encode,
+)
 from protocol.param_table import TABLE_BYTES
 
 DEFAULT_BITRATE = 500_000
@@ -194,6 +206,8 @@ def open_bus(t: CanTarget) -> can.BusABC:
     kwargs = bus_config(t)
     interface, channel = kwargs.pop("interface"), str(kwargs.pop("channel"))
     t = replace(t, interface=interface, channel=channel)
+    if "://" in channel:
+        refuse_file_writing_url(channel, f"--link can:{interface}:")
     if interface == "slcan" and "://" in channel:
         kwargs.setdefault("sleep_after_open", 0)  # a network adapter needs no boot delay (a USB one does: 2 s)
         if channel.lower().startswith("socket://"):
@@ -341,6 +355,10 @@ class StreamAssembler:
         self.reset()
 
     def reset(self) -> None:
+        self._start: int | None = None  # the stream's first frame counter, once the sensor told it (begin_at)
+        self._awaiting_start = False  # a stream was started (forget_sequence) and its ACK has not come yet
+        self.lost_at_start = 0  # frames lost up to the last one delivered before begin_at
+        self._delivered: list[int] = []  # counters delivered since forget_sequence, until the start is known
         self.t_base_us: int | None = None
         self._frame: tuple[int, int, int, bytes] | None = None  # frame, n_stars, t_us, header payload
         self._stars = bytearray()
@@ -356,6 +374,36 @@ class StreamAssembler:
         with self._lock:
             self._frame, self._stars, self._last_frame = None, bytearray(), None
             self.lost = self.corrupt = self.incomplete = self.refused_between = self._refused_pending = 0
+            self._start, self._delivered = None, []
+            self._awaiting_start = True
+
+    def begin_at(self, first_frame: int) -> None:
+        """The stream began with frame counter ``first_frame`` (the ACK of STREAM_CONTROL enable): loss is counted
+        from it, frames lost before the first one delivered included. Frames delivered before this call that
+        precede it (a stream left running, stopped just before) are stale: they are not counted, and
+        :meth:`is_stale` says so for the link to drop them. Idempotent for one stream (a repeated ACK)."""
+        with self._lock:
+            if self._start is not None:
+                return
+            self._start = first_frame % (1 << 32)
+            fresh = [c for c in self._delivered if not self._precedes_start(c)]
+            self._delivered, self._awaiting_start = [], False
+            if fresh:
+                self.lost = (fresh[-1] - self._start + 1) % (1 << 32) - len(fresh)
+                self._last_frame = fresh[-1]
+            else:
+                self.lost = 0
+                self._last_frame = (self._start - 1) % (1 << 32)
+            self.lost_at_start = self.lost
+
+    def _precedes_start(self, counter: int) -> bool:
+        # counters are compared on the circle of 2**32: "before" is up to half of it behind
+        return self._start is not None and (counter - self._start) % (1 << 32) >= 1 << 31
+
+    def is_stale(self, frame: CentroidFrame) -> bool:
+        """The frame precedes the stream's start (known from :meth:`begin_at`)."""
+        with self._lock:
+            return self._precedes_start(frame.frame)
 
     def feed(self, frame_id: int, data: bytes) -> CentroidFrame | EndOfStream | None:
         """One received stream frame; the completed message, if this frame completed one."""
@@ -423,6 +471,10 @@ class StreamAssembler:
             self.corrupt += 1
             self._refused_pending += 1
             return None
+        if self._precedes_start(number):
+            return None  # the end of a stream stopped before this one began: neither lost nor corrupt
+        if self._awaiting_start:  # (only between a start and its ACK: a capture's assembler records nothing)
+            self._delivered.append(number)
         if self._last_frame is not None:
             self.lost += (number - self._last_frame - 1) % (1 << 32)
             self.refused_between += self._refused_pending
@@ -476,6 +528,7 @@ class CanLink(MessageLink):
         self._assembler = StreamAssembler()
         self._isotp = IsoTpChannel(self._send_frame, cf.ISOTP_HOST_TO_SENSOR_ID, cf.ISOTP_SENSOR_TO_HOST_ID)
         self._failure: str | None = None
+        self._start_tag: int | None = None  # tag of the STREAM_CONTROL(enable) whose ACK starts loss counting
         self._adapter_errors = 0  # garbled adapter lines skipped (see _resynchronise)
         self._closing = threading.Event()
         self._reader = threading.Thread(target=self._read_loop, name="can-link-reader", daemon=True)
@@ -523,6 +576,7 @@ class CanLink(MessageLink):
         data = bytes(msg.data)
         self.stats.rx_bytes += len(data)
         if fid in STREAM_FRAME_IDS:
+            self._heard()  # an intact CAN frame from the sensor (whatever the assembler makes of it)
             out = self._assembler.feed(fid, data)
             self.stats.corrupt_frames = self._assembler.corrupt + self._isotp.errors + self._adapter_errors
             if out is not None:
@@ -534,10 +588,16 @@ class CanLink(MessageLink):
             self._isotp.feed(msg)
         elif fid == cf.ACK.frame_id:
             try:
-                self._inbox.put(cf.decode_single(fid, data))
-                self.stats.rx_messages += 1
+                ack = cf.decode_single(fid, data)
             except (cf.CanDecodeError, DecodeError):
                 self.stats.corrupt_frames += 1
+                return
+            if self._start_tag is not None and isinstance(ack, Ack) and ack.tag == self._start_tag:
+                # here, in bus order: the frames assembled before it are those sent before the stream's start
+                # was known to this host, and begin_at sorts them
+                self._assembler.begin_at(ack.value)
+            self._inbox.put(ack)
+            self.stats.rx_messages += 1
 
     def _deliver_payload(self, payload: bytes) -> None:
         try:
@@ -555,6 +615,8 @@ class CanLink(MessageLink):
 
     def _send(self, msg: Message) -> None:
         self._check_alive()
+        if isinstance(msg, StreamControl):
+            self._start_tag = msg.tag if msg.enable else None
         try:
             if cf.is_single_frame(msg):
                 fid, data = cf.encode_single(msg)
@@ -588,6 +650,14 @@ class CanLink(MessageLink):
 
     def _reset_loss_counting(self) -> None:
         self._assembler.forget_sequence()
+
+    def _stream_started(self, first_frame: int) -> None:
+        # the reader thread called begin_at when the ACK arrived; the frames it delivered before are in the
+        # stream queue: those older than the stream are dropped, and the count is the assembler's up to the ACK
+        self._stream = deque(
+            m for m in self._stream if not (isinstance(m, CentroidFrame) and self._assembler.is_stale(m))
+        )
+        self.stats.lost_messages = self._assembler.lost_at_start
 
     def close(self) -> None:
         if self._closing.is_set():

@@ -7,7 +7,12 @@ a register client a few methods wide, so a pymodbus upgrade touches this file an
   :class:`ModbusAdapterError` with one line (``exception_code`` set when the device answered with a Modbus exception).
 
 pymodbus 3.16 facts this relies on (checked against its source): ``ModbusTcpClient`` accepts
-``framer=FramerType.RTU`` (RTU over TCP); request methods take ``device_id=``.
+``framer=FramerType.RTU`` (RTU over TCP); request methods take ``device_id=``; the sync clients read their answer
+timeout from ``comm_params.timeout_connect`` at every exchange (so :meth:`RegisterClient.set_answer_timeout` can
+change it between exchanges) and call their own ``recv`` for every read from the line (wrapped here to learn whether
+any byte of an answer came); ``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
+the connection by itself (default 3: "No response received ... CLOSING CONNECTION"), which this client turns off
+because the link decides when to reconnect.
 """
 
 from __future__ import annotations
@@ -35,17 +40,22 @@ _EXC_NAMES = {
     11: "gateway target failed to respond",
 }
 FRAMINGS = ("tcp", "rtu")
+#: Unanswered requests in a row after which pymodbus would close the connection by itself: never (the link resets
+#: the connection after every failed exchange itself, and a noisy line must not end the link).
+_NEVER_CLOSE = 1 << 30
 
 # pymodbus logs connection failures itself; the link reports them once, in one line (CLI contract).
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
 
 class ModbusAdapterError(Exception):
-    """A failed Modbus exchange, in one line. ``exception_code``: the device's Modbus exception code, if it sent one."""
+    """A failed Modbus exchange, in one line. ``exception_code``: the device's Modbus exception code, if it sent one;
+    ``answered``: bytes of an answer arrived (the device is there; the answer was cut short or garbled on the way)."""
 
-    def __init__(self, message: str, exception_code: int | None = None) -> None:
+    def __init__(self, message: str, exception_code: int | None = None, answered: bool = False) -> None:
         super().__init__(message)
         self.exception_code = exception_code
+        self.answered = answered
 
 
 # ---------------------------------------------------------------------------------------------- client
@@ -91,12 +101,26 @@ class RegisterClient:
                 reconnect_delay=0,
                 reconnect_delay_max=0,
             )
+        self._client.set_max_no_responses(_NEVER_CLOSE)
+        self._rx_bytes = 0  # bytes received in the current exchange (the sync client's recv, wrapped)
+        receive = self._client.recv
+
+        def counted_recv(size: int | None) -> bytes:
+            data = receive(size)
+            self._rx_bytes += len(data)
+            return data
+
+        self._client.recv = counted_recv
         try:
             ok = self._client.connect()
         except (ModbusException, OSError) as exc:
             raise ModbusAdapterError(f"cannot connect to {self.where}: {one_line(exc)}") from None
         if not ok:
             raise ModbusAdapterError(f"cannot connect to {self.where}")
+
+    def set_answer_timeout(self, timeout_s: float) -> None:
+        """How long the next exchanges wait for their answer [s]."""
+        self._client.comm_params.timeout_connect = float(timeout_s)
 
     def _check(self, response: object, what: str) -> object:
         if response.isError():  # type: ignore[attr-defined]
@@ -106,6 +130,7 @@ class RegisterClient:
                 f"{self.where}: {what} answered with Modbus exception {code} ({name}) by unit "
                 f"{self.unit} (is that the sensor's unit id?)",
                 exception_code=code,
+                answered=True,
             )
         return response
 
@@ -113,22 +138,28 @@ class RegisterClient:
         """``count`` (<= 125) registers of ``table`` (``holding`` or ``input``) from ``address``."""
         fn = self._client.read_input_registers if table == "input" else self._client.read_holding_registers
         what = f"read of {count} {table} registers at {address}"
+        self._rx_bytes = 0
         try:
             rr = self._check(fn(address, count=count, device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
-            raise ModbusAdapterError(f"{self.where}: {what} failed ({one_line(exc)})") from None
+            raise ModbusAdapterError(
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+            ) from None
         regs = list(rr.registers)  # type: ignore[attr-defined]
-        if len(regs) < count:
-            raise ModbusAdapterError(f"{self.where}: {what} returned {len(regs)} registers")
-        return regs[:count]
+        if len(regs) != count:  # a late answer to another read (RTU has no transaction id) or a garbled one
+            raise ModbusAdapterError(f"{self.where}: {what} returned {len(regs)} registers", answered=True)
+        return regs
 
     def write(self, address: int, values: list[int]) -> None:
         """Write holding registers from ``address`` (function code 16)."""
         what = f"write of {len(values)} holding registers at {address}"
         try:
-            self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
+            rr = self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(f"{self.where}: {what} failed ({one_line(exc)})") from None
+        echo = (getattr(rr, "address", address), getattr(rr, "count", len(values)))
+        if echo != (address, len(values)):  # the answer echoes address and count: a late answer to another write
+            raise ModbusAdapterError(f"{self.where}: {what} answered for {echo[1]} registers at {echo[0]}")
 
     def reset(self) -> None:
         """Drop the connection and open it again (after a failed exchange: bytes of a late or partial answer must

@@ -15,10 +15,14 @@ and ``command`` (function code 16), then one read of the ``result_*`` registers;
 
 Integrity and recovery: every block read as a snapshot (result, status, tables, estimate, stream window) carries a
 CRC-32 check register (``checked_blocks`` in the map); a block whose check fails is read again, never decoded. An
-exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames``, the
-connection is reset (stale bytes dropped), reads shrink to fewer registers per request, and the exchange is made
-again until the deadline; then one LinkError (the link is gone). Command writes are repeated only for commands that
-may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY).
+exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made
+again (after two failures in a row on a fresh connection: stale bytes dropped) until the link timeout has passed
+without an answer; then one LinkError (the link is gone). Each exchange waits for its answer as long as
+:class:`AnswerTimer` says (the line time plus the device's response time as measured, like TCP's retransmission
+timeout), so a lost answer costs the device's usual response time, and reads are as long as the line's measured
+byte fault rate makes fastest (:meth:`AnswerTimer.read_registers`). Command writes are repeated only for commands
+that may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY); STAGE_BEGIN and COMMIT are written again only when
+``result_counter`` shows they did not run.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import numpy as np
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import DEFAULT_TIMEOUT_S, CommandRefused, Link
 from hostlink.links.modbus_adapter import ModbusAdapterError, RegisterClient
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol import modbus_map as mm
 from protocol.messages import (
     ESTIMATE_FIELDS,
@@ -49,18 +54,42 @@ DEFAULT_RTU_BAUD = 19200
 _POLL_S = 0.002
 _RESULT_ACK, _RESULT_NAK = 1, 2
 _WINDOW_FRAME, _WINDOW_END = 1, 2
-#: Exchanges a lost answer may cost within one link timeout, at least (each waits at most timeout / this).
-_ATTEMPTS_PER_TIMEOUT = 4
 #: A device's time to answer on top of the line time [s] (Modbus over serial line v1.02: a slave answers within
-#: its response timeout, typically 100 ms or less; TCP on a LAN well under that).
+#: its response timeout, typically 100 ms or less; TCP on a LAN well under that): the longest an exchange waits,
+#: and its wait until answers have been timed (``response_timeout_ms`` in the link string sets it).
 _ANSWER_LATENCY_S = 0.2
-#: Consecutive failed exchanges after which the connection is opened again (a partial answer left behind spoils the
-#: next exchange at most; pymodbus drops what does not parse).
-_RESET_AFTER_FAILURES = 2
-#: Pause before an exchange is made again after a failure [s].
+#: Shortest wait for an answer on top of its line time [s]: a few scheduler ticks of the host (Linux: 1-4 ms), so
+#: that a host busy with other work seldom times out answers that are on their way (one that it does is asked for
+#: again, like a lost one).
+_MIN_WAIT_S = 0.01
+#: Timeouts in a row before the wait doubles: on a noisy line most timeouts are lost bytes, not a slow device, and
+#: doubling at each of them (TCP's rule, made for congestion) would multiply the cost of every loss; a device slower
+#: than the wait still gets its full response time after a few tries.
+_TIMEOUTS_BEFORE_BACKOFF = 2
+#: Longest one exchange is tried while damaged answers keep arriving [link timeouts]: at 1 % byte drops a 40-register
+#: read fails with probability ~0.6, so 10 s of failures in a row (~500 tries) does not happen; a device whose every
+#: answer is malformed still ends in one LinkError.
+_PATIENCE_TIMEOUTS = 5
+#: Pause before an exchange is made again after a failure that came at once (a refused connection: do not spin) [s].
 _RETRY_PAUSE_S = 0.005
-#: Smallest read after failures on a noisy line [registers]: 16 registers = a 41-byte RTU answer.
-_MIN_CHUNK = 16
+#: Failed exchanges in a row after which the connection is opened again: the bytes of a failed answer are read and
+#: dropped within its own exchange, so the next one starts clean unless an answer came late or cut short; a second
+#: failure in a row resynchronises (reconnecting costs a TCP handshake, so it is not done after every loss).
+_RESET_AFTER_FAILURES = 2
+#: Smallest read on a noisy line [registers] (the read size is chosen by AnswerTimer.read_registers).
+_MIN_CHUNK = 8
+#: Bytes of a read's request and answer around its registers (Modbus TCP: 12-byte request, 9-byte answer header;
+#: RTU: 8 and 5), the larger, so a read's exposure to byte faults is not underestimated.
+_EXCHANGE_OVERHEAD_BYTES = 21
+#: Weight kept by the estimate of the line's byte fault rate at each exchange (memory of ~50 exchanges).
+_FAULT_MEMORY = 0.98
+#: Reads in a row of a checked block whose check fails before the link gives up (a device that answers but with
+#: another register layout). On a line with BER 1e-4 a 300-byte block fails its check with probability 0.21 (Modbus
+#: TCP has no checksum of its own), so 64 failures in a row happen with probability 0.21**64 < 1e-43.
+_MAX_CHECK_FAILURES = 64
+#: Bits per byte of an RTU character (start, 8 data, parity or a second stop bit, stop: Modbus over serial line
+#: v1.02, 2.5.1).
+_RTU_BITS_PER_BYTE = 11
 #: Commands that may be written again after a failure on the way (running them twice is running them once).
 _IDEMPOTENT = (MsgType.STREAM_CONTROL, MsgType.STAGE_CHUNK, MsgType.STAGE_VERIFY)
 
@@ -92,6 +121,7 @@ def parse_target(scheme: str, target: str) -> dict:
             port, baud = main, str(DEFAULT_RTU_BAUD)
         if not port or not baud.isdigit():
             raise UserError(usage)
+        refuse_file_writing_url(port, f"--link {scheme}:")  # pymodbus opens the port with pyserial's serial_for_url
         kw.update(serial_port=port, baud=int(baud), framing="rtu")
         return kw
     hostport = main[len("tcp://") :] if main.startswith("tcp://") else main
@@ -104,21 +134,89 @@ def parse_target(scheme: str, target: str) -> dict:
 
 def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> ModbusLink:
     kw = parse_target(scheme, target)
+    response_s = kw.pop("response_timeout_s", None)
+    timer = AnswerTimer(_ANSWER_LATENCY_S if response_s is None else response_s, kw.get("baud"))
     try:
-        response_s = kw.pop("response_timeout_s", None)
-        client = RegisterClient(timeout_s=attempt_timeout_s(timeout_s, kw.get("baud"), response_s), **kw)
+        client = RegisterClient(timeout_s=timer.wait_s(mm.MAX_READ_REGISTERS), **kw)
     except ModbusAdapterError as exc:
         raise LinkError(f"{scheme}:{target}: {exc}") from None
-    return ModbusLink(client, f"{scheme}:{target}", timeout_s)
+    return ModbusLink(client, f"{scheme}:{target}", timeout_s, timer=timer)
 
 
-def attempt_timeout_s(timeout_s: float, baud: int | None, response_s: float | None = None) -> float:
-    """How long one exchange waits for its answer [s]: the longest answer's line time (256 bytes of 11 bits at
-    ``baud`` on a serial line, none on TCP) plus the device's response time (``response_timeout_ms`` in the link
-    string, default _ANSWER_LATENCY_S), but at most a quarter of the link timeout, so that an answer lost on a noisy
-    line is asked for again several times within the timeout."""
-    line_s = 256 * 11 / baud if baud else 0.0
-    return min(timeout_s / _ATTEMPTS_PER_TIMEOUT, line_s + (_ANSWER_LATENCY_S if response_s is None else response_s))
+class AnswerTimer:
+    """How long one Modbus exchange waits for its answer: the line time of the request and the answer (11-bit
+    characters at ``baud`` on a serial line; none on TCP) plus the device's response time, estimated from the
+    answers timed so far as the retransmission timeout of TCP (RFC 6298: smoothed time SRTT and variation RTTVAR with
+    gains 1/8 and 1/4, wait SRTT + 4 RTTVAR, doubled after timeouts in a row), between _MIN_WAIT_S and ``response_s``
+    (the device's longest response time, which is also the wait before the first answer was timed).
+
+    A lost answer then costs about the device's usual response time, not its worst one, and the link asks again;
+    an answer later than the wait is a failed exchange like a lost one (asked again, never taken for the next one:
+    the connection is reset and the answers' transaction id, address and count are checked)."""
+
+    def __init__(self, response_s: float = _ANSWER_LATENCY_S, baud: int | None = None) -> None:
+        self.response_s = float(response_s)
+        self.baud = baud
+        self.srtt_s: float | None = None
+        self.rttvar_s = 0.0
+        self.rto_s = self.response_s
+        self._timeouts = 0  # in a row
+        self._failed_w = 0.0  # failed exchanges and bytes exchanged, exponentially weighted (_FAULT_MEMORY)
+        self._bytes_w = 0.0
+
+    def exchanged(self, registers: int, ok: bool) -> None:
+        """Count one exchange of ``registers`` (read or written) for the line's byte fault rate."""
+        self._failed_w = _FAULT_MEMORY * self._failed_w + (0.0 if ok else 1.0)
+        self._bytes_w = _FAULT_MEMORY * self._bytes_w + _EXCHANGE_OVERHEAD_BYTES + 2 * registers
+
+    def byte_fault_rate(self) -> float:
+        """Estimated probability that a byte is lost or corrupted: failed exchanges per byte exchanged (the rate
+        of a Poisson count; for the small rates where it matters, 1 - (1 - e)**b ~ e b per exchange of b bytes)."""
+        return self._failed_w / self._bytes_w if self._bytes_w else 0.0
+
+    def read_registers(self) -> int:
+        """The read size that takes the least time per register at the estimated byte fault rate e: a read of n
+        registers arrives whole with probability p = (1 - e)**(overhead + 2 n); it costs the answer time when it
+        does and 1/p - 1 failed tries (each a full wait) on average before, so the expected time per register is
+        (t_answer + (1/p - 1) t_wait) / n, minimised over n (a clean line: the largest read Modbus allows)."""
+        e = self.byte_fault_rate()
+        if e <= 0.0:
+            return mm.MAX_READ_REGISTERS
+        n = np.arange(_MIN_CHUNK, mm.MAX_READ_REGISTERS + 1)
+        p = np.exp((_EXCHANGE_OVERHEAD_BYTES + 2 * n) * np.log1p(-min(e, 0.5)))
+        line = np.array([self.line_s(int(k)) for k in (n[0], n[-1])])
+        line_n = line[0] + (n - n[0]) * (line[1] - line[0]) / (n[-1] - n[0])  # the line time is linear in n
+        t_answer = (self.srtt_s or 0.0) + line_n
+        t_wait = self.rto_s + line_n + _RETRY_PAUSE_S
+        return int(n[np.argmin((t_answer + (1.0 / p - 1.0) * t_wait) / n)])
+
+    def line_s(self, answer_registers: int, request_registers: int = 0) -> float:
+        """Line time of a request carrying ``request_registers`` and an answer carrying ``answer_registers`` [s]
+        (RTU: address, function, byte count or address and count, the registers, CRC-16)."""
+        if not self.baud:
+            return 0.0
+        return (9 + 2 * request_registers + 5 + 2 * answer_registers) * _RTU_BITS_PER_BYTE / self.baud
+
+    def wait_s(self, answer_registers: int, request_registers: int = 0) -> float:
+        return self.line_s(answer_registers, request_registers) + self.rto_s
+
+    def answered(self, elapsed_s: float, answer_registers: int, request_registers: int = 0) -> None:
+        """An answer came after ``elapsed_s`` (request sent to answer parsed)."""
+        self._timeouts = 0
+        sample = max(0.0, elapsed_s - self.line_s(answer_registers, request_registers))
+        if self.srtt_s is None:
+            self.srtt_s, self.rttvar_s = sample, sample / 2
+        else:
+            self.rttvar_s = 0.75 * self.rttvar_s + 0.25 * abs(self.srtt_s - sample)
+            self.srtt_s = 0.875 * self.srtt_s + 0.125 * sample
+        self.rto_s = min(self.response_s, max(_MIN_WAIT_S, self.srtt_s + 4 * self.rttvar_s))
+
+    def timed_out(self) -> None:
+        """No answer within the wait: after _TIMEOUTS_BEFORE_BACKOFF in a row, wait twice as long next time, up to
+        the device's longest response time."""
+        self._timeouts += 1
+        if self._timeouts >= _TIMEOUTS_BEFORE_BACKOFF:
+            self.rto_s = min(self.response_s, 2 * self.rto_s)
 
 
 class ModbusLink(Link):
@@ -133,9 +231,11 @@ class ModbusLink(Link):
         name: str,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         regmap: mm.ModbusMap | None = None,
+        timer: AnswerTimer | None = None,
     ) -> None:
         super().__init__()
         self.name = name
+        self.timer = timer or AnswerTimer()
         self.timeout_s = float(timeout_s)
         self._client = client
         self.map = regmap or mm.load_map()
@@ -155,66 +255,89 @@ class ModbusLink(Link):
         #: stars that fit in the first read of the window (header + whole stars <= 125 registers)
         self._stars_in_head = (mm.MAX_READ_REGISTERS - (self._star_first - self._window_first)) // self._star_stride
         self._window_block = m.checked_block("window")
-        self._chunk = mm.MAX_READ_REGISTERS  # registers per read: halved after a failed read, doubled after a good one
 
     # ------------------------------------------------------------------------------------ register I/O
-    def _read(self, table: str, address: int, count: int, deadline: float | None = None) -> list[int]:
+    def _read(self, table: str, address: int, count: int) -> list[int]:
         """``count`` registers from ``address``, in reads of at most the current chunk size; a read that fails on the
         way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made again, with smaller
-        chunks, until ``deadline`` (default: the link timeout from now); then LinkError (the link is gone)."""
+        chunks, until the link timeout has passed without an answer (then LinkError: the link is gone)."""
         self._check_open()
-        deadline = time.monotonic() + self.timeout_s if deadline is None else deadline
         out: list[int] = []
-        while count > 0:
-            n = min(count, self._chunk)
-            out += self._attempt(lambda n=n, a=address: self._client.read(table, a, n), deadline)
-            address, count = address + n, count - n
+        while len(out) < count:
+            at = address + len(out)
+            # the chunk size is read at each try: a read made again after a failure asks for fewer registers
+            left = count - len(out)
+            out += self._attempt(
+                lambda n, _req, at=at: self._client.read(table, at, n),
+                lambda left=left: (min(left, self.timer.read_registers()), 0),
+            )
         self.stats.rx_bytes += 2 * len(out)
         return out
 
-    def _write(self, address: int, values: list[int], retry: bool = True, deadline: float | None = None) -> None:
+    def _write(self, address: int, values: list[int], retry: bool = True) -> None:
         """Write holding registers; ``retry``: the write may be made again after a failure on the way (it must be
-        idempotent: a command that could run twice is written once, and a failure is a LinkError)."""
+        idempotent: a command that could run twice is written once, and a failure raises LinkError)."""
         self._check_open()
-        deadline = time.monotonic() + self.timeout_s if deadline is None else deadline
-        self._attempt(lambda: self._client.write(address, values), deadline if retry else time.monotonic())
+        self._attempt(lambda _ans, _req: self._client.write(address, values), lambda: (0, len(values)), retry=retry)
         self.stats.tx_bytes += 2 * len(values)
 
-    def _attempt(self, exchange, deadline: float):  # noqa: ANN001, ANN202 - a client call and its result
-        """One Modbus exchange, made again after failures on the way until ``deadline``. A Modbus exception answer
-        (the device refused) is final."""
+    def _attempt(  # noqa: ANN202 - the client call's result
+        self,
+        exchange,  # noqa: ANN001 - a client call of (answer registers, request registers)
+        size,  # noqa: ANN001 - () -> (answer registers, request registers) of the next try
+        retry: bool = True,
+        patient: bool = False,
+    ):
+        """One Modbus exchange, each try waiting for its answer as long as :class:`AnswerTimer` says (``patient``:
+        the device's longest response time), made again after failures on the way until the link timeout has passed
+        since the first try or the last damaged answer, whichever is later (then LinkError, the link is gone; at once
+        if not ``retry``): a device whose answers arrive, even damaged, is there. A Modbus exception answer is asked
+        again too: on a noisy line it may be a corrupted answer (Modbus TCP has no checksum)."""
+        start = heard = time.monotonic()
         failures = 0
         while True:
+            answer_registers, request_registers = size()
+            wait_s = self.timer.wait_s(answer_registers, request_registers)
+            if patient:
+                wait_s = self.timer.line_s(answer_registers, request_registers) + self.timer.response_s
+            self._client.set_answer_timeout(wait_s)
+            t0 = time.monotonic()
             try:
-                result = exchange()
+                result = exchange(answer_registers, request_registers)
             except ModbusAdapterError as exc:
-                # an exception answer is final on a clean line, but on a noisy one it may itself be a corrupted
-                # answer (Modbus TCP has no checksum): asked again like any failed exchange, until the deadline
-                if time.monotonic() >= deadline:
+                now = time.monotonic()
+                if exc.answered and exc.exception_code is None:
+                    heard = now  # the device answered, the answer was damaged on the way: it is there
+                elif now - t0 >= wait_s:
+                    self.timer.timed_out()  # nothing came: perhaps a device slower than the wait
+                silent_s = now - max(start, heard)  # since the first try or the last damaged answer
+                if not retry or max(silent_s, (now - start) / _PATIENCE_TIMEOUTS) >= self.timeout_s:
                     raise LinkError(f"{self.name}: {exc}") from None
                 self.stats.corrupt_frames += 1
+                self.timer.exchanged(answer_registers + request_registers, ok=False)
                 failures += 1
-                self._chunk = max(_MIN_CHUNK, self._chunk // 2)  # smaller answers survive a noisy line more often
                 if failures % _RESET_AFTER_FAILURES == 0:
-                    self._client.reset()  # resynchronise: stale or partial bytes of failed exchanges are dropped
-                time.sleep(_RETRY_PAUSE_S)  # a refused connection fails at once: do not spin
+                    # resynchronise: late or partial bytes of failed exchanges must not be taken for the next answer
+                    self._client.reset()
+                if now - t0 < wait_s and not exc.answered:
+                    time.sleep(_RETRY_PAUSE_S)  # it failed at once (a refused connection): do not spin
                 continue
-            self._chunk = min(mm.MAX_READ_REGISTERS, self._chunk * 2)
+            self.timer.answered(time.monotonic() - t0, answer_registers, request_registers)
+            self.timer.exchanged(answer_registers + request_registers, ok=True)
             return result
 
-    def _read_block(self, name: str, deadline: float | None = None) -> list[int]:
+    def _read_block(self, name: str) -> list[int]:
         """The registers of a checked block (``protocol/modbus_map.json`` ``checked_blocks``), read again until its
-        check matches (each mismatch counted in ``stats.corrupt_frames``) or ``deadline`` (LinkError)."""
+        check matches (each mismatch counted in ``stats.corrupt_frames``; LinkError after _MAX_CHECK_FAILURES in a
+        row, or when a read finds the link gone)."""
         block = self.map.checked_block(name)
-        deadline = time.monotonic() + self.timeout_s if deadline is None else deadline
-        while True:
+        for _ in range(_MAX_CHECK_FAILURES):
             lo, count = block.read_span()
-            words = self._read("input", lo, count, deadline)
+            words = self._read("input", lo, count)
             if mm.block_intact(block, words, lo):
                 return words
             self.stats.corrupt_frames += 1
-            if time.monotonic() >= deadline:
-                raise LinkError(f"{self.name}: the {name} registers fail their check (block_check) on every read")
+        raise LinkError(f"{self.name}: the {name} registers fail their check (block_check) on every read")
 
     def _check_open(self) -> None:
         if self._closed:
@@ -237,7 +360,10 @@ class ModbusLink(Link):
         ):
             reg = m[name]
             words[reg.address - lo : reg.address - lo + reg.width] = mm.to_registers(reg, value)
-        self._write(lo, words, retry=msg_type in _IDEMPOTENT)
+        if msg_type in _IDEMPOTENT:
+            self._write(lo, words)
+        else:
+            self._write_once(lo, words, msg_type)
         rlo, _ = self._result_block
         res = self._read_block("result")
         if self._get(res, rlo, "result_command") != int(msg_type):
@@ -255,6 +381,41 @@ class ModbusLink(Link):
         self.stats.rx_messages += 1
         return int(self._get(res, rlo, "result_value"))
 
+    def _write_once(self, address: int, words: list[int], msg_type: MsgType) -> None:
+        """Write a command that must not run twice (STAGE_BEGIN, COMMIT). Each try waits the device's longest
+        response time for its answer (a late answer would make a second try run it twice); when the answer is lost
+        the sensor's ``result_counter`` (commands run so far) tells whether the command ran: not yet, it is written
+        again; once, with its result in place, it is done; anything else (another host's command in between) is a
+        LinkError, the upload not completed."""
+        self._check_open()
+        rlo, _ = self._result_block
+        before = int(self._get(self._read_block("result"), rlo, "result_counter"))
+        start = time.monotonic()
+        while True:
+            try:
+                self._attempt(
+                    lambda _ans, _req: self._client.write(address, words),
+                    lambda: (0, len(words)),
+                    retry=False,
+                    patient=True,
+                )
+                break
+            except LinkError:
+                if time.monotonic() - start >= self.timeout_s:
+                    raise
+            self.stats.corrupt_frames += 1
+            self._client.reset()
+            res = self._read_block("result")
+            ran = (int(self._get(res, rlo, "result_counter")) - before) % (1 << 16)
+            if ran == 1 and self._get(res, rlo, "result_command") == int(msg_type):
+                break  # it ran; only its answer was lost
+            if ran != 0:
+                raise LinkError(
+                    f"{self.name}: the answer to {msg_type.name} was lost and the sensor ran {ran} command(s) since "
+                    "(another host?): the upload is not completed"
+                )
+        self.stats.tx_bytes += 2 * len(words)
+
     def status(self) -> Telemetry:
         lo, _ = self._status_block
         w = self._read_block("status")
@@ -270,10 +431,14 @@ class ModbusLink(Link):
         )
 
     def set_streaming(self, enable: bool) -> None:
+        if enable:
+            # a stream left running is stopped first, so that the enable starts a new one: its window_seq numbers
+            # start at 1, and every message lost from the stream's start is counted
+            self._command(MsgType.STREAM_CONTROL, arg=0)
         self._command(MsgType.STREAM_CONTROL, arg=1 if enable else 0)
         self._ended = False
         if enable:
-            self._last_seq = None
+            self._last_seq = 0
             self.stats.lost_messages = 0
             self.stats.corrupt_frames = 0
 
@@ -351,6 +516,9 @@ class ModbusLink(Link):
 
     # ------------------------------------------------------------------------------------------ stream
     def recv_frame(self, timeout_s: float | None = None) -> CentroidFrame | None:
+        """The next stream message. ``timeout_s`` bounds the wait for the sensor to put a message in its window;
+        reads that fail on the way are asked again (the window holds its message until released), each until the
+        link timeout has passed without an answer."""
         if self._ended:
             return None
         timeout_s = self.timeout_s if timeout_s is None else float(timeout_s)
@@ -366,13 +534,13 @@ class ModbusLink(Link):
             # release whose value was corrupted on the way up is answered like a good one). Release it again; the
             # frame is not delivered twice, nor counted as 2**32 - 1 lost.
             self.stats.corrupt_frames += 1
-            self._release(seq, deadline)
+            self._release(seq)
         if state == _WINDOW_END:
-            self._release(seq, deadline)
+            self._release(seq)
             self._count_loss(seq)
             self._ended = True
             return None
-        self._release(seq, deadline)
+        self._release(seq)
         # counted only once the window is released: if a read or the release fails, the next poll sees the same
         # window_seq again, and that is the same message, not 2**32 - 1 lost ones
         self._count_loss(seq)
@@ -381,36 +549,38 @@ class ModbusLink(Link):
         return frame
 
     def _read_window(self, base: int, head_count: int, deadline: float, timeout_s: float) -> tuple:
-        """The stream window, read until intact (a frame or the end of the stream): (head, words, state, n)."""
+        """The stream window, read until intact (a frame or the end of the stream): (head, words, state, n).
+        LinkError when it stays empty until ``deadline``, or fails its check _MAX_CHECK_FAILURES times in a row."""
         block = self._window_block
+        failures = 0
         while True:
-            head = self._read("input", base, head_count, deadline)
+            head = self._read("input", base, head_count)
             state = self._get(head, base, "window_state")
             if state in (_WINDOW_FRAME, _WINDOW_END):
                 n = mm.block_n_stars(block, head, base) if state == _WINDOW_FRAME else 0
                 words = head
                 if n > self._stars_in_head and n <= block.stars_from.count:
                     more_from = base + len(head)
-                    words = head + self._read("input", more_from, block.read_span(n)[1] - len(head), deadline)
+                    words = head + self._read("input", more_from, block.read_span(n)[1] - len(head))
                 if mm.block_intact(block, words, base):  # (false for a star count beyond the window, too)
-                    break
+                    return head, words, state, n
                 self.stats.corrupt_frames += 1  # a window corrupted on the way: read it again
+                failures += 1
+                if failures >= _MAX_CHECK_FAILURES:
+                    raise LinkError(f"{self.name}: no intact centroid frame in {failures} reads of the window")
             elif time.monotonic() >= deadline:
                 raise LinkError(f"{self.name}: no centroid frame within {timeout_s:g} s")
             else:
                 time.sleep(_POLL_S)
-            if time.monotonic() >= deadline:
-                raise LinkError(f"{self.name}: no intact centroid frame within {timeout_s:g} s")
-        return head, words, state, n
 
     def _count_loss(self, seq: int) -> None:
         if self._last_seq is not None:
             self.stats.lost_messages += (seq - self._last_seq - 1) % (1 << 32)
         self._last_seq = seq
 
-    def _release(self, seq: int, deadline: float | None = None) -> None:
+    def _release(self, seq: int) -> None:
         reg = self.map["stream_ack_seq"]
-        self._write(reg.address, mm.to_registers(reg, seq), deadline=deadline)  # idempotent: releases seq only
+        self._write(reg.address, mm.to_registers(reg, seq))  # idempotent: releases seq only
 
     def _decode_frame(self, words: np.ndarray, base: int, n: int) -> CentroidFrame:
         x_reg, y_reg, id_reg, mag_reg = self._star_regs

@@ -219,8 +219,8 @@ def record_session(
     result: StreamResult | None = None,
 ) -> StreamResult:
     """Record ``n_frames`` centroid frames (:func:`stream_frames`) into the session file ``path``, each frame written
-    as it arrives (``PATH.partial``, renamed at the end: :class:`hostlink.files.session.SessionWriter`), centroids
-    exactly as on the wire (:data:`WIRE_PX_FORMAT`).
+    as it arrives (a partial file next to ``PATH``, renamed at the end: :class:`hostlink.files.session.SessionWriter`),
+    centroids exactly as on the wire (:data:`WIRE_PX_FORMAT`).
 
     Interrupted after at least one frame (a :class:`UserError` such as a dropped link, or Ctrl-C), the frames
     received are committed to ``path`` and the exception goes on: a UserError as the same class and exit code with
@@ -244,7 +244,8 @@ def record_session(
     except (UserError, KeyboardInterrupt) as exc:
         if not result.frames_received:
             writer.close_partial()
-            writer.partial.unlink(missing_ok=True)
+            if writer.partial is not None:
+                writer.partial.unlink(missing_ok=True)
             raise
         writer.commit()
         if isinstance(exc, KeyboardInterrupt):

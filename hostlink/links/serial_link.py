@@ -18,6 +18,7 @@ import serial
 
 from hostlink.errors import LinkError, UserError
 from hostlink.links.base import DEFAULT_TIMEOUT_S, MessageLink
+from hostlink.links.urlhandler import refuse_file_writing_url
 from protocol.framing import FrameSplitter, FramingError, decode_frame, encode_frame, seq_gap
 from protocol.messages import CentroidFrame, DecodeError, EndOfStream, Message, decode, encode
 
@@ -98,13 +99,13 @@ class SerialLink(MessageLink):
                 continue
             lost_before = 0
             if isinstance(msg, (CentroidFrame, EndOfStream)):
-                # stream messages have their own sequence (replies are numbered apart); after a (re)start, loss is
-                # counted from the first stream message received, as on CAN and Modbus: frames lost before it are
-                # not known to be lost
+                # stream messages have their own sequence (replies are numbered apart), from 0 at the stream's
+                # start: the frames lost before the first one received are counted too
                 if self._rx_seq is not None:
                     lost_before = seq_gap(self._rx_seq, frame.seq)
                 self._rx_seq = frame.seq
             self.stats.rx_messages += 1
+            self._heard()
             self._ready.append((msg, lost_before))
 
     def _discard_input(self) -> None:
@@ -116,7 +117,7 @@ class SerialLink(MessageLink):
         self._ready.clear()
 
     def _reset_loss_counting(self) -> None:
-        self._rx_seq = None
+        self._rx_seq = 0xFFFF  # the number before the new stream's first message, 0
 
     def close(self) -> None:
         try:
@@ -132,6 +133,7 @@ def _reason(exc: BaseException) -> str:
 def open_link(scheme: str, target: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> SerialLink:
     """Open ``serial:TARGET`` (see the module docstring)."""
     url, baud = parse_target(target)
+    refuse_file_writing_url(url, f"--link {scheme}:{target}:")
     try:
         port = serial.serial_for_url(url, baudrate=baud, timeout=_READ_SLICE_S, write_timeout=timeout_s)
     except (serial.SerialException, OSError, ValueError) as exc:

@@ -49,9 +49,10 @@ class StreamCount:
     after the phase.
 
     ``expected``: frames the phase asks for; ``received``: frames the host got; ``lost_on_link``: frames missing
-    between received ones (gaps in their frame counters: ``link.stats``); ``exposures``: frames the sensor took from
-    its source in the phase; ``held_at_start``: frames its source still held when the phase began (None: unknown);
-    ``ended_early``: the sensor reported the end of its source (END_OF_STREAM) before ``expected`` frames arrived."""
+    up to the last received one, counted from the stream's start (``link.stats``); ``exposures``: frames the sensor
+    took from its source in the phase; ``held_at_start``: frames its source still held when the phase began (None:
+    unknown); ``ended_early``: the sensor reported the end of its source (END_OF_STREAM) before ``expected`` frames
+    arrived."""
 
     expected: int
     received: int
