@@ -44,19 +44,39 @@ def resolves(name: str, citing: Path, root: Path) -> bool:
     return any(c.is_file() for c in (citing.parent / name, root / bare, root / "docs" / bare))
 
 
-def text_files(root: Path):
+def _repository_files(root: Path) -> list[Path] | None:
+    """The repository's own files: tracked, or new and not ignored (``git ls-files``), so environments and outputs
+    that .gitignore names (.venv-oldest, reports) are never read; None outside a git checkout."""
+    try:
+        listed = subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=root,
+            capture_output=True,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return [root / name for name in listed.decode("utf-8").split("\0") if name]
+
+
+def _walked_files(root: Path):
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = [
             d for d in dirnames if d not in SKIP_DIRS and d not in SKIP_GENERATED and not d.endswith(SKIP_DIR_SUFFIXES)
         ]
         for name in filenames:
-            path = Path(dirpath) / name
-            if path.stat().st_size > MAX_TEXT_BYTES:
-                continue
-            try:
-                yield path, path.read_text(encoding="utf-8")
-            except (UnicodeDecodeError, OSError):
-                continue  # binary (images, flash images, Parquet)
+            yield Path(dirpath) / name
+
+
+def text_files(root: Path):
+    listed = _repository_files(root) if (root / ".git").exists() else None
+    for path in _walked_files(root) if listed is None else listed:
+        if not path.is_file() or path.stat().st_size > MAX_TEXT_BYTES:
+            continue
+        try:
+            yield path, path.read_text(encoding="utf-8")
+        except (UnicodeDecodeError, OSError):
+            continue  # binary (images, flash images, Parquet)
 
 
 def broken_citations(root: Path) -> list[str]:
