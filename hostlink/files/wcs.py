@@ -36,6 +36,8 @@ def write_wcs_headers(
     from astropy.io import fits
 
     out = Path(directory)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--wcs {directory}: a file is there, not a directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
