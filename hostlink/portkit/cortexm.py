@@ -130,7 +130,7 @@ def target(name: str) -> Target:
 
 
 # ------------------------------------------------------------------------------------------------- toolchain
-def _require_tools():
+def require_tools():
     """(ziglang directory, unicorn module), or a one-line UserError naming the extra to install."""
     try:
         import unicorn
@@ -145,7 +145,7 @@ def _require_tools():
 
 def tools_available() -> bool:
     try:
-        _require_tools()
+        require_tools()
     except UserError:
         return False
     return True
@@ -195,7 +195,7 @@ def build_image(tgt: Target, optimise: str = "O2") -> Path:
     one-line UserError with the compiler's first lines."""
     from hostlink.portkit.firmware_c import WARNING_FLAGS
 
-    zig_dir, _ = _require_tools()
+    zig_dir, _ = require_tools()
     sources = image_sources()
     version = _zig("version", cwd=Path(tempfile.gettempdir())).stdout.strip()
     digest = hashlib.sha256()
@@ -427,7 +427,7 @@ class Machine:
     """The target's image loaded into a unicorn Cortex-M, ready for calls (:meth:`call`)."""
 
     def __init__(self, tgt: Target, optimise: str = "O2") -> None:
-        _, unicorn = _require_tools()
+        _, unicorn = require_tools()
         from unicorn import arm_const
 
         self.target = tgt
