@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.cache import cache_dir
 
 #: Image memory map (an STM32F4-like part; sizes generous: the measurement reports what the image needs).
 FLASH_BASE, FLASH_MAP_BYTES = 0x0800_0000, 2 << 20
@@ -158,8 +159,7 @@ def _zig(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def _cache_root() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "startracker-companion" / "cortexm"
+    return cache_dir() / "cortexm"
 
 
 _LINKER_SCRIPT = f"""

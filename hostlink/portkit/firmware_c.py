@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.cache import cache_dir
 from hostlink.portkit.export_c import firmware_core_files, generate_c
 from onboard import banks
 from onboard.firmware import Counters, EstimatorBudget
@@ -84,9 +85,7 @@ def find_compiler() -> str:
 
 
 def _cache_root() -> Path:
-    # the project's user cache directory, as hostlink.sky.catalogue.cache_dir names it (portkit may not import sky)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "startracker-companion" / "firmware-c"
+    return cache_dir() / "firmware-c"
 
 
 def build_sources() -> dict[str, str]:
