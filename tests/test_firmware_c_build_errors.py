@@ -48,3 +48,14 @@ def test_an_unusable_cache_directory_is_a_one_line_error_from_emulate(tmp_path):
     assert run.returncode == 2, run.stderr
     assert len(run.stderr.strip().splitlines()) == 1, run.stderr
     assert "cannot build the C firmware core in" in run.stderr and "Not a directory" in run.stderr
+
+
+def test_bench_with_the_c_firmware_and_no_compiler_stops_before_simulating(tmp_path, monkeypatch, capsys):
+    from hostlink.cli import main
+
+    monkeypatch.setenv("CC", "no-such-compiler")
+    out = tmp_path / "bench"
+    assert main(["bench", "--firmware", "c", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no C compiler found ('no-such-compiler' is not on PATH)" in err[0], err
+    assert not out.exists() or not any(out.iterdir())  # no session, flash image or report written
