@@ -31,7 +31,8 @@ Sky:
     (THE reference directions of a session's rows), :func:`solve_attitudes` (the attitude of every frame), in other
     forms: :func:`attitude_quaternion` (scalar first), :func:`boresight_radec_roll`, :func:`attitude_records` (the
     rows of ATTITUDE.csv as objects), and as FITS WCS: :func:`sip_model` (the camera's distortion as SIP, with its
-    fit errors), :func:`write_wcs_headers` (one TAN-SIP header per frame).
+    fit errors), :func:`wcs_directory` (its folder, checked first), :func:`write_wcs_headers` (one TAN-SIP header per
+    frame); :func:`read_attitude_matrices` reads scripted attitudes (c11..c33) back.
 Images:
     :func:`centroid_images` (star centroids from FITS/TIFF/PNG images into a session of unidentified stars, with
     :class:`CentroidOptions`, :class:`TimeOptions` and one :class:`FrameReport` per image in a
@@ -138,7 +139,7 @@ if TYPE_CHECKING:
     from hostlink.emulator.setup import build_sensor, parse_endpoint_options
     from hostlink.errors import LinkError, SensorRefused, UserError
     from hostlink.files.atomic import json_text, write_json
-    from hostlink.files.attitude import attitude_records, write_attitudes
+    from hostlink.files.attitude import attitude_records, read_attitude_matrices, write_attitudes
     from hostlink.files.params import (
         data_file,
         emit_param_file,
@@ -161,7 +162,7 @@ if TYPE_CHECKING:
     )
     from hostlink.files.trace import TraceWriter, read_trace, write_trace
     from hostlink.files.truth import read_truth, truth_path_for, write_truth
-    from hostlink.files.wcs import write_wcs_headers
+    from hostlink.files.wcs import wcs_directory, write_wcs_headers
     from hostlink.images.centroid import (
         CentroidOptions,
         CentroidResult,
@@ -327,6 +328,8 @@ __all__ = [
     "sip_model",
     "SipModel",
     "write_wcs_headers",
+    "wcs_directory",
+    "read_attitude_matrices",
     # calibration
     "calibrate_session",
     "calibrate_archive",

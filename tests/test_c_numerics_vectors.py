@@ -281,13 +281,7 @@ def test_c_refraction_fixed_point_is_bit_exact_with_the_vectors(lib, docs):
 
 def test_c_apparent_place_fixed_point_is_bit_exact_with_the_vectors(lib, docs):
     for inp, out, _ in _cases(docs, "apparent_place.fixed.json"):
-        inst = estimator_c.FixedInstant()
-        inst.years_q20 = int(inp["years_q20"])
-        inst.deflection_k_q70 = int(inp["deflection_k_q70"])
-        inst.earth_bary_q30[:] = [int(v) for v in inp["earth_bary_q30"]]
-        inst.sun_to_earth_q30[:] = [int(v) for v in inp["sun_to_earth_q30"]]
-        inst.beta_q44[:] = [int(v) for v in inp["beta_q44"]]
-        inst.tod_q30[:] = [int(v) for v in np.ravel(inp["tod_q30"])]
+        inst = estimator_c.fixed_instant(inp)
         r0, pm, plx = (np.ascontiguousarray(inp[k], np.int64) for k in ("r0_q30", "pm_q46", "parallax_q48"))
         got = np.zeros_like(r0)
         lib.apparent_place_vectors_q30(ptr(r0), ptr(pm), ptr(plx), r0.shape[0], ref(inst), ptr(got))

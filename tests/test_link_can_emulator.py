@@ -79,13 +79,33 @@ def _decode_capture(db, captured):
     return [f for f in frames if len(f["stars"]) == f["n"]]
 
 
+#: Seconds to wait for the sniffer to join the emulator's bus (its hub thread runs in another process, which a
+#: loaded machine may delay); reaching it fails the test.
+SNIFFER_JOIN_DEADLINE_S = 30.0
+#: Seconds of quiet on the bus that mean nothing more is on its way.
+QUIET_S = 0.3
+
+
+def _sniffer_joined(sniffer, link) -> None:
+    """Return once the listen-only ``sniffer`` sees the bus: status requests over ``link`` until their frames reach
+    it, then the rest of them drained. Replaces a fixed sleep that raced the emulator process's hub."""
+    deadline = time.monotonic() + SNIFFER_JOIN_DEADLINE_S
+    while time.monotonic() < deadline:
+        link.status()
+        if sniffer.recv(QUIET_S) is not None:
+            while sniffer.recv(QUIET_S) is not None:
+                assert time.monotonic() < deadline, "the bus never went quiet (is the sensor streaming?)"
+            return
+    raise AssertionError(f"the sniffer saw nothing on the bus within {SNIFFER_JOIN_DEADLINE_S} s")
+
+
 def test_cantools_decodes_the_streamed_frames_with_the_dbc(can_sensor):
     db = cantools.database.load_file(str(DBC))
     url = can_sensor["link"].split(":", 2)[2].rsplit("@", 1)[0]
     sniffer = can.Bus(interface="slcan", channel=url, sleep_after_open=0, listen_only=True)
     try:
-        time.sleep(0.1)  # the hub has the sniffer before the stream starts
         with open_link(can_sensor["link"]) as link:
+            _sniffer_joined(sniffer, link)  # the hub delivers to the sniffer before the stream starts
             link.set_streaming(True)
             received = [link.recv_frame() for _ in range(8)]
             link.set_streaming(False)

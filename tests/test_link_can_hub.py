@@ -26,6 +26,29 @@ def _slcan(hub, **kw):
     return can.Bus(interface="slcan", channel=hub.url, sleep_after_open=0, **kw)
 
 
+#: Identifier of the frames that prove a TCP node has joined (above every identifier the tests send).
+PROBE_ID = 0x7FF
+#: Seconds to wait for a TCP node to join: the hub's thread accepts it and reads its open command, which a loaded
+#: machine may delay far beyond the microseconds it takes alone; reaching the deadline fails the test.
+JOIN_DEADLINE_S = 30.0
+#: Seconds of quiet that mean no probe is still on its way.
+QUIET_S = 0.3
+
+
+def _joined(sender, receiver) -> None:
+    """Return once ``receiver`` (a TCP node) receives what ``sender`` sends: probe frames until one arrives, then the
+    late ones drained. Replaces a fixed sleep that raced the hub's thread."""
+    deadline = time.monotonic() + JOIN_DEADLINE_S
+    while time.monotonic() < deadline:
+        sender.send(can.Message(arbitration_id=PROBE_ID, data=b"", is_extended_id=False))
+        msg = receiver.recv(QUIET_S)
+        if msg is not None and msg.arbitration_id == PROBE_ID:
+            while (late := receiver.recv(QUIET_S)) is not None:
+                assert late.arbitration_id == PROBE_ID, late
+            return
+    raise AssertionError(f"the TCP node did not join the bus within {JOIN_DEADLINE_S} s")
+
+
 def test_slcan_lines_round_trip():
     for frame in (
         HubFrame(0x101, False, False, 8, bytes(range(8))),
@@ -43,7 +66,7 @@ def test_python_can_slcan_node_and_in_process_node_exchange_frames(hub):
     sensor = hub.attach("sensor")
     host = _slcan(hub, bitrate=500_000)
     try:
-        time.sleep(0.05)  # the hub has registered the TCP client
+        _joined(sensor, host)
         sensor.send(can.Message(arbitration_id=0x101, data=bytes(range(8)), is_extended_id=False))
         msg = host.recv(2.0)
         assert msg is not None and msg.arbitration_id == 0x101 and bytes(msg.data) == bytes(range(8))
@@ -60,7 +83,8 @@ def test_the_bus_is_never_faster_than_its_bit_rate(hub):
     host = _slcan(hub)
     n = 400
     try:
-        time.sleep(0.05)
+        _joined(sensor, host)
+        bits_before = hub.bits_on_bus
         start = time.monotonic()
         threading.Thread(
             target=lambda: [
@@ -80,16 +104,19 @@ def test_the_bus_is_never_faster_than_its_bit_rate(hub):
     # the virtual bus delivers frame k no earlier than k worst-case frame times after the first started; the first
     # frame itself may start at once, so n - 1 frame times is the lower bound (delivery jitter only adds)
     assert elapsed >= (n - 1) * frame_bits_worst_case(8, False) / 500_000
-    assert hub.bits_on_bus == n * 135
+    assert hub.bits_on_bus - bits_before == n * 135
 
 
 def test_lowest_identifier_wins_arbitration_among_pending_frames():
-    hub = SlcanHub(10_000).start()  # slow bus: the first frame takes 13.5 ms, so both later ones are pending
+    # slow bus: the first frame takes 13.5 ms, so both later ones are pending when it ends. The frames are queued
+    # before the hub's thread starts, so that thread cannot take the CPU between the three sends.
+    hub = SlcanHub(10_000)
     a, b, listener = hub.attach("a"), hub.attach("b"), hub.attach("listener")
     try:
         a.send(can.Message(arbitration_id=0x300, data=bytes(8), is_extended_id=False))
         a.send(can.Message(arbitration_id=0x200, data=b"a", is_extended_id=False))
         b.send(can.Message(arbitration_id=0x100, data=b"b", is_extended_id=False))
+        hub.start()
         order = [listener.recv(2.0).arbitration_id for _ in range(3)]
     finally:
         for bus in (a, b, listener):

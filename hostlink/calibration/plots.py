@@ -12,7 +12,8 @@ from hostlink.files.atomic import save_figure
 FIELD_CELLS = 16
 
 
-def _pyplot():
+def agg_pyplot():
+    """matplotlib.pyplot on the Agg backend (files only, no display): every figure the package saves uses it."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -32,7 +33,7 @@ def residual_field_png(
 ) -> None:
     """Mean residual per cell of a 16 x 16 grid over the detector, as arrows; the scale is stated in the legend, and
     ``caption`` (how to read it) under the plot."""
-    plt = _pyplot()
+    plt = agg_pyplot()
     w, h = image_size_px
     ix = np.clip((x_px + 0.5) / w * FIELD_CELLS, 0, FIELD_CELLS - 1).astype(int)
     iy = np.clip((y_px + 0.5) / h * FIELD_CELLS, 0, FIELD_CELLS - 1).astype(int)
@@ -109,7 +110,7 @@ def convergence_png(path: Path, history: list[dict], title: str, converged: bool
     stars fitted) shaded and labelled with its star count, and a caption saying how to read it."""
     from matplotlib.ticker import MaxNLocator
 
-    plt = _pyplot()
+    plt = agg_pyplot()
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.5, 6.8), sharex=True)
     it = [int(h["iteration"]) for h in history]
     bundle = bool(history) and "rms_px" in history[0]

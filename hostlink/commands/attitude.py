@@ -124,6 +124,10 @@ def run(args: argparse.Namespace) -> int:
     site, weather = site_and_weather(args)
     mode = refraction_mode(args.refraction, weather)
     mounting = parse_mounting(args.mounting) if args.mounting is not None else None
+    if args.wcs:  # refused before anything is solved or written
+        from hostlink.api import wcs_directory
+
+        wcs_directory(args.wcs)
     session = read_session(args.session)
     params = load_params(args.params)
     if len(session) == 0:

@@ -83,35 +83,21 @@ def _fraction_pair(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _read_attitudes(path: str):
-    import csv
-
-    import numpy as np
-
-    names = [f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            reader = csv.DictReader(handle)
-            missing = [n for n in names if n not in (reader.fieldnames or [])]
-            if missing:
-                raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
-            rows = [[float(r[n]) for n in names] for r in reader]
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except (OSError, csv.Error, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: cannot read attitudes ({exc})") from None
-    except (TypeError, ValueError):
-        raise UserError(f"{path}: every c11..c33 value must be a number") from None
-    return np.asarray(rows, dtype=np.float64).reshape(-1, 3, 3)
-
-
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hostlink.api import SimConfig, load_params, progress_bar, seed004_config, truth_path_for, write_simulation
+    from hostlink.api import (
+        SimConfig,
+        load_params,
+        progress_bar,
+        read_attitude_matrices,
+        seed004_config,
+        truth_path_for,
+        write_simulation,
+    )
 
     site, weather = site_and_weather(args)
-    attitudes = _read_attitudes(args.attitudes) if args.attitudes else None
+    attitudes = read_attitude_matrices(args.attitudes) if args.attitudes else None
     if attitudes is not None and args.frames is None:
         args.frames = int(attitudes.shape[0])
     if args.preset == "seed004":

@@ -9,15 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
+from hostlink.errors import UserError
 from hostlink.files.atomic import atomic_open
 from hostlink.sky.pointing import attitude_quaternion, boresight_radec_roll
 
+#: The direction cosine matrix's columns of an attitude file, row by row (b = C r).
+MATRIX_COLUMNS = tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
 #: Columns of every attitude file; C's elements row by row (b = C r).
-ATTITUDE_COLUMNS = (
-    ("frame", "t_utc", "n_stars", "n_used")
-    + tuple(f"c{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
-    + ("residual_rms_arcsec", "status")
-)
+ATTITUDE_COLUMNS = ("frame", "t_utc", "n_stars", "n_used") + MATRIX_COLUMNS + ("residual_rms_arcsec", "status")
 #: The attitude in other forms, from C (:mod:`hostlink.sky.pointing`): the quaternion, scalar first, carrying the
 #: reference axes onto the sensor axes; the boresight (+z) right ascension and declination [deg] in the reference
 #: frame; the roll [deg] from the image's up (-y) to the projected celestial north, toward +x.
@@ -79,3 +78,23 @@ def write_attitudes(path: str | Path, attitudes) -> None:
             rms = row[rms_column]
             cells[rms_column] = f"{rms:.4f}" if math.isfinite(rms) else ""
             w.writerow(cells)
+
+
+def read_attitude_matrices(path: str | Path) -> np.ndarray:
+    """The attitudes C (b = C r) of a CSV with columns c11..c33, one row a frame (``hostlink simulate --attitudes``;
+    an attitude file of ``hostlink attitude`` is one), as an (n, 3, 3) float64 array. Raises a one-line
+    :class:`UserError` for a missing file, a missing column or a value that is not a number."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            reader = csv.DictReader(handle)
+            missing = [n for n in MATRIX_COLUMNS if n not in (reader.fieldnames or [])]
+            if missing:
+                raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
+            rows = [[float(r[n]) for n in MATRIX_COLUMNS] for r in reader]
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, csv.Error, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read attitudes ({exc})") from None
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: every c11..c33 value must be a number") from None
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3, 3)

@@ -25,6 +25,19 @@ def frame_wcs_path(directory: str | Path, frame: int) -> Path:
     return Path(directory) / f"frame_{int(frame)}.fits"
 
 
+def wcs_directory(directory: str | Path) -> Path:
+    """The directory of the WCS headers, created if needed; a one-line UserError when it cannot be (a file is there,
+    no permission). ``hostlink attitude`` calls it before solving, so a bad ``--wcs`` writes nothing."""
+    out = Path(directory)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--wcs {directory}: a file is there, not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--wcs {directory}: cannot create the directory ({exc.strerror})") from None
+    return out
+
+
 def write_wcs_headers(
     directory: str | Path, attitudes, params: CameraParams, sip: SipModel, time_known: bool, site: bool
 ) -> int:
@@ -35,11 +48,7 @@ def write_wcs_headers(
     the references were topocentric (a COMMENT says so). Each file is written atomically."""
     from astropy.io import fits
 
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--wcs {directory}: cannot create the directory ({exc.strerror})") from None
+    out = wcs_directory(directory)
     theta = params.model_vector()
     # the cards every frame shares (SIP, detector, notes) are formatted once; a frame sets its own on a copy
     template = fits.PrimaryHDU().header

@@ -15,11 +15,11 @@ PLOT_DPI = 110
 
 def write_plots(out: Path, run: BenchRun, summary: dict) -> list[Path]:
     """Write the four PNG plots of ``run`` into ``out``; returns their paths."""
-    from hostlink.calibration.plots import _pyplot
+    from hostlink.calibration.plots import agg_pyplot
     from hostlink.files.atomic import save_figure
 
     paths = residual_plots(out, run)
-    plt = _pyplot()
+    plt = agg_pyplot()
     for name, draw in (("estimator-convergence.png", _convergence_figure), ("drift-tracking.png", _drift_figure)):
         fig = draw(plt, run, summary)
         fig.text(0.01, 0.005, CAPTIONS[name], fontsize=8, wrap=True, va="bottom")

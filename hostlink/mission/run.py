@@ -51,6 +51,10 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
 
     if cfg.precision not in PRECISIONS:
         raise UserError(f"precision: expected one of {', '.join(PRECISIONS)}, got {cfg.precision!r}")
+    if cfg.firmware == "c":  # built (or found in the cache) before anything is simulated or written
+        from hostlink.portkit.firmware_c import build_library
+
+        build_library()
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()

@@ -22,7 +22,7 @@ def target_costs(targets: list[str], frames: int = TARGET_COST_FRAMES, progress=
     if not 1 <= int(frames) <= 1000:
         raise UserError(f"--frames must be 1..1000, got {frames}")
     chosen = [cortexm.target(t) for t in targets]
-    cortexm._require_tools()
+    cortexm.require_tools()
     cfg = SimConfig(
         camera=seed004_camera(), frames=int(frames), noise_px=0.05, min_stars=32, max_stars=40, maglim=8.0, seed=28
     )

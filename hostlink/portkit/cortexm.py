@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.cache import cache_dir
 
 #: Image memory map (an STM32F4-like part; sizes generous: the measurement reports what the image needs).
 FLASH_BASE, FLASH_MAP_BYTES = 0x0800_0000, 2 << 20
@@ -130,7 +131,7 @@ def target(name: str) -> Target:
 
 
 # ------------------------------------------------------------------------------------------------- toolchain
-def _require_tools():
+def require_tools():
     """(ziglang directory, unicorn module), or a one-line UserError naming the extra to install."""
     try:
         import unicorn
@@ -145,7 +146,7 @@ def _require_tools():
 
 def tools_available() -> bool:
     try:
-        _require_tools()
+        require_tools()
     except UserError:
         return False
     return True
@@ -158,8 +159,7 @@ def _zig(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def _cache_root() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "startracker-companion" / "cortexm"
+    return cache_dir() / "cortexm"
 
 
 _LINKER_SCRIPT = f"""
@@ -195,7 +195,7 @@ def build_image(tgt: Target, optimise: str = "O2") -> Path:
     one-line UserError with the compiler's first lines."""
     from hostlink.portkit.firmware_c import WARNING_FLAGS
 
-    zig_dir, _ = _require_tools()
+    zig_dir, _ = require_tools()
     sources = image_sources()
     version = _zig("version", cwd=Path(tempfile.gettempdir())).stdout.strip()
     digest = hashlib.sha256()
@@ -427,7 +427,7 @@ class Machine:
     """The target's image loaded into a unicorn Cortex-M, ready for calls (:meth:`call`)."""
 
     def __init__(self, tgt: Target, optimise: str = "O2") -> None:
-        _, unicorn = _require_tools()
+        _, unicorn = require_tools()
         from unicorn import arm_const
 
         self.target = tgt

@@ -149,6 +149,19 @@ class FixedInstant(ctypes.Structure):
     ]
 
 
+def fixed_instant(inputs: dict) -> FixedInstant:
+    """The instant's quantities of an ``apparent_place.fixed.json`` golden vector's inputs (``hostlink vectors``) as
+    the C ``apparent_instant_t``: the one conversion the host and target runs of those vectors share."""
+    inst = FixedInstant()
+    inst.years_q20 = int(inputs["years_q20"])
+    inst.deflection_k_q70 = int(inputs["deflection_k_q70"])
+    inst.earth_bary_q30[:] = [int(v) for v in inputs["earth_bary_q30"]]
+    inst.sun_to_earth_q30[:] = [int(v) for v in inputs["sun_to_earth_q30"]]
+    inst.beta_q44[:] = [int(v) for v in inputs["beta_q44"]]
+    inst.tod_q30[:] = [int(v) for v in np.ravel(inputs["tod_q30"])]
+    return inst
+
+
 class FixedCamera(ctypes.Structure):
     """fixedpoint_camera_t (onboard/c/fixedpoint.h)."""
 

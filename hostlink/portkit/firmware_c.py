@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
+from hostlink.files.cache import cache_dir
 from hostlink.portkit.export_c import firmware_core_files, generate_c
 from onboard import banks
 from onboard.firmware import Counters, EstimatorBudget
@@ -84,9 +85,7 @@ def find_compiler() -> str:
 
 
 def _cache_root() -> Path:
-    # the project's user cache directory, as hostlink.sky.catalogue.cache_dir names it (portkit may not import sky)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "startracker-companion" / "firmware-c"
+    return cache_dir() / "firmware-c"
 
 
 def build_sources() -> dict[str, str]:
@@ -126,17 +125,23 @@ def build_library(cache: Path | None = None) -> Path:
     library = root / f"stfirmware-{digest.hexdigest()[:24]}.so"
     if library.is_file():
         return library
-    root.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=root, prefix="build-") as tmp:
-        work = Path(tmp)
-        for name, text in sources.items():
-            (work / name).write_text(text)
-        partial = work / "lib.so"
-        run = subprocess.run(compile_command(compiler, work, partial), capture_output=True, text=True)
-        if run.returncode != 0:
-            first = " | ".join((run.stderr or run.stdout).strip().splitlines()[:3])
-            raise UserError(f"the C firmware core did not compile with {compiler}: {first}")
-        os.replace(partial, library)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=root, prefix="build-") as tmp:
+            work = Path(tmp)
+            for name, text in sources.items():
+                (work / name).write_text(text)
+            partial = work / "lib.so"
+            run = subprocess.run(compile_command(compiler, work, partial), capture_output=True, text=True)
+            if run.returncode != 0:
+                said = (run.stderr or run.stdout).strip().splitlines()[:3]
+                first = " | ".join(said) if said else f"exit status {run.returncode}, no message"
+                raise UserError(f"the C firmware core did not compile with {compiler}: {first}")
+            if not partial.is_file():
+                raise UserError(f"the C firmware core did not compile with {compiler}: it wrote no library")
+            os.replace(partial, library)
+    except OSError as exc:
+        raise UserError(f"cannot build the C firmware core in {root}: {exc.strerror or exc}") from exc
     return library
 
 
@@ -150,7 +155,10 @@ def load_library(cache: Path | None = None) -> ctypes.CDLL:
     if lib is not None:
         return lib
     path = build_library(cache)
-    lib = ctypes.CDLL(str(path))
+    try:
+        lib = ctypes.CDLL(str(path))
+    except OSError as exc:
+        raise UserError(f"the C firmware core built as {path} does not load: {exc}") from exc
     p_u8 = ctypes.POINTER(ctypes.c_uint8)
     p_f64 = ctypes.POINTER(ctypes.c_double)
     lib.sil_firmware_bytes.restype = ctypes.c_size_t

@@ -18,7 +18,7 @@ import numpy as np
 
 from hostlink.portkit import vectors
 from hostlink.portkit.cortexm import Arg, Machine, Target, flash_breakdown
-from hostlink.portkit.estimator_c import FixedCamera, FixedInstant, SeamConfig, TimeTT
+from hostlink.portkit.estimator_c import FixedCamera, SeamConfig, TimeTT, fixed_instant
 
 #: Star counts of the update rows (issue 28).
 UPDATE_STARS = (8, 16, 32)
@@ -273,13 +273,7 @@ def _refraction_fixed(m: Machine, doc: dict) -> float:
 def _apparent_fixed(m: Machine, doc: dict) -> float:
     worst = 0.0
     for inp, out, _ in _cases(doc):
-        inst = FixedInstant()
-        inst.years_q20 = int(inp["years_q20"])
-        inst.deflection_k_q70 = int(inp["deflection_k_q70"])
-        inst.earth_bary_q30[:] = [int(v) for v in inp["earth_bary_q30"]]
-        inst.sun_to_earth_q30[:] = [int(v) for v in inp["sun_to_earth_q30"]]
-        inst.beta_q44[:] = [int(v) for v in inp["beta_q44"]]
-        inst.tod_q30[:] = [int(v) for v in np.ravel(inp["tod_q30"])]
+        inst = fixed_instant(inp)
         r0, pm, plx = (_i64(inp[k]) for k in ("r0_q30", "pm_q46", "parallax_q48"))
         got = np.zeros_like(r0)
         m.call("apparent_place_vectors_q30", r0, pm, plx, r0.shape[0], inst, got)

