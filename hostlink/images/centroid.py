@@ -282,9 +282,12 @@ def centroid_pixels(
 
     sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
     x, y = _windowed_centroids(sub, good, sigma)
-    # unresolved pairs (too close for a saddle between them: the deblender sees one peak) are elongated
+    # unresolved pairs (too close for a saddle between them: the deblender sees one peak) are elongated beyond the PSF
+    # of their part of the field; a clipped core's shape is not the PSF's (round where the PSF is trailed): saturated
+    # stars are neither tested nor part of the PSF's shape
     ellipticity, ellipticity_sigma = _windowed_ellipticity(sub, rms, x, y, sigma, options.gain_e_per_adu)
-    unresolved = _unresolved_pairs(ellipticity, ellipticity_sigma, options.max_ellipticity)
+    ellipticity_sigma[clipped] = np.inf
+    unresolved = _unresolved_pairs(ellipticity, ellipticity_sigma, options.max_ellipticity, x, y, sub.shape)
     report.rejected_blended += int(unresolved.sum())
     good, clipped = good[~unresolved], clipped[~unresolved]
     if good.size == 0:
@@ -465,24 +468,93 @@ def _windowed_centroids(sub: np.ndarray, good: np.ndarray, sigma_px: float) -> t
     return np.where(failed, good["x"], xw), np.where(failed, good["y"], yw)
 
 
-def _unresolved_pairs(e: np.ndarray, e_sigma: np.ndarray, max_ellipticity: float) -> np.ndarray:
-    """Stars more elongated than the frame's PSF: |e - e_psf| beyond max(``max_ellipticity``, 3 x the spread of the
-    well-measured stars' ellipticities beyond their noise) and beyond :data:`_ELLIPTICITY_SIGNIFICANCE` x its noise.
-    ``e_psf`` (median) and the spread (robust: the median excess) come from every star whose ellipticity is known to
-    :data:`_PSF_SHAPE_MAX_SIGMA` (at least :data:`_PSF_SHAPE_STARS`, else the PSF is taken as round; blends are a
-    minority). A real lens's PSF is elliptical (coma, astigmatism, an undersampled spot on the pixel grid) by 0.1-0.3
-    and varies over the field: only what stands out from it is a blend."""
+def _unresolved_pairs(
+    e: np.ndarray,
+    e_sigma: np.ndarray,
+    max_ellipticity: float,
+    x_px: np.ndarray | None = None,
+    y_px: np.ndarray | None = None,
+    shape_px: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """Stars more elongated than the frame's PSF where they are: |e - e_psf(x, y)| beyond max(``max_ellipticity``,
+    3 x the spread of the well-measured stars' ellipticities about the model beyond their noise) and beyond
+    :data:`_ELLIPTICITY_SIGNIFICANCE` x its noise. ``e_psf`` is :func:`_psf_ellipticity_field`, fitted to every star
+    whose ellipticity is known to :data:`_PSF_SHAPE_MAX_SIGMA` (blends are a minority): a real lens's PSF is
+    elliptical (coma, astigmatism, an undersampled spot on the pixel grid) by 0.1-0.3 and, in a wide field, changes
+    across it (elongated radially towards the edge: on the 27-deg granasat frames e ~ 0.2-0.35 beyond 400 px from the
+    centre, against ~0.05 at it). Only what stands out from the PSF of its own part of the field is a blend."""
     reference = np.flatnonzero(e_sigma < _PSF_SHAPE_MAX_SIGMA)
-    e_psf, spread = np.zeros(2), 0.0
+    e_psf, spread = np.zeros_like(e), 0.0
     if reference.size >= _PSF_SHAPE_STARS:
-        e_psf = np.median(e[reference], axis=0)
-        # |e - e_psf|^2 / v is chi-square with 2 degrees of freedom (median 2 ln 2) for a per-component variance
-        # v = spread^2 + noise^2: the PSF's own spread is what is left after the noise
-        excess = np.sum((e[reference] - e_psf) ** 2, axis=1) - 2.0 * e_sigma[reference] ** 2
-        spread = math.sqrt(max(float(np.median(excess)) / (2.0 * math.log(2.0)), 0.0))
+        if x_px is None or y_px is None or shape_px is None:
+            x_px, y_px, shape_px = np.zeros(e.shape[0]), np.zeros(e.shape[0]), (1, 1)
+        e_psf, spread = _psf_ellipticity_field(e, e_sigma, x_px, y_px, shape_px, reference)
     deviation = np.hypot(*(e - e_psf).T)
-    limit = max(max_ellipticity, 3.0 * spread)
+    limit = max(max_ellipticity, _ELLIPTICITY_SIGNIFICANCE * spread)
     return (deviation > limit) & (deviation > _ELLIPTICITY_SIGNIFICANCE * e_sigma)
+
+
+#: Reference stars per free coefficient before the PSF's ellipticity is modelled across the field (a quadratic in
+#: x, y per component, 6 coefficients) rather than taken as the frame's median.
+_PSF_FIELD_STARS_PER_TERM = 5
+#: Rounds of the robust fit of the PSF's ellipticity across the field; a star is left out of the next round when its
+#: deviation^2 / (spread^2 + noise^2) exceeds the chi-square (2 degrees of freedom) 99.73 % point (3 sigma).
+_PSF_FIELD_ROUNDS = 4
+_PSF_FIELD_CHI2 = -2.0 * math.log(1.0 - 0.9973)
+
+
+def _psf_ellipticity_field(
+    e: np.ndarray,
+    e_sigma: np.ndarray,
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    shape_px: tuple[int, int],
+    reference: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """The PSF's ellipticity at every star (n, 2) and its spread per component about that model: the median of the
+    ``reference`` stars when they are fewer than :data:`_PSF_FIELD_STARS_PER_TERM` x 6, else a quadratic in the
+    field position per component (the lowest order that holds the radial elongation of astigmatism and field
+    curvature, e1 ~ x^2 - y^2, e2 ~ 2 x y about the centre, and coma's linear term), fitted by least squares over
+    the reference stars that agree with it (iterated, :data:`_PSF_FIELD_ROUNDS`, blends clipped). The spread is robust
+    (a median over every reference star, blends a minority):
+    |e - e_psf|^2 / v is chi-square with 2 degrees of freedom (median 2 ln 2) for a per-component variance
+    v = spread^2 + noise^2: the PSF's own spread is what is left after the noise."""
+
+    def spread_of(rows: np.ndarray, model: np.ndarray) -> float:
+        # the s that makes the median of |e - e_psf|^2 / (s^2 + noise^2) that of a chi-square with 2 degrees of
+        # freedom, 2 ln 2 (0 when the noise alone explains more than half of the deviations): bisection, the median
+        # falls as s grows
+        d2 = np.sum((e[rows] - model[rows]) ** 2, axis=1)
+        v = e_sigma[rows] ** 2
+        target = 2.0 * math.log(2.0)
+        if float(np.median(d2 / np.maximum(v, 1e-30))) <= target:
+            return 0.0
+        lo, hi = 0.0, math.sqrt(float(np.max(d2)) / target)
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(np.median(d2 / (mid**2 + v))) > target else (lo, mid)
+        return hi
+
+    model = np.broadcast_to(np.median(e[reference], axis=0), e.shape).copy()
+    spread = spread_of(reference, model)
+    if reference.size < 6 * _PSF_FIELD_STARS_PER_TERM:
+        return model, spread
+    height, width = shape_px
+    scale = 0.5 * math.hypot(width, height)
+    u = (np.asarray(x_px, np.float64) - 0.5 * (width - 1)) / scale
+    v = (np.asarray(y_px, np.float64) - 0.5 * (height - 1)) / scale
+    design = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    rows = reference
+    for _ in range(_PSF_FIELD_ROUNDS):  # from the median's inliers (blends clustered in one part are not absorbed)
+        chi2 = np.sum((e[reference] - model[reference]) ** 2, axis=1) / (spread**2 + e_sigma[reference] ** 2)
+        inliers = reference[chi2 <= _PSF_FIELD_CHI2]
+        if inliers.size < 6 * _PSF_FIELD_STARS_PER_TERM or np.array_equal(inliers, rows):
+            break
+        rows = inliers
+        coef, *_ = np.linalg.lstsq(design[rows], e[rows], rcond=None)
+        model = design @ coef
+        spread = spread_of(reference, model)  # over all: a spread over the inliers alone shrinks round by round
+    return model, spread
 
 
 def _windowed_ellipticity(
