@@ -840,12 +840,107 @@ def psf_model(cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: 
     return b + n * shape, jac
 
 
-def _fit_residual(p, cols, rows, data, whiten, sigma_px) -> np.ndarray:
-    return ((psf_model(cols, rows, p, sigma_px)[0] - data) * whiten).ravel()
+#: Levenberg-Marquardt iterations of the batched PSF fit (from the windowed centroid it converges in 3-6), the damping
+#: it starts from (relative to the normal matrix's diagonal, Marquardt 1963) and the relative fall of the cost below
+#: which a star has converged.
+_FIT_ITERATIONS = 30
+_FIT_DAMPING_START = 1e-3
+_FIT_COST_RTOL = 1e-10
 
 
-def _fit_jacobian(p, cols, rows, data, whiten, sigma_px) -> np.ndarray:
-    return (psf_model(cols, rows, p, sigma_px)[1] * whiten[..., None]).reshape(-1, 4)
+def _stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, half: int):
+    """The (2 half + 1)^2 pixels around each star's nearest pixel: (cols (N, W), rows (N, H) as float pixel
+    coordinates, the pixel values (N, H, W) (0 outside the image) and a mask (N, H, W), True inside the image)."""
+    h, w = image.shape
+    offsets = np.arange(-half, half + 1)
+    cols = np.rint(x).astype(np.int64)[:, None] + offsets[None, :]
+    rows = np.rint(y).astype(np.int64)[:, None] + offsets[None, :]
+    inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
+    values = image[np.clip(rows, 0, h - 1)[:, :, None], np.clip(cols, 0, w - 1)[:, None, :]]
+    return cols.astype(np.float64), rows.astype(np.float64), np.where(inside, values, 0.0), inside
+
+
+def psf_model_batch(
+    cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`psf_model` for N stars at once: ``cols`` (N, W), ``rows`` (N, H), ``params`` (N, 4) = (x, y, N, B);
+    returns mu (N, H, W) and d mu / d params (N, H, W, 4)."""
+    x, y, n, b = (params[:, k : k + 1] for k in range(4))
+    px = pixel_integrated_gaussian(cols, x, sigma_px)
+    py = pixel_integrated_gaussian(rows, y, sigma_px)
+    dpx = pixel_integrated_gaussian_dsource(cols, x, sigma_px)
+    dpy = pixel_integrated_gaussian_dsource(rows, y, sigma_px)
+    shape = py[:, :, None] * px[:, None, :]
+    nn = n[:, :, None]
+    jac = np.stack(
+        [nn * py[:, :, None] * dpx[:, None, :], nn * dpy[:, :, None] * px[:, None, :], shape, np.ones_like(shape)],
+        axis=-1,
+    )
+    return b[:, :, None] + nn * shape, jac
+
+
+def _levenberg_marquardt_batch(
+    cols: np.ndarray, rows: np.ndarray, data: np.ndarray, whiten: np.ndarray, start: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares of :func:`psf_model_batch` to every star's pixels at once: minimise
+    sum (whiten (mu - data))^2 per star by Levenberg-Marquardt (Marquardt 1963, SIAM J. Appl. Math. 11:431: the step
+    solves (J^T J + lambda diag(J^T J)) dp = -J^T r; a step that lowers the cost is taken and lambda / 10, else
+    lambda x 10), each star on its own, all in numpy. ``whiten`` (N, H, W) is 1 / the pixel noise (0 for a pixel left
+    out). Returns the parameters (N, 4) and whether each converged (its cost falling by less than
+    :data:`_FIT_COST_RTOL` relative, or its step at the floating-point floor)."""
+    params = start.copy()
+    n = params.shape[0]
+    r, j, cost = _evaluate_rows(cols, rows, data, whiten, params, np.arange(n), sigma_px)
+    damping = np.full(n, _FIT_DAMPING_START)
+    done = ~np.isfinite(cost)
+    converged = np.zeros(n, dtype=bool)
+    eye = np.eye(4)
+    for _ in range(_FIT_ITERATIONS):
+        active = np.flatnonzero(~done)
+        if active.size == 0:
+            break
+        ja, ra = j[active], r[active]
+        normal = np.einsum("npi,npj->nij", ja, ja)
+        gradient = np.einsum("npi,np->ni", ja, ra)
+        diag = np.einsum("nii->ni", normal)
+        lhs = normal + damping[active, None, None] * diag[:, :, None] * eye
+        try:
+            step = -np.linalg.solve(lhs, gradient[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.zeros_like(gradient)
+            for k in range(active.size):
+                try:
+                    step[k] = -np.linalg.solve(lhs[k], gradient[k])
+                except np.linalg.LinAlgError:
+                    done[active[k]] = True
+        trial = params.copy()
+        trial[active] += step
+        r_new, j_new, cost_new = _evaluate_rows(cols, rows, data, whiten, trial, active, sigma_px)
+        better = np.isfinite(cost_new) & (cost_new <= cost[active])
+        take = active[better]
+        fall = cost[take] - cost_new[better]
+        params[take] = trial[take]
+        r[take], j[take] = r_new[better], j_new[better]
+        small = (fall <= _FIT_COST_RTOL * np.maximum(cost[take], 1e-300)) | (
+            np.max(np.abs(step[better]) / (np.abs(params[take]) + 1e-12), axis=1) < 1e-12
+        )
+        cost[take] = cost_new[better]
+        damping[take] /= 10.0
+        damping[active[~better]] *= 10.0
+        converged[take[small]] = True
+        done[take[small]] = True
+        done[active[~better][damping[active[~better]] > 1e12]] = True
+    return params, converged
+
+
+def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
+    """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``."""
+    mu, jac = psf_model_batch(cols[active], rows[active], params[active], sigma_px)
+    w = whiten[active]
+    k = active.size
+    r = ((mu - data[active]) * w).reshape(k, -1)
+    j = (jac * w[..., None]).reshape(k, -1, 4)
+    return r, j, np.einsum("np,np->n", r, r)
 
 
 def _psf_fit_centroids(
@@ -853,41 +948,34 @@ def _psf_fit_centroids(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Maximum-likelihood centroids (module docstring, step 4): fit :func:`psf_model` (position, flux, local
     background; the PSF sigma fixed at the frame's) to the pixels within +-(3 sigma + 1) of the windowed centroid by
-    weighted least squares (scipy.optimize.least_squares, Levenberg-Marquardt), weights 1 / sqrt(rms^2 + signal /
-    gain) from the first pass's model (signal term only when the gain is known). A fit that fails, finds no flux or
-    moves more than :data:`_FIT_MAX_SHIFT_PX` keeps the windowed centroid."""
-    from scipy.optimize import least_squares
-
-    h, w = sub.shape
-    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    weighted least squares (:func:`_levenberg_marquardt_batch`, every star of the frame at once), weights
+    1 / sqrt(rms^2 + signal / gain) from the first pass's model (signal term only when the gain is known). A fit
+    that does not converge, finds no flux or moves more than :data:`_FIT_MAX_SHIFT_PX` keeps the windowed
+    centroid."""
     out_x, out_y = x.copy(), y.copy()
-    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
-        c, r = int(round(xc)), int(round(yc))
-        c0, c1, r0, r1 = max(c - half, 0), min(c + half + 1, w), max(r - half, 0), min(r + half + 1, h)
-        if c1 - c0 < 3 or r1 - r0 < 3:
-            continue
-        cols, rows = np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64)
-        data = sub[r0:r1, c0:c1]
-        noise_var = rms[r0:r1, c0:c1] ** 2
-        start = np.array([xc, yc, max(float(np.sum(data - np.median(data))), 1.0), float(np.median(data))])
-        params = start
-        for weighted in (False, True):
-            if weighted and not gain_e_per_adu:
-                break
-            variance = noise_var
-            if weighted:
-                model, _ = psf_model(cols, rows, params, sigma_px)
-                variance = noise_var + np.maximum(model - params[3], 0.0) / gain_e_per_adu
-            problem = (cols, rows, data, 1.0 / np.sqrt(variance), sigma_px)
-            try:
-                fit = least_squares(_fit_residual, params, jac=_fit_jacobian, method="lm", args=problem)
-            except (ValueError, np.linalg.LinAlgError):
-                break
-            if not fit.success or not np.all(np.isfinite(fit.x)):
-                break
-            params = fit.x
-        if params[2] > 0 and math.hypot(params[0] - xc, params[1] - yc) <= _FIT_MAX_SHIFT_PX:
-            out_x[k], out_y[k] = params[0], params[1]
+    if x.size == 0:
+        return out_x, out_y
+    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
+    masked = np.where(inside, data, np.nan).reshape(x.size, -1)
+    background = np.nanmedian(masked, axis=1)
+    flux = np.maximum(np.nansum(masked - background[:, None], axis=1), 1.0)
+    params = np.column_stack([x, y, flux, background])
+    whiten = np.where(inside, 1.0 / np.sqrt(noise_var), 0.0)
+    params, ok = _levenberg_marquardt_batch(cols, rows, data, whiten, params, sigma_px)
+    if gain_e_per_adu and np.any(ok):  # the second pass, weighted by the first's model; where it fails, the first's
+        model, _ = psf_model_batch(cols[ok], rows[ok], params[ok], sigma_px)
+        variance = noise_var[ok] + np.maximum(model - params[ok, 3, None, None], 0.0) / gain_e_per_adu
+        whiten = np.where(inside[ok], 1.0 / np.sqrt(variance), 0.0)
+        again, converged = _levenberg_marquardt_batch(cols[ok], rows[ok], data[ok], whiten, params[ok], sigma_px)
+        params[np.flatnonzero(ok)[converged]] = again[converged]
+    ok &= (
+        np.all(np.isfinite(params), axis=1)
+        & (params[:, 2] > 0)
+        & (np.hypot(params[:, 0] - x, params[:, 1] - y) <= _FIT_MAX_SHIFT_PX)
+    )
+    out_x[ok], out_y[ok] = params[ok, 0], params[ok, 1]
     return out_x, out_y
 
 
