@@ -165,9 +165,10 @@ def test_the_batched_psf_fit_reaches_scipys_least_squares_minimum():
         np.testing.assert_allclose(mu_batch[0], mu_single, rtol=1e-12)  # the same products, in another order
         np.testing.assert_allclose(jac_batch[0], jac_single, rtol=1e-12, atol=1e-12 * p0[2])
         fit = least_squares(
-            lambda p: (psf_model(cols, rows, p, sigma)[0] - data).ravel(),
+            lambda p, c, r, d: (psf_model(c, r, p, sigma)[0] - d).ravel(),
             p0,
-            jac=lambda p: psf_model(cols, rows, p, sigma)[1].reshape(-1, 4),
+            jac=lambda p, c, r, d: psf_model(c, r, p, sigma)[1].reshape(-1, 4),
+            args=(cols, rows, data),
             method="lm",
             xtol=1e-12,
             ftol=1e-12,
