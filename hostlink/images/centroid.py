@@ -476,10 +476,11 @@ def _unresolved_pairs(
     y_px: np.ndarray | None = None,
     shape_px: tuple[int, int] | None = None,
 ) -> np.ndarray:
-    """Stars more elongated than the frame's PSF where they are: |e - e_psf(x, y)| beyond max(``max_ellipticity``,
-    3 x the spread of the well-measured stars' ellipticities about the model beyond their noise) and beyond
-    :data:`_ELLIPTICITY_SIGNIFICANCE` x its noise. ``e_psf`` is :func:`_psf_ellipticity_field`, fitted to every star
-    whose ellipticity is known to :data:`_PSF_SHAPE_MAX_SIGMA` (blends are a minority): a real lens's PSF is
+    """Stars more elongated than the frame's PSF where they are: |e - e_psf(x, y)| beyond ``max_ellipticity`` and
+    beyond :data:`_ELLIPTICITY_SIGNIFICANCE` x sqrt(spread^2 + noise^2) (the spread of the stars' ellipticities about
+    the model beyond their noise, which also holds what the noise estimate misses, e.g. correlated pixels: a single
+    star exceeds it with probability exp(-16 / 2) = 3e-4). ``e_psf`` is :func:`_psf_ellipticity_field`, fitted to
+    every star whose ellipticity is known to :data:`_PSF_SHAPE_MAX_SIGMA` (blends are a minority): a real lens's PSF is
     elliptical (coma, astigmatism, an undersampled spot on the pixel grid) by 0.1-0.3 and, in a wide field, changes
     across it (elongated radially towards the edge: on the 27-deg granasat frames e ~ 0.2-0.35 beyond 400 px from the
     centre, against ~0.05 at it). Only what stands out from the PSF of its own part of the field is a blend."""
@@ -490,8 +491,8 @@ def _unresolved_pairs(
             x_px, y_px, shape_px = np.zeros(e.shape[0]), np.zeros(e.shape[0]), (1, 1)
         e_psf, spread = _psf_ellipticity_field(e, e_sigma, x_px, y_px, shape_px, reference)
     deviation = np.hypot(*(e - e_psf).T)
-    limit = max(max_ellipticity, _ELLIPTICITY_SIGNIFICANCE * spread)
-    return (deviation > limit) & (deviation > _ELLIPTICITY_SIGNIFICANCE * e_sigma)
+    scatter = np.sqrt(spread**2 + e_sigma**2)  # per component: the PSF's own spread and the star's noise
+    return (deviation > max_ellipticity) & (deviation > _ELLIPTICITY_SIGNIFICANCE * scatter)
 
 
 #: Reference stars per free coefficient before the PSF's ellipticity is modelled across the field (a quadratic in
@@ -544,11 +545,17 @@ def _psf_ellipticity_field(
     u = (np.asarray(x_px, np.float64) - 0.5 * (width - 1)) / scale
     v = (np.asarray(y_px, np.float64) - 0.5 * (height - 1)) / scale
     design = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
-    rows = reference
-    for _ in range(_PSF_FIELD_ROUNDS):  # from the median's inliers (blends clustered in one part are not absorbed)
+    rows = None
+    for _ in range(_PSF_FIELD_ROUNDS):
+        # from the median's inliers (blends clustered in one part of the field are not absorbed), or from every
+        # reference star when the median leaves too few (the PSF changes across the field more than it spreads)
         chi2 = np.sum((e[reference] - model[reference]) ** 2, axis=1) / (spread**2 + e_sigma[reference] ** 2)
         inliers = reference[chi2 <= _PSF_FIELD_CHI2]
-        if inliers.size < 6 * _PSF_FIELD_STARS_PER_TERM or np.array_equal(inliers, rows):
+        if inliers.size < 6 * _PSF_FIELD_STARS_PER_TERM:
+            if rows is not None:
+                break
+            inliers = reference
+        if rows is not None and np.array_equal(inliers, rows):
             break
         rows = inliers
         coef, *_ = np.linalg.lstsq(design[rows], e[rows], rcond=None)
