@@ -255,10 +255,10 @@ def centroid_pixels(
     level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     saturated = np.zeros(objects.size, bool)
     if level is not None:
-        from scipy import ndimage
-
-        peak_raw = ndimage.maximum(raw, labels=segmap, index=np.arange(1, objects.size + 1))
-        saturated = np.asarray(peak_raw) >= level
+        labelled = segmap > 0
+        peak_raw = np.full(objects.size + 1, -np.inf)
+        np.maximum.at(peak_raw, segmap[labelled], raw[labelled])
+        saturated = peak_raw[1:] >= level
     blended = (objects["flag"] & sep.OBJ_MERGED) != 0
     # hot pixels: the frame's PSF measured first on the detections that are neither single-pixel spikes by a coarse
     # screen nor clipped, then every detection tested against it (a sharp star passes, a spike does not)
@@ -439,23 +439,24 @@ def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma
 
 
 def _psf_fluxes(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
-    """PSF-fit flux [ADU] of each star at its centroid (module docstring, step 5)."""
-    h, w = sub.shape
+    """PSF-fit flux [ADU] of each star at its centroid (module docstring, step 6), every star at once."""
+    if x.size == 0:
+        return np.zeros(0)
     half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
     outer = half + _RING_WIDTH_PX
-    flux = np.zeros(x.size)
-    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
-        c, r = int(round(xc)), int(round(yc))
-        c0, c1, r0, r1 = max(c - outer, 0), min(c + outer + 1, w), max(r - outer, 0), min(r + outer + 1, h)
-        cols, rows = np.arange(c0, c1), np.arange(r0, r1)
-        cut = sub[r0:r1, c0:c1]
-        inner = (np.abs(rows - r)[:, None] <= half) & (np.abs(cols - c)[None, :] <= half)
-        ring = cut[~inner]
-        background = float(np.median(ring)) if ring.size else 0.0
-        psf = np.outer(pixel_integrated_gaussian(rows, yc, sigma_px), pixel_integrated_gaussian(cols, xc, sigma_px))
-        p = psf[inner]
-        flux[k] = float(np.sum((cut[inner] - background) * p) / np.sum(p * p))
-    return flux
+    cols, rows, cut, inside = _stamps(sub, x, y, outer)
+    offsets = np.abs(np.arange(-outer, outer + 1))
+    inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
+    ring = np.where(inside & ~inner, cut, np.nan).reshape(x.size, -1)
+    counted = np.any(np.isfinite(ring), axis=1)
+    background = np.zeros(x.size)
+    background[counted] = np.nanmedian(ring[counted], axis=1)
+    p = (
+        pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
+        * pixel_integrated_gaussian(cols, x[:, None], sigma_px)[:, None, :]
+    )
+    p = np.where(inside & inner, p, 0.0)
+    return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
 
 
 def _windowed_centroids(sub: np.ndarray, good: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -572,35 +573,31 @@ def _windowed_ellipticity(
     propagation: dM/dI_i = w_i (q_i - M) / sum w I; variance rms^2, plus the star's shot noise I / gain [ADU^2]
     when the gain is known). A round PSF gives 0; two equal stars d apart along x give Mxx - Myy ~ d^2 / 16 over
     Mxx + Myy ~ sigma^2 + d^2 / 16: 0.2 at d = 2 sigma, where no saddle separates them."""
-    h, w = sub.shape
-    half = int(math.ceil(4 * sigma_px))
     e = np.zeros((x.size, 2))
     e_sigma = np.full(x.size, np.inf)
-    for k, (xc, yc) in enumerate(zip(x, y, strict=True)):
-        c0, c1 = max(int(round(xc)) - half, 0), min(int(round(xc)) + half + 1, w)
-        r0, r1 = max(int(round(yc)) - half, 0), min(int(round(yc)) + half + 1, h)
-        dx = np.arange(c0, c1)[None, :] - xc
-        dy = np.arange(r0, r1)[:, None] - yc
-        weight = np.exp(-(dx**2 + dy**2) / (2 * sigma_px**2))
-        data = sub[r0:r1, c0:c1]
-        total = float(np.sum(weight * data))
-        if total <= 0:
-            continue
-        qa = dx**2 - dy**2 + 0 * dy
-        qb = 2 * dx * dy
-        qt = dx**2 + dy**2
-        a = np.sum(weight * data * qa) / total
-        b = np.sum(weight * data * qb) / total
-        t = np.sum(weight * data * qt) / total
-        if t <= 0:
-            continue
-        var = rms[r0:r1, c0:c1] ** 2
-        if gain_e_per_adu:
-            var = var + np.maximum(data, 0.0) / gain_e_per_adu
-        var_a = np.sum((weight / total) ** 2 * (qa - a) ** 2 * var)
-        var_b = np.sum((weight / total) ** 2 * (qb - b) ** 2 * var)
-        e[k] = a / t, b / t
-        e_sigma[k] = math.sqrt(0.5 * (var_a + var_b)) / t
+    if x.size == 0:
+        return e, e_sigma
+    half = int(math.ceil(4 * sigma_px))
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    var = np.where(inside, _stamps(rms, x, y, half)[2], 0.0) ** 2
+    if gain_e_per_adu:
+        var = var + np.maximum(data, 0.0) / gain_e_per_adu
+    dx = (cols - x[:, None])[:, None, :]
+    dy = (rows - y[:, None])[:, :, None]
+    weight = np.where(inside, np.exp(-(dx**2 + dy**2) / (2 * sigma_px**2)), 0.0)
+    wd = weight * data
+    total = np.sum(wd, axis=(1, 2))
+    qa, qb, qt = dx**2 - dy**2, 2 * dx * dy, dx**2 + dy**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.sum(wd * qa, axis=(1, 2)) / total
+        b = np.sum(wd * qb, axis=(1, 2)) / total
+        t = np.sum(wd * qt, axis=(1, 2)) / total
+        ok = (total > 0) & (t > 0)
+        wn = weight / total[:, None, None]
+        var_a = np.sum(wn**2 * (qa - a[:, None, None]) ** 2 * var, axis=(1, 2))
+        var_b = np.sum(wn**2 * (qb - b[:, None, None]) ** 2 * var, axis=(1, 2))
+    e[ok] = np.column_stack([a / t, b / t])[ok]
+    e_sigma[ok] = (np.sqrt(0.5 * (var_a + var_b)) / t)[ok]
     return e, e_sigma
 
 
@@ -1043,22 +1040,45 @@ def centroid_sigma_px(
     With the gain the star's own shot noise is added (electrons: flux x gain, noise rms x gain); without it the
     bound counts the measured pixel noise alone (the background-limited bound: a bright star's is then too small by
     its shot noise). A star with no positive flux gets NaN."""
-    out = np.full(np.shape(x_px), np.nan)
+    x = np.asarray(x_px, np.float64)
+    y = np.asarray(y_px, np.float64)
+    out = np.full(x.shape, np.nan)
     gain = float(gain_e_per_adu) if gain_e_per_adu else 1.0
     h, w = rms_adu.shape
-    for k, (x, y, f) in enumerate(zip(x_px, y_px, flux_adu, strict=True)):
-        noise = float(rms_adu[min(max(int(round(y)), 0), h - 1), min(max(int(round(x)), 0), w - 1)]) if h else 0.0
-        if not (f > 0 and noise > 0 and np.isfinite(x) and np.isfinite(y)):
-            continue
-        sx, sy = centroid_crb_px(
-            float(x),
-            float(y),
-            float(f) * gain,
+    if x.size == 0 or h == 0:
+        return out
+    finite = np.isfinite(x) & np.isfinite(y)
+    noise = np.zeros(x.shape)
+    r = np.clip(np.rint(np.where(finite, y, 0.0)).astype(np.int64), 0, h - 1)
+    c = np.clip(np.rint(np.where(finite, x, 0.0)).astype(np.int64), 0, w - 1)
+    noise[finite] = rms_adu[r[finite], c[finite]]
+    ok = finite & (np.asarray(flux_adu) > 0) & (noise > 0)
+    if np.any(ok):
+        out[ok] = _crb_max_px(
+            x[ok],
+            y[ok],
+            np.asarray(flux_adu, np.float64)[ok] * gain,
             psf_sigma_px,
-            0.0,
-            noise * gain,
-            0.0,
-            star_shot_noise=bool(gain_e_per_adu),
+            noise[ok] * gain,
+            bool(gain_e_per_adu),
         )
-        out[k] = max(sx, sy)
     return out
+
+
+def _crb_max_px(
+    x_px: np.ndarray, y_px: np.ndarray, flux_e: np.ndarray, psf_sigma_px: float, noise_e: np.ndarray, shot: bool
+) -> np.ndarray:
+    """max(x, y) of :func:`centroid_crb_px` (no background, Gaussian noise ``noise_e``, no quantisation; the star's
+    shot noise when ``shot``) for every star at once: the same Fisher information over the same box per star."""
+    sigma = float(psf_sigma_px)
+    half = int(math.ceil(6 * sigma) + 2)
+    steps = np.arange(-half, half + 2, dtype=np.float64)
+    cols = np.floor(x_px)[:, None] + steps[None, :]
+    rows = np.floor(y_px)[:, None] + steps[None, :]
+    params = np.column_stack([x_px, y_px, flux_e, np.zeros_like(x_px)])
+    mu, jac = psf_model_batch(cols, rows, params, sigma)
+    variance = (mu if shot else 0.0) + (noise_e**2)[:, None, None]
+    jac = jac.reshape(x_px.size, -1, 4)
+    fisher = np.einsum("npi,np,npj->nij", jac, 1.0 / variance.reshape(x_px.size, -1), jac)
+    cov = np.linalg.inv(fisher)
+    return np.sqrt(np.maximum(cov[:, 0, 0], cov[:, 1, 1]))
