@@ -63,7 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="detection threshold in units of the local background noise (default 5)",
     )
-    parser.add_argument("--min-area", type=int, default=3, metavar="PX", help="minimum footprint in pixels (default 3)")
+    parser.add_argument(
+        "--min-area",
+        type=int,
+        default=2,
+        metavar="PX",
+        help="minimum footprint in pixels above the threshold (default 2: a sharp faint star has 1-2)",
+    )
     parser.add_argument(
         "--saturation-adu",
         type=float,
