@@ -134,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         for k, f in enumerate(result.frames):
             print(
                 f"frame {k} {f.path}: {f.kept} stars of {f.detected} detections (rejected: {f.rejected_hot} hot, "
-                f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge"
+                f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge, "
+                f"{f.rejected_no_flux} without flux"
                 f"; {f.saturated_kept} saturated kept); "
                 f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
                 f"time {f.time_utc or 'unknown'} ({f.time_source})"

@@ -162,8 +162,9 @@ class TimeOptions:
 
 @dataclass
 class FrameReport:
-    """What happened to one image: detections, the stars kept and every rejection by reason, the background noise
-    [ADU], the PSF sigma used [px], the time and its source."""
+    """What happened to one image: detections, the stars kept and every rejection by reason (``rejected_no_flux``: a
+    detection whose PSF-fit flux is not positive, noise), the background noise [ADU], the PSF sigma used [px], the time
+    and its source."""
 
     path: str
     detected: int = 0
@@ -173,6 +174,7 @@ class FrameReport:
     saturated_kept: int = 0
     rejected_blended: int = 0
     rejected_edge: int = 0
+    rejected_no_flux: int = 0
     background_rms_adu: float = float("nan")
     psf_sigma_px: float = float("nan")
     time_utc: str = ""
@@ -274,6 +276,11 @@ def centroid_pixels(
         screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~edge & ~blended
         psf_hot = _frame_psf_sigma_px(sub, objects[screened] if np.any(screened) else objects)
     hot = _hot_pixels(sub, rms, objects, psf_hot, options.hot_pixel_chi2) & ~saturated
+    # a deblended star whose neighbours all lie beyond the PSF fit's reach is measured as a single one
+    blended &= _nearest_neighbour_px(objects["x"], objects["y"], blended) <= _BLEND_CLEAR_SIGMAS * psf_hot
+    # a star cut by the border: the PSF fit uses the pixels there are (unbiased); the window cannot (a clipped core)
+    fit_at_edge = edge & ~saturated & (options.method == "psf-fit")
+    edge &= ~fit_at_edge
     rejections = (hot, blended, edge) if options.keep_saturated else (saturated, hot, blended, edge)
     for mask in rejections:
         mask &= keep
@@ -284,6 +291,7 @@ def centroid_pixels(
     report.rejected_edge = int(edge.sum())
     good = objects[keep]
     clipped = saturated[keep]  # kept saturated stars (keep_saturated only)
+    truncated = fit_at_edge[keep]  # kept while their PSF fit converges
     if good.size == 0:
         return empty
 
@@ -293,10 +301,10 @@ def centroid_pixels(
     # of their part of the field; a clipped core's shape is not the PSF's (round where the PSF is trailed): saturated
     # stars are neither tested nor part of the PSF's shape
     ellipticity, ellipticity_sigma = _windowed_ellipticity(sub, rms, x, y, sigma, options.gain_e_per_adu)
-    ellipticity_sigma[clipped] = np.inf
+    ellipticity_sigma[clipped | truncated] = np.inf  # a border cuts a star's moments too
     unresolved = _unresolved_pairs(ellipticity, ellipticity_sigma, options.max_ellipticity, x, y, sub.shape)
     report.rejected_blended += int(unresolved.sum())
-    good, clipped = good[~unresolved], clipped[~unresolved]
+    good, clipped, truncated = good[~unresolved], clipped[~unresolved], truncated[~unresolved]
     if good.size == 0:
         return empty
     if options.psf_sigma_px is None and np.any(unresolved):  # the pairs widened the first estimate
@@ -305,15 +313,24 @@ def centroid_pixels(
     else:
         x, y = x[~unresolved], y[~unresolved]
     report.psf_sigma_px = float(sigma)
-    report.saturated_kept = int(clipped.sum())
     if options.method == "psf-fit":  # a clipped core does not follow the PSF: saturated stars keep the window
-        fit = ~clipped
-        x[fit], y[fit] = _psf_fit_centroids(sub, rms, x[fit], y[fit], sigma, options.gain_e_per_adu)
+        fit = np.flatnonzero(~clipped)
+        x[fit], y[fit], fitted = _psf_fit_centroids(sub, rms, x[fit], y[fit], sigma, options.gain_e_per_adu)
+        lost = np.zeros(x.size, dtype=bool)
+        lost[fit[~fitted]] = True
+        lost &= truncated  # a star cut by the border with no converged fit: its windowed centroid is biased
+        report.rejected_edge += int(lost.sum())
+        x, y, good, clipped = x[~lost], y[~lost], good[~lost], clipped[~lost]
     flux = _psf_fluxes(sub, x, y, sigma)
-    sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
-    sigma_px[clipped] = np.maximum(sigma_px[clipped], SATURATED_SIGMA_PX)
     # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
     flux[clipped] = np.maximum(flux[clipped], good["flux"][clipped])
+    # no flux where the PSF sits: noise that crossed the threshold (no star, and no centroid noise to state)
+    measured = flux > 0
+    report.rejected_no_flux = int(np.count_nonzero(~measured))
+    x, y, flux, clipped = x[measured], y[measured], flux[measured], clipped[measured]
+    report.saturated_kept = int(clipped.sum())
+    sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
+    sigma_px[clipped] = np.maximum(sigma_px[clipped], SATURATED_SIGMA_PX)
     order = np.argsort(-flux, kind="stable")
     if options.max_stars is not None:
         order = order[: options.max_stars]
@@ -380,6 +397,24 @@ _HOT_FIT_SIGMAS = 5.0
 _HOT_SHARPEST_FRACTION = 0.5
 #: Hot-pixel test: sub-pixel positions of the star model tried around the brightest pixel's centre [px].
 _HOT_POSITIONS_PX = np.linspace(-0.5, 0.5, 5)
+
+
+#: A deblended detection is measured as a single star when every other detection lies farther than this many PSF
+#: sigmas: the PSF fit's stamp reaches 3 sigma + 1 px, and a neighbour's light 3 sigma beyond that is < 1 % of its
+#: peak.
+_BLEND_CLEAR_SIGMAS = 6.0
+
+
+def _nearest_neighbour_px(x: np.ndarray, y: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Distance [px] from each detection selected by ``which`` to its nearest other detection (inf where none; 0 for
+    the detections not selected)."""
+    out = np.zeros(x.size)
+    rows = np.flatnonzero(which)
+    if rows.size:
+        d = np.hypot(x[rows, None] - x[None, :], y[rows, None] - y[None, :])
+        d[np.arange(rows.size), rows] = np.inf
+        out[rows] = d.min(axis=1) if x.size > 1 else np.inf
+    return out
 
 
 def _single_pixel_spikes(sub: np.ndarray, objects: np.ndarray) -> np.ndarray:
@@ -956,16 +991,17 @@ def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
 
 def _psf_fit_centroids(
     sub: np.ndarray, rms: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float, gain_e_per_adu: float | None
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Maximum-likelihood centroids (module docstring, step 4): fit :func:`psf_model` (position, flux, local
     background; the PSF sigma fixed at the frame's) to the pixels within +-(3 sigma + 1) of the windowed centroid by
     weighted least squares (:func:`_levenberg_marquardt_batch`, every star of the frame at once), weights
     1 / sqrt(rms^2 + signal / gain) from the first pass's model (signal term only when the gain is known). A fit
     that does not converge, finds no flux or moves more than :data:`_FIT_MAX_SHIFT_PX` keeps the windowed
-    centroid."""
+    centroid. Returns x, y and whether each star's fit was taken. Pixels outside the image are left out of the fit
+    (a star cut by the border is fitted on the pixels it has)."""
     out_x, out_y = x.copy(), y.copy()
     if x.size == 0:
-        return out_x, out_y
+        return out_x, out_y, np.zeros(0, dtype=bool)
     half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
     cols, rows, data, inside = _stamps(sub, x, y, half)
     noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
@@ -987,7 +1023,7 @@ def _psf_fit_centroids(
         & (np.hypot(params[:, 0] - x, params[:, 1] - y) <= _FIT_MAX_SHIFT_PX)
     )
     out_x[ok], out_y[ok] = params[ok, 0], params[ok, 1]
-    return out_x, out_y
+    return out_x, out_y, ok
 
 
 # ----------------------------------------------------------------------------------------------------------------
