@@ -454,3 +454,22 @@ def test_stars_cut_by_the_border_are_fitted_on_the_pixels_they_have():
         )
     )
     assert np.all(np.hypot(det.x_px - x[truth], det.y_px - y[truth]) < 5 * bound), (det.x_px - x[truth], bound)
+
+
+def test_a_frame_computed_in_blocks_of_stars_gives_the_same_stars(monkeypatch):
+    """The per-frame computations (PSF fit, fluxes, sigma_px, the blend test's moments) run over blocks of stars
+    bounded in memory (a defocused or crowded frame): with blocks of a few stars each the result is the same, to
+    the last bit (each star's computation is its own)."""
+    from hostlink.images import centroid
+
+    config = RenderConfig(hot_pixels=0, bits=16)
+    rng = np.random.default_rng(29)
+    x, y = _grid_stars(rng)
+    rendered = render_stars(x, y, rng.uniform(2000.0, 20000.0, x.size), IMAGE_SIZE, config, seed=4)
+    options = CentroidOptions(gain_e_per_adu=config.gain_e_per_adu)
+    whole = centroid_pixels(rendered.image_adu, options)
+    monkeypatch.setattr(centroid, "_STAMP_BUDGET_PX", 1000)  # 1 to 5 stars per block
+    blocks = centroid_pixels(rendered.image_adu, options)
+    assert whole.x_px.size == x.size
+    for name in ("x_px", "y_px", "flux_adu", "sigma_px"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))

@@ -486,6 +486,11 @@ def _psf_fluxes(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) 
         return np.zeros(0)
     half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
     outer = half + _RING_WIDTH_PX
+    return _in_chunks(outer, x.size, lambda k: _psf_fluxes_block(sub, x[k], y[k], sigma_px, half, outer))
+
+
+def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.ndarray:
+    """:func:`_psf_fluxes` of one block of stars."""
     cols, rows, cut, inside = _stamps(sub, x, y, outer)
     offsets = np.abs(np.arange(-outer, outer + 1))
     inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
@@ -615,11 +620,18 @@ def _windowed_ellipticity(
     propagation: dM/dI_i = w_i (q_i - M) / sum w I; variance rms^2, plus the star's shot noise I / gain [ADU^2]
     when the gain is known). A round PSF gives 0; two equal stars d apart along x give Mxx - Myy ~ d^2 / 16 over
     Mxx + Myy ~ sigma^2 + d^2 / 16: 0.2 at d = 2 sigma, where no saddle separates them."""
+    if x.size == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    half = int(math.ceil(4 * sigma_px))
+    return _in_chunks(
+        half, x.size, lambda k: _windowed_ellipticity_block(sub, rms, x[k], y[k], sigma_px, gain_e_per_adu, half)
+    )
+
+
+def _windowed_ellipticity_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None, half: int):
+    """:func:`_windowed_ellipticity` of one block of stars."""
     e = np.zeros((x.size, 2))
     e_sigma = np.full(x.size, np.inf)
-    if x.size == 0:
-        return e, e_sigma
-    half = int(math.ceil(4 * sigma_px))
     cols, rows, data, inside = _stamps(sub, x, y, half)
     var = np.where(inside, _stamps(rms, x, y, half)[2], 0.0) ** 2
     if gain_e_per_adu:
@@ -894,6 +906,23 @@ _FIT_DAMPING_START = 1e-3
 _FIT_COST_RTOL = 1e-10
 
 
+#: Pixels of all the stamps processed at once (per array: ~8 MB of float64; a frame of 3000 stars of PSF sigma 1 px
+#: in one piece, a defocused one in several): bounds the memory of the per-frame computations.
+_STAMP_BUDGET_PX = 1_000_000
+
+
+def _in_chunks(half_px: int, n: int, block):
+    """``block(slice)`` over consecutive slices of the n stars, each of at most :data:`_STAMP_BUDGET_PX` pixels of
+    stamps of half-width ``half_px``; the results (an array or a tuple of arrays per slice) concatenated."""
+    size = max(1, _STAMP_BUDGET_PX // (2 * half_px + 2) ** 2)
+    if n <= size:
+        return block(slice(0, n))
+    parts = [block(slice(k, min(k + size, n))) for k in range(0, n, size)]
+    if isinstance(parts[0], tuple):
+        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+    return np.concatenate(parts)
+
+
 def _stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, half: int):
     """The (2 half + 1)^2 pixels around each star's nearest pixel: (cols (N, W), rows (N, H) as float pixel
     coordinates, the pixel values (N, H, W) (0 outside the image) and a mask (N, H, W), True inside the image)."""
@@ -999,10 +1028,15 @@ def _psf_fit_centroids(
     that does not converge, finds no flux or moves more than :data:`_FIT_MAX_SHIFT_PX` keeps the windowed
     centroid. Returns x, y and whether each star's fit was taken. Pixels outside the image are left out of the fit
     (a star cut by the border is fitted on the pixels it has)."""
-    out_x, out_y = x.copy(), y.copy()
     if x.size == 0:
-        return out_x, out_y, np.zeros(0, dtype=bool)
+        return x.copy(), y.copy(), np.zeros(0, dtype=bool)
     half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    return _in_chunks(half, x.size, lambda k: _psf_fit_block(sub, rms, x[k], y[k], sigma_px, gain_e_per_adu, half))
+
+
+def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None, half: int):
+    """:func:`_psf_fit_centroids` of one block of stars."""
+    out_x, out_y = x.copy(), y.copy()
     cols, rows, data, inside = _stamps(sub, x, y, half)
     noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
     masked = np.where(inside, data, np.nan).reshape(x.size, -1)
@@ -1115,6 +1149,13 @@ def _crb_max_px(
     shot noise when ``shot``) for every star at once: the same Fisher information over the same box per star."""
     sigma = float(psf_sigma_px)
     half = int(math.ceil(6 * sigma) + 2)
+    return _in_chunks(
+        half, x_px.size, lambda k: _crb_max_block(x_px[k], y_px[k], flux_e[k], sigma, noise_e[k], shot, half)
+    )
+
+
+def _crb_max_block(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: int) -> np.ndarray:
+    """:func:`_crb_max_px` of one block of stars."""
     steps = np.arange(-half, half + 2, dtype=np.float64)
     cols = np.floor(x_px)[:, None] + steps[None, :]
     rows = np.floor(y_px)[:, None] + steps[None, :]
