@@ -15,11 +15,14 @@ Per image:
    deblending (32 levels, contrast 0.005);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
-   flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour; or Gaussian-windowed
-   second moments more elongated than the frame's own PSF, :func:`_unresolved_pairs`: two stars closer than the
-   deblender can split), *edge* (footprint truncated by the image border, ``OBJ_TRUNC``); a *saturated* star (a
-   pixel of the footprint at the image's clip level) is kept, flagged and counted (``keep_saturated``, the default:
-   the brightest stars are the anchors of identification), or rejected and counted;
+   flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within
+   :data:`_BLEND_CLEAR_SIGMAS` PSF sigmas; or Gaussian-windowed second moments more elongated than the PSF of the
+   star's own part of the field, :func:`_unresolved_pairs`, :func:`_psf_ellipticity_field`: two stars closer than the
+   deblender can split), *edge* (footprint truncated by the image border, ``OBJ_TRUNC``, and saturated, or its PSF
+   fit not taken: an unsaturated star the border cuts is fitted on the pixels it has), *without flux* (no positive
+   PSF flux: noise); a *saturated* star (a pixel of the footprint at the image's clip level) is kept, flagged and
+   counted (``keep_saturated``, the default: the brightest stars are the anchors of identification), or rejected and
+   counted;
 4. centroid: SEP's windowed centroid (``sep.winpos``, Source Extractor's XWIN_IMAGE: the iterated Gaussian-weighted
    first moment, which converges to the maximum of the image correlated with the window) with the window sigma
    equal to the frame's PSF sigma (the median over its most significant stars of the half-light radius / 1.1774,
@@ -27,8 +30,9 @@ Per image:
    dominate, but (4/3)^2 x the Cramer-Rao variance where the star's own shot noise does. It starts the default
    ``psf-fit``: a weighted least-squares fit of the pixel-integrated Gaussian PSF (:func:`psf_model`; position, flux
    and local background free, sigma fixed at the frame's) with the weights of shot + read noise when the gain is
-   known: maximum likelihood at every signal-to-noise ratio (measured at 0.99-1.08 x the bound from peak SNR 15 to
-   250, :func:`centroid_crb_px`, tests/test_images_centroid.py);
+   known, every star of the frame at once (:func:`_levenberg_marquardt_batch`, in numpy): maximum likelihood at
+   every signal-to-noise ratio (measured at 0.99-1.03 x the bound from peak SNR 15 to 250, :func:`centroid_crb_px`,
+   tests/test_images_centroid.py);
 5. noise: each star's 1-sigma centroid noise per axis ``sigma_px``, the Cramer-Rao bound of its centroid
    (:func:`centroid_sigma_px`, :func:`centroid_crb_px`) from its flux, the local noise and the PSF: the fit reaches
    it (step 4), so it is each star's weight in the calibration;
