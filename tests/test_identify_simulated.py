@@ -220,3 +220,34 @@ def test_cli_refuses_a_nominal_of_another_detector_in_one_line(simulated, tmp_pa
     code = main(["identify", str(path), "--nominal", str(small), "--out", str(tmp_path / "o.csv")])
     err = capsys.readouterr().err
     assert code == 2 and "off the 512 x 512 px detector" in err and err.count("\n") == 1
+
+
+def test_the_own_matcher_identifies_the_frames_when_the_engine_matches_none(simulated, monkeypatch):
+    """tetra3rs installed but matching no frame (its 4-star patterns need the brightest stars, which a frame may have
+    lost): the own matcher is tried, at a bounded cost: at most ENGINE_MISS_SCANNED_FRAMES frames scanned over every
+    focal-length scale, the others at the scale the first identified frame measured. Every frame identified, no
+    wrong identity."""
+    from hostlink.images import identify, solver_adapter
+
+    if not solver_adapter.engine_available():
+        pytest.skip("tetra3rs not installed: the engine-miss path is not reached")
+    blind, truth, _ = simulated
+    frames = blind.frame < 4  # the own matcher identifies these alone (the fifth, 15 stars, it does not)
+    session = blind.select(frames)
+    monkeypatch.setattr(solver_adapter, "solve_frame", lambda *args, **kwargs: None)
+    scanned = []
+    real_identify_frame = identify.identify_frame
+
+    def counting(*args):
+        if len(args) > 10 and len(args[10]) > 1:  # scales: the whole scan
+            scanned.append(args[0])
+        return real_identify_frame(*args)
+
+    monkeypatch.setattr(identify, "identify_frame", counting)
+    result = identify_session(session, _nominal(0.0), maglim=MAGLIM)
+    star_id, true_ids = result.session.star_id, truth[frames]
+    detectable = (true_ids != 0) & ~_ambiguous_truth(true_ids)
+    assert result.n_frames_identified == session.n_frames
+    assert np.count_nonzero((star_id != 0) & (star_id != true_ids)) == 0
+    assert np.count_nonzero(star_id[detectable] == true_ids[detectable]) >= 0.99 * np.count_nonzero(detectable)
+    assert 1 <= len(scanned) <= identify.ENGINE_MISS_SCANNED_FRAMES

@@ -63,7 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="detection threshold in units of the local background noise (default 5)",
     )
-    parser.add_argument("--min-area", type=int, default=3, metavar="PX", help="minimum footprint in pixels (default 3)")
+    parser.add_argument(
+        "--min-area",
+        type=int,
+        default=2,
+        metavar="PX",
+        help="minimum footprint in pixels above the threshold (default 2: a sharp faint star has 1-2)",
+    )
     parser.add_argument(
         "--saturation-adu",
         type=float,
@@ -128,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         for k, f in enumerate(result.frames):
             print(
                 f"frame {k} {f.path}: {f.kept} stars of {f.detected} detections (rejected: {f.rejected_hot} hot, "
-                f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge"
+                f"{f.rejected_saturated} saturated, {f.rejected_blended} blended, {f.rejected_edge} at the edge, "
+                f"{f.rejected_no_flux} without flux"
                 f"; {f.saturated_kept} saturated kept); "
                 f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
                 f"time {f.time_utc or 'unknown'} ({f.time_source})"

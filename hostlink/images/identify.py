@@ -874,6 +874,12 @@ FALLBACK_MAG_MARGIN = 0.5
 FALLBACK_DEPTH_PERCENTILE = 90
 
 
+#: Frames the own matcher scans over every focal-length scale when the engine is installed but matched no frame
+#: (about 5 s per frame for the 51 scales): the cost stays bounded, and one identified frame gives every other its
+#: scale.
+ENGINE_MISS_SCANNED_FRAMES = 3
+
+
 def identify_session(
     session: Session,
     nominal: CameraParams,
@@ -931,10 +937,13 @@ def identify_session(
             if progress is not None:
                 progress(done + 1, len(todo))
     failed = [k for k in todo if k not in results or results[k][0].status != "identified"]
-    # the own matcher: at the engine's measured scale, or without the engine by a scan of scales (slow, ~0.1 s per
-    # scale and frame: only when the engine is not there; a session the engine matched nowhere is not rescanned)
+    # the own matcher: at the engine's measured scale, or by a scan of scales (slow, ~0.1 s per scale and frame):
+    # every frame when the engine is not there; when it is there but matched no frame (its patterns need stars the
+    # frames may lack), at most ENGINE_MISS_SCANNED_FRAMES frames are scanned, the others then tried at the scale the
+    # first identified one measured
     engine_scale_known = any(results[k][0].status == "identified" for k in results)
-    if failed and (engine_scale_known or not engine):
+    scan_budget = ENGINE_MISS_SCANNED_FRAMES if engine and not engine_scale_known else len(failed)
+    if failed:
         found = [k for k in todo if k in results and results[k][0].status == "identified"]
         scales = [results[k][0].scale for k in found]
         scale = float(np.median(scales)) if scales else math.nan
@@ -957,6 +966,10 @@ def identify_session(
         tried_without_scale = []
         for k in failed:
             known = math.isfinite(scale)
+            if not known and scan_budget <= 0:
+                tried_without_scale.append(k)  # tried below, should a scanned frame measure the scale
+                continue
+            scan_budget -= 0 if known else 1
             refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width) if known else fov
             tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
             retry = run(k, database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
