@@ -52,7 +52,7 @@ def test_quaternion_is_scipys_scalar_first_rotation_from_reference_to_sensor_axe
     mats.append(np.eye(3))
     for c in mats:
         q = attitude_quaternion(c)
-        ref = Rotation.from_matrix(c.T).as_quat(scalar_first=True)
+        ref = np.roll(Rotation.from_matrix(c.T).as_quat(), 1)  # scipy's (x, y, z, w) -> (w, x, y, z); every scipy
         ref = -ref if ref[0] < 0 else ref
         assert q[0] >= 0 and np.allclose(q, ref, atol=1e-12)  # rounding of a unit quaternion from a float64 matrix
 
@@ -66,7 +66,7 @@ def test_the_attitude_file_carries_quaternion_boresight_and_roll(worked):
         assert row["status"] == "ok"
         c = matrix(row)
         q = np.array([float(row[k]) for k in ("q0", "q1", "q2", "q3")])
-        rebuilt = Rotation.from_quat(q, scalar_first=True).as_matrix().T
+        rebuilt = Rotation.from_quat(np.roll(q, -1)).as_matrix().T  # (w, x, y, z) -> scipy's (x, y, z, w)
         assert np.allclose(rebuilt, c, atol=1e-12)
         ra, dec, roll = (float(row[k]) for k in ("boresight_ra_deg", "boresight_dec_deg", "roll_deg"))
         bore = radec_to_unit(np.radians([ra]), np.radians([dec]))[0]
