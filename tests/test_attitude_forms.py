@@ -93,6 +93,8 @@ def test_the_sip_form_is_the_weng_model_exactly():
     sip_dy = -sum(c * u**p * v**q for (p, q), c in b.items())
     assert np.max(np.abs(sip_dx - dx)) < 1e-12 and np.max(np.abs(sip_dy - dy)) < 1e-12  # px; |d| up to ~5 px
     sip = sip_model(theta, (1024, 1024))
+    # forward: exact polynomials, rounding only; inverse: a fitted order-7 polynomial of a ~5 px distortion, held to
+    # 1e-3 px, 50 x below the 0.05 px centroid noise the calibrations here work at (the worked camera fits to 3.8e-5)
     assert sip.forward_error_px < 1e-12 and sip.inverse_error_px < 1e-3
 
 
