@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-import onboard
 from hostlink.portkit import firmware_c
+from hostlink.portkit.export_c import core_dir
 from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, N_PARAMS, CameraParams
 from protocol.messages import quantise_px
@@ -56,8 +56,8 @@ SKIP_TEXT = (
 
 
 def c_dir() -> Path:
-    """onboard/c: the C core's sources, shipped with the package."""
-    return Path(onboard.__file__).parent / "c"
+    """onboard/c: the C core's sources, shipped with the package (:func:`hostlink.portkit.export_c.core_dir`)."""
+    return core_dir()
 
 
 def sources(modules: tuple[str, ...] = NUMERIC_MODULES) -> list[Path]:

@@ -787,14 +787,19 @@ def generate_c() -> dict[str, str]:
     }
 
 
+def core_dir() -> Path:
+    """``onboard/c``: the C firmware core's sources, shipped as package data of ``onboard`` (the one place that names
+    the folder)."""
+    from importlib import resources
+
+    return Path(str(resources.files("onboard").joinpath("c")))
+
+
 def firmware_core_files() -> dict[str, str]:
     """File name -> text of the C firmware core as shipped (``onboard/c``, package data of ``onboard``; port-kit.md),
     every header and C file, with one implementation of the estimator seam: ``estimator_seam.c`` when present, else
     ``estimator_none.c`` (a build without an estimator), so ``cc *.c`` links."""
-    from importlib import resources
-
-    folder = resources.files("onboard").joinpath("c")
-    files = {p.name: p.read_text() for p in folder.iterdir() if p.name.endswith((".c", ".h"))}
+    files = {p.name: p.read_text() for p in core_dir().iterdir() if p.name.endswith((".c", ".h"))}
     if "estimator_seam.c" in files:
         files.pop("estimator_none.c", None)
     return dict(sorted(files.items()))
