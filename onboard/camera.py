@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from onboard.linalg32 import sum_seq
+
 #: Newton iterations for the simulator's inverse mapping; each roughly squares the error, 8 is far more than needed.
 _INVERSE_MAX_ITER = 8
 
@@ -189,14 +191,16 @@ def unit_vector_jacobians(
     w = np.empty((n, 3), dtype=dtype)
     w[:, :2] = q
     w[:, 2] = theta[0]
-    norm = np.sqrt(np.sum(w * w, axis=1))
+    # every sum written out in index order (the reference model's float32 order, onboard.linalg32): a port gets
+    # the same bits; numpy's sum over an axis and its batched matmul do not state theirs
+    norm = np.sqrt(w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2])
     b = w / norm[:, None]
     proj = (np.eye(3, dtype=dtype)[None] - b[:, :, None] * b[:, None, :]) / norm[:, None, None]
     jw_theta = np.zeros((n, 3, 10), dtype=dtype)
     jw_theta[:, :2, :] = jq_theta
     jw_theta[:, 2, 0] = 1
-    j_theta = proj @ jw_theta
-    j_centroid = proj[:, :, :2] @ jq_centroid
+    j_theta = sum_seq(proj[:, :, :, None] * jw_theta[:, None, :, :], axis=2)  # from zero over m = 0, 1, 2
+    j_centroid = proj[:, :, 0, None] * jq_centroid[:, None, 0, :] + proj[:, :, 1, None] * jq_centroid[:, None, 1, :]
     return b, j_theta, j_centroid
 
 

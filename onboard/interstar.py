@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from onboard.linalg32 import sum_seq
+
 
 def independent_pairs(n_stars: int) -> tuple[np.ndarray, np.ndarray]:
     """2n - 3 pairs that fix n points on the sphere up to a rotation: (0,1), then (0,k) and (1,k) for k >= 2.
@@ -44,7 +46,10 @@ def order_for_pairs(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
     order = np.broadcast_to(np.arange(n, dtype=np.int32), x_px.shape)
     if n < 3:
         return order.copy()
-    d0 = (x_px - np.mean(x_px, axis=-1, keepdims=True)) ** 2 + (y_px - np.mean(y_px, axis=-1, keepdims=True)) ** 2
+    # the mean as sum_seq / n (onboard.linalg32's order; numpy's mean sums pairwise)
+    mean_x = sum_seq(x_px, axis=-1)[..., None] / n
+    mean_y = sum_seq(y_px, axis=-1)[..., None] / n
+    d0 = (x_px - mean_x) ** 2 + (y_px - mean_y) ** 2
     a = np.argmax(d0, axis=-1)[..., None]
     d1 = (x_px - np.take_along_axis(x_px, a, axis=-1)) ** 2 + (y_px - np.take_along_axis(y_px, a, axis=-1)) ** 2
     b = np.argmax(d1, axis=-1)[..., None]
@@ -62,14 +67,16 @@ def difference_residuals(b: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndar
     """
     db = b[i] - b[j]
     dr = r[i] - r[j]
-    return (np.sum(db * db, axis=1) - np.sum(dr * dr, axis=1)) / 2
+    db2 = db[:, 0] * db[:, 0] + db[:, 1] * db[:, 1] + db[:, 2] * db[:, 2]  # written out: ((x^2 + y^2) + z^2)
+    dr2 = dr[:, 0] * dr[:, 0] + dr[:, 1] * dr[:, 1] + dr[:, 2] * dr[:, 2]
+    return (db2 - dr2) / 2
 
 
 def difference_jacobian(b: np.ndarray, jb: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """dh/dtheta for the prediction h_ij = -|b_i - b_j|^2 / 2: -(b_i - b_j)^T (J_i - J_j), shape (P, K),
     for jb = db/dtheta of shape (N, 3, K)."""
     db = b[i] - b[j]
-    return -np.einsum("pc,pck->pk", db, jb[i] - jb[j])
+    return -sum_seq(db[:, :, None] * (jb[i] - jb[j]), axis=1)  # sum over the 3 components in order
 
 
 def pair_covariance(
@@ -80,16 +87,16 @@ def pair_covariance(
     dh_ij/dc_i = -(b_i - b_j)^T Jc_i and dh_ij/dc_j = +(b_i - b_j)^T Jc_j (Jc = db/d(x, y)); pairs that share a
     star are correlated, which is why only 2n - 3 independent pairs are used and whitened together.
     b (..., n, 3) and jb_centroid (..., n, 3, 2): leading axes are frames of the same star count, giving (..., P, P).
-    """
-    n = b.shape[-2]
-    p = i.shape[0]
-    batch = b.shape[:-2]
+    Each entry sums, in this order, the products over the stars the two pairs share: (i_p, i_q), (i_p, j_q),
+    (j_p, i_q), (j_p, j_q), each ``g_0 g_0' + g_1 g_1'``, from zero (the order of :mod:`onboard.linalg32`; a
+    pair's own two stars are distinct), then times sigma_px^2 in the inputs' dtype."""
     db = b[..., i, :] - b[..., j, :]
-    g = np.zeros(batch + (p, n, 2), dtype=b.dtype)
-    gi = -np.einsum("...pc,...pck->...pk", db, jb_centroid[..., i, :, :])
-    gj = np.einsum("...pc,...pck->...pk", db, jb_centroid[..., j, :, :])
-    rows = np.arange(p)
-    g[..., rows, i, :] += gi
-    g[..., rows, j, :] += gj
-    g = g.reshape(batch + (p, 2 * n))
-    return (sigma_px * sigma_px) * (g @ np.swapaxes(g, -1, -2))
+    # dh_p/dc at star i_p and at star j_p (..., P, 2), each a 3-term sum over the components in order
+    gi = -sum_seq(db[..., :, None] * jb_centroid[..., i, :, :], axis=-2)
+    gj = sum_seq(db[..., :, None] * jb_centroid[..., j, :, :], axis=-2)
+    acc = np.zeros(b.shape[:-2] + (i.shape[0], i.shape[0]), dtype=b.dtype)
+    for ga, sa, gb, sb in ((gi, i, gi, i), (gi, i, gj, j), (gj, j, gi, i), (gj, j, gj, j)):
+        term = ga[..., :, None, 0] * gb[..., None, :, 0] + ga[..., :, None, 1] * gb[..., None, :, 1]
+        shared = sa[:, None] == sb[None, :]
+        acc = np.where(shared, acc + term, acc)
+    return np.asarray(sigma_px * sigma_px).astype(b.dtype) * acc

@@ -58,6 +58,7 @@ from onboard.interstar import (
     order_for_pairs,
     pair_covariance,
 )
+from onboard.linalg32 import cholesky_lower, dot, forward_solve, matmul, matvec, sum_seq, vecmat
 from onboard.params import ESTIMATE_NAMES, N_PARAMS, CameraParams
 from onboard.ud import BiermanWork, agee_turner_update, bierman_update, bierman_work, ud_covariance
 
@@ -320,9 +321,9 @@ def _linearise(state: RecursiveState, xs, ys, rs, x_hi, x_lo, front=None, order=
         rounding = (state.theta_r.astype(np.float64) - theta_q)[state.idx] / state.scale[state.idx]
         delta = delta + rounding.astype(state.dtype)
     h = difference_jacobian(b, jb, pi, pj)
-    e = e - h @ delta
+    e = e - matvec(h, delta)
     r = pair_covariance(b, jb_centroid, pi, pj, state.config.centroid_noise_px)
-    r_norm = float(np.mean(np.diag(r)))
+    r_norm = float(sum_seq(np.diag(r)) / state.dtype.type(r.shape[0]))  # the mean, summed in order
     if not r_norm > 0:
         r_norm = 1.0
     # A star nearly on the line through the base pair makes its two pairs nearly dependent (the pair framework
@@ -334,8 +335,8 @@ def _linearise(state: RecursiveState, xs, ys, rs, x_hi, x_lo, front=None, order=
 
 def _pair_chi2(state: RecursiveState, lin: _Linearised) -> np.ndarray:
     """e_p^2 / (h_p P h_p + R_pp), normalised units, with P = U D U^T of the state."""
-    g = lin.h @ state.u
-    s = (g * g) @ state.d + np.diag(lin.r) * state.dtype.type(lin.r_norm)
+    g = matmul(lin.h, state.u)
+    s = matvec(g * g, state.d) + np.diag(lin.r) * state.dtype.type(lin.r_norm)
     return lin.e * lin.e / s
 
 
@@ -516,10 +517,10 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
         r = lin.r[np.ix_(used, used)]
         # pseudo-measurement of xi = x - x_prior: y = e(x_lin) + H (x_lin - x_prior)
         dx = (lin_hi - prior_hi) + (lin_lo - prior_lo)
-        y = e + h @ dx
-        chol = np.linalg.cholesky(r)
+        y = e + matvec(h, dx)
+        chol = cholesky_lower(r)
         scale = dt.type(1.0 / np.sqrt(lin.r_norm))
-        white = np.linalg.solve(chol, np.column_stack([y * scale, h * scale]))
+        white = forward_solve(chol, np.column_stack([y * scale, h * scale]))
         if it == 0:
             score, score_var = _focal_score(state, white)
         state.xi[:] = 0
@@ -539,7 +540,7 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
     state.x_lo[:] = lin_lo
     result.nis = nis / max(1, n_rows)
     # post-fit residuals of every pair (used or not) at the updated state, linear prediction from the last point
-    post = lin.e - lin.h @ step_state
+    post = lin.e - matvec(lin.h, step_state)
     fail_post = post * post > cfg.pair_gate_sigma**2 * np.diag(lin.r) * dt.type(lin.r_norm)
     bad = _misidentified(fail_post, order.size)
     if np.any(bad) and np.count_nonzero(bad) <= order.size // 2:
@@ -556,9 +557,9 @@ def _focal_score(state: RecursiveState, white: np.ndarray) -> tuple[float, float
     if state.idx[0] != 0:
         return 0.0, 0.0
     hf = white[:, 1]
-    g = float(np.dot(hf, white[:, 0]))
-    a = state.u.T @ (white[:, 1:].T @ hf)
-    return g, float(np.dot(hf, hf) + np.dot(a * a, state.d))
+    g = float(dot(hf, white[:, 0]))
+    a = vecmat(vecmat(hf, white[:, 1:]), state.u)  # U^T (H^T h_f)
+    return g, float(dot(hf, hf) + dot(a * a, state.d))
 
 
 def _record_history(state: RecursiveState, result: FrameResult | None = None) -> None:
@@ -579,11 +580,11 @@ def drift_statistic(state: RecursiveState) -> float:
     w = state.ring_g.shape[0]
     if state.idx[0] != 0 or state.ring_count < w:
         return float("nan")
-    var = float(np.sum(state.ring_v))
+    var = float(sum_seq(state.ring_v))
     lam = max(1.0, state.nis_sum / state.nis_count) if state.nis_count else 1.0
     if not var > 0:
         return float("nan")
-    return float(np.sum(state.ring_g)) / np.sqrt(lam * var)
+    return float(sum_seq(state.ring_g)) / np.sqrt(lam * var)
 
 
 def _detect_drift(state: RecursiveState) -> None:

@@ -9,7 +9,8 @@ Every routine works in place on caller-owned arrays and in their dtype (float32 
 - :func:`bierman_update`: one scalar measurement y = h xi + v, var(v) = 1 (the caller whitens), O(K^2).
   Bierman's column recursion (alpha_j = alpha_{j-1} + f_j v_j, d_j' = d_j alpha_{j-1} / alpha_j,
   U_j' = U_j + lambda_j b_{j-1}, b_j = b_{j-1} + v_j U_j) is written with cumulative sums over columns, which
-  perform the same additions in the same order as the loop, so the arithmetic is Bierman's.
+  perform the same additions in the same order as the loop, so the arithmetic is Bierman's. Every sum is in the
+  order of :mod:`onboard.linalg32` (the reference model's float32 order, which a port reproduces bit for bit).
 - :func:`agee_turner_update`: P + c a a^T for c >= 0 (process noise), O(K^2) (Agee and Turner 1972).
 - :func:`ud_covariance`: back to a full matrix (reporting only).
 """
@@ -19,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from onboard.linalg32 import dot
 
 
 @dataclass
@@ -50,14 +53,16 @@ def bierman_update(u: np.ndarray, d: np.ndarray, xi: np.ndarray, h: np.ndarray, 
     (Bierman 1977 eq. V.3.x, the "U-D measurement update" algorithm). Work: about 6 K^2 flops.
     """
     f, v, alpha, ap, cols = w.f, w.v, w.alpha, w.alpha_prev, w.cols
-    np.matmul(h, u, out=f)  # f = U^T h
+    np.multiply(h[:, None], u, out=cols)
+    np.add.accumulate(cols, axis=0, out=cols)
+    np.add(cols[-1], 0, out=f)  # f = U^T h, each f_j summed over i in order (onboard.linalg32.vecmat)
     np.multiply(d, f, out=v)  # v = D f
     np.multiply(f, v, out=alpha)
     np.add.accumulate(alpha, out=alpha)
     alpha += 1  # alpha_j = 1 + sum_{k<=j} f_k v_k  (R = 1 after whitening)
     ap[1:] = alpha[:-1]  # alpha_{j-1}; ap[0] = 1 is set once by bierman_work
     s = alpha[-1]
-    innovation = y - np.dot(h, xi)
+    innovation = y - dot(h, xi)
     # d_j' = d_j alpha_{j-1} / alpha_j
     d *= ap
     d /= alpha
