@@ -199,7 +199,7 @@ def unit_vector_jacobians(
     jw_theta = np.zeros((n, 3, 10), dtype=dtype)
     jw_theta[:, :2, :] = jq_theta
     jw_theta[:, 2, 0] = 1
-    j_theta = sum_seq(proj[:, :, :, None] * jw_theta[:, None, :, :], axis=2)  # from zero over m = 0, 1, 2
+    j_theta = sum_seq(proj[:, :, :, None] * jw_theta[:, None, :, :], axis=2)  # over m = 0, 1, 2 in order
     j_centroid = proj[:, :, 0, None] * jq_centroid[:, None, 0, :] + proj[:, :, 1, None] * jq_centroid[:, None, 1, :]
     return b, j_theta, j_centroid
 

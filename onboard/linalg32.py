@@ -11,9 +11,9 @@ frame costs a few numpy calls per reduction and no Python loop over the outer in
 
 The order, as a C port writes it (onboard/c/ud.c, interstar.c, camera.c, recursive.c):
 
-- a sum of products ``acc = 0; for k in 0..n-1: acc = acc + a[k] * b[k]`` (:func:`dot`, :func:`matvec`,
-  :func:`vecmat`, :func:`sum_seq`). The accumulation here starts from the first term and adds +0 at the end:
-  the same partial sums as the C's (0 + t0 = t0 exactly) and the same sign of a zero result;
+- a sum of products ``acc = a[0] * b[0]; for k in 1..n-1: acc = acc + a[k] * b[k]`` (:func:`dot`, :func:`matvec`,
+  :func:`vecmat`, :func:`matmul`, :func:`sum_seq`): from the first term, not from zero (0 + (-0) is +0, so a
+  start from zero can change the sign of a zero sum), then every other term in index order;
 - the Cholesky factor ``l_jj = sqrt(a_jj - l_j0 l_j0 - l_j1 l_j1 - ...)``,
   ``l_ij = (a_ij - l_i0 l_j0 - l_i1 l_j1 - ...) / l_jj``, each subtraction in order of the column index
   (:func:`cholesky_lower`; written here right-looking, column by column, which subtracts in the same order);
@@ -28,12 +28,12 @@ import numpy as np
 
 
 def sum_seq(terms: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Sum over ``axis`` in index order from zero: ``((0 + t_0) + t_1) + ...``; zeros if the axis is empty."""
+    """Sum over ``axis`` in index order from the first term: ``(t_0 + t_1) + t_2 ...``; zeros if the axis is empty."""
     terms = np.asarray(terms)
+    axis = axis % terms.ndim
     if terms.shape[axis] == 0:
-        return np.zeros(np.delete(terms.shape, axis % terms.ndim), dtype=terms.dtype)
-    acc = np.add.accumulate(terms, axis=axis)
-    return np.take(acc, -1, axis=axis) + 0  # + 0: a zero result is +0, as the C's 0 + (-0) gives
+        return np.zeros(terms.shape[:axis] + terms.shape[axis + 1 :], dtype=terms.dtype)
+    return np.add.accumulate(terms, axis=axis)[(slice(None),) * axis + (-1,)]
 
 
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -69,19 +69,18 @@ def cholesky_lower(a: np.ndarray) -> np.ndarray:
             raise np.linalg.LinAlgError("Matrix is not positive definite")
         ljj = np.sqrt(pivot)
         lower[j, j] = ljj
-        col = work[j + 1 :, j] / ljj
-        lower[j + 1 :, j] = col
+        tail = lower[j + 1 :, j]
+        np.divide(work[j + 1 :, j], ljj, out=tail)
         # the trailing block loses this column's products: entry (i, m) gets a_im - l_i0 l_m0 - ... in order
-        work[j + 1 :, j + 1 :] -= col[:, None] * col[None, :]
+        work[j + 1 :, j + 1 :] -= np.multiply.outer(tail, tail)
     return lower
 
 
 def forward_solve(lower: np.ndarray, b: np.ndarray) -> np.ndarray:
     """X = L^-1 B for L (m, m) lower triangular and B (m, c), in the order of the module docstring."""
-    work = np.array(b, copy=True)
-    out = np.empty_like(work)
+    out = np.array(b, copy=True)  # row i is finished before row i + 1 reads it: the work array is the result
     for i in range(lower.shape[0]):
-        row = work[i] / lower[i, i]
-        out[i] = row
-        work[i + 1 :] -= lower[i + 1 :, i, None] * row[None, :]
+        row = out[i]
+        row /= lower[i, i]
+        out[i + 1 :] -= np.multiply.outer(lower[i + 1 :, i], row)
     return out

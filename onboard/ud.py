@@ -21,8 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.linalg32 import dot
-
 
 @dataclass
 class BiermanWork:
@@ -53,16 +51,18 @@ def bierman_update(u: np.ndarray, d: np.ndarray, xi: np.ndarray, h: np.ndarray, 
     (Bierman 1977 eq. V.3.x, the "U-D measurement update" algorithm). Work: about 6 K^2 flops.
     """
     f, v, alpha, ap, cols = w.f, w.v, w.alpha, w.alpha_prev, w.cols
+    np.multiply(h, xi, out=v)  # v is scratch until v = D f below
+    np.add.accumulate(v, out=v)
+    innovation = (y - v[-1:]).reshape(())  # h . xi in index order (onboard.linalg32.dot)
     np.multiply(h[:, None], u, out=cols)
     np.add.accumulate(cols, axis=0, out=cols)
-    np.add(cols[-1], 0, out=f)  # f = U^T h, each f_j summed over i in order (onboard.linalg32.vecmat)
+    f[:] = cols[-1]  # f = U^T h, each f_j summed over i in order (onboard.linalg32.vecmat)
     np.multiply(d, f, out=v)  # v = D f
     np.multiply(f, v, out=alpha)
     np.add.accumulate(alpha, out=alpha)
     alpha += 1  # alpha_j = 1 + sum_{k<=j} f_k v_k  (R = 1 after whitening)
     ap[1:] = alpha[:-1]  # alpha_{j-1}; ap[0] = 1 is set once by bierman_work
     s = alpha[-1]
-    innovation = y - dot(h, xi)
     # d_j' = d_j alpha_{j-1} / alpha_j
     d *= ap
     d /= alpha

@@ -119,7 +119,7 @@ class _Counted(np.ndarray):
         if out is not None:
             kwargs["out"] = tuple(o.view(np.ndarray) if isinstance(o, _Counted) else o for o in out)
         result = getattr(ufunc, method)(*args, **kwargs)
-        _Counted.tally.update(_ufunc_ops(ufunc, method, args, result))
+        _Counted.tally.update(_ufunc_ops(ufunc, method, args, result, kwargs.get("axis", 0)))
         if out is not None:
             return out[0] if len(out) == 1 else out
         if isinstance(result, tuple):
@@ -167,7 +167,7 @@ def _contraction_ops(func, args, result) -> dict[str, int]:
     return {"mul": total * (len(inputs.split(",")) - 1), "add": total - n_out}
 
 
-def _ufunc_ops(ufunc, method: str, args, result) -> dict[str, int]:
+def _ufunc_ops(ufunc, method: str, args, result, axis=0) -> dict[str, int]:
     if ufunc is np.matmul:
         a = np.asarray(args[0])
         k = a.shape[-1]
@@ -180,8 +180,9 @@ def _ufunc_ops(ufunc, method: str, args, result) -> dict[str, int]:
         return {category: int(np.size(result))}
     if method in ("reduce", "accumulate"):
         a = np.asarray(args[0])
-        if method == "accumulate" or a.ndim == 0:
-            return {category: int(np.size(result)) - int(np.size(result)) // max(a.shape[0] if a.ndim else 1, 1)}
+        if method == "accumulate" or a.ndim == 0:  # one operation per output but the first along the axis
+            n_axis = a.shape[axis if axis is not None else 0] if a.ndim else 1
+            return {category: int(np.size(result)) - int(np.size(result)) // max(n_axis, 1)}
         return {category: int(a.size - np.size(result))}
     return {}
 

@@ -130,8 +130,8 @@ void camera_unit_vector_jacobians(const float *x_px, const float *y_px, size_t n
         jw[2][0] = 1.0f;
         for (c = 0; c < 3; ++c) {
             for (k = 0; k < CAMERA_N_PARAMS; ++k) {
-                float acc = 0.0f;
-                for (m = 0; m < 3; ++m) {
+                float acc = proj[c][0] * jw[0][k];
+                for (m = 1; m < 3; ++m) {
                     acc += proj[c][m] * jw[m][k];
                 }
                 j_theta[i][c][k] = acc;

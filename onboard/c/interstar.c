@@ -23,7 +23,7 @@ size_t interstar_independent_pairs(size_t n_stars, int32_t *pi, int32_t *pj)
 
 void interstar_order_for_pairs(const float *x_px, const float *y_px, size_t n, int32_t *order)
 {
-    float mx = 0.0f, my = 0.0f, best;
+    float mx, my, best;
     size_t i, a = 0u, b = 0u, p;
     for (i = 0u; i < n; ++i) {
         order[i] = (int32_t)i;
@@ -31,7 +31,9 @@ void interstar_order_for_pairs(const float *x_px, const float *y_px, size_t n, i
     if (n < 3u) {
         return;
     }
-    for (i = 0u; i < n; ++i) {
+    mx = x_px[0];
+    my = y_px[0];
+    for (i = 1u; i < n; ++i) {
         mx += x_px[i];
         my += y_px[i];
     }
@@ -88,8 +90,8 @@ void interstar_difference_jacobian(const float (*b)[3], const float *jb, size_t 
     for (p = 0u; p < n_pairs; ++p) {
         const size_t i = (size_t)pi[p], j = (size_t)pj[p];
         for (col = 0u; col < k; ++col) {
-            float acc = 0.0f;
-            for (c = 0; c < 3; ++c) {
+            float acc = (b[i][0] - b[j][0]) * (jb[(i * 3u) * k + col] - jb[(j * 3u) * k + col]);
+            for (c = 1; c < 3; ++c) {
                 const float db = b[i][c] - b[j][c];
                 acc += db * (jb[(i * 3u + (size_t)c) * k + col] - jb[(j * 3u + (size_t)c) * k + col]);
             }
@@ -109,8 +111,8 @@ void interstar_pair_covariance(const float (*b)[3], const float (*jc)[3][2], con
     for (p = 0u; p < n_pairs; ++p) {
         const size_t i = (size_t)pi[p], j = (size_t)pj[p];
         for (a = 0; a < 2; ++a) {
-            float acc_i = 0.0f, acc_j = 0.0f;
-            for (c = 0; c < 3; ++c) {
+            float acc_i = (b[i][0] - b[j][0]) * jc[i][0][a], acc_j = (b[i][0] - b[j][0]) * jc[j][0][a];
+            for (c = 1; c < 3; ++c) {
                 const float db = b[i][c] - b[j][c];
                 acc_i += db * jc[i][c][a];
                 acc_j += db * jc[j][c][a];

@@ -239,8 +239,8 @@ static recursive_status_t linearise(recursive_state_t *st, const int32_t *order,
     }
     interstar_difference_jacobian((const float (*)[3])w->b, w->jb, k, lin->pi, lin->pj, lin->n_pairs, lin->h);
     for (p = 0u; p < lin->n_pairs; ++p) { /* e - H delta */
-        hd = 0.0f;
-        for (col = 0u; col < k; ++col) {
+        hd = lin->h[p * k] * delta[0];
+        for (col = 1u; col < k; ++col) {
             hd += lin->h[p * k + col] * delta[col];
         }
         lin->e[p] = lin->e[p] - hd;
@@ -248,8 +248,8 @@ static recursive_status_t linearise(recursive_state_t *st, const int32_t *order,
     interstar_pair_covariance((const float (*)[3])w->b, (const float (*)[3][2])w->jb_centroid, lin->pi, lin->pj,
                               lin->n_pairs, st->config.centroid_noise_px, lin->r);
     {
-        float sum = 0.0f;
-        for (p = 0u; p < lin->n_pairs; ++p) {
+        float sum = lin->r[0];
+        for (p = 1u; p < lin->n_pairs; ++p) {
             sum += lin->r[p * lin->n_pairs + p];
         }
         mean_diag = (double)(sum / (float)lin->n_pairs);
@@ -278,11 +278,11 @@ static void pair_chi2(const recursive_state_t *st, float *chi2)
     for (p = 0u; p < lin->n_pairs; ++p) {
         float s = 0.0f;
         for (j = 0u; j < k; ++j) {
-            float g = 0.0f;
-            for (i = 0u; i < k; ++i) {
+            float g = lin->h[p * k] * st->u[j];
+            for (i = 1u; i < k; ++i) {
                 g += lin->h[p * k + i] * st->u[i * k + j];
             }
-            s += g * g * st->d[j];
+            s = j == 0u ? g * g * st->d[0] : s + g * g * st->d[j];
         }
         s = s + lin->r[p * lin->n_pairs + p] * r_norm32;
         chi2[p] = lin->e[p] * lin->e[p] / s;
@@ -343,29 +343,32 @@ static void focal_score(const recursive_state_t *st, size_t rows, double *g, dou
 {
     const float *white = st->work.white;
     const size_t k = (size_t)st->k, cols = k + 1u;
-    float a[RECURSIVE_MAX_STATES], t[RECURSIVE_MAX_STATES], dot = 0.0f, hh = 0.0f, ad = 0.0f;
+    float a[RECURSIVE_MAX_STATES], t[RECURSIVE_MAX_STATES], dot, hh, ad;
     size_t p, i, j;
     if (st->idx[0] != 0) {
         *g = 0.0;
         *var = 0.0;
         return;
     }
-    for (p = 0u; p < rows; ++p) {
+    dot = white[1] * white[0];
+    hh = white[1] * white[1];
+    for (p = 1u; p < rows; ++p) {
         dot += white[p * cols + 1u] * white[p * cols];
         hh += white[p * cols + 1u] * white[p * cols + 1u];
     }
     for (i = 0u; i < k; ++i) { /* t = H^T h_f */
-        t[i] = 0.0f;
-        for (p = 0u; p < rows; ++p) {
+        t[i] = white[1u + i] * white[1];
+        for (p = 1u; p < rows; ++p) {
             t[i] += white[p * cols + 1u + i] * white[p * cols + 1u];
         }
     }
+    ad = 0.0f;
     for (j = 0u; j < k; ++j) { /* a = U^T t */
-        a[j] = 0.0f;
-        for (i = 0u; i < k; ++i) {
+        a[j] = st->u[j] * t[0];
+        for (i = 1u; i < k; ++i) {
             a[j] += st->u[i * k + j] * t[i];
         }
-        ad += a[j] * a[j] * st->d[j];
+        ad = j == 0u ? a[0] * a[0] * st->d[0] : ad + a[j] * a[j] * st->d[j];
     }
     *g = (double)dot;
     *var = (double)(hh + ad);
@@ -381,13 +384,15 @@ static void record_history(recursive_state_t *st, const recursive_frame_result_t
 
 double recursive_drift_statistic(const recursive_state_t *st)
 {
-    float sum_g = 0.0f, sum_v = 0.0f;
+    float sum_g, sum_v;
     double lam = 1.0, var;
     int32_t i;
     if (st->idx[0] != 0 || st->ring_count < st->window) {
         return NAN;
     }
-    for (i = 0; i < st->window; ++i) {
+    sum_g = st->ring_g[0];
+    sum_v = st->ring_v[0];
+    for (i = 1; i < st->window; ++i) {
         sum_g += st->ring_g[i];
         sum_v += st->ring_v[i];
     }
@@ -568,8 +573,8 @@ static recursive_status_t process_frame(recursive_state_t *st, uint8_t *keep, co
         }
         for (p = 0u; p < n_used; ++p) {
             const size_t row = (size_t)used_idx[p];
-            float hdx = 0.0f;
-            for (j = 0u; j < k; ++j) {
+            float hdx = lin->h[row * k] * dx[0];
+            for (j = 1u; j < k; ++j) {
                 hdx += lin->h[row * k + j] * dx[j];
             }
             y[p] = lin->e[row] + hdx;
@@ -631,8 +636,8 @@ static recursive_status_t process_frame(recursive_state_t *st, uint8_t *keep, co
         const float gate2_32 = (float)(cfg->pair_gate_sigma * cfg->pair_gate_sigma);
         const float r_norm32 = (float)lin->r_norm;
         for (p = 0u; p < lin->n_pairs; ++p) {
-            float hs = 0.0f, post;
-            for (j = 0u; j < k; ++j) {
+            float hs = lin->h[p * k] * step_state[0], post;
+            for (j = 1u; j < k; ++j) {
                 hs += lin->h[p * k + j] * step_state[j];
             }
             post = lin->e[p] - hs;

@@ -8,8 +8,8 @@ float ud_bierman_update(float *u, float *d, float *xi, const float *h, float y, 
     float innovation, dot, gain;
     size_t i, j;
     for (j = 0u; j < k; ++j) { /* f = U^T h */
-        float acc = 0.0f;
-        for (i = 0u; i < k; ++i) {
+        float acc = h[0] * u[j];
+        for (i = 1u; i < k; ++i) {
             acc += h[i] * u[i * k + j];
         }
         f[j] = acc;
@@ -29,8 +29,8 @@ float ud_bierman_update(float *u, float *d, float *xi, const float *h, float y, 
         ap[j] = alpha[j - 1u];
     }
     *s = alpha[k - 1u];
-    dot = 0.0f;
-    for (j = 0u; j < k; ++j) {
+    dot = h[0] * xi[0];
+    for (j = 1u; j < k; ++j) {
         dot += h[j] * xi[j];
     }
     innovation = y - dot;
