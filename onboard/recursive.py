@@ -36,6 +36,10 @@ measurement b_i . b_j = r_i . r_j (seed 004 eq. 1, seed 000 eq. 3), and makes it
   The filter (Jacobians, pair covariance, U-D updates) stays in float32, by a soft-float library on such a sensor:
   its O(P K^2) work per frame is the same as here, while the front end holds the precision that matters.
 
+Arithmetic order: every float32 sum of the filter (residual corrections, gating, Cholesky whitening, forward
+substitution, focal score, drift statistic) is written in the order :mod:`onboard.linalg32` states, not with numpy's
+matmul/linalg/sum, so a port that keeps that order (onboard/c) reproduces the state bit for bit (docs/port-kit.md).
+
 Work per frame is bounded (stars are capped at ``max_stars`` = N, pairs P = 2N - 3, states K <= 10):
 camera Jacobians O(30 N), pair covariance O(P N), Cholesky O(P^3 / 3), whitening O(P^2 (K + 1)),
 updates O(6 P K^2); at most ``max_iterations`` linearisations and 2 misidentification passes, i.e. at most
