@@ -76,7 +76,8 @@ def difference_jacobian(b: np.ndarray, jb: np.ndarray, i: np.ndarray, j: np.ndar
     """dh/dtheta for the prediction h_ij = -|b_i - b_j|^2 / 2: -(b_i - b_j)^T (J_i - J_j), shape (P, K),
     for jb = db/dtheta of shape (N, 3, K)."""
     db = b[i] - b[j]
-    return -sum_seq(db[:, :, None] * (jb[i] - jb[j]), axis=1)  # sum over the 3 components in order
+    dj = jb[i] - jb[j]
+    return -(db[:, 0, None] * dj[:, 0] + db[:, 1, None] * dj[:, 1] + db[:, 2, None] * dj[:, 2])  # components in order
 
 
 def pair_covariance(
@@ -92,11 +93,15 @@ def pair_covariance(
     pair's own two stars are distinct), then times sigma_px^2 in the inputs' dtype."""
     db = b[..., i, :] - b[..., j, :]
     # dh_p/dc at star i_p and at star j_p (..., P, 2), each a 3-term sum over the components in order
-    gi = -sum_seq(db[..., :, None] * jb_centroid[..., i, :, :], axis=-2)
-    gj = sum_seq(db[..., :, None] * jb_centroid[..., j, :, :], axis=-2)
-    acc = np.zeros(b.shape[:-2] + (i.shape[0], i.shape[0]), dtype=b.dtype)
+    ji, jj = jb_centroid[..., i, :, :], jb_centroid[..., j, :, :]
+    gi = -(db[..., 0, None] * ji[..., 0, :] + db[..., 1, None] * ji[..., 1, :] + db[..., 2, None] * ji[..., 2, :])
+    gj = db[..., 0, None] * jj[..., 0, :] + db[..., 1, None] * jj[..., 1, :] + db[..., 2, None] * jj[..., 2, :]
+    shape = b.shape[:-2] + (i.shape[0], i.shape[0])
+    acc, term, tmp = np.zeros(shape, dtype=b.dtype), np.empty(shape, dtype=b.dtype), np.empty(shape, dtype=b.dtype)
     for ga, sa, gb, sb in ((gi, i, gi, i), (gi, i, gj, j), (gj, j, gi, i), (gj, j, gj, j)):
-        term = ga[..., :, None, 0] * gb[..., None, :, 0] + ga[..., :, None, 1] * gb[..., None, :, 1]
-        shared = sa[:, None] == sb[None, :]
-        acc = np.where(shared, acc + term, acc)
-    return np.asarray(sigma_px * sigma_px).astype(b.dtype) * acc
+        np.multiply(ga[..., :, None, 0], gb[..., None, :, 0], out=term)
+        np.multiply(ga[..., :, None, 1], gb[..., None, :, 1], out=tmp)
+        term += tmp
+        np.add(acc, term, out=acc, where=sa[:, None] == sb[None, :])  # only where the two pairs share the star
+    acc *= np.asarray(sigma_px * sigma_px).astype(b.dtype)
+    return acc
