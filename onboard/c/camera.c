@@ -1,4 +1,8 @@
-/* camera.c: onboard/camera.py in float32 (see camera.h). */
+/* camera.c: onboard/camera.py in float32 (see camera.h).
+ *
+ * Operation order (onboard/linalg32.py, docs/port-kit.md "The order"): every float32 sum starts from its first
+ * term and adds the others in index order, every product and sum rounded on its own (-ffp-contract=off), as the
+ * reference model does; keep it, and the results are the model's bits. */
 #include "camera.h"
 
 #include <math.h>

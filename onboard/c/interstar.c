@@ -1,4 +1,8 @@
-/* interstar.c: onboard/interstar.py in float32 (see interstar.h). */
+/* interstar.c: onboard/interstar.py in float32 (see interstar.h).
+ *
+ * Operation order (onboard/linalg32.py, docs/port-kit.md "The order"): every float32 sum starts from its first
+ * term and adds the others in index order, every product and sum rounded on its own (-ffp-contract=off), as the
+ * reference model does; keep it, and the results are the model's bits. */
 #include "interstar.h"
 
 size_t interstar_independent_pairs(size_t n_stars, int32_t *pi, int32_t *pj)

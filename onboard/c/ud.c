@@ -1,4 +1,8 @@
-/* ud.c: onboard/ud.py in float32 (see ud.h). */
+/* ud.c: onboard/ud.py in float32 (see ud.h).
+ *
+ * Operation order (onboard/linalg32.py, docs/port-kit.md "The order"): every float32 sum starts from its first
+ * term and adds the others in index order, every product and sum rounded on its own (-ffp-contract=off), as the
+ * reference model does; keep it, and the results are the model's bits. */
 #include "ud.h"
 
 float ud_bierman_update(float *u, float *d, float *xi, const float *h, float y, size_t k, float *s)
