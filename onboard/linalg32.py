@@ -57,7 +57,8 @@ def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def cholesky_lower(a: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor L of the symmetric matrix ``a`` (m, m), L L^T = a, in the order of the module docstring.
+    """Lower Cholesky factor L of the symmetric matrix ``a`` (m, m), L L^T = a, in the order of the module docstring
+    (from ``a``'s lower triangle and diagonal, as the C reads it).
 
     Raises np.linalg.LinAlgError (as numpy's) when a pivot is not > 0 (not positive definite, or NaN)."""
     m = a.shape[0]
