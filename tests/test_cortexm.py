@@ -118,7 +118,7 @@ def test_instruction_counts_are_exact_run_to_run():
         counts = []
         for _ in range(2):  # two fresh emulators: nothing carried over, nothing timed
             m = Machine(TARGETS[name])
-            calls, _, _ = measure_updates(m, _nominal(), frames, 8, TARGETS[name].precision)
+            calls, _, _, _ = measure_updates(m, _nominal(), frames, 8, TARGETS[name].precision)
             refraction = _refraction_cost(m, docs, TARGETS[name].precision, 32)
             counts.append(([(c.instructions, c.cycles) for c in calls], [c.stack_bytes for c in calls], refraction))
         assert counts[0] == counts[1]
@@ -131,8 +131,9 @@ def test_instruction_counts_are_exact_run_to_run():
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler (cc) for the host build")
 def test_target_estimator_is_bit_identical_to_the_host_build():
     # the same C, IEEE float32 on the M4F's FPU and in the M0+'s soft float, no FMA on either: the estimate after a
-    # replayed session is the host build's to the bit (the host build is proven against the Python model by
-    # tests/test_c_recursive.py and test_c_estimator_seam.py)
+    # replayed session is the host build's to the bit, and the target's saved state is the Python model's after
+    # every frame (the host build is proven against the Python model by tests/test_c_recursive.py and
+    # test_c_estimator_seam.py)
     from hostlink.portkit import estimator_c
     from hostlink.portkit.estimator_c import SeamConfig, ptr, ref
     from hostlink.portkit.target_costs import _frame_rows, measure_updates
@@ -144,7 +145,10 @@ def test_target_estimator_is_bit_identical_to_the_host_build():
     nominal = _nominal()
     for name, n_stars in (("cortex-m4f", 16), ("cortex-m0plus", 8)):
         tgt = TARGETS[name]
-        _, deviation, (values, sigma) = measure_updates(Machine(tgt), nominal, frames, n_stars, tgt.precision)
+        calls, deviation, (values, sigma), differing = measure_updates(
+            Machine(tgt), nominal, frames, n_stars, tgt.precision
+        )
+        assert len(calls) == 3 and differing == 0  # bit-exact with the Python sensor after each of the 3 frames
         table = banks.params_to_table(nominal, np.full(10, np.nan))
         state = ctypes.create_string_buffer(int(lib.estimator_seam_state_bytes()) + 16)
         cfg = SeamConfig(0x3FF, int(tgt.precision == "fixed"), 0.05)
@@ -159,7 +163,7 @@ def test_target_estimator_is_bit_identical_to_the_host_build():
         lib.estimator_seam_estimate(state, ptr(v), ptr(s), ctypes.byref(mask), ctypes.byref(count))
         assert count.value == 3
         assert np.array_equal(values, v) and np.array_equal(sigma, s)
-        assert deviation < 0.01  # and the Python sensor's estimate within issue 27's 0.01 sigma (measured < 0.007)
+        assert deviation == 0.0  # so the estimate is the Python sensor's too, to the bit
 
 
 @needs_tools

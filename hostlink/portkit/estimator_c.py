@@ -132,7 +132,7 @@ class SeamConfig(ctypes.Structure):
     _fields_ = [
         ("estimate_mask", ctypes.c_uint32),
         ("precision", ctypes.c_uint32),
-        ("centroid_noise_px", ctypes.c_float),
+        ("centroid_noise_px", ctypes.c_double),
     ]
 
 

@@ -165,7 +165,7 @@ def load_library(cache: Path | None = None) -> ctypes.CDLL:
     lib.sil_estimator_bytes.restype = ctypes.c_size_t
     lib.sil_boot.argtypes = [
         ctypes.c_void_p, _READ, _ERASE, _PROGRAM, _RANDOM, p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_double,
-        ctypes.c_double, ctypes.c_char_p, p_u8, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_float,
+        ctypes.c_double, ctypes.c_char_p, p_u8, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_double,
         ctypes.c_double, ctypes.c_double,
     ]  # fmt: skip
     lib.sil_handle.argtypes = [

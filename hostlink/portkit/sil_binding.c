@@ -21,7 +21,7 @@ int sil_estimator_available(void) { return estimator_seam_available(); }
 int sil_boot(firmware_t *fw, sil_read_fn read, sil_erase_fn erase, sil_program_fn program, sil_random_fn random32,
              const uint8_t *uid, uint32_t has_limits, double design_focal_length_mm, double focal_tolerance,
              double max_distortion_fraction, const char *design_name, const uint8_t *factory_table,
-             estimator_seam_state_t *est, uint32_t estimate_mask, uint32_t precision, float centroid_noise_px,
+             estimator_seam_state_t *est, uint32_t estimate_mask, uint32_t precision, double centroid_noise_px,
              double flops_per_s, double min_frame_period_s)
 {
     banks_store_t store; /* copied into fw */

@@ -40,7 +40,7 @@ size_t estimator_seam_state_bytes(void)
 static void seam_config(const estimator_seam_config_t *config, recursive_config_t *out)
 {
     recursive_default_config(out);
-    out->centroid_noise_px = (double)config->centroid_noise_px;
+    out->centroid_noise_px = config->centroid_noise_px;
 }
 
 int estimator_seam_start(estimator_seam_state_t *state, const estimator_seam_config_t *config,

@@ -54,7 +54,7 @@ enum estimator_seam_precision {
 typedef struct {
     uint32_t estimate_mask;  /* bit i: ESTIMATE_NAMES[i] is estimated (RecursiveEstimator.estimate_names) */
     uint32_t precision;      /* enum estimator_seam_precision */
-    float centroid_noise_px; /* RecursiveConfig.centroid_noise_px */
+    double centroid_noise_px; /* RecursiveConfig.centroid_noise_px (double, as the Python model keeps it) */
 } estimator_seam_config_t;
 
 typedef struct estimator_seam_state estimator_seam_state_t;
