@@ -149,6 +149,14 @@ class Twins:
         self.check_flash()
         self.reboot()
 
+    def exposure(self, counter: int) -> None:
+        """Both count one exposure with frame counter ``counter`` (no catalogue: no estimator run)."""
+        frame = m.CentroidFrame(
+            frame=counter, t_us=counter, star_id=np.array([1], np.uint32), x_px=np.array([1.0]),
+            y_px=np.array([2.0]), mag=np.array([np.nan]),
+        )  # fmt: skip
+        assert self.py.process_frame(frame, None) == self.c.process_frame(frame, None)
+
     # ------------------------------------------------------------------------------------------------ a step
     def generation(self) -> int:
         return banks.active_generation(self.py.store)
@@ -171,8 +179,13 @@ class Twins:
         kind %= 17
         if kind == 0:
             self.command(m.GetStatus(tag=tag))
-        elif kind == 1:
-            self.command(m.StreamControl(tag=tag, enable=bool(a & 1)))
+        elif kind == 1:  # an exposure (counter a) or the camera's announcement of its next counter, then a start/stop
+            if c < 64:
+                self.exposure(a)
+            elif c < 128:
+                self.py.set_next_frame(a)
+                self.c.set_next_frame(a)
+            self.command(m.StreamControl(tag=tag, enable=bool(b & 1)))
         elif kind == 2:
             self.table = TABLES[a % len(TABLES)]
             self.command(m.StageBegin(tag=tag, length=TABLE_BYTES if c < 230 else b % 300))

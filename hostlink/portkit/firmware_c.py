@@ -175,6 +175,7 @@ def load_library(cache: Path | None = None) -> ctypes.CDLL:
         ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int64, ctypes.c_uint32, ctypes.POINTER(ctypes.c_uint32), p_f64,
         p_f64, p_f64,
     ]  # fmt: skip
+    lib.sil_set_next_frame.argtypes = [ctypes.c_void_p, ctypes.c_uint32]
     lib.sil_state.argtypes = [ctypes.c_void_p, p_u8, ctypes.POINTER(ctypes.c_uint32)]
     lib.sil_check_table.argtypes = [
         p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_char_p, ctypes.POINTER(ctypes.c_uint32)
@@ -307,6 +308,10 @@ class CFirmware:
             None if r is None else r.ctypes.data_as(p_f64),
         )  # fmt: skip
         return bool(ran)
+
+    def set_next_frame(self, frame: int) -> None:
+        """The camera's counter of the next exposure (as :meth:`onboard.firmware.Firmware.set_next_frame`)."""
+        self._lib.sil_set_next_frame(_aligned(self._fw), int(frame) & 0xFFFFFFFF)
 
     def _state(self) -> tuple[bool, list[int]]:
         streaming = ctypes.c_uint8(0)

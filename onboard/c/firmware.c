@@ -228,8 +228,15 @@ int firmware_handle(firmware_t *fw, const uint8_t *command, size_t n, uint8_t *r
     case ST_MSG_GET_STATUS:
         return status(fw, cmd->u.get_status.tag, reply, cap, reply_len);
     case ST_MSG_STREAM_CONTROL:
-        fw->streaming = cmd->u.stream_control.enable ? 1u : 0u;
-        return ack(cmd->u.stream_control.tag, cmd->type, 0u, reply, cap, reply_len);
+        if (!cmd->u.stream_control.enable) {
+            fw->streaming = 0u;
+            return ack(cmd->u.stream_control.tag, cmd->type, 0u, reply, cap, reply_len);
+        }
+        if (!fw->streaming) { /* a new stream: its first exposure is the camera's next one */
+            fw->streaming = 1u;
+            fw->stream_first_frame = fw->next_frame;
+        }
+        return ack(cmd->u.stream_control.tag, cmd->type, fw->stream_first_frame, reply, cap, reply_len);
     case ST_MSG_STAGE_BEGIN:
         result = banks_stage_begin(&fw->store, cmd->u.stage_begin.length, &value, &refusal);
         return ack_or_nak(result, cmd->u.stage_begin.tag, cmd->type, value, &refusal, reply, cap, reply_len);
@@ -300,6 +307,8 @@ static void estimate_frame(firmware_t *fw, uint32_t frame, uint32_t n, const uin
     }
 }
 
+void firmware_set_next_frame(firmware_t *fw, uint32_t frame) { fw->next_frame = frame; }
+
 int firmware_process_frame(firmware_t *fw, uint32_t frame, int64_t t_us, uint32_t n, const uint32_t *star_id,
                            const double *x_px, const double *y_px, const double *r_ref)
 {
@@ -308,6 +317,7 @@ int firmware_process_frame(firmware_t *fw, uint32_t frame, int64_t t_us, uint32_
     double busy;
     fw->counters.frames_processed += 1u;
     fw->counters.last_frame = frame;
+    fw->next_frame = frame + 1u; /* uint32_t: wraps as the Python model's & 0xFFFFFFFF */
     if (fw->has_sensor_time && t_us <= fw->sensor_time_us) {
         t_us = fw->sensor_time_us + (int64_t)nearbyint(fw->budget.min_frame_period_s * 1e6);
     }
