@@ -165,12 +165,15 @@ def test_a_flash_image_written_by_one_firmware_boots_in_the_other_to_the_same_ac
     assert max(generations) > 2  # images with committed sets were crossed, not only factory ones
 
 
-def _recorded_upload(seed: int) -> list[bytes]:
+def _recorded_upload(seed: int, image: np.ndarray | None = None) -> list[bytes]:
     """The command bytes of a bench upload (safe_upload of the seed-004 camera over the loopback link) to a Python
-    sensor of identity ``seed``."""
-    sensor = EmulatedSensor(
-        Firmware(banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, banks.seeded_identity(seed))), iter(())
-    )
+    sensor of identity ``seed`` (fresh from the factory, or booted from a copy of ``image``)."""
+    identity = banks.seeded_identity(seed)
+    if image is None:
+        store = banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, identity)
+    else:
+        store = banks.boot(banks.RamFlash(image.copy()), LIMITS, identity)
+    sensor = EmulatedSensor(Firmware(store), iter(()))
     sent = []
 
     def tap(data):
@@ -196,6 +199,26 @@ def test_a_recorded_upload_gives_the_same_replies_and_flash_bytes_and_replayed_c
     assert other.commits == 0 and other.generation() == 1
     twins.check_flash()
     other.check_flash()
+
+
+def test_a_recorded_upload_replayed_to_a_unit_programmed_with_the_same_factory_image_commits_nothing():
+    """The hardest fresh sensor: a second unit whose flash is a byte copy of the recording unit's before the upload
+    (a factory programming one image into every unit: the same epoch, the same session counter, so the same
+    counter-based session as the recording). Only the device's uid tells the sessions apart; the nonce is keyed by
+    it, so the recorded COMMIT is stale there, in both firmwares alike, and every reply and flash byte agree."""
+    for sessions in (0, 5, banks.STAGE_SLOTS - 1):  # a new image, a used one, one whose next session rewrites
+        image = aged_image(31, sessions)
+        recording = _recorded_upload(31, image)
+        recording_unit = Twins(31, image)  # the recording is a good upload for the unit it was made on
+        for data in recording:
+            recording_unit.send(data)
+        assert recording_unit.commits == 1 and recording_unit.generation() == 2
+        clone = Twins(32, image)  # another uid, the same flash bytes
+        assert clone.py.store.epoch == recording_unit.py.store.epoch != 0
+        for data in recording:
+            clone.send(data)
+        assert clone.commits == 0 and clone.generation() == 1, sessions
+        clone.check_flash()
 
 
 def test_the_message_handler_gives_the_same_verdict_on_fuzzed_bytes():
