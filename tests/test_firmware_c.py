@@ -205,6 +205,33 @@ def test_a_recorded_upload_gives_the_same_replies_and_flash_bytes_and_replayed_c
     other.check_flash()
 
 
+def test_successive_recorded_uploads_with_and_without_a_sigma_agree_and_their_replays_commit_nothing():
+    """What the bench does, twice on one unit: an upload of a calibrated set with its 1-sigma prior (the bench's, issue
+    29), then one without; recorded on the line of a Python sensor, played to both firmwares of the same unit (both
+    commit, generation 3, the same replies and flash bytes), then replayed whole, each upload alone and in reverse
+    order to that unit and to a unit with the same factory image: nothing more is committed."""
+    sigma = np.array([0.02, 1.5, 1.5, 1e-10, 1e-16, np.nan, 0, 0, 0, 0])
+    store = banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, banks.seeded_identity(41))
+    image = store.flash.image.copy()
+    sensor = EmulatedSensor(Firmware(store), iter(()))
+    uploads: list[list[bytes]] = [[], []]
+    for k, (params, prior) in enumerate(((seed004_camera(), sigma), (NOMINAL, None))):
+        tap = uploads[k].append
+        safe_upload(LoopbackLink(sensor, timeout_s=0.5, tamper=lambda d, tap=tap: (tap(d), d)[1]), params, sigma=prior)
+    unit = Twins(41, image)
+    for data in uploads[0] + uploads[1]:
+        unit.send(data)
+    assert unit.commits == 2 and unit.generation() == 3
+    clone = Twins(42, image)
+    for replay in (uploads[0] + uploads[1], uploads[0], uploads[1], uploads[1] + uploads[0]):
+        for twins in (unit, clone):
+            for data in replay:
+                twins.send(data)
+    assert unit.commits == 2 and unit.generation() == 3 and clone.commits == 0 and clone.generation() == 1
+    unit.check_flash()
+    clone.check_flash()
+
+
 def test_a_recorded_upload_replayed_to_a_unit_programmed_with_the_same_factory_image_commits_nothing():
     """The hardest fresh sensor: a second unit whose flash is a byte copy of the recording unit's before the upload
     (a factory programming one image into every unit: the same epoch, the same session counter, so the same
