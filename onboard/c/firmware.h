@@ -63,7 +63,7 @@ typedef struct {
     banks_store_t store;
     uint8_t streaming;
     firmware_counters_t counters;
-    uint32_t next_frame;         /* the camera's counter of the next exposure: last one + 1, or firmware_set_next_frame */
+    uint32_t next_frame;         /* the camera's next exposure's counter: the last + 1, or firmware_set_next_frame */
     uint32_t stream_first_frame; /* the counter the current stream's start was acknowledged with */
     firmware_budget_t budget;
     uint32_t has_sensor_time;
