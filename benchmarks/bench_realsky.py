@@ -101,6 +101,7 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     from hostlink.files.params import params_from_dict
     from hostlink.images import solver_adapter
     from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
+    from hostlink.images.guided import candidate_rows
     from hostlink.images.identify import identify_iteratively, identify_session
     from hostlink.images.read import read_image
     from hostlink.sky.catalogue import load_catalogue
@@ -120,7 +121,8 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     t0 = time.process_time()
     cent = centroid_images(paths, options, TimeOptions(time_unknown=True))
     t1 = time.process_time()
-    once = identify_session(cent.session, nominal)
+    detected = cent.session.select(~candidate_rows(cent.session))  # the faint candidates are only for ..._iteratively
+    once = identify_session(detected, nominal)
     t2 = time.process_time()
     ident = identify_iteratively(cent.session, nominal)
     t3 = time.process_time()
@@ -133,13 +135,13 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     frames = [(e.x_px - x0, e.y_px - y0, e.brightness) for e in engine]
     engine_cal = solver_adapter.engine_calibration(database, frames, (width, height), fov)
     # the solver given our centroids (brightest first) instead of its own: for a set its extractor finds nothing in
-    starts = cent.session.frame_starts
+    starts = detected.frame_starts
     ours_frames = []
     for k in range(len(paths)):
         a, b = int(starts[k]), int(starts[k + 1])
-        order = a + np.argsort(cent.session.mag[a:b], kind="stable")
-        flux = 10.0 ** (-0.4 * cent.session.mag[order])
-        ours_frames.append((cent.session.x_px[order] - x0, cent.session.y_px[order] - y0, flux))
+        order = a + np.argsort(detected.mag[a:b], kind="stable")
+        flux = 10.0 ** (-0.4 * detected.mag[order])
+        ours_frames.append((detected.x_px[order] - x0, detected.y_px[order] - y0, flux))
     engine_on_ours = solver_adapter.engine_calibration(database, ours_frames, (width, height), fov)
 
     # our camera: calibrated on the final identities (the default method), our residual per frame through it
@@ -259,7 +261,13 @@ def _print(s: dict, once: int, log) -> None:
         f"{t['solver_extract_and_solve']:.2f} s"
     )
     for r in s["rounds"]:
-        log(f"  round {r['round']}: {r['stars_identified']} stars, +{r['added']} -{r['lost']} renamed {r['renamed']}")
+        chance = (
+            f" (expected by chance {r['expected_false']:.1f} of {r['searched']} searched)" if "searched" in r else ""
+        )
+        log(
+            f"  round {r['round']}: {r['stars_identified']} stars, +{r['added']} -{r['lost']} renamed {r['renamed']}"
+            + chance
+        )
 
 
 def main() -> None:
