@@ -250,8 +250,7 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
         admitted += 1
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     width, height = image_size_px
-    typical_r2 = (CONTAINMENT_SIGMAS**2) * (sigma_pred**2 + np.nanmedian(sigma_px[cand]) ** 2) if cand.size else 0.0
-    expected = float(np.sum(np.count_nonzero(agree, axis=0)) * math.pi * typical_r2 / (width * height))
+    expected = float(np.sum(agree * (math.pi * radius**2)[:, None]) / (width * height))
     return out, FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
 
 
