@@ -279,12 +279,12 @@ _CANDIDATE_CLEAR_SIGMAS = _PSF_FIT_SIGMAS
 
 def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
     """Module docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
-    footprint (below the threshold, or dropped by SEP's minimum footprint) and clear of the kept stars, not hot
-    pixels (:func:`_hot_pixels`), centroided by the window of the PSF's width (:func:`_windowed_centroids`: where
-    the background's noise dominates, as it does for every faint star, the matched filter, the maximum-likelihood
-    centroid) and kept when their PSF-fit flux F is at least ``candidate_sigma`` x its noise: snr = F sqrt(sum P^2) /
-    rms (:func:`_snr`). Most are noise; :mod:`hostlink.images.guided` names one only where the calibrated camera
-    predicts a catalogue star."""
+    footprint (below the threshold, or dropped by SEP's minimum footprint) and clear of the kept stars, centroided by
+    the window of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for
+    every faint star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at
+    least ``candidate_sigma`` x its noise: snr = F sqrt(sum P^2) / rms (:func:`_snr`). Most are noise, and they are
+    not tested for hot pixels: :mod:`hostlink.images.guided` names one only where the calibrated camera predicts a
+    catalogue star as bright, and states the chance of that for noise, counting every candidate (hot pixels too)."""
     rows, cols = _local_maxima(filtered / (rms * _FILTERED_NOISE_PER_PX), options.candidate_sigma, segmap)
     x0, y0 = cols.astype(np.float64), rows.astype(np.float64)
     clear = _CANDIDATE_CLEAR_SIGMAS * sigma + 1.0
@@ -293,10 +293,7 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
 
         near, _ = cKDTree(np.column_stack([kept.x_px, kept.y_px])).query(np.column_stack([x0, y0]))
         x0, y0, rows, cols = x0[near > clear], y0[near > clear], rows[near > clear], cols[near > clear]
-    spots = np.zeros(x0.size, dtype=[("x", np.float64), ("y", np.float64), ("xpeak", np.int64), ("ypeak", np.int64)])
-    spots["x"], spots["y"], spots["xpeak"], spots["ypeak"] = x0, y0, cols, rows
-    spots = spots[~_hot_pixels(sub, rms, spots, sigma, options.hot_pixel_chi2)]
-    x, y = _windowed_centroids(sub, spots, sigma)
+    x, y = _in_chunks(_WINDOW_HALF_SIGMAS * 2, x0.size, lambda k: _window_iterated(sub, x0[k], y0[k], sigma))
     flux = _psf_fluxes(sub, x, y, sigma)
     snr = _snr(sub, rms, x, y, sigma, flux)
     keep = np.flatnonzero(snr >= options.candidate_sigma)
@@ -304,6 +301,36 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
     x, y, flux, snr = x[keep], y[keep], flux[keep], snr[keep]
     sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
     return Candidates(x, y, flux, -2.5 * np.log10(flux), sigma_px, snr)
+
+
+#: The candidates' window: iterations, and the stamp's half-width in window sigmas (+1 px).
+_WINDOW_ITERATIONS = 8
+_WINDOW_HALF_SIGMAS = 4
+
+
+def _window_iterated(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Source Extractor's windowed centroid (XWIN_IMAGE, Bertin's SExtractor manual, "windowed positional
+    parameters") of every star at once: x <- x + 2 sum w I (x_i - x) / sum w I with the Gaussian window
+    w = exp(-r^2 / (2 sigma^2)) over +-(4 sigma + 1) px, :data:`_WINDOW_ITERATIONS` times (as ``sep.winpos`` does for
+    one star at a time); a star whose step leaves the stamp, or whose windowed flux is not positive, keeps its
+    start."""
+    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    cols, rows, data, _ = _stamps(sub, x, y, half)
+    cx, cy = x.copy(), y.copy()
+    ok = np.ones(x.size, dtype=bool)
+    for _ in range(_WINDOW_ITERATIONS):
+        dx = cols - cx[:, None]
+        dy = rows - cy[:, None]
+        wx = np.exp(-0.5 * (dx / sigma_px) ** 2)
+        wy = np.exp(-0.5 * (dy / sigma_px) ** 2)
+        wi = wy[:, :, None] * wx[:, None, :] * data
+        total = np.sum(wi, axis=(1, 2))
+        ok &= total > 0
+        safe = np.where(ok, total, 1.0)
+        cx = cx + np.where(ok, 2.0 * np.sum(wi * dx[:, None, :], axis=(1, 2)) / safe, 0.0)
+        cy = cy + np.where(ok, 2.0 * np.sum(wi * dy[:, :, None], axis=(1, 2)) / safe, 0.0)
+        ok &= (np.abs(cx - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy - y) <= _WINPOS_MAX_SHIFT_PX)
+    return np.where(ok, cx, x), np.where(ok, cy, y)
 
 
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
