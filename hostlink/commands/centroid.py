@@ -21,7 +21,10 @@ DESCRIPTION = (
     "1-sigma noise per axis, its Cramer-Rao bound from flux, noise and PSF), saturated, image and time_source. The "
     "time of each image comes from one option (--time, --times, --time-pattern, --date, --time-unknown) or else from "
     "the file (FITS DATE-AVG or DATE-OBS + EXPTIME/2; EXIF DateTimeOriginal); an image with no known time is an "
-    "error. Exit 2 when no star is found in any image."
+    "error. Exit 2 when no star is found in any image. After each frame's stars come its fainter candidates "
+    "(--candidate-sigma, default 3: local maxima of the filtered image outside every detection whose PSF-fit flux "
+    "is at least that many times its noise), flagged by their significance in an snr column: identify builds no "
+    "pattern from them and names one only where the calibrated camera predicts a catalogue star."
 )
 
 

@@ -42,6 +42,14 @@ Per image:
    the mesh background leaves, e.g. on skewed noise clipped at zero): the maximum-likelihood flux where background
    noise dominates, so stars rank by signal-to-noise, not by how much noise an aperture collects; instrumental
    magnitude ``mag = -2.5 log10(flux_adu)`` (no zero point: it orders stars, brightest first).
+7. candidates (``candidate_sigma``, default 3; None: none): the local maxima of the filtered image outside every
+   detection's footprint, clear of the kept stars, centroided by the window and kept when their PSF-fit flux is at
+   least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint stars below the threshold and stars
+   SEP's minimum footprint drops (it counts footprint pixels that are themselves above the threshold: on the
+   granasat frames stars at 10-16 sigma of the matched filter had none or one), and mostly noise. The session
+   carries them after the frame's stars with their significance in the ``snr`` column (empty on detected stars);
+   identification never uses them, and names one only where the calibrated camera predicts a catalogue star
+   (:mod:`hostlink.images.guided`).
 
 SEP and this module use the camera-model pixel convention (docs/camera-model.md): ``(0, 0)`` is the centre of the
 first (top-left) pixel, ``x`` the column, ``y`` the row.

@@ -117,14 +117,25 @@ def identify_then_admit(session: Session, identify, catalogue: Catalogue | None 
     result = identify(session.select(stars))
     star_id = session.star_id.copy()
     star_id[stars] = result.session.star_id
-    record = {"round": "guided", "camera": "calibrated on the identified stars", "added": 0, "lost": 0, "renamed": 0}
+    record = {
+        "round": "guided",
+        "camera": "calibrated on the identified stars",
+        "focal_length_px": math.nan,
+        "frames_identified": result.n_frames_identified,
+        "stars_identified": result.n_identified,
+        "added": 0,
+        "lost": 0,
+        "renamed": 0,
+        "kept": True,
+    }
     camera = _calibrated(result.session, result.camera)
     if camera is None:
-        record.update(status="calibration failed: no candidate admitted", stars_identified=result.n_identified)
+        record.update(status="calibration failed: no candidate admitted")
         frames = ()
     else:
         star_id, frames = admit(session, star_id, held, camera, catalogue)
         record.update(
+            focal_length_px=float(camera.focal_length_px),
             status="admitted",
             added=int(sum(f.admitted for f in frames)),
             expected_false=float(sum(f.expected_false for f in frames)),
