@@ -97,19 +97,20 @@ def test_noise_alone_at_the_predicted_places_admits_what_chance_says(field):
     assert np.count_nonzero(held) >= 50  # the noise peaks are there to be admitted
     assert np.count_nonzero(session.star_id) >= 15  # the anchors
     star_id, (record,) = admit(session, session.star_id, held, CAMERA, cat)
-    assert record.searched >= 200 and record.admitted == np.count_nonzero(star_id[held])
+    assert record.searched >= 200 and record.admitted == np.count_nonzero(star_id != session.star_id)
     assert record.expected_false < 2.0
-    wrong = np.count_nonzero((star_id[held] != 0) & (star_id[held] != truth[held]))
+    changed = star_id != session.star_id
+    wrong = np.count_nonzero(changed & (star_id != truth))
     assert wrong <= record.expected_false + 3.0 * math.sqrt(record.expected_false) + 1.0
 
 
 @pytest.mark.parametrize("field", [(84.0, 5.0), (280.0, 40.0)], ids=["orion", "cygnus"])
 def test_faint_stars_at_3_5_to_5_sigma_are_admitted_with_their_names(field):
     """Every catalogue star rendered at its zero-point flux: the stars at 3.5-5 sigma that SEP does not detect are
-    found among the candidates and admitted with the right name: at least 60 % of them (measured 71 and 72 %: a star
+    found among the candidates and admitted with the right name: at least 60 % of them (measured 71 %: a star
     of true snr 3.5 is measured above the candidates' 3-sigma limit 69 % of the time, at 5 sigma 98 %), and no
-    candidate gets a name other than its true star's beyond the computed chance (measured 1 and 2 wrong of 112 and
-    133 admitted, expected 0.7 and 1.05)."""
+    candidate gets a name other than its true star's beyond the computed chance (measured 0 and 1 wrong of 109 and
+    130 admitted, expected 0.7 and 1.0)."""
     session, truth, hip, true_snr, detected, cat = _frame(*field, faint_rendered=True, seed=12)
     held = candidate_rows(session)
     star_id, (record,) = admit(session, session.star_id, held, CAMERA, cat)
@@ -118,5 +119,6 @@ def test_faint_stars_at_3_5_to_5_sigma_are_admitted_with_their_names(field):
     named = {int(h) for h in star_id[held] if h}
     right = np.isin(hip[faint], list(named) if named else [-1])
     assert np.count_nonzero(right) >= 0.6 * np.count_nonzero(faint)
-    wrong = np.count_nonzero((star_id[held] != 0) & (star_id[held] != truth[held]))
+    changed = star_id != session.star_id
+    wrong = np.count_nonzero(changed & (star_id != truth))
     assert wrong <= record.expected_false + 3.0 * math.sqrt(record.expected_false) + 1.0

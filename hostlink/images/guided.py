@@ -13,17 +13,20 @@ vote for none). Then, with the camera calibrated on the identified stars
 2. the photometric zero point: the median of catalogue magnitude less instrumental magnitude over the frame's
    identified unsaturated stars, and its scatter s (1.4826 x the median absolute deviation);
 3. every catalogue star the attitude puts on the detector that the frame has not identified is searched for within
-   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (sigma_px the candidate's
-   own centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma); a candidate there is
-   admitted when its instrumental magnitude agrees with the star's predicted one within
-   dm = max(:data:`PHOTOMETRIC_SIGMAS` x s, :data:`MIN_PHOTOMETRIC_WINDOW_MAG`), it is the only such candidate of
-   that star, that star the only catalogue star within r of the candidate that could be it (no fainter than the
-   candidate's magnitude + dm; a star two catalogue stars could be stays unidentified), and no detected star is
-   nearer to the prediction (a detected star left unidentified is not replaced by a fainter guess).
+   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (sigma_px the row's own
+   centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows left
+   unidentified: the candidates, and the detected stars identification did not name (its radius, before the
+   camera was calibrated, was several pixels where this one is about one); a row there is admitted when its
+   instrumental magnitude agrees with the star's predicted one within
+   dm = max(:data:`PHOTOMETRIC_SIGMAS` x s, :data:`MIN_PHOTOMETRIC_WINDOW_MAG`), it is the only such row of that
+   star, that star the only catalogue star that could be in it (within r or :data:`UNRESOLVED_PX`, whichever is
+   larger, and no fainter than the row's magnitude + :data:`COMPANION_MAG`: a star two catalogue stars could be
+   stays unidentified),
+   and no other row of the frame is nearer to the prediction.
 
-False admissions: the candidates are mostly noise, and noise peaks fall anywhere. Taking every candidate of the frame
-whose magnitude would agree with a searched star as noise, spread uniformly over the detector (an upper bound: real
-faint stars are among them), the expected number that falls within a searched star's radius by chance is
+False admissions: the candidates are mostly noise, and noise peaks fall anywhere. Taking every unidentified row of
+the frame whose magnitude would agree with a searched star as noise, spread uniformly over the detector (an upper
+bound: real faint stars are among them), the expected number that falls within a searched star's radius by chance is
 sum_j n_j pi r_j^2 / A (n_j those candidates, A the detector's area); it is computed and reported per frame
 (``expected_false``) beside the number admitted, and checked on rendered frames with noise only at the searched
 places (tests/test_images_guided.py).
@@ -53,6 +56,14 @@ PHOTOMETRIC_SIGMAS = 3.0
 #: ... and never narrower than this [mag] (a zero point from few stars; Hipparcos Hp against an unfiltered detector's
 #: band differs by colour, a few tenths of a magnitude).
 MIN_PHOTOMETRIC_WINDOW_MAG = 0.75
+#: Two stars nearer than this [px] are one detection: the sum of two equal Gaussians of sigma s has a single peak
+#: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (0.8-1.2 px on the granasat frames but the
+#: trailed 30 s one, 0.77 px on a sharp 35 mm lens). A second catalogue star within it makes a row ambiguous (close
+#: doubles: 16 Cyg A and B, 40" apart, are half a pixel at 78" per pixel).
+UNRESOLVED_PX = 3.0
+#: ... when it is at most this much fainter than the row [mag]: 10 % of the light, which moves a blend's centroid by
+#: 10 % of the pair's separation (0.3 px at 3 px).
+COMPANION_MAG = 2.5
 #: A frame needs this many identified stars for its attitude and zero point (three for an attitude, more for a
 #: residual that says how well it predicts).
 MIN_FRAME_STARS = 6
@@ -238,25 +249,28 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     searched = ~np.isin(catalogue.hip[near], star_id[named])
     near, xp, yp = near[searched], xp[searched], yp[searched]
     predicted_mag = catalogue.mag[near] - zero_point  # instrumental
-    cand = np.flatnonzero(held & np.isfinite(mag) & np.isfinite(sigma_px))
+    # every row left unidentified: the candidates, and the detected stars identification could not name (with the
+    # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
+    cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
     radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand] ** 2)  # per candidate
     # candidate i could be catalogue star j: near enough and as bright as predicted
     d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
     within = d2 <= radius[:, None] ** 2
-    could_be = within & (predicted_mag[None, :] <= mag[cand, None] + window)  # bright enough to be it
+    # ... and every catalogue star whose light could be in this row: unresolved from it, bright enough
+    blended = d2 <= np.maximum(radius, UNRESOLVED_PX)[:, None] ** 2
+    could_be = blended & (predicted_mag[None, :] <= mag[cand, None] + max(window, COMPANION_MAG))
     match = within & agree
     out = star_id.copy()
-    detected = np.flatnonzero(~held)
-    dd2 = (x[detected, None] - xp[None, :]) ** 2 + (y[detected, None] - yp[None, :]) ** 2
-    nearest_detected = np.sqrt(dd2.min(axis=0)) if detected.size else np.full(near.size, np.inf)
+    # the row nearest to each prediction, of all the frame's rows (an identified star nearer to it is that star's)
+    nearest_row = np.argmin((x[:, None] - xp[None, :]) ** 2 + (y[:, None] - yp[None, :]) ** 2, axis=0)
     admitted = 0
     for i in np.flatnonzero(np.count_nonzero(match, axis=1) == 1):
         j = int(np.flatnonzero(match[i])[0])
         if np.count_nonzero(could_be[i]) != 1 or np.count_nonzero(match[:, j]) != 1:
-            continue  # two catalogue stars could be this candidate, or two candidates this star
-        if nearest_detected[j] <= math.sqrt(d2[i, j]):
-            continue  # a detected star is nearer to the prediction
+            continue  # two catalogue stars could be this row, or two rows this star
+        if nearest_row[j] != cand[i]:
+            continue  # another row is nearer to the prediction
         out[cand[i]] = catalogue.hip[near[j]]
         admitted += 1
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
