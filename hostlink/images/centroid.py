@@ -12,7 +12,8 @@ Per image:
    footprint (default 2: SEP counts the footprint's pixels that are themselves above the threshold, and a sharp
    faint star has 1-2; 3 lost 5 of the stars the plate solver names on the granasat frames; 1 keeps 5 more of them,
    but lets the heavy tail of clipped, correlated 8-bit noise through: 18 false detections per 1.3 Mpx in the test
-   of it), its multi-threshold deblending (32 levels, contrast 0.005);
+   of it), its multi-threshold deblending (32 levels, contrast 0.005), without SEP's cleaning (it merged sharp stars
+   of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
    flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within
@@ -44,9 +45,8 @@ Per image:
    magnitude ``mag = -2.5 log10(flux_adu)`` (no zero point: it orders stars, brightest first).
 7. candidates (``candidate_sigma``, default 3; None: none): the local maxima of the filtered image outside every
    detection's footprint, clear of the kept stars, centroided by the window and kept when their PSF-fit flux is at
-   least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint stars below the threshold and stars
-   SEP's minimum footprint drops (it counts footprint pixels that are themselves above the threshold: on the
-   granasat frames stars at 10-16 sigma of the matched filter had none or one), and mostly noise. The session
+   least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint stars below the threshold and
+   stars the extraction loses otherwise, and mostly noise. The session
    carries them after the frame's stars with their significance in the ``snr`` column (empty on detected stars);
    identification never uses them, and names one only where the calibrated camera predicts a catalogue star
    (:mod:`hostlink.images.guided`).
@@ -115,6 +115,11 @@ _PSF_SHAPE_MAX_SIGMA = 0.1
 SATURATED_SIGMA_PX = 0.3
 #: SEP's buffers: a noisy frame at a low threshold can hold many more pixels above threshold than SEP's default.
 _SEP_PIXSTACK = 3_000_000
+#: SEP's cleaning (Source Extractor's CLEAN: a detection its bright neighbour's modelled wing could explain is merged
+#: into it) is off: on the granasat frames it removed sharp stars of 8-16 sigma 8-18 px from a bright one (the
+#: stars the plate solver names; found with it off, at the same threshold and footprint). What cleaning guards
+#: against, bumps on a bright star's wing, the blend test and the PSF fit's flux see.
+_SEP_CLEAN = False
 _SEP_SUB_OBJECTS = 4096
 
 
@@ -287,7 +292,7 @@ _CANDIDATE_CLEAR_SIGMAS = _PSF_FIT_SIGMAS
 
 def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
     """Module docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
-    footprint (below the threshold, or dropped by SEP's minimum footprint) and clear of the kept stars, centroided by
+    footprint (below the threshold, or lost by the extraction) and clear of the kept stars, centroided by
     the window of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for
     every faint star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at
     least ``candidate_sigma`` x its noise: snr = F sqrt(sum P^2) / rms (:func:`_snr`). Most are noise, and they are
@@ -427,6 +432,7 @@ def _extract(data: np.ndarray, options: CentroidOptions):
             filter_kernel=_FILTER_KERNEL,
             deblend_nthresh=32,
             deblend_cont=0.005,
+            clean=_SEP_CLEAN,
             segmentation_map=True,
         )
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
