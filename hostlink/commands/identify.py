@@ -119,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
         if guided:
             print(
                 f"faint candidates admitted: {guided[0]['added']} of the {guided[0]['searched']} catalogue stars "
-                f"searched (by chance, noise would put {guided[0]['expected_false']:.1f} there)"
+                f"searched (by chance, noise would put {guided[0]['expected_false']:.1f} there); "
+                f"{guided[0]['frames_declined']} frame(s) admitted none, chance explaining over 5 % of their admissions"
             )
         print(
             f"identified {result.n_identified} stars in {result.n_frames_identified} of {len(result.frames)} frames "

@@ -29,7 +29,8 @@ the frame whose magnitude would agree with a searched star as noise, spread unif
 bound: real faint stars are among them), the expected number that falls within a searched star's radius by chance is
 sum_j n_j pi r_j^2 / A (n_j those candidates, A the detector's area); it is computed and reported per frame
 (``expected_false``) beside the number admitted, and checked on rendered frames with noise only at the searched
-places (tests/test_images_guided.py).
+places (tests/test_images_guided.py). A frame where chance would explain more than :data:`MAX_FALSE_FRACTION` of its
+admissions admits none (its record says so, with the figures).
 
 Each admitted star keeps its ``sigma_px``: the calibration weights it by it, so a faint star counts little.
 """
@@ -64,6 +65,10 @@ UNRESOLVED_PX = 3.0
 #: ... when it is at most this much fainter than the row [mag]: 10 % of the light, which moves a blend's centroid by
 #: 10 % of the pair's separation (0.3 px at 3 px).
 COMPANION_MAG = 2.5
+#: A frame's admissions stand only when noise would explain at most this fraction of them (the expected number by
+#: chance over the number admitted): a wrong identity that reaches the fit is worse than none, and the calibration's
+#: outlier rejection is built for a few percent.
+MAX_FALSE_FRACTION = 0.05
 #: A frame needs this many identified stars for its attitude and zero point (three for an attitude, more for a
 #: residual that says how well it predicts).
 MIN_FRAME_STARS = 6
@@ -149,7 +154,8 @@ def identify_then_admit(session: Session, identify, catalogue: Catalogue | None 
             focal_length_px=float(camera.focal_length_px),
             status="admitted",
             added=int(sum(f.admitted for f in frames)),
-            expected_false=float(sum(f.expected_false for f in frames)),
+            expected_false=float(sum(f.expected_false for f in frames if f.status == "admitted")),
+            frames_declined=int(sum(f.status.startswith("not admitted") for f in frames)),
             searched=int(sum(f.searched for f in frames)),
             per_frame=[vars(f) for f in frames],
         )
@@ -261,7 +267,7 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     blended = d2 <= np.maximum(radius, UNRESOLVED_PX)[:, None] ** 2
     could_be = blended & (predicted_mag[None, :] <= mag[cand, None] + max(window, COMPANION_MAG))
     match = within & agree
-    out = star_id.copy()
+    names = star_id.copy()
     # the row nearest to each prediction, of all the frame's rows (an identified star nearer to it is that star's)
     nearest_row = np.argmin((x[:, None] - xp[None, :]) ** 2 + (y[:, None] - yp[None, :]) ** 2, axis=0)
     admitted = 0
@@ -271,12 +277,15 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
             continue  # two catalogue stars could be this row, or two rows this star
         if nearest_row[j] != cand[i]:
             continue  # another row is nearer to the prediction
-        out[cand[i]] = catalogue.hip[near[j]]
+        names[cand[i]] = catalogue.hip[near[j]]
         admitted += 1
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     width, height = image_size_px
     expected = float(np.sum(agree * (math.pi * radius**2)[:, None]) / (width * height))
-    return out, FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
+    record = FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
+    if expected > MAX_FALSE_FRACTION * admitted:
+        return star_id, replace(record, admitted=0, status="not admitted: chance too high")
+    return names, record
 
 
 def _frame_attitude(x, y, r, theta):
