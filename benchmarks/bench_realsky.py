@@ -300,7 +300,10 @@ def _print(s: dict, once: int, log) -> None:
     )
     for r in s["rounds"]:
         chance = (
-            f" (expected by chance {r['expected_false']:.1f} of {r['searched']} searched)" if "searched" in r else ""
+            f" (expected by chance {r['expected_false']:.1f} of {r['searched']} searched; "
+            f"{r['frames_declined']} frames admitted none: chance too high)"
+            if "searched" in r
+            else ""
         )
         log(
             f"  round {r['round']}: {r['stars_identified']} stars, +{r['added']} -{r['lost']} renamed {r['renamed']}"
