@@ -43,12 +43,12 @@ Per image:
    the mesh background leaves, e.g. on skewed noise clipped at zero): the maximum-likelihood flux where background
    noise dominates, so stars rank by signal-to-noise, not by how much noise an aperture collects; instrumental
    magnitude ``mag = -2.5 log10(flux_adu)`` (no zero point: it orders stars, brightest first).
-7. candidates (``candidate_sigma``, default 3; None: none): the local maxima of the filtered image outside every
-   detection's footprint, clear of the kept stars, centroided by the window and kept when their PSF-fit flux is at
-   least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint stars below the threshold and
-   stars the extraction loses otherwise, and mostly noise. The session
-   carries them after the frame's stars with their significance in the ``snr`` column (empty on detected stars);
-   identification never uses them, and names one only where the calibrated camera predicts a catalogue star
+7. candidates (``candidate_sigma``, default 3; None, or not below ``threshold_sigma``: none): the local maxima of
+   the filtered image outside every detection's footprint, clear of the kept stars, centroided by the window and
+   kept when their PSF-fit flux is at least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint
+   stars below the threshold, stars the extraction loses otherwise, and mostly noise. The session carries them
+   after the frame's stars with their significance in the ``snr`` column (empty on detected stars); identification
+   never uses them, and names one only where the calibrated camera predicts a catalogue star
    (:mod:`hostlink.images.guided`).
 
 SEP and this module use the camera-model pixel convention (docs/camera-model.md): ``(0, 0)`` is the centre of the
@@ -279,7 +279,8 @@ def centroid_pixels(
     if stars is None:
         return _no_stars(report)
     detections = _measured(sub, rms, *stars, options, report)
-    if options.candidate_sigma is not None and detections.x_px.size:
+    fainter = options.candidate_sigma is not None and options.candidate_sigma < options.threshold_sigma
+    if fainter and detections.x_px.size:  # candidates are what lies below the detection threshold
         detections.candidates = _candidates(sub, rms, filtered, segmap, detections, report.psf_sigma_px, options)
         report.candidates = int(detections.candidates.x_px.size)
     return detections
