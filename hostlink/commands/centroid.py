@@ -111,8 +111,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=3.0,
         metavar="N",
-        help="also write fainter candidates down to this significance, flagged in the snr column (default 3): "
-        "identify names one only where the calibrated camera predicts a catalogue star",
+        help="also write fainter candidates down to this significance, flagged in the snr column (default 3; none "
+        "when not below --threshold-sigma): identify names one only where the calibrated camera predicts a catalogue "
+        "star",
     )
     candidates.add_argument("--no-candidates", action="store_true", help="write the detected stars only")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
