@@ -26,7 +26,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +88,21 @@ def _frame_rms_rad(b: np.ndarray, r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(residuals_rad(b, r, c) ** 2)))
 
 
+def _pooled(scored: list[tuple[float, float, int]]) -> dict | None:
+    """RMS over every frame's stars [arcsec] of per-frame RMS figures (ours, the solver's) weighted by star count."""
+    if not scored:
+        return None
+    ours, solver, n = (np.array(v, dtype=np.float64) for v in zip(*scored, strict=True))
+    keep = np.isfinite(ours) & np.isfinite(solver)
+    if not np.any(keep):
+        return None
+
+    def pool(v: np.ndarray) -> float:
+        return float(np.sqrt(np.sum(n[keep] * v[keep] ** 2) / np.sum(n[keep]))) * ARCSEC_PER_RAD
+
+    return {"stars": int(np.sum(n[keep])), "our_camera": pool(ours), "solver_camera": pool(solver)}
+
+
 def _directions(catalogue, hip: np.ndarray) -> np.ndarray:
     from hostlink.sky.apparent import hip_lookup, stars_at_j2000
     from onboard.camera import radec_to_unit
@@ -96,11 +111,12 @@ def _directions(catalogue, hip: np.ndarray) -> np.ndarray:
     return radec_to_unit(stars.ra_rad, stars.dec_rad)
 
 
-def run_set(image_set: ImageSet, log=print) -> dict:
+def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     from hostlink.calibration.run import calibrate_session
     from hostlink.files.params import params_from_dict
     from hostlink.images import solver_adapter
     from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
+    from hostlink.images.guided import candidate_rows
     from hostlink.images.identify import identify_iteratively, identify_session
     from hostlink.images.read import read_image
     from hostlink.sky.catalogue import load_catalogue
@@ -117,10 +133,13 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     identify_session(centroid_images(paths[:1], CentroidOptions(), TimeOptions(time_unknown=True)).session, nominal)
 
     options = CentroidOptions(threshold_sigma=image_set.threshold_sigma, median_of_inputs=image_set.median_of_inputs)
+    if not candidates:  # the detected stars alone: no guided admission (the figures before it)
+        options = replace(options, candidate_sigma=None)
     t0 = time.process_time()
     cent = centroid_images(paths, options, TimeOptions(time_unknown=True))
     t1 = time.process_time()
-    once = identify_session(cent.session, nominal)
+    detected = cent.session.select(~candidate_rows(cent.session))  # the faint candidates are only for ..._iteratively
+    once = identify_session(detected, nominal)
     t2 = time.process_time()
     ident = identify_iteratively(cent.session, nominal)
     t3 = time.process_time()
@@ -133,13 +152,13 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     frames = [(e.x_px - x0, e.y_px - y0, e.brightness) for e in engine]
     engine_cal = solver_adapter.engine_calibration(database, frames, (width, height), fov)
     # the solver given our centroids (brightest first) instead of its own: for a set its extractor finds nothing in
-    starts = cent.session.frame_starts
+    starts = detected.frame_starts
     ours_frames = []
     for k in range(len(paths)):
         a, b = int(starts[k]), int(starts[k + 1])
-        order = a + np.argsort(cent.session.mag[a:b], kind="stable")
-        flux = 10.0 ** (-0.4 * cent.session.mag[order])
-        ours_frames.append((cent.session.x_px[order] - x0, cent.session.y_px[order] - y0, flux))
+        order = a + np.argsort(detected.mag[a:b], kind="stable")
+        flux = 10.0 ** (-0.4 * detected.mag[order])
+        ours_frames.append((detected.x_px[order] - x0, detected.y_px[order] - y0, flux))
     engine_on_ours = solver_adapter.engine_calibration(database, ours_frames, (width, height), fov)
 
     # our camera: calibrated on the final identities (the default method), our residual per frame through it
@@ -147,15 +166,21 @@ def run_set(image_set: ImageSet, log=print) -> dict:
     theta = outcome.params.model_vector(np.float64)
     session = ident.session
     starts = session.frame_starts
+    faint = candidate_rows(session)
     rows_out = []
+    scored = []  # per frame: (our camera, the solver's camera) on the solver's stars [rad], and their number
     for k, path in enumerate(paths):
         a, b = int(starts[k]), int(starts[k + 1])
         sid = session.star_id[a:b]
-        named = sid != 0
-        ours_rms = math.nan
+        named = (sid != 0) & ~faint[a:b]  # the detected stars (the admitted faint ones apart)
+        ours_rms = ours_all_rms = math.nan
         if np.count_nonzero(named) >= 3:
             bvec = pixels_to_unit(session.x_px[a:b][named], session.y_px[a:b][named], theta)
             ours_rms = _frame_rms_rad(bvec, _directions(catalogue, sid[named]))
+        every = sid != 0
+        if np.count_nonzero(every) >= 3:
+            bvec = pixels_to_unit(session.x_px[a:b][every], session.y_px[a:b][every], theta)
+            ours_all_rms = _frame_rms_rad(bvec, _directions(catalogue, sid[every]))
         e = engine[k]
         agree = disagree = missed = undetected = 0
         engine_rms = math.nan
@@ -175,6 +200,9 @@ def run_set(image_set: ImageSet, log=print) -> dict:
             if engine_cal is not None and e.rows.size >= 3:
                 bvec = solver_adapter.engine_pixels_to_unit(engine_cal, ex - x0, ey - y0)
                 engine_rms = _frame_rms_rad(bvec, _directions(catalogue, e.hip))
+            if e.rows.size >= 3:  # our camera scored on the solver's own stars (its centroids and names)
+                ours_on_solver = _frame_rms_rad(pixels_to_unit(ex, ey, theta), _directions(catalogue, e.hip))
+                scored.append((ours_on_solver, engine_rms, e.rows.size))
         rows_out.append(
             {
                 "frame": path.name,
@@ -186,6 +214,8 @@ def run_set(image_set: ImageSet, log=print) -> dict:
                 "solver_stars_we_do_not_keep": undetected,
                 "ours_rms_px": ours_rms * theta[0],
                 "ours_rms_arcsec": ours_rms * ARCSEC_PER_RAD,
+                "ours_with_faint_rms_px": ours_all_rms * theta[0],
+                "ours_faint_admitted": int(np.count_nonzero(every & faint[a:b])),
                 "solver_rms_px": engine_rms * (engine_cal.focal_px if engine_cal else math.nan),
                 "solver_rms_arcsec": engine_rms * ARCSEC_PER_RAD,
             }
@@ -203,6 +233,7 @@ def run_set(image_set: ImageSet, log=print) -> dict:
         "solver_stars_we_leave_unnamed": sum(r["solver_stars_we_leave_unnamed"] for r in rows_out),
         "solver_stars_we_do_not_keep": sum(r["solver_stars_we_do_not_keep"] for r in rows_out),
         "ours_calibrated_rms_px": outcome.after.get("rms_px"),
+        "on_the_solvers_stars_arcsec": _pooled(scored),
         "solver_calibrated_rmse_px": None if engine_cal is None else engine_cal.rmse_px,
         "solver_on_our_centroids": None
         if engine_on_ours is None
@@ -227,12 +258,15 @@ def run_set(image_set: ImageSet, log=print) -> dict:
 def _print(s: dict, once: int, log) -> None:
     t = s["time_s"]
     log(f"== {s['set']}: {s['frames']} frames")
-    log(f"{'frame':34s} {'ours':>5s} {'solver':>6s} {'both':>5s} {'differ':>6s} {'ours px':>8s} {'solver px':>9s}")
+    log(
+        f"{'frame':34s} {'ours':>5s} {'faint':>5s} {'solver':>6s} {'both':>5s} {'differ':>6s} {'ours px':>8s} "
+        f"{'+faint px':>9s} {'solver px':>9s}"
+    )
     for r in s["per_frame"]:
         log(
-            f"{r['frame']:34s} {r['ours_identified']:5d} {r['solver_identified']:6d} "
+            f"{r['frame']:34s} {r['ours_identified']:5d} {r['ours_faint_admitted']:5d} {r['solver_identified']:6d} "
             f"{r['solver_stars_we_identify']:5d} {r['solver_stars_we_name_differently']:6d} "
-            f"{r['ours_rms_px']:8.3f} {r['solver_rms_px']:9.3f}"
+            f"{r['ours_rms_px']:8.3f} {r['ours_with_faint_rms_px']:9.3f} {r['solver_rms_px']:9.3f}"
         )
     share = s["solver_stars_we_identify"] / s["solver_stars"] if s["solver_stars"] else math.nan
     log(
@@ -247,6 +281,12 @@ def _print(s: dict, once: int, log) -> None:
         f"calibrated residual: ours {s['ours_calibrated_rms_px']:.3f} px, solver "
         + ("(nothing solved)" if solver_rmse is None else f"{solver_rmse:.3f} px")
     )
+    scored = s["on_the_solvers_stars_arcsec"]
+    if scored:
+        log(
+            f"scored on the solver's {scored['stars']} stars (its centroids and names): our camera "
+            f'{scored["our_camera"]:.2f}", the solver\'s {scored["solver_camera"]:.2f}"'
+        )
     on_ours = s["solver_on_our_centroids"]
     if on_ours:
         log(
@@ -259,16 +299,26 @@ def _print(s: dict, once: int, log) -> None:
         f"{t['solver_extract_and_solve']:.2f} s"
     )
     for r in s["rounds"]:
-        log(f"  round {r['round']}: {r['stars_identified']} stars, +{r['added']} -{r['lost']} renamed {r['renamed']}")
+        chance = (
+            f" (expected by chance {r['expected_false']:.1f} of {r['searched']} searched; "
+            f"{r['frames_declined']} frames admitted none: chance too high)"
+            if "searched" in r
+            else ""
+        )
+        log(
+            f"  round {r['round']}: {r['stars_identified']} stars, +{r['added']} -{r['lost']} renamed {r['renamed']}"
+            + chance
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--set", choices=(*SETS, "all"), default="all")
     parser.add_argument("--json", metavar="OUT", help="write the figures as JSON")
+    parser.add_argument("--no-candidates", action="store_true", help="centroid without the faint candidates")
     args = parser.parse_args()
     chosen = list(SETS) if args.set == "all" else [args.set]
-    results = [run_set(SETS[name]) for name in chosen]
+    results = [run_set(SETS[name], candidates=not args.no_candidates) for name in chosen]
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=float))
 

@@ -10,7 +10,9 @@ real or emulated) only carry commands and replies; no rule lives in them.
 Commands and what they require (NAK code when refused):
 
 =================  ======================================================================================
-STREAM_CONTROL     always accepted
+STREAM_CONTROL     always accepted; the Ack's value of a start is the frame counter (low 32 bits) of the stream's first
+                   exposure (:attr:`Firmware.next_frame` when the stream started; a start while streaming changes
+                   nothing and carries the same value), of a stop 0
 STAGE_BEGIN        length == TABLE_BYTES (92) (BAD_LENGTH); the session record persisted (BANK_WRITE_FAILED);
                    the Ack's value is the new staging session's nonce
 STAGE_CHUNK        an upload in progress (NOT_STAGED); chunk inside the table (BAD_LENGTH); un-verifies
@@ -132,6 +134,10 @@ class Firmware:
         self.store = store
         self.streaming = False
         self.counters = Counters()
+        #: frame counter (low 32 bits) the camera gives the next exposure: the last exposure's + 1, or what the
+        #: camera's driver announced (:meth:`set_next_frame`); 0 after boot
+        self.next_frame = 0
+        self.stream_first_frame = 0  # the counter the current stream's start was acknowledged with
         self.budget = budget or EstimatorBudget()
         if not (np.isfinite(self.budget.flops_per_s) and self.budget.flops_per_s > 0):
             raise ValueError("the estimator budget needs flops_per_s > 0")
@@ -192,8 +198,18 @@ class Firmware:
         )
 
     def _stream_control(self, cmd: StreamControl) -> Ack:
-        self.streaming = bool(cmd.enable)
-        return self._ack(cmd)
+        if not cmd.enable:
+            self.streaming = False
+            return self._ack(cmd)
+        if not self.streaming:  # a new stream: its first exposure is the camera's next one
+            self.streaming = True
+            self.stream_first_frame = self.next_frame
+        return self._ack(cmd, value=self.stream_first_frame)
+
+    def set_next_frame(self, frame: int) -> None:
+        """The camera's driver announces the frame counter of the next exposure (a camera whose counter does not
+        simply follow the last exposure's, e.g. frames taken while not streaming, or a replayed session)."""
+        self.next_frame = int(frame) & 0xFFFFFFFF
 
     def _stage_begin(self, cmd: StageBegin) -> Message:
         result = banks.stage_begin(self.store, cmd.length)
@@ -271,6 +287,7 @@ class Firmware:
         """The exposure was taken (and is streamed): frame counters only, constant work."""
         self.counters.frames_processed += 1
         self.counters.last_frame = int(frame.frame)
+        self.next_frame = (int(frame.frame) + 1) & 0xFFFFFFFF
 
     def estimate_frame(self, frame: CentroidFrame, r_ref: np.ndarray | None) -> None:
         """Run the estimator on an exposure's identified stars (``r_ref``: reference unit vectors (N, 3) from the

@@ -21,6 +21,12 @@ restart, one recording drawn from all of them so far is sent again on the line, 
 a random byte prefix, or a random subset of its frames in random order; then the active set is read again. Pass: it
 is unchanged (nothing activated). The first recording is a complete upload whose COMMIT went through.
 
+Replays to other units, on every transport (``--unit-replays N``): N times, a new unit (a fresh --flash file) takes an
+upload whose link calls (STAGE_BEGIN, the chunks, STAGE_VERIFY, COMMIT with its nonce) are recorded as the host made
+them; then those calls are made again, as another host would, to another new unit and to the first unit restarted on
+its flash. Pass: neither activates anything (the factory set, resp. the uploaded set, stays). The line recording
+above is serial only; this one goes through each transport's own command path (CAN ISO-TP, Modbus registers).
+
 Run (the acceptance run, 200 points and 200 replays; about 3 minutes on 2 cores)::
 
     .venv/bin/python scripts/flash_power_cuts.py --trials 200 --seed 1
@@ -115,6 +121,65 @@ def replay_on_line(link_string: str, data: bytes) -> tuple[int, bytes]:
     return active.generation, bytes(active.table)
 
 
+#: The link calls of an upload that a replay of it makes again.
+UPLOAD_CALLS = ("stage_begin", "stage_chunk", "stage_verify", "commit")
+
+
+def record_calls(link) -> list[tuple[str, tuple, dict]]:
+    """Tap ``link``'s upload calls: each (name, args, kwargs) is appended to the returned list as it is made."""
+    calls: list[tuple[str, tuple, dict]] = []
+    for name in UPLOAD_CALLS:
+        method = getattr(link, name)
+
+        def tap(*args, _name=name, _method=method, **kwargs):
+            calls.append((_name, args, kwargs))
+            return _method(*args, **kwargs)
+
+        setattr(link, name, tap)
+    return calls
+
+
+def replay_calls(link_string: str, calls: list[tuple[str, tuple, dict]]) -> tuple[tuple[int, bytes], int]:
+    """Make recorded upload calls again on a sensor (refusals expected); returns its active set afterwards and how
+    many calls it accepted."""
+    accepted = 0
+    with open_link(link_string, timeout_s=5.0) as link:
+        for name, args, kwargs in calls:
+            try:
+                getattr(link, name)(*args, **kwargs)
+                accepted += 1
+            except CommandRefused:
+                pass
+        active = link.read_active()
+    return (active.generation, bytes(active.table)), accepted
+
+
+def unit_replays(
+    n: int, workdir: Path, transport: str = "serial", firmware: str = "python"
+) -> tuple[list[str], list[tuple[int, int]]]:
+    """``n`` rounds of the module docstring's replays to other units on ``transport``. Returns a description of every
+    replay that activated something (empty: none did) and, per replay, (calls accepted, calls made): a replay that
+    reached the sensor has every call but the COMMIT accepted."""
+    args = (*EMULATOR_ARGS, "--firmware", firmware)
+    failures: list[str] = []
+    reached: list[tuple[int, int]] = []
+    for k in range(n):
+        target = SET_B if k % 2 == 0 else SET_A
+        recorder = workdir / f"unit-{k}-a.img"
+        with EmulatorProcess(transport, args, flash_path=recorder) as emulator:
+            with open_link(emulator.link, timeout_s=5.0) as link:
+                calls = record_calls(link)
+                safe_upload(link, target)
+        for who, flash in (("a new unit", workdir / f"unit-{k}-b.img"), ("the same unit restarted", recorder)):
+            with EmulatorProcess(transport, args, flash_path=flash) as emulator:
+                before = read_active(emulator.link)
+                after, accepted = replay_calls(emulator.link, calls)
+            reached.append((accepted, len(calls)))
+            if after != before:
+                failures.append(f"round {k}, {who}: generation {before[0]} -> {after[0]} ({accepted} calls accepted)")
+    return failures, reached
+
+
 def session_counter(flash: Path) -> int:
     """The sensor's persisted staging-session counter, read from its flash image file as a boot would."""
     return banks.boot(banks.RamFlash(np.fromfile(flash, dtype=np.uint8))).nonce_counter
@@ -197,9 +262,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--transport", default="serial", choices=("serial", "can", "modbus"))
     parser.add_argument("--no-replays", action="store_true", help="power cuts only (replays need --transport serial)")
     parser.add_argument("--firmware", default="python", choices=("python", "c"), help="the emulated sensor's firmware")
+    parser.add_argument("--unit-replays", type=int, default=0, metavar="N", help="N uploads replayed to other units")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         trials = run_trials(args.trials, args.seed, Path(tmp), args.transport, not args.no_replays, args.firmware)
+        unit_failures, reached = unit_replays(args.unit_replays, Path(tmp), args.transport, args.firmware)
+    for failure in unit_failures:
+        print(f"replay to {failure}: ACTIVATED")
+    if args.unit_replays:
+        all_but_commit = sum(accepted == made - 1 for accepted, made in reached)
+        print(
+            f"{args.unit_replays} recorded uploads ({args.transport}) replayed to a new unit and to the recording unit "
+            f"restarted: {len(reached) - len(unit_failures)} of {len(reached)} activated nothing; in {all_but_commit} "
+            "the sensor accepted every call but the COMMIT"
+        )
     counts = Counter(t.outcome if t.outcome in ("old", "new") else "other" for t in trials)
     for t in trials:
         if t.outcome not in ("old", "new"):
@@ -226,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{len(replayed)} replays of recorded uploads {kinds}: {len(replayed) - len(activated)} activated nothing; "
             f"{acted} reached the sensor's staging (it opened a session for their STAGE_BEGIN)"
         )
-    return 0 if counts["other"] == 0 and not activated else 1
+    return 0 if counts["other"] == 0 and not activated and not unit_failures else 1
 
 
 if __name__ == "__main__":

@@ -53,6 +53,9 @@ def _tables() -> list[bytes]:
 
 
 TABLES = _tables()
+#: The C library the twins load (None: the ordinary build, ``firmware_c.load_library()``; the sanitized one for
+#: ``scripts/firmware_c_proof.py --sanitize``).
+LIBRARY = None
 
 
 def with_field(table: bytes, index: int, value: float) -> bytes:
@@ -86,10 +89,14 @@ class Twins:
         self.c_identity = banks.seeded_identity(seed)
         if image is None:
             self.py = Firmware(banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, self.py_identity))
-            self.c = CFirmware(banks.RamFlash(), self.c_identity, LIMITS, factory=NOMINAL, with_estimator=False)
+            self.c = CFirmware(
+                banks.RamFlash(), self.c_identity, LIMITS, factory=NOMINAL, with_estimator=False, library=LIBRARY
+            )
         else:
             self.py = Firmware(banks.boot(banks.RamFlash(image.copy()), LIMITS, self.py_identity))
-            self.c = CFirmware(banks.RamFlash(image.copy()), self.c_identity, LIMITS, with_estimator=False)
+            self.c = CFirmware(
+                banks.RamFlash(image.copy()), self.c_identity, LIMITS, with_estimator=False, library=LIBRARY
+            )
         self.table = TABLES[0]
         self.nonce = 0
         self.steps = 0
@@ -129,7 +136,9 @@ class Twins:
     def reboot(self) -> None:
         """Power cycle both (RAM lost, flash kept, the same device)."""
         self.py = Firmware(banks.boot(banks.RamFlash(self.py.store.flash.image.copy()), LIMITS, self.py_identity))
-        self.c = CFirmware(banks.RamFlash(self.c.flash.image.copy()), self.c_identity, LIMITS, with_estimator=False)
+        self.c = CFirmware(
+            banks.RamFlash(self.c.flash.image.copy()), self.c_identity, LIMITS, with_estimator=False, library=LIBRARY
+        )
 
     def power_cut(self, budget: int, message: m.Message) -> None:
         """``message`` with the power failing after ``budget`` flash bytes: both stop at the same byte (or both
@@ -148,6 +157,32 @@ class Twins:
         self.c.flash.power_budget = None
         self.check_flash()
         self.reboot()
+
+    def exposure(self, counter: int) -> None:
+        """Both count one exposure with frame counter ``counter`` (no catalogue: no estimator run)."""
+        frame = m.CentroidFrame(
+            frame=counter, t_us=counter, star_id=np.array([1], np.uint32), x_px=np.array([1.0]),
+            y_px=np.array([2.0]), mag=np.array([np.nan]),
+        )  # fmt: skip
+        assert self.py.process_frame(frame, None) == self.c.process_frame(frame, None)
+
+    def cross_boot(self, seed: int) -> int:
+        """The Python firmware's flash image booted by a C sensor and the C firmware's by a Python one (the same
+        device, ``seed``): READ_ACTIVE, GET_STATUS and a STAGE_BEGIN (the next nonce: counter and epoch recovered
+        alike) give the same bytes, and the two images after it are the same. Returns the active generation."""
+        identity = banks.seeded_identity(seed)
+        py_image, c_image = self.py.store.flash.image.copy(), self.c.flash.image.copy()
+        c_boot = CFirmware(
+            banks.RamFlash(py_image), banks.seeded_identity(seed), LIMITS, with_estimator=False, library=LIBRARY
+        )
+        py_boot = Firmware(banks.boot(banks.RamFlash(c_image), LIMITS, identity))
+        for command in (m.ReadActive(tag=1), m.GetStatus(tag=2), m.StageBegin(tag=3, length=TABLE_BYTES)):
+            py_reply, c_reply = m.encode(py_boot.handle(command)), c_boot.handle_bytes(m.encode(command))
+            assert c_reply == py_reply, (
+                f"cross-boot after {self.steps} steps, {command}:\n py {py_reply}\n  c {c_reply}"
+            )
+        assert np.array_equal(py_boot.store.flash.image, c_boot.flash.image), f"cross-boot after {self.steps} steps"
+        return banks.active_generation(py_boot.store)
 
     # ------------------------------------------------------------------------------------------------ a step
     def generation(self) -> int:
@@ -171,8 +206,13 @@ class Twins:
         kind %= 17
         if kind == 0:
             self.command(m.GetStatus(tag=tag))
-        elif kind == 1:
-            self.command(m.StreamControl(tag=tag, enable=bool(a & 1)))
+        elif kind == 1:  # an exposure (counter a) or the camera's announcement of its next counter, then a start/stop
+            if c < 64:
+                self.exposure(a)
+            elif c < 128:
+                self.py.set_next_frame(a)
+                self.c.set_next_frame(a)
+            self.command(m.StreamControl(tag=tag, enable=bool(b & 1)))
         elif kind == 2:
             self.table = TABLES[a % len(TABLES)]
             self.command(m.StageBegin(tag=tag, length=TABLE_BYTES if c < 230 else b % 300))

@@ -51,7 +51,7 @@ def test_c_seam_reports_the_python_seams_estimate(precision, sigma):
     blob = ctypes.create_string_buffer(1 << 16)
 
     def c_saved_state() -> bytes:
-        # the seam's state begins with its recursive_state_t (estimator_seam.c), and a pointer to a struct points
+        # the seam's state begins with its recursive_state_t (estimator_seam_state.h), and a pointer to a struct points
         # to its first member (C99 6.7.2.1p13): recursive_save_state reads the seam's filter as it stands
         n_bytes = lib.recursive_save_state(c_state, blob, len(blob))
         assert n_bytes > 0

@@ -137,3 +137,37 @@ def test_a_recorded_first_upload_replayed_to_another_fresh_sensor_commits_nothin
     assert active.generation == 1 and banks.params_to_table(active.params) != banks.params_to_table(CAMERA)
     image = np.fromfile(tmp_path / "b.img", dtype=np.uint8)
     assert banks.boot(banks.RamFlash(image)).nonce_counter == 1  # the replay reached it: its STAGE_BEGIN was answered
+
+
+@pytest.mark.parametrize("firmware", ["python", "c"])
+@pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
+def test_a_recorded_upload_replayed_to_another_unit_or_the_same_restarted_commits_nothing_on_every_transport(
+    tmp_path, transport, firmware
+):
+    """Issue 27: an upload's link calls recorded on one new unit (STAGE_BEGIN, chunks, STAGE_VERIFY, COMMIT with its
+    nonce) and made again, through the transport's own command path, to another new unit and to the first restarted:
+    the sensor accepts every call but the COMMIT (the replay reached its staging) and nothing is activated."""
+    script = load_script("flash_power_cuts.py")
+    failures, reached = script.unit_replays(1, tmp_path, transport, firmware)
+    assert failures == []
+    assert len(reached) == 2 and all(accepted == made - 1 and made >= 4 for accepted, made in reached), reached
+
+
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_a_unit_restarted_on_its_flash_keeps_its_uid_so_its_nonces_follow_its_counter(tmp_path, firmware):
+    """The emulated unit is its flash file: restarted on it, the same uid (hostlink.emulator.setup.unit_identity: an
+    MCU's unique ID does not change at a reset), so each STAGE_BEGIN's nonce is the device's keyed permutation of its
+    persisted counter; another file is another unit (another uid)."""
+    from hostlink.emulator.setup import unit_identity
+
+    flash = tmp_path / "unit.img"
+    assert unit_identity(str(flash)).uid == unit_identity(str(flash)).uid != unit_identity(str(tmp_path / "b")).uid
+    nonces = []
+    for _ in range(2):
+        with EmulatorProcess("serial", (*FAST, "--firmware", firmware), flash_path=flash) as emulator:
+            with open_link(emulator.link) as link:
+                nonces.append(link.stage_begin(banks.TABLE_BYTES))
+    store = banks.boot(banks.RamFlash(np.fromfile(flash, dtype=np.uint8)))
+    uid = unit_identity(str(flash)).uid
+    assert store.nonce_counter == 2
+    assert nonces == [banks.session_nonce(uid, store.epoch, c) for c in (1, 2)]

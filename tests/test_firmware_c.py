@@ -153,28 +153,27 @@ def _active(firmware) -> bytes:
 
 
 def test_a_flash_image_written_by_one_firmware_boots_in_the_other_to_the_same_active_set():
+    """Python's image in a C sensor, C's image in a Python sensor: the same active set and status, and the next
+    session gets the same nonce (counter and epoch recovered alike) and the same flash bytes."""
     rng = random.Random(2)
+    generations = []
     for seed in range(30):
         twins = Twins(seed)
         for _ in range(25):
             twins.step(rng.choice([2, 3, 6, 8, 12, 13, 14, 14, 15]), rng.getrandbits(32), rng.getrandbits(16), 0)
-        py_image, c_image = twins.py.store.flash.image.copy(), twins.c.flash.image.copy()
-        # Python's image in a C sensor, C's image in a Python sensor: the same active set and status, and the next
-        # session gets the same nonce (counter and epoch recovered alike)
-        c_boot = firmware_c.CFirmware(
-            banks.RamFlash(py_image), banks.seeded_identity(seed), LIMITS, with_estimator=False
-        )
-        py_boot = Firmware(banks.boot(banks.RamFlash(c_image), LIMITS, banks.seeded_identity(seed)))
-        for command in (m.ReadActive(tag=1), m.GetStatus(tag=2), m.StageBegin(tag=3, length=TABLE_BYTES)):
-            assert c_boot.handle_bytes(m.encode(command)) == m.encode(py_boot.handle(command)), (seed, command)
+        generations.append(twins.cross_boot(seed))
+    assert max(generations) > 2  # images with committed sets were crossed, not only factory ones
 
 
-def _recorded_upload(seed: int) -> list[bytes]:
+def _recorded_upload(seed: int, image: np.ndarray | None = None) -> list[bytes]:
     """The command bytes of a bench upload (safe_upload of the seed-004 camera over the loopback link) to a Python
-    sensor of identity ``seed``."""
-    sensor = EmulatedSensor(
-        Firmware(banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, banks.seeded_identity(seed))), iter(())
-    )
+    sensor of identity ``seed`` (fresh from the factory, or booted from a copy of ``image``)."""
+    identity = banks.seeded_identity(seed)
+    if image is None:
+        store = banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, identity)
+    else:
+        store = banks.boot(banks.RamFlash(image.copy()), LIMITS, identity)
+    sensor = EmulatedSensor(Firmware(store), iter(()))
     sent = []
 
     def tap(data):
@@ -194,12 +193,63 @@ def test_a_recorded_upload_gives_the_same_replies_and_flash_bytes_and_replayed_c
     for data in recording:  # replayed to the same sensor: nothing more
         twins.send(data)
     assert twins.commits == 1 and twins.generation() == 2
+    twins.reboot()  # the same device (the same uid) after a power cycle: its session counter comes back from flash
+    for data in recording:
+        twins.send(data)
+    assert twins.commits == 1 and twins.generation() == 2
     other = Twins(22)  # another sensor, fresh from the factory: nothing in either firmware
     for data in recording:
         other.send(data)
     assert other.commits == 0 and other.generation() == 1
     twins.check_flash()
     other.check_flash()
+
+
+def test_successive_recorded_uploads_with_and_without_a_sigma_agree_and_their_replays_commit_nothing():
+    """What the bench does, twice on one unit: an upload of a calibrated set with its 1-sigma prior (the bench's, issue
+    29), then one without; recorded on the line of a Python sensor, played to both firmwares of the same unit (both
+    commit, generation 3, the same replies and flash bytes), then replayed whole, each upload alone and in reverse
+    order to that unit and to a unit with the same factory image: nothing more is committed."""
+    sigma = np.array([0.02, 1.5, 1.5, 1e-10, 1e-16, np.nan, 0, 0, 0, 0])
+    store = banks.factory_store(NOMINAL, banks.RamFlash(), LIMITS, banks.seeded_identity(41))
+    image = store.flash.image.copy()
+    sensor = EmulatedSensor(Firmware(store), iter(()))
+    uploads: list[list[bytes]] = [[], []]
+    for k, (params, prior) in enumerate(((seed004_camera(), sigma), (NOMINAL, None))):
+        tap = uploads[k].append
+        safe_upload(LoopbackLink(sensor, timeout_s=0.5, tamper=lambda d, tap=tap: (tap(d), d)[1]), params, sigma=prior)
+    unit = Twins(41, image)
+    for data in uploads[0] + uploads[1]:
+        unit.send(data)
+    assert unit.commits == 2 and unit.generation() == 3
+    clone = Twins(42, image)
+    for replay in (uploads[0] + uploads[1], uploads[0], uploads[1], uploads[1] + uploads[0]):
+        for twins in (unit, clone):
+            for data in replay:
+                twins.send(data)
+    assert unit.commits == 2 and unit.generation() == 3 and clone.commits == 0 and clone.generation() == 1
+    unit.check_flash()
+    clone.check_flash()
+
+
+def test_a_recorded_upload_replayed_to_a_unit_programmed_with_the_same_factory_image_commits_nothing():
+    """The hardest fresh sensor: a second unit whose flash is a byte copy of the recording unit's before the upload
+    (a factory programming one image into every unit: the same epoch, the same session counter, so the same
+    counter-based session as the recording). Only the device's uid tells the sessions apart; the nonce is keyed by
+    it, so the recorded COMMIT is stale there, in both firmwares alike, and every reply and flash byte agree."""
+    for sessions in (0, 5, banks.STAGE_SLOTS - 1):  # a new image, a used one, one whose next session rewrites
+        image = aged_image(31, sessions)
+        recording = _recorded_upload(31, image)
+        recording_unit = Twins(31, image)  # the recording is a good upload for the unit it was made on
+        for data in recording:
+            recording_unit.send(data)
+        assert recording_unit.commits == 1 and recording_unit.generation() == 2
+        clone = Twins(32, image)  # another uid, the same flash bytes
+        assert clone.py.store.epoch == recording_unit.py.store.epoch != 0
+        for data in recording:
+            clone.send(data)
+        assert clone.commits == 0 and clone.generation() == 1, sessions
+        clone.check_flash()
 
 
 def test_the_message_handler_gives_the_same_verdict_on_fuzzed_bytes():
@@ -212,6 +262,26 @@ def test_the_message_handler_gives_the_same_verdict_on_fuzzed_bytes():
     for _ in range(100_000):
         answered += twins.send(fuzz_input(rng, twins)) is not None
     assert 10_000 < answered < 100_000  # both verdicts occur
+
+
+PROOF_SCRIPT = Path(__file__).parents[1] / "scripts" / "firmware_c_proof.py"
+
+
+def test_the_handler_fuzzed_from_python_under_address_and_undefined_behaviour_sanitizers():
+    """The acceptance's fuzz run with the C core built with -fsanitize=address,undefined -fno-sanitize-recover=all
+    and loaded into Python (the ASan runtime preloaded): 10^5 mutated or random messages and 300 command sequences,
+    the same verdict and bytes as the Python firmware, no sanitizer report (one would abort the run)."""
+    if firmware_c.sanitizer_preload() is None:
+        pytest.skip("the compiler has no AddressSanitizer runtime")
+    run = subprocess.run(
+        [sys.executable, str(PROOF_SCRIPT), "--sequences", "300", "--fuzz", "100000", "--seed", "8", "--sanitize"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    assert "Sanitizer" not in run.stderr and "runtime error" not in run.stderr, run.stderr[-3000:]
+    assert "100000 fuzz inputs" in run.stdout and "ASan+UBSan, no finding" in run.stdout, run.stdout
 
 
 def fuzz_input(rng: random.Random, twins: Twins) -> bytes:
@@ -289,6 +359,32 @@ def test_hostlink_export_c_writes_the_core_beside_the_codec_and_the_tree_compile
     cmd = [firmware_c.find_compiler(), *firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-fPIC", "-shared", *sources]
     build = subprocess.run([*cmd, "-o", str(out), "-Wl,--no-undefined", "-lm"], capture_output=True, text=True)
     assert build.returncode == 0 and build.stderr == "", build.stderr
+
+
+def _fenced(text: str, after: str, language: str) -> str:
+    """The first fenced ``language`` block of a Markdown text after the line containing ``after``."""
+    start = text.index(f"```{language}\n", text.index(after)) + len(language) + 4
+    return text[start : text.index("```", start)]
+
+
+def test_the_exported_readmes_build_lines_and_minimal_main_work_stand_alone_with_plain_cc(tmp_path):
+    """What a firmware engineer does with ``hostlink export-c DIR``: the README's main.c beside the core, then the
+    README's two build lines run as written (every .c with the flight-code flags, linked with -lm), in a folder that
+    holds nothing else; the program boots on an erased flash (RAM HAL of ram_flash.c, the estimator state reserved
+    statically through estimator_seam_state.h) and answers GET_STATUS as the README says."""
+    run = subprocess.run(
+        [sys.executable, "-m", "hostlink.cli", "export-c", str(tmp_path)], capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    readme = (tmp_path / "README.md").read_text()
+    (tmp_path / "main.c").write_text(_fenced(readme, "<!-- main.c", "c"))
+    build = _fenced(readme, "## Build", "sh")
+    assert build.count("\ncc ") + build.startswith("cc ") == 2, build  # the two commands the README promises
+    env = dict(os.environ, PATH=f"{Path(firmware_c.find_compiler()).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    made = subprocess.run(["sh", "-e", "-c", build], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert made.returncode == 0 and made.stderr == "", made.stderr
+    sensor = subprocess.run([str(tmp_path / "sensor")], capture_output=True, text=True, timeout=60)
+    assert sensor.returncode == 0 and sensor.stdout == "tag 7, active generation 0, stage state 0\n", sensor
 
 
 @pytest.mark.parametrize("precision", ["float32", "fixed"])

@@ -62,6 +62,27 @@ def test_stream_control_switches_streaming():
     assert not fw.streaming
 
 
+def test_the_start_ack_carries_the_first_exposures_counter_from_the_firmware_itself(frames):
+    """docs/hardware.md: the ACK of a start carries the frame counter of the stream's first exposure; a start while
+    streaming carries the same value, a stop 0. The firmware knows it (last exposure + 1, or the camera's driver's
+    announcement), with no help from the emulator."""
+    fw = Firmware(banks.factory_store(NOMINAL))
+    assert fw.handle(m.StreamControl(tag=1, enable=True)).value == 0  # after boot, before any exposure
+    for item in frames[:3]:
+        fw.process_frame(item.frame, None)
+    assert fw.handle(m.StreamControl(tag=2, enable=True)).value == 0  # already streaming: the same start
+    assert fw.handle(m.StreamControl(tag=3, enable=False)).value == 0
+    assert fw.handle(m.StreamControl(tag=4, enable=True)).value == frames[2].frame.frame + 1
+    fw.handle(m.StreamControl(tag=5, enable=False))
+    fw.set_next_frame(2**32 + 77)  # the camera's counter, low 32 bits
+    assert fw.handle(m.StreamControl(tag=6, enable=True)).value == 77
+    fw.set_next_frame(90)  # announced while streaming: the running stream's start does not change
+    assert fw.handle(m.StreamControl(tag=7, enable=True)).value == 77
+    fw.process_frame(m.CentroidFrame(**{**frames[0].frame.__dict__, "frame": 2**32 - 1}), None)
+    fw.handle(m.StreamControl(tag=8, enable=False))
+    assert fw.handle(m.StreamControl(tag=9, enable=True)).value == 0  # the counter wraps as the u32 it is
+
+
 def test_without_estimator_the_estimate_is_refused_with_a_reason():
     fw = Firmware(banks.factory_store(NOMINAL))
     reply = fw.handle(m.ReadEstimate(tag=1))

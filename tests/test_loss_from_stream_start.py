@@ -2,7 +2,11 @@
 received are counted on serial (stream sequence numbers from 0), on CAN (from the first frame counter the start's ACK
 carries) and on Modbus (window_seq from 1); the emulated sensor acknowledges a start with its first frame counter."""
 
+import os
+import shutil
+
 import numpy as np
+import pytest
 
 from hostlink.emulator.modbus_endpoint import RegisterSensor
 from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
@@ -77,8 +81,20 @@ def test_can_frames_before_a_late_ack_count_from_the_start_and_an_older_stream_i
     assert asm.lost == 2 + 1  # 14; the stale frame is neither lost nor delivered
 
 
-def test_the_start_is_acknowledged_with_its_first_frame_counter_and_a_repeated_start_changes_nothing():
-    sensor = _sensor(first=40)
+def _c_sensor(first: int, n: int = 10) -> EmulatedSensor:
+    from hostlink.portkit.firmware_c import CFirmware
+
+    source = (SourceFrame(frame=_frame(k), r_ref=None) for k in range(first, first + n))
+    firmware = CFirmware(banks.RamFlash(), banks.seeded_identity(0), None, NOMINAL, with_estimator=False)
+    return EmulatedSensor(firmware, source)
+
+
+@pytest.mark.parametrize("firmware", ["python", "c"])
+def test_the_start_is_acknowledged_with_its_first_frame_counter_and_a_repeated_start_changes_nothing(firmware):
+    """The firmware (Python model or C core) forms the ACK; the emulated camera only announces its next counter."""
+    if firmware == "c" and shutil.which(os.environ.get("CC") or "cc") is None:
+        pytest.skip("no C compiler")
+    sensor = _sensor(first=40) if firmware == "python" else _c_sensor(first=40)
     ack = sensor.handle(m.StreamControl(tag=1, enable=True))
     assert isinstance(ack, m.Ack) and ack.value == 40 and sensor.streams_started == 1
     assert sensor.next_stream_message().frame == 40  # the exposure acknowledged is the one sent first

@@ -21,7 +21,10 @@ DESCRIPTION = (
     "1-sigma noise per axis, its Cramer-Rao bound from flux, noise and PSF), saturated, image and time_source. The "
     "time of each image comes from one option (--time, --times, --time-pattern, --date, --time-unknown) or else from "
     "the file (FITS DATE-AVG or DATE-OBS + EXPTIME/2; EXIF DateTimeOriginal); an image with no known time is an "
-    "error. Exit 2 when no star is found in any image."
+    "error. Exit 2 when no star is found in any image. After each frame's stars come its fainter candidates "
+    "(--candidate-sigma, default 3: local maxima of the filtered image outside every detection whose PSF-fit flux "
+    "is at least that many times its noise), flagged by their significance in an snr column: identify builds no "
+    "pattern from them and names one only where the calibrated camera predicts a catalogue star."
 )
 
 
@@ -102,6 +105,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "centroid only",
     )
     parser.add_argument("--max-stars", type=int, metavar="N", help="keep only the N brightest stars of each image")
+    candidates = parser.add_mutually_exclusive_group()
+    candidates.add_argument(
+        "--candidate-sigma",
+        type=float,
+        default=3.0,
+        metavar="N",
+        help="also write fainter candidates down to this significance, flagged in the snr column (default 3; none "
+        "when not below --threshold-sigma): identify names one only where the calibrated camera predicts a catalogue "
+        "star",
+    )
+    candidates.add_argument("--no-candidates", action="store_true", help="write the detected stars only")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
 
 
@@ -120,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.centroid,
         keep_saturated=not args.reject_saturated,
         max_stars=args.max_stars,
+        candidate_sigma=None if args.no_candidates else args.candidate_sigma,
     )
     times = TimeOptions(
         time_utc=args.time,
@@ -138,7 +153,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{f.rejected_no_flux} without flux"
                 f"; {f.saturated_kept} saturated kept); "
                 f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
-                f"time {f.time_utc or 'unknown'} ({f.time_source})"
+                f"time {f.time_utc or 'unknown'} ({f.time_source}); {f.candidates} fainter candidates"
             )
-        print(f"{len(result.session)} stars in {len(result.frames)} images; wrote {args.out}")
+        held = sum(f.candidates for f in result.frames)
+        print(
+            f"{held} fainter candidates and {len(result.session) - held} stars in {len(result.frames)} images; "
+            f"wrote {args.out}"
+        )
     return 0

@@ -20,7 +20,11 @@ DESCRIPTION = (
     "measured. Every match is then verified with the project's interstar test, and a frame is accepted only when "
     "enough stars verify; a star that two catalogue stars could be is left unidentified. Then the session is "
     "calibrated and identified again with the calibrated camera, round after round until one adds nothing (--rounds; "
-    "each round's additions are printed and reported). Works from under 10 to about 50 deg fields. Writes the "
+    "each round's additions are printed and reported). Faint candidates (rows with an snr, from hostlink "
+    "centroid) build no pattern; after the rounds, one is named only where the camera calibrated on the identified "
+    "stars predicts a catalogue star within 99 % of the position uncertainty and as bright as predicted, with no "
+    "second catalogue star that could be it (round 'guided': stars searched, added and expected by chance). "
+    "Works from under 10 to about 50 deg fields. Writes the "
     "session with the identified star_id (and ra_deg/dec_deg when the file has "
     "those columns); frames that fail keep star_id 0 and are reported. Exit 2 when no frame is identified."
 )
@@ -111,6 +115,13 @@ def run(args: argparse.Namespace) -> int:
         parity = "mirrored (flip x before calibrate)" if result.mirrored else "normal"
         camera = result.camera or nominal  # the last round's camera: its scale is relative to it
         focal_ratio = result.scale * camera.focal_length_px / nominal.focal_length_px
+        guided = [r for r in result.rounds if r["round"] == "guided" and "expected_false" in r]
+        if guided:
+            print(
+                f"faint candidates admitted: {guided[0]['added']} of the {guided[0]['searched']} catalogue stars "
+                f"searched (by chance, noise would put {guided[0]['expected_false']:.1f} there); "
+                f"{guided[0]['frames_declined']} frame(s) admitted none, chance explaining over 5 % of their admissions"
+            )
         print(
             f"identified {result.n_identified} stars in {result.n_frames_identified} of {len(result.frames)} frames "
             f"({result.engine}); parity {parity}; focal length {focal_ratio:.4f} x nominal; wrote {args.out}"

@@ -109,7 +109,6 @@ class EmulatedSensor:
         #: message numbering when this changes
         self.streams_started = 0
         self._next: SourceFrame | None = None  # the next exposure, taken from the source to learn its counter
-        self._first_frame = 0  # frame counter of the current stream's first exposure
 
     @property
     def streaming(self) -> bool:
@@ -120,23 +119,24 @@ class EmulatedSensor:
         the frame counter of the stream's first exposure (low 32 bits; the same for a repeated enable while the
         stream runs), so that the host counts the frames lost before the first one it receives."""
         with self._lock:
-            was_streaming = self.firmware.streaming
+            starting = isinstance(command, StreamControl) and command.enable and not self.firmware.streaming
+            if starting and self._peek_frame_counter() is not None:
+                # the camera tells the firmware its next exposure's counter; the firmware's ACK carries it
+                self.firmware.set_next_frame(self._peek_frame_counter())
             reply = self.firmware.handle(command)
-            if isinstance(command, StreamControl) and command.enable and isinstance(reply, Ack):
-                if not was_streaming:
-                    self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
-                    self.streams_started += 1
-                    self._first_frame = self._peek_frame_counter()
-                reply = Ack(tag=reply.tag, command=reply.command, value=self._first_frame & 0xFFFFFFFF)
+            if starting and isinstance(reply, Ack):
+                self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
+                self.streams_started += 1
             return reply
 
-    def _peek_frame_counter(self) -> int:
+    def _peek_frame_counter(self) -> int | None:
+        """The next exposure's frame counter (taken from the source and kept), None when the source is exhausted."""
         if self._next is None and not self._ended:
             try:
                 self._next = next(self._source)
             except StopIteration:
                 self._ended = True
-        return self._next.frame.frame if self._next is not None else 0
+        return self._next.frame.frame if self._next is not None else None
 
     def next_stream_message(self) -> CentroidFrame | EndOfStream | None:
         """While streaming: the next exposure (already seen by the firmware and, if its budget allowed, by the

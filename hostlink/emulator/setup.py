@@ -125,7 +125,7 @@ def sensor_banks(
     factory set. Either way the sensor's declared design (``onboard.params.PlausibilityLimits``) is ``nominal``'s
     focal length. ``power_cut_after_units``: :class:`~hostlink.emulator.flash.FileFlash`'s test hook."""
     limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
-    identity = banks.random_identity()  # each emulated unit its own: its sessions' nonces are its own
+    identity = unit_identity(flash)  # each emulated unit its own: its sessions' nonces are its own
     if flash is None:
         return banks.factory_store(nominal, limits=limits, identity=identity)
     from hostlink.emulator.flash import FileFlash
@@ -135,6 +135,20 @@ def sensor_banks(
     if store.active_record is None:
         store = banks.factory_store(nominal, flash=device, limits=limits, identity=identity)
     return store
+
+
+def unit_identity(flash: str | None) -> banks.DeviceIdentity:
+    """The emulated unit's identity. With ``flash`` the unit is its flash file: its uid (an MCU's unique ID, fixed in
+    silicon) is derived from the file's resolved path, so a unit restarted on its flash is the same device (its
+    sessions' nonces follow its persisted counter under one key) while a copy of the image elsewhere is another
+    unit. In RAM, a new unit at every start. The random source is the operating system's entropy either way."""
+    if flash is None:
+        return banks.random_identity()
+    import hashlib
+    from pathlib import Path
+
+    uid = hashlib.sha256(b"emulated unit uid\0" + str(Path(flash).resolve()).encode()).digest()[: banks.UID_BYTES]
+    return banks.DeviceIdentity(uid, banks.random_identity().random32)
 
 
 #: The firmwares ``hostlink emulate --firmware`` runs: the Python reference model and the C core.
@@ -158,7 +172,7 @@ def c_firmware(
 
     limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
     check_plausible(nominal, limits)  # what factory_store checks before it writes the set
-    identity = banks.random_identity()
+    identity = unit_identity(flash)
     if flash is None:
         device = banks.RamFlash()
     else:

@@ -12,7 +12,8 @@ Per image:
    footprint (default 2: SEP counts the footprint's pixels that are themselves above the threshold, and a sharp
    faint star has 1-2; 3 lost 5 of the stars the plate solver names on the granasat frames; 1 keeps 5 more of them,
    but lets the heavy tail of clipped, correlated 8-bit noise through: 18 false detections per 1.3 Mpx in the test
-   of it), its multi-threshold deblending (32 levels, contrast 0.005);
+   of it), its multi-threshold deblending (32 levels, contrast 0.005), without SEP's cleaning (it merged sharp stars
+   of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
    flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within
@@ -42,6 +43,13 @@ Per image:
    the mesh background leaves, e.g. on skewed noise clipped at zero): the maximum-likelihood flux where background
    noise dominates, so stars rank by signal-to-noise, not by how much noise an aperture collects; instrumental
    magnitude ``mag = -2.5 log10(flux_adu)`` (no zero point: it orders stars, brightest first).
+7. candidates (``candidate_sigma``, default 3; None, or not below ``threshold_sigma``: none): the local maxima of
+   the filtered image outside every detection's footprint, clear of the kept stars, centroided by the window and
+   kept when their PSF-fit flux is at least ``candidate_sigma`` x its noise (:func:`_candidates`). They hold faint
+   stars below the threshold, stars the extraction loses otherwise, and mostly noise. The session carries them
+   after the frame's stars with their significance in the ``snr`` column (empty on detected stars); identification
+   never uses them, and names one only where the calibrated camera predicts a catalogue star
+   (:mod:`hostlink.images.guided`).
 
 SEP and this module use the camera-model pixel convention (docs/camera-model.md): ``(0, 0)`` is the centre of the
 first (top-left) pixel, ``x`` the column, ``y`` the row.
@@ -107,11 +115,20 @@ _PSF_SHAPE_MAX_SIGMA = 0.1
 SATURATED_SIGMA_PX = 0.3
 #: SEP's buffers: a noisy frame at a low threshold can hold many more pixels above threshold than SEP's default.
 _SEP_PIXSTACK = 3_000_000
+#: SEP's cleaning (Source Extractor's CLEAN: a detection its bright neighbour's modelled wing could explain is merged
+#: into it) is off: on the granasat frames it removed sharp stars of 8-16 sigma 8-18 px from a bright one (the
+#: stars the plate solver names; found with it off, at the same threshold and footprint). What cleaning guards
+#: against, bumps on a bright star's wing, the blend test and the PSF fit's flux see.
+_SEP_CLEAN = False
 _SEP_SUB_OBJECTS = 4096
 
 
 #: Default minimum footprint [filtered pixels above the threshold] (module docstring, step 2).
 _DEFAULT_MIN_AREA_PX = 2
+#: Default significance down to which candidates are written (module docstring, step 7): the PSF-fit flux over its
+#: noise. Candidates only name a star where the calibrated camera predicts one (:mod:`hostlink.images.guided`, which
+#: states the chance that noise meets a prediction); below 3 the noise peaks of a frame grow ~10 x per sigma.
+DEFAULT_CANDIDATE_SIGMA = 3.0
 
 
 @dataclass(frozen=True)
@@ -146,6 +163,7 @@ class CentroidOptions:
     method: str = "psf-fit"
     background_box_px: int = 64
     max_stars: int | None = None
+    candidate_sigma: float | None = DEFAULT_CANDIDATE_SIGMA
 
 
 @dataclass(frozen=True)
@@ -179,6 +197,7 @@ class FrameReport:
     rejected_blended: int = 0
     rejected_edge: int = 0
     rejected_no_flux: int = 0
+    candidates: int = 0
     background_rms_adu: float = float("nan")
     psf_sigma_px: float = float("nan")
     time_utc: str = ""
@@ -198,6 +217,20 @@ class Detections:
     report: FrameReport = field(default_factory=lambda: FrameReport(path=""))
     sigma_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     saturated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    candidates: Candidates | None = None
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Faint candidates of one image (module docstring, step 7), most significant first: centroid [px], PSF-fit flux
+    [ADU], instrumental magnitude, ``sigma_px`` and ``snr`` (the PSF-fit flux over its noise)."""
+
+    x_px: np.ndarray
+    y_px: np.ndarray
+    flux_adu: np.ndarray
+    mag: np.ndarray
+    sigma_px: np.ndarray
+    snr: np.ndarray
 
 
 @dataclass
@@ -220,29 +253,177 @@ def centroid_pixels(
     background: np.ndarray | None = None,
     saturation_adu: float | None = None,
 ) -> Detections:
-    """Detect and centroid the stars of one image ``pixels[row, column]`` [ADU] (module docstring, steps 1-5).
-    ``background``: a dark or median frame to subtract first; ``saturation_adu``: the clip level of ``pixels``
+    """Detect and centroid the stars of one image ``pixels[row, column]`` [ADU] (module docstring, steps 1-6), stage
+    by stage: :func:`_extract` (background, noise, detection), :func:`_screen` (rejections before centroiding),
+    :func:`_centroid_screened` (centroids, unresolved pairs, the PSF fit), :func:`_measured` (fluxes, ``sigma_px``,
+    order). ``background``: a dark or median frame to subtract first; ``saturation_adu``: the clip level of ``pixels``
     (``options.saturation_adu`` wins; None: no saturation test)."""
-    import sep
-
     _check_options(options)
     raw = np.ascontiguousarray(pixels, dtype=np.float64)
-    if background is not None:
-        if background.shape != raw.shape:
-            raise UserError(
-                f"background frame is {background.shape[1]} x {background.shape[0]} px, image is "
-                f"{raw.shape[1]} x {raw.shape[0]} px"
-            )
-        data = raw - background
-    else:
-        data = raw.copy()
+    sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options)
+    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms)))
+    if objects.size == 0:
+        return _no_stars(report)
+    level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
+    screen = _screen(sub, rms, raw, objects, segmap, options, level)
+    report.rejected_saturated = 0 if options.keep_saturated else int(screen.saturated.sum())
+    report.rejected_hot = int(screen.hot.sum())
+    report.rejected_blended = int(screen.blended.sum())
+    report.rejected_edge = int(screen.edge.sum())
+    good = objects[screen.keep]
+    if good.size == 0:
+        return _no_stars(report)
+    stars = _centroid_screened(
+        sub, rms, good, screen.saturated[screen.keep], screen.fit_at_edge[screen.keep], options, report
+    )
+    if stars is None:
+        return _no_stars(report)
+    detections = _measured(sub, rms, *stars, options, report)
+    fainter = options.candidate_sigma is not None and options.candidate_sigma < options.threshold_sigma
+    if fainter and detections.x_px.size:  # candidates are what lies below the detection threshold
+        detections.candidates = _candidates(sub, rms, filtered, segmap, detections, report.psf_sigma_px, options)
+        report.candidates = int(detections.candidates.x_px.size)
+    return detections
+
+
+#: A candidate's peak lies at least this far [px] from every kept star, in PSF sigmas plus 1 px (the fit's stamp,
+#: :data:`_PSF_FIT_SIGMAS`: nearer, a star's wing and the candidate share pixels).
+_CANDIDATE_CLEAR_SIGMAS = _PSF_FIT_SIGMAS
+
+
+def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
+    """Module docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
+    footprint (below the threshold, or lost by the extraction) and clear of the kept stars, centroided by
+    the window of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for
+    every faint star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at
+    least ``candidate_sigma`` x its noise: snr = F sqrt(sum P^2) / rms (:func:`_snr`). Most are noise, and they are
+    not tested for hot pixels: :mod:`hostlink.images.guided` names one only where the calibrated camera predicts a
+    catalogue star as bright, and states the chance of that for noise, counting every candidate (hot pixels too)."""
+    rows, cols = _local_maxima(filtered / (rms * _FILTERED_NOISE_PER_PX), options.candidate_sigma, segmap)
+    x0, y0 = cols.astype(np.float64), rows.astype(np.float64)
+    clear = _CANDIDATE_CLEAR_SIGMAS * sigma + 1.0
+    if kept.x_px.size and x0.size:
+        from scipy.spatial import cKDTree
+
+        near, _ = cKDTree(np.column_stack([kept.x_px, kept.y_px])).query(np.column_stack([x0, y0]))
+        x0, y0, rows, cols = x0[near > clear], y0[near > clear], rows[near > clear], cols[near > clear]
+    x, y = _in_chunks(_WINDOW_HALF_SIGMAS * 2, x0.size, lambda k: _window_iterated(sub, x0[k], y0[k], sigma))
+    flux = _psf_fluxes(sub, x, y, sigma)
+    snr = _snr(sub, rms, x, y, sigma, flux)
+    keep = np.flatnonzero(snr >= options.candidate_sigma)
+    keep = keep[np.argsort(-snr[keep], kind="stable")]
+    x, y, flux, snr = x[keep], y[keep], flux[keep], snr[keep]
+    sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
+    return Candidates(x, y, flux, -2.5 * np.log10(flux), sigma_px, snr)
+
+
+#: The candidates' window: iterations, and the stamp's half-width in window sigmas (+1 px).
+_WINDOW_ITERATIONS = 8
+_WINDOW_HALF_SIGMAS = 4
+
+
+def _window_iterated(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Source Extractor's windowed centroid (XWIN_IMAGE, Bertin's SExtractor manual, "windowed positional
+    parameters") of every star at once: x <- x + 2 sum w I (x_i - x) / sum w I with the Gaussian window
+    w = exp(-r^2 / (2 sigma^2)) over +-(4 sigma + 1) px, :data:`_WINDOW_ITERATIONS` times (as ``sep.winpos`` does for
+    one star at a time); a star whose step leaves the stamp, or whose windowed flux is not positive, keeps its
+    start."""
+    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    cols, rows, data, _ = _stamps(sub, x, y, half)
+    cx, cy = x.copy(), y.copy()
+    ok = np.ones(x.size, dtype=bool)
+    for _ in range(_WINDOW_ITERATIONS):
+        dx = cols - cx[:, None]
+        dy = rows - cy[:, None]
+        wx = np.exp(-0.5 * (dx / sigma_px) ** 2)
+        wy = np.exp(-0.5 * (dy / sigma_px) ** 2)
+        wi = wy[:, :, None] * wx[:, None, :] * data
+        total = np.sum(wi, axis=(1, 2))
+        ok &= total > 0
+        safe = np.where(ok, total, 1.0)
+        cx = cx + np.where(ok, 2.0 * np.sum(wi * dx[:, None, :], axis=(1, 2)) / safe, 0.0)
+        cy = cy + np.where(ok, 2.0 * np.sum(wi * dy[:, :, None], axis=(1, 2)) / safe, 0.0)
+        ok &= (np.abs(cx - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy - y) <= _WINPOS_MAX_SHIFT_PX)
+    return np.where(ok, cx, x), np.where(ok, cy, y)
+
+
+#: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
+_FILTERED_NOISE_PER_PX = math.sqrt(float(np.sum((_FILTER_KERNEL / _FILTER_KERNEL.sum()) ** 2)))
+
+
+def _local_maxima(significance: np.ndarray, limit: float, segmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the pixels of ``significance`` at least ``limit``, outside every footprint (``segmap`` 0),
+    at least :data:`_HOT_BOX_HALF_PX` from the border, and not below any of their 8 neighbours."""
+    h, w = significance.shape
+    m = _HOT_BOX_HALF_PX
+    inner = significance[m : h - m, m : w - m]
+    rows, cols = np.nonzero((inner >= limit) & (segmap[m : h - m, m : w - m] == 0))
+    rows, cols = rows + m, cols + m
+    value = significance[rows, cols]
+    peak = np.ones(rows.size, dtype=bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                peak &= value >= significance[rows + dr, cols + dc]
+    return rows[peak], cols[peak]
+
+
+def _snr(sub, rms, x: np.ndarray, y: np.ndarray, sigma_px: float, flux: np.ndarray | None = None) -> np.ndarray:
+    """Signal-to-noise ratio of the PSF-fit flux at (x, y): F sqrt(sum P^2) / rms (:func:`_candidates`); ``flux``
+    when already measured."""
+    if x.size == 0:
+        return np.zeros(0)
+    if flux is None:
+        flux = _psf_fluxes(sub, x, y, sigma_px)
+    h, w = rms.shape
+    r = np.clip(np.rint(y).astype(np.int64), 0, h - 1)
+    c = np.clip(np.rint(x).astype(np.int64), 0, w - 1)
+    return flux * np.sqrt(_psf_sum_squares(x, y, sigma_px)) / rms[r, c]
+
+
+def _psf_sum_squares(x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
+    """sum P^2 of the pixel-integrated Gaussian PSF at each (x, y) over +-(3 sigma + 1) px (the flux fit's stamp,
+    :func:`_psf_fluxes`): the flux's noise is rms / sqrt(sum P^2) for white noise. Separable: (sum Px^2)(sum Py^2)."""
+    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    cols = np.rint(x)[:, None] + offsets[None, :]
+    rows = np.rint(y)[:, None] + offsets[None, :]
+    px = pixel_integrated_gaussian(cols, x[:, None], sigma_px)
+    py = pixel_integrated_gaussian(rows, y[:, None], sigma_px)
+    return np.sum(px * px, axis=1) * np.sum(py * py, axis=1)
+
+
+def _no_stars(report: FrameReport) -> Detections:
+    """The :class:`Detections` of a frame that keeps no star."""
+    return Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), np.zeros(0, bool))
+
+
+def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np.ndarray:
+    """``raw`` less the dark or median frame ``background`` (a copy; a frame of another size is a UserError)."""
+    if background is None:
+        return raw.copy()
+    if background.shape != raw.shape:
+        raise UserError(
+            f"background frame is {background.shape[1]} x {background.shape[0]} px, image is "
+            f"{raw.shape[1]} x {raw.shape[0]} px"
+        )
+    return raw - background
+
+
+def _extract(data: np.ndarray, options: CentroidOptions):
+    """Module docstring, steps 1-2: SEP's background mesh subtracted, its noise map corrected to what the detection
+    filter sees (:func:`_filtered_noise_correction`), then SEP's matched-filter detection and deblending. Returns the
+    background-subtracted image, the noise map [ADU], the image filtered by the detection kernel, SEP's objects and its
+    segmentation map."""
+    import sep
+
     box = int(min(options.background_box_px, max(8, min(data.shape) // 2)))
     sep.set_extract_pixstack(_SEP_PIXSTACK)
     sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
     try:
         bkg = sep.Background(data, bw=box, bh=box, fw=3, fh=3)
         sub = data - bkg.back()
-        offset, rms = _filtered_noise_correction(sub, bkg.rms())
+        offset, rms, filtered = _filtered_noise_correction(sub, bkg.rms())
         sub -= offset
         objects, segmap = sep.extract(
             sub,
@@ -252,20 +433,36 @@ def centroid_pixels(
             filter_kernel=_FILTER_KERNEL,
             deblend_nthresh=32,
             deblend_cont=0.005,
+            clean=_SEP_CLEAN,
             segmentation_map=True,
         )
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
         raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
-    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms)))
-    empty = Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), np.zeros(0, bool))
-    if objects.size == 0:
-        return empty
-    keep = np.ones(objects.size, bool)
+    return sub, rms, filtered, objects, segmap
+
+
+@dataclass(frozen=True)
+class _Screen:
+    """The rejections before centroiding (module docstring, step 3), (N,) bool over SEP's objects: ``keep``, and each
+    rejection counted once, in order (saturated only when not kept, hot, blended, edge); ``saturated``: a raw pixel
+    of the footprint at the clip level (kept or not); ``fit_at_edge``: cut by the border, kept while its PSF fit
+    converges."""
+
+    keep: np.ndarray
+    saturated: np.ndarray
+    hot: np.ndarray
+    blended: np.ndarray
+    edge: np.ndarray
+    fit_at_edge: np.ndarray
+
+
+def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: float | None) -> _Screen:
+    """Module docstring, step 3, before any centroid: edge, saturated, hot pixels and deblended neighbours."""
+    import sep
 
     # edge: the footprint touches the border (its centroid is biased)
     edge = (objects["flag"] & sep.OBJ_TRUNC) != 0
     # saturated: a raw pixel of the footprint at the clip level
-    level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     saturated = np.zeros(objects.size, bool)
     if level is not None:
         labelled = segmap > 0
@@ -293,20 +490,19 @@ def centroid_pixels(
     )
     fit_at_edge = edge & ~saturated & judged & (options.method == "psf-fit")
     edge &= ~fit_at_edge
-    rejections = (hot, blended, edge) if options.keep_saturated else (saturated, hot, blended, edge)
-    for mask in rejections:
+    keep = np.ones(objects.size, bool)
+    rejected_saturated = saturated.copy() if not options.keep_saturated else np.zeros(objects.size, bool)
+    for mask in (rejected_saturated, hot, blended, edge):
         mask &= keep
         keep &= ~mask
-    report.rejected_saturated = 0 if options.keep_saturated else int(saturated.sum())
-    report.rejected_hot = int(hot.sum())
-    report.rejected_blended = int(blended.sum())
-    report.rejected_edge = int(edge.sum())
-    good = objects[keep]
-    clipped = saturated[keep]  # kept saturated stars (keep_saturated only)
-    truncated = fit_at_edge[keep]  # kept while their PSF fit converges
-    if good.size == 0:
-        return empty
+    return _Screen(keep, saturated, hot, blended, edge, fit_at_edge)
 
+
+def _centroid_screened(sub, rms, good, clipped, truncated, options: CentroidOptions, report: FrameReport):
+    """Module docstring, step 4, on the screened objects ``good`` (``clipped``: saturated, ``truncated``: cut by the
+    border): the frame's PSF sigma, windowed centroids, the unresolved pairs rejected (counted as blended), then the
+    PSF fit (a border-cut star whose fit is not taken is rejected at the edge). Returns (x, y, SEP objects, clipped,
+    PSF sigma [px]) of the stars kept, or None when none is."""
     sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
     x, y = _windowed_centroids(sub, good, sigma)
     # unresolved pairs (too close for a saddle between them: the deblender sees one peak) are elongated beyond the PSF
@@ -318,7 +514,7 @@ def centroid_pixels(
     report.rejected_blended += int(unresolved.sum())
     good, clipped, truncated = good[~unresolved], clipped[~unresolved], truncated[~unresolved]
     if good.size == 0:
-        return empty
+        return None
     if options.psf_sigma_px is None and np.any(unresolved):  # the pairs widened the first estimate
         sigma = _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
         x, y = _windowed_centroids(sub, good, sigma)
@@ -333,6 +529,12 @@ def centroid_pixels(
         lost &= truncated  # a star cut by the border with no converged fit: its windowed centroid is biased
         report.rejected_edge += int(lost.sum())
         x, y, good, clipped = x[~lost], y[~lost], good[~lost], clipped[~lost]
+    return x, y, good, clipped, float(sigma)
+
+
+def _measured(sub, rms, x, y, good, clipped, sigma: float, options: CentroidOptions, report: FrameReport) -> Detections:
+    """Module docstring, steps 5-6: each star's PSF flux (a detection without flux rejected), ``sigma_px`` and
+    instrumental magnitude, brightest first (the brightest ``max_stars``)."""
     flux = _psf_fluxes(sub, x, y, sigma)
     # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
     flux[clipped] = np.maximum(flux[clipped], good["flux"][clipped])
@@ -352,7 +554,7 @@ def centroid_pixels(
     return Detections(x[order], y[order], flux[order], mag[order], report, sigma_px[order], clipped[order])
 
 
-def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float, np.ndarray]:
+def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """(offset [ADU], noise map [ADU]) that make SEP's background and noise describe the detection image as it is.
     SEP assumes independent Gaussian pixel noise: its clipped-mode background and clipped rms are biased when the
     noise is clipped at zero (an 8-bit camera whose black level sits below zero) or skewed, and its matched-filter
@@ -362,7 +564,8 @@ def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float,
     star pixels, < 1 % of a frame, do not reach it), compared with the noise SEP assumes after filtering,
     median(rms) sqrt(sum k^2) / sum k: the map is scaled up by their ratio (never down). For independent Gaussian noise
     both corrections vanish (ratio 1.00-1.02). When SEP's rms is 0 (most pixels clipped to one value) the map is the
-    measured noise, uniform."""
+    measured noise, uniform. The third value is the filtered image less the offset (the candidates' search,
+    :func:`_candidates`)."""
     from scipy import ndimage
 
     kernel = _FILTER_KERNEL / _FILTER_KERNEL.sum()
@@ -371,10 +574,11 @@ def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float,
     # the per-pixel noise of independent pixels that would give the filtered image's measured noise
     equivalent = 0.5 * float(p977 - p50) / math.sqrt(float(np.sum(kernel**2)))
     level = float(np.median(rms))
+    filtered -= p50
     if level > 0:
-        return float(p50), rms * max(equivalent / level, 1.0)
+        return float(p50), rms * max(equivalent / level, 1.0), filtered
     # more than half of the pixels clipped to one value: SEP's clipped rms is 0; the filtered image still knows
-    return float(p50), np.full_like(rms, equivalent)
+    return float(p50), np.full_like(rms, equivalent), filtered
 
 
 def _check_options(options: CentroidOptions) -> None:
@@ -388,6 +592,10 @@ def _check_options(options: CentroidOptions) -> None:
         raise UserError(f"gain must be > 0 e-/ADU, got {options.gain_e_per_adu!r}")
     if options.method not in CENTROID_METHODS:
         raise UserError(f"centroid method must be one of {', '.join(CENTROID_METHODS)}, got {options.method!r}")
+    if options.candidate_sigma is not None and not (
+        math.isfinite(options.candidate_sigma) and options.candidate_sigma > 0
+    ):
+        raise UserError(f"candidate-sigma must be a number > 0, got {options.candidate_sigma!r}")
     if options.max_stars is not None and options.max_stars < 1:
         raise UserError(f"max-stars must be >= 1, got {options.max_stars}")
 
@@ -739,7 +947,7 @@ def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, k
     subtracting it removes them. The median of frames at different pointings holds at most a few star-like sources
     (warm pixel clusters, a star that stayed put), fewer than :data:`_MEDIAN_MAX_STARS` and fewer than a frame
     keeps."""
-    in_median = centroid_pixels(median, replace(options, max_stars=None)).report.kept
+    in_median = centroid_pixels(median, replace(options, max_stars=None, candidate_sigma=None)).report.kept
     per_frame = float(np.mean(kept)) if kept else 0.0
     if in_median >= _MEDIAN_MAX_STARS and in_median >= per_frame:
         raise UserError(
@@ -760,36 +968,55 @@ def _time_choices(times: TimeOptions) -> dict[str, bool]:
 
 
 def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
-    counts = [det.x_px.size for _, det, _ in frames]
+    """The session of the frames: per frame its stars (brightest first), then its candidates (most significant first;
+    ``snr`` set only on them)."""
+    parts = [_frame_rows(det) for _, det, _ in frames]
+    counts = [part["x"].size for part in parts]
     n = int(sum(counts))
     frame_no = np.repeat(np.arange(len(frames), dtype=np.int64), counts)
 
     def cat(name: str) -> np.ndarray:
-        return np.concatenate([getattr(det, name) for _, det, _ in frames]) if n else np.zeros(0)
+        return np.concatenate([part[name] for part in parts]) if n else np.zeros(0)
 
-    t_utc = np.array([t for (t, _, _), c in zip(frames, counts, strict=True) for _ in range(c)], dtype=object)
-    flux = cat("flux_adu")
+    def repeat(values: list[str]) -> np.ndarray:
+        return np.array([v for v, c in zip(values, counts, strict=True) for _ in range(c)], dtype=object)
+
+    flux, snr = cat("flux"), cat("snr")
+    extra = {
+        "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
+        "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
+        "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
+    }
+    if any(det.candidates is not None for _, det, _ in frames):
+        extra["snr"] = np.array([f"{v:.2f}" if np.isfinite(v) else "" for v in snr], dtype=object)
+    extra["image"] = repeat([Path(det.report.path).name for _, det, _ in frames])
+    extra["time_source"] = repeat([source for _, _, source in frames])
     session = Session(
         frame=frame_no,
-        t_utc=t_utc,
+        t_utc=repeat([t for t, _, _ in frames]),
         star_id=np.zeros(n, np.int64),
-        x_px=cat("x_px"),
-        y_px=cat("y_px"),
+        x_px=cat("x"),
+        y_px=cat("y"),
         mag=cat("mag"),
-        extra={
-            "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
-            "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
-            "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
-            "image": np.array(
-                [Path(d.report.path).name for (_, d, _), c in zip(frames, counts, strict=True) for _ in range(c)],
-                dtype=object,
-            ),
-            "time_source": np.array(
-                [s for (_, _, s), c in zip(frames, counts, strict=True) for _ in range(c)], dtype=object
-            ),
-        },
+        extra=extra,
     )
     return CentroidResult(session, [det.report for _, det, _ in frames])
+
+
+def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
+    """One frame's rows of the session: its stars, then its candidates (``snr`` NaN on the stars)."""
+    c = det.candidates
+    if c is None:
+        c = Candidates(*(np.zeros(0) for _ in range(6)))
+    return {
+        "x": np.concatenate([det.x_px, c.x_px]),
+        "y": np.concatenate([det.y_px, c.y_px]),
+        "flux": np.concatenate([det.flux_adu, c.flux_adu]),
+        "mag": np.concatenate([det.mag, c.mag]),
+        "sigma_px": np.concatenate([det.sigma_px, c.sigma_px]),
+        "saturated": np.concatenate([det.saturated.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
+        "snr": np.concatenate([np.full(det.x_px.size, np.nan), c.snr]),
+    }
 
 
 def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray | None:

@@ -53,7 +53,7 @@ import numpy as np
 from hostlink.calibration.data import build_data
 from hostlink.calibration.robust import estimate_scale, triple_handedness, vote_consistent_stars
 from hostlink.files.session import Session
-from hostlink.images import solver_adapter
+from hostlink.images import guided, solver_adapter
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
@@ -896,6 +896,10 @@ def identify_session(
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
     them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
     check_field(nominal)
+    if np.any(guided.candidate_rows(session)):  # faint candidates build no pattern (guided.py)
+        return guided.identify_without_candidates(
+            session, lambda s: identify_session(s, nominal, catalogue, maglim, use_engine, progress, database_fov_deg)
+        )
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
@@ -1088,6 +1092,10 @@ def identify_iteratively(
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
+    if np.any(guided.candidate_rows(session)):  # faint candidates: held back, admitted after the rounds (guided.py)
+        return guided.identify_then_admit(
+            session, lambda s: identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress)
+        )
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
 

@@ -797,9 +797,11 @@ def core_dir() -> Path:
 
 def firmware_core_files() -> dict[str, str]:
     """File name -> text of the C firmware core as shipped (``onboard/c``, package data of ``onboard``; port-kit.md),
-    every header and C file, with one implementation of the estimator seam: ``estimator_seam.c`` when present, else
-    ``estimator_none.c`` (a build without an estimator), so ``cc *.c`` links."""
-    files = {p.name: p.read_text() for p in core_dir().iterdir() if p.name.endswith((".c", ".h"))}
+    every header and C file and its README.md, with one implementation of the estimator seam: ``estimator_seam.c``
+    when present, else ``estimator_none.c`` (a build without an estimator), so ``cc *.c`` links."""
+    files = {
+        p.name: p.read_text() for p in core_dir().iterdir() if p.name.endswith((".c", ".h")) or p.name == "README.md"
+    }
     if "estimator_seam.c" in files:
         files.pop("estimator_none.c", None)
     return dict(sorted(files.items()))

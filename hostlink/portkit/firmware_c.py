@@ -45,6 +45,9 @@ from protocol import messages as m
 WARNING_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wconversion", "-Wshadow")
 #: Code generation: position-independent, optimised, no fused multiply-add (bit-exact float32 with numpy).
 CODE_FLAGS = ("-O2", "-fPIC", "-ffp-contract=off")
+#: The sanitized build (``load_library(sanitize=True)``): AddressSanitizer and UndefinedBehaviorSanitizer, every
+#: finding fatal. Loading it into Python needs the ASan runtime preloaded (:func:`sanitizer_preload`).
+SANITIZE_FLAGS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer", "-g")
 #: The binding's source (not part of the core).
 BINDING_SOURCE = "sil_binding.c"
 #: Reply buffer [bytes]: firmware.h's FIRMWARE_REPLY_MAX_BYTES (a Nak with its longest text).
@@ -111,16 +114,16 @@ def compile_command(compiler: str, directory: Path, output: Path, extra: tuple[s
     ]
 
 
-def build_library(cache: Path | None = None) -> Path:
-    """The shared library of the current sources: loaded from the cache when built before, else compiled once (into
-    a temporary file, then renamed: a concurrent build never leaves a half-written library). A compiler error is a
-    UserError carrying its first lines."""
+def build_library(cache: Path | None = None, extra: tuple[str, ...] = ()) -> Path:
+    """The shared library of the current sources (``extra``: more compiler flags, e.g. :data:`SANITIZE_FLAGS`):
+    loaded from the cache when built before, else compiled once (into a temporary file, then renamed: a concurrent
+    build never leaves a half-written library). A compiler error is a UserError carrying its first lines."""
     compiler = find_compiler()
     sources = build_sources()
     digest = hashlib.sha256()
     for name, text in sources.items():
         digest.update(name.encode() + b"\0" + text.encode() + b"\0")
-    digest.update(" ".join((compiler, *WARNING_FLAGS, *CODE_FLAGS)).encode())
+    digest.update(" ".join((compiler, *WARNING_FLAGS, *CODE_FLAGS, *extra)).encode())
     root = _cache_root() if cache is None else Path(cache)
     library = root / f"stfirmware-{digest.hexdigest()[:24]}.so"
     if library.is_file():
@@ -132,7 +135,7 @@ def build_library(cache: Path | None = None) -> Path:
             for name, text in sources.items():
                 (work / name).write_text(text)
             partial = work / "lib.so"
-            run = subprocess.run(compile_command(compiler, work, partial), capture_output=True, text=True)
+            run = subprocess.run(compile_command(compiler, work, partial, extra), capture_output=True, text=True)
             if run.returncode != 0:
                 said = (run.stderr or run.stdout).strip().splitlines()[:3]
                 first = " | ".join(said) if said else f"exit status {run.returncode}, no message"
@@ -145,16 +148,25 @@ def build_library(cache: Path | None = None) -> Path:
     return library
 
 
-_LIBRARIES: dict[Path | None, ctypes.CDLL] = {}
+_LIBRARIES: dict[tuple[Path | None, bool], ctypes.CDLL] = {}
 
 
-def load_library(cache: Path | None = None) -> ctypes.CDLL:
+def sanitizer_preload() -> str | None:
+    """The AddressSanitizer runtime of the compiler (``cc -print-file-name=libasan.so``), which must be in
+    ``LD_PRELOAD`` of a Python process that loads the sanitized build; None when the compiler has none."""
+    run = subprocess.run([find_compiler(), "-print-file-name=libasan.so"], capture_output=True, text=True)
+    path = run.stdout.strip()
+    return path if run.returncode == 0 and os.path.isabs(path) and os.path.isfile(path) else None
+
+
+def load_library(cache: Path | None = None, sanitize: bool = False) -> ctypes.CDLL:
     """The built library, built or found and loaded once per process and cache (the shipped sources do not change
-    while it runs), with its functions' signatures declared."""
-    lib = _LIBRARIES.get(cache)
+    while it runs), with its functions' signatures declared. ``sanitize``: the build with :data:`SANITIZE_FLAGS`
+    (the process must run with :func:`sanitizer_preload` in ``LD_PRELOAD``)."""
+    lib = _LIBRARIES.get((cache, sanitize))
     if lib is not None:
         return lib
-    path = build_library(cache)
+    path = build_library(cache, SANITIZE_FLAGS if sanitize else ())
     try:
         lib = ctypes.CDLL(str(path))
     except OSError as exc:
@@ -175,13 +187,14 @@ def load_library(cache: Path | None = None) -> ctypes.CDLL:
         ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int64, ctypes.c_uint32, ctypes.POINTER(ctypes.c_uint32), p_f64,
         p_f64, p_f64,
     ]  # fmt: skip
+    lib.sil_set_next_frame.argtypes = [ctypes.c_void_p, ctypes.c_uint32]
     lib.sil_state.argtypes = [ctypes.c_void_p, p_u8, ctypes.POINTER(ctypes.c_uint32)]
     lib.sil_check_table.argtypes = [
         p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_char_p, ctypes.POINTER(ctypes.c_uint32)
     ]  # fmt: skip
     lib.sil_format.argtypes = [ctypes.c_uint32, ctypes.c_double, ctypes.c_char_p]
     lib.sil_format.restype = ctypes.c_uint32
-    _LIBRARIES[cache] = lib
+    _LIBRARIES[(cache, sanitize)] = lib
     return lib
 
 
@@ -307,6 +320,10 @@ class CFirmware:
             None if r is None else r.ctypes.data_as(p_f64),
         )  # fmt: skip
         return bool(ran)
+
+    def set_next_frame(self, frame: int) -> None:
+        """The camera's counter of the next exposure (as :meth:`onboard.firmware.Firmware.set_next_frame`)."""
+        self._lib.sil_set_next_frame(_aligned(self._fw), int(frame) & 0xFFFFFFFF)
 
     def _state(self) -> tuple[bool, list[int]]:
         streaming = ctypes.c_uint8(0)

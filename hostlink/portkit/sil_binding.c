@@ -65,6 +65,8 @@ int sil_process_frame(firmware_t *fw, uint32_t frame, int64_t t_us, uint32_t n, 
     return firmware_process_frame(fw, frame, t_us, n, star_id, x_px, y_px, r_ref);
 }
 
+void sil_set_next_frame(firmware_t *fw, uint32_t frame) { firmware_set_next_frame(fw, frame); }
+
 /* streaming flag and counters: frames_processed, last_frame, estimator_faults, estimator_runs, estimator_skipped,
  * nonce_counter, stage_state, epoch */
 void sil_state(const firmware_t *fw, uint8_t *streaming, uint32_t out[8])

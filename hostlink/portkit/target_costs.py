@@ -441,7 +441,7 @@ def measure_updates(m: Machine, nominal, frames: list, n_stars: int, precision: 
         if status != 0:
             raise ValueError(f"the target's update failed (status {status}) where the Python one did not")
         calls.append(cost)
-        # the seam's state begins with its recursive_state_t (estimator_seam.c): its saved bytes, after every frame
+        # the seam's state begins with its recursive_state_t (estimator_seam_state.h): its saved bytes each frame
         expected = save_state(py_state)
         blob = np.zeros(len(expected), np.uint8)
         n_bytes, _ = m.call("recursive_save_state", state, blob, blob.size, returns="u32")

@@ -5,6 +5,7 @@
  * onboard.fixedpoint.frame_front_end's Q10 centroids and Q30 references) and runs recursive_update(_fixed);
  * estimate and cost_flops are RecursiveEstimator.estimate and cost_flops. */
 #include "estimator_seam.h"
+#include "estimator_seam_state.h"
 
 #include <float.h>
 #include <math.h>
@@ -12,19 +13,6 @@
 #include "fixedpoint.h"
 #include "prior.h"
 #include "recursive.h"
-
-struct estimator_seam_state {
-    recursive_state_t rec;
-    uint32_t precision;
-    /* the frame in the estimator's precision (up to ESTIMATOR_SEAM_MAX_STARS input rows) */
-    float x_px[ESTIMATOR_SEAM_MAX_STARS];
-    float y_px[ESTIMATOR_SEAM_MAX_STARS];
-    float r_ref[ESTIMATOR_SEAM_MAX_STARS][3];
-    int64_t x_q10[ESTIMATOR_SEAM_MAX_STARS];
-    int64_t y_q10[ESTIMATOR_SEAM_MAX_STARS];
-    int64_t r_q30[ESTIMATOR_SEAM_MAX_STARS][3];
-    uint8_t usable[ESTIMATOR_SEAM_MAX_STARS];
-};
 
 int estimator_seam_available(void)
 {

@@ -20,10 +20,11 @@
  *   EstimatorSeam.cost_flops(n_stars)            estimator_seam_cost_flops(config, n_stars)
  *       onboard.recursive.update_cost_flops(n_stars, number of estimated parameters, config).
  *
- * Memory: no allocation. The state is an incomplete type here; its implementation defines struct
- * estimator_seam_state and estimator_seam_state_bytes() returns its size, so an integrator reserves it statically
- * (flight code: `static struct estimator_seam_state est;` with the implementation's header) or, from Python, as a
- * buffer of that size (aligned to 16 bytes). The firmware holds a pointer to it; NULL = a sensor without estimator.
+ * Memory: no allocation. The state is an incomplete type here; estimator_seam.c's is defined in
+ * estimator_seam_state.h, so an integrator reserves it statically (flight code: `static struct estimator_seam_state
+ * est;` after #include "estimator_seam_state.h", ESTIMATOR_SEAM_STATE_BYTES its size at compile time) or, from
+ * Python, as a buffer of estimator_seam_state_bytes() bytes (aligned to 16 bytes). The firmware holds a pointer to
+ * it; NULL = a sensor without estimator.
  * C99, no I/O, no recursion; every function does bounded work for n <= ESTIMATOR_SEAM_MAX_STARS.
  */
 #ifndef ESTIMATOR_SEAM_H

@@ -50,35 +50,35 @@ int firmware_init(firmware_t *fw, const banks_store_t *store, estimator_seam_sta
 }
 
 /* ------------------------------------------------------------------------------------------------ replies */
-static int put_reply(const st_message_t *m, uint8_t *reply, size_t cap, size_t *reply_len)
+/* Each reply is built in its own message struct and encoded by its own encoder (st_encode_<name>), never through
+ * st_message_t, whose union holds a 255-star frame (3.6 kB): a reply costs its own bytes of stack. */
+static int put_reply(size_t n, size_t *reply_len)
 {
-    *reply_len = st_encode(m, reply, cap);
-    return *reply_len == 0u ? FIRMWARE_NO_SPACE : FIRMWARE_REPLY;
+    *reply_len = n;
+    return n == 0u ? FIRMWARE_NO_SPACE : FIRMWARE_REPLY;
 }
 
 static int ack(uint16_t tag, uint8_t command, uint32_t value, uint8_t *reply, size_t cap, size_t *reply_len)
 {
-    st_message_t m;
+    st_ack_t m;
     memset(&m, 0, sizeof m);
-    m.type = ST_MSG_ACK;
-    m.u.ack.tag = tag;
-    m.u.ack.command = command;
-    m.u.ack.value = value;
-    return put_reply(&m, reply, cap, reply_len);
+    m.tag = tag;
+    m.command = command;
+    m.value = value;
+    return put_reply(st_encode_ack(&m, reply, cap), reply_len);
 }
 
 static int nak_text(uint16_t tag, uint8_t command, uint8_t code, const pyformat_text_t *text, uint8_t *reply,
                     size_t cap, size_t *reply_len)
 {
-    st_message_t m;
+    st_nak_t m;
     memset(&m, 0, sizeof m);
-    m.type = ST_MSG_NAK;
-    m.u.nak.tag = tag;
-    m.u.nak.command = command;
-    m.u.nak.code = code;
-    m.u.nak.text_bytes = (uint8_t)text->len;
-    memcpy(m.u.nak.text, text->buf, text->len);
-    return put_reply(&m, reply, cap, reply_len);
+    m.tag = tag;
+    m.command = command;
+    m.code = code;
+    m.text_bytes = (uint8_t)text->len;
+    memcpy(m.text, text->buf, text->len);
+    return put_reply(st_encode_nak(&m, reply, cap), reply_len);
 }
 
 static int nak(uint16_t tag, uint8_t command, uint8_t code, const char *text, uint8_t *reply, size_t cap,
@@ -106,15 +106,14 @@ static int ack_or_nak(int result, uint16_t tag, uint8_t command, uint32_t value,
 static int param_table(uint16_t tag, uint8_t bank, uint32_t generation, uint32_t crc, const uint8_t *table,
                        uint8_t *reply, size_t cap, size_t *reply_len)
 {
-    st_message_t m;
+    st_param_table_t m;
     memset(&m, 0, sizeof m);
-    m.type = ST_MSG_PARAM_TABLE;
-    m.u.param_table.tag = tag;
-    m.u.param_table.bank = bank;
-    m.u.param_table.generation = generation;
-    m.u.param_table.crc32 = crc;
-    memcpy(m.u.param_table.table, table, BANKS_TABLE_BYTES);
-    return put_reply(&m, reply, cap, reply_len);
+    m.tag = tag;
+    m.bank = bank;
+    m.generation = generation;
+    m.crc32 = crc;
+    memcpy(m.table, table, BANKS_TABLE_BYTES);
+    return put_reply(st_encode_param_table(&m, reply, cap), reply_len);
 }
 
 static uint32_t estimator_updates(const firmware_t *fw)
@@ -132,7 +131,7 @@ static uint32_t estimator_updates(const firmware_t *fw)
 
 static int status(const firmware_t *fw, uint16_t tag, uint8_t *reply, size_t cap, size_t *reply_len)
 {
-    st_message_t m;
+    st_telemetry_t m;
     uint8_t table[BANKS_TABLE_BYTES];
     uint32_t generation = 0u;
     uint32_t crc = 0u;
@@ -141,22 +140,21 @@ static int status(const firmware_t *fw, uint16_t tag, uint8_t *reply, size_t cap
         generation = 0u;
         crc = 0u;
     }
-    m.type = ST_MSG_TELEMETRY;
-    m.u.telemetry.tag = tag;
-    m.u.telemetry.streaming = fw->streaming;
-    m.u.telemetry.stage_state = fw->store.stage_state;
-    m.u.telemetry.active_generation = generation;
-    m.u.telemetry.active_crc32 = crc;
-    m.u.telemetry.frames_processed = fw->counters.frames_processed;
-    m.u.telemetry.last_frame = fw->counters.last_frame;
-    m.u.telemetry.estimator_updates = estimator_updates(fw);
-    return put_reply(&m, reply, cap, reply_len);
+    m.tag = tag;
+    m.streaming = fw->streaming;
+    m.stage_state = fw->store.stage_state;
+    m.active_generation = generation;
+    m.active_crc32 = crc;
+    m.frames_processed = fw->counters.frames_processed;
+    m.last_frame = fw->counters.last_frame;
+    m.estimator_updates = estimator_updates(fw);
+    return put_reply(st_encode_telemetry(&m, reply, cap), reply_len);
 }
 
 static int read_estimate(const firmware_t *fw, uint16_t tag, uint8_t *reply, size_t cap, size_t *reply_len)
 {
     const uint8_t cmd = ST_MSG_READ_ESTIMATE;
-    st_message_t m;
+    st_estimate_t m;
     uint32_t mask;
     uint32_t n_updates;
     if (fw->est == NULL) {
@@ -166,19 +164,18 @@ static int read_estimate(const firmware_t *fw, uint16_t tag, uint8_t *reply, siz
         return nak(tag, cmd, ST_NAK_NO_ESTIMATE, "no active parameter set to start from", reply, cap, reply_len);
     }
     memset(&m, 0, sizeof m);
-    estimator_seam_estimate(fw->est, m.u.estimate.values, m.u.estimate.sigma, &mask, &n_updates);
+    estimator_seam_estimate(fw->est, m.values, m.sigma, &mask, &n_updates);
     if (n_updates == 0u) {
         return nak(tag, cmd, ST_NAK_NO_ESTIMATE, "the estimator has not processed a frame yet", reply, cap,
                    reply_len);
     }
-    m.type = ST_MSG_ESTIMATE;
-    m.u.estimate.tag = tag;
-    m.u.estimate.status = ST_ESTIMATE_STATUS_RUNNING;
-    m.u.estimate.estimated_mask = (uint16_t)mask;
-    m.u.estimate.base_generation = fw->est_generation;
-    m.u.estimate.n_updates = n_updates;
-    m.u.estimate.last_frame = fw->est_last_frame;
-    return put_reply(&m, reply, cap, reply_len);
+    m.tag = tag;
+    m.status = ST_ESTIMATE_STATUS_RUNNING;
+    m.estimated_mask = (uint16_t)mask;
+    m.base_generation = fw->est_generation;
+    m.n_updates = n_updates;
+    m.last_frame = fw->est_last_frame;
+    return put_reply(st_encode_estimate(&m, reply, cap), reply_len);
 }
 
 /* the Python class name of a message type that is not a command */
@@ -228,8 +225,15 @@ int firmware_handle(firmware_t *fw, const uint8_t *command, size_t n, uint8_t *r
     case ST_MSG_GET_STATUS:
         return status(fw, cmd->u.get_status.tag, reply, cap, reply_len);
     case ST_MSG_STREAM_CONTROL:
-        fw->streaming = cmd->u.stream_control.enable ? 1u : 0u;
-        return ack(cmd->u.stream_control.tag, cmd->type, 0u, reply, cap, reply_len);
+        if (!cmd->u.stream_control.enable) {
+            fw->streaming = 0u;
+            return ack(cmd->u.stream_control.tag, cmd->type, 0u, reply, cap, reply_len);
+        }
+        if (!fw->streaming) { /* a new stream: its first exposure is the camera's next one */
+            fw->streaming = 1u;
+            fw->stream_first_frame = fw->next_frame;
+        }
+        return ack(cmd->u.stream_control.tag, cmd->type, fw->stream_first_frame, reply, cap, reply_len);
     case ST_MSG_STAGE_BEGIN:
         result = banks_stage_begin(&fw->store, cmd->u.stage_begin.length, &value, &refusal);
         return ack_or_nak(result, cmd->u.stage_begin.tag, cmd->type, value, &refusal, reply, cap, reply_len);
@@ -300,6 +304,8 @@ static void estimate_frame(firmware_t *fw, uint32_t frame, uint32_t n, const uin
     }
 }
 
+void firmware_set_next_frame(firmware_t *fw, uint32_t frame) { fw->next_frame = frame; }
+
 int firmware_process_frame(firmware_t *fw, uint32_t frame, int64_t t_us, uint32_t n, const uint32_t *star_id,
                            const double *x_px, const double *y_px, const double *r_ref)
 {
@@ -308,6 +314,7 @@ int firmware_process_frame(firmware_t *fw, uint32_t frame, int64_t t_us, uint32_
     double busy;
     fw->counters.frames_processed += 1u;
     fw->counters.last_frame = frame;
+    fw->next_frame = frame + 1u; /* uint32_t: wraps as the Python model's & 0xFFFFFFFF */
     if (fw->has_sensor_time && t_us <= fw->sensor_time_us) {
         t_us = fw->sensor_time_us + (int64_t)nearbyint(fw->budget.min_frame_period_s * 1e6);
     }

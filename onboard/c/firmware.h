@@ -3,7 +3,9 @@
  * message (the transport removed its framing) and its reply goes out as the bytes of one message, encoded by the
  * generated wire codec (st_messages.h). Commands, what they require and the NAK code when refused:
  *
- *   GET_STATUS, STREAM_CONTROL  always accepted
+ *   GET_STATUS      always accepted
+ *   STREAM_CONTROL  always accepted; Ack value of a start = the frame counter of the stream's first exposure
+ *                   (next_frame when it started; a start while streaming carries the same value), of a stop 0
  *   STAGE_BEGIN     length == 92 (BAD_LENGTH); session record persisted (BANK_WRITE_FAILED); Ack value = nonce
  *   STAGE_CHUNK     an upload in progress (NOT_STAGED); chunk inside the table (BAD_LENGTH); un-verifies
  *   STAGE_VERIFY    staged set complete (NOT_STAGED), CRC (BAD_CRC), plausibility and sigma (INVALID_PARAMS)
@@ -61,6 +63,8 @@ typedef struct {
     banks_store_t store;
     uint8_t streaming;
     firmware_counters_t counters;
+    uint32_t next_frame;         /* the camera's next exposure's counter: the last + 1, or firmware_set_next_frame */
+    uint32_t stream_first_frame; /* the counter the current stream's start was acknowledged with */
     firmware_budget_t budget;
     uint32_t has_sensor_time;
     int64_t sensor_time_us;
@@ -86,6 +90,9 @@ int firmware_init(firmware_t *fw, const banks_store_t *store, estimator_seam_sta
 /* One command message -> its reply (enum firmware_result). */
 int firmware_handle(firmware_t *fw, const uint8_t *command, size_t n, uint8_t *reply, size_t cap,
                     size_t *reply_len);
+/* The camera's driver announces the frame counter of its next exposure (Firmware.set_next_frame): for a camera
+ * whose counter does not simply follow the last exposure processed. */
+void firmware_set_next_frame(firmware_t *fw, uint32_t frame);
 /* One exposure (Firmware.process_frame): n stars, their ids (0 = not identified), centroids [px] and reference unit
  * vectors (row-major n x 3, NaN rows where the catalogue has none; r_ref NULL = no catalogue for this frame).
  * Returns 1 when the estimator ran on it. */
