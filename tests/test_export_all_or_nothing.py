@@ -151,3 +151,11 @@ def test_a_complete_export_replaces_old_files_and_keeps_the_users_own(command, t
     assert {p: p.read_bytes() for p in written} == fresh
     assert (kit / "notes.txt").read_text() == "mine\n"
     assert not [p for p in tmp_path.rglob(".*")]  # no temporary directory left
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_the_current_folder_is_a_directory_to_export_into(command, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, _ = _run(command, Path("."), capsys)
+    assert code == 0 and out.splitlines() and all(Path(line).is_file() for line in out.splitlines())
+    assert not [p for p in tmp_path.rglob(".*")]

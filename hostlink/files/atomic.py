@@ -247,10 +247,13 @@ def write_tree(directory: str | Path, files: dict[str, str | bytes]) -> list[Pat
     stands in the way, and the files replaced so far are put back if a rename fails. On any failure nothing new is
     left behind (the temporary directory, and the folders created for it, removed) and a one-line
     :class:`UserError` names ``directory``. Returns the paths written, in the order of ``files``."""
-    out = file_path(directory)
+    if not str(directory):
+        raise UserError("'': not a directory name")
+    given = Path(directory)
+    out = Path(os.path.abspath(given))  # "." and ".." named by what they are (the temporary name is made from it)
     names = list(files)
     if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: not a directory")
+        raise UserError(f"{given}: not a directory")
     created: list[Path] = []  # parent folders this call made (removed again on failure)
     try:
         for parent in reversed([out.parent, *out.parent.parents]):
@@ -260,11 +263,11 @@ def write_tree(directory: str | Path, files: dict[str, str | bytes]) -> list[Pat
         fresh = not out.exists()
         conflict = None if fresh else _tree_conflict(out, names)
         if conflict is not None:
-            raise UserError(f"{out}: nothing written: {conflict}")
+            raise UserError(f"{given}: nothing written: {conflict}")
         staging = _make_staging(out if fresh else out / out.name)
     except OSError as exc:
         _remove_folders(created)
-        raise UserError(f"{out}: cannot write ({exc.strerror or exc}); nothing written") from None
+        raise UserError(f"{given}: cannot write ({exc.strerror or exc}); nothing written") from None
     except UserError:
         _remove_folders(created)
         raise
@@ -282,14 +285,14 @@ def write_tree(directory: str | Path, files: dict[str, str | bytes]) -> list[Pat
     except OSError as exc:
         _remove_tree(staging)
         _remove_folders(created)
-        raise UserError(f"{out}: cannot write ({exc.strerror or exc}); nothing written") from None
+        raise UserError(f"{given}: cannot write ({exc.strerror or exc}); nothing written") from None
     except BaseException:
         _remove_tree(staging)
         _remove_folders(created)
         raise
     if not fresh:
         _remove_tree(staging)
-    return [out / name for name in names]
+    return [given / name for name in names]
 
 
 def _make_staging(anchor: Path) -> Path:
