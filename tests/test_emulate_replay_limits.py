@@ -4,7 +4,6 @@ first frame streamed), a magnitude beyond the wire's int16 millimagnitudes, a fr
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from hostlink.cli import main
