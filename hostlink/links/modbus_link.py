@@ -15,14 +15,14 @@ and ``command`` (function code 16), then one read of the ``result_*`` registers;
 
 Integrity and recovery: every block read as a snapshot (result, status, tables, estimate, stream window) carries a
 CRC-32 check register (``checked_blocks`` in the map); a block whose check fails is read again, never decoded. An
-exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made
-again (on a fresh connection: a request that lost a byte must not take the next one down with it, and late bytes
-are dropped) until the link timeout has passed without an answer; then one LinkError (the link is gone). Each
-exchange waits for its answer as long as :class:`AnswerTimer` says (the line time plus the device's response time as measured, like TCP's retransmission
-timeout), so a lost answer costs the device's usual response time, and reads are as long as the line's measured
-byte fault rate makes fastest (:meth:`AnswerTimer.read_registers`). Command writes are repeated only for commands
-that may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY); STAGE_BEGIN and COMMIT are written again only when
-``result_counter`` shows they did not run.
+exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made again
+(on a fresh connection: a request that lost a byte must not take the next one down with it, and late bytes are dropped)
+until the link timeout has passed without an answer; then one LinkError (the link is gone). Each exchange waits for its
+answer as long as :class:`AnswerTimer` says (the line time plus the device's response time as measured, like TCP's
+retransmission timeout), so a lost answer costs the device's usual response time, and reads are as long as the line's
+measured byte fault rate makes fastest (:meth:`AnswerTimer.read_registers`). Command writes are repeated only for
+commands that may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY); STAGE_BEGIN and COMMIT are written again only
+when ``result_counter`` shows they did not run.
 """
 
 from __future__ import annotations
