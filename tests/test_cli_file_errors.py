@@ -43,3 +43,24 @@ def test_a_spool_dir_that_is_no_folder_is_a_one_line_error(session, tmp_path, ca
     )
     err = _one_line(capsys)
     assert code == 2 and "spool folder" in err and not out.exists()
+
+
+def test_an_output_under_a_file_says_not_a_directory(session, tmp_path, capsys):
+    (tmp_path / "a-file").write_text("x\n")
+    out = tmp_path / "a-file" / "c.json"
+    code = main(["calibrate", "--nominal", str(data_file("seed004_nominal.json")), "--out", str(out), str(session)])
+    err = _one_line(capsys)
+    assert code == 2 and "Not a directory" in err and (tmp_path / "a-file").read_text() == "x\n"
+
+
+def test_a_parameter_file_that_cannot_be_written_prints_nothing_on_stdout(tmp_path, capsys):
+    """``params --out`` and ``accept --out`` print the set and write it: a failed write leaves nothing on stdout to be
+    taken for a result (the file is written first)."""
+    from hostlink.errors import UserError
+    from hostlink.files.params import emit_param_file
+
+    with pytest.raises(UserError, match="cannot write"):
+        emit_param_file({"focal_length_mm": 70.0}, tmp_path)  # a directory
+    assert capsys.readouterr().out == ""
+    emit_param_file({"focal_length_mm": 70.0}, tmp_path / "p.json")
+    assert capsys.readouterr().out == (tmp_path / "p.json").read_text()

@@ -14,6 +14,7 @@ writing the same file (a catalogue cache filled by two commands at once) never s
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import secrets
@@ -105,6 +106,11 @@ class AtomicFile:
         """Create the temporary file and return its handle (text or binary as configured)."""
         if self.handle is None:
             try:
+                for folder in (self.path.parent, *self.path.parent.parents):
+                    if folder.exists() or folder.is_symlink():
+                        if not folder.is_dir():  # mkdir would say "File exists" of the file in the way
+                            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+                        break
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 fd, self.temporary = create_exclusive(self.path, self.suffix)
                 if self.binary:
