@@ -159,10 +159,13 @@ class RegisterClient:
     def write(self, address: int, values: list[int]) -> None:
         """Write holding registers from ``address`` (function code 16)."""
         what = f"write of {len(values)} holding registers at {address}"
+        self._rx_bytes = 0
         try:
             rr = self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
-            raise ModbusAdapterError(f"{self.where}: {what} failed ({one_line(exc)})") from None
+            raise ModbusAdapterError(
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+            ) from None
         echo = (getattr(rr, "address", address), getattr(rr, "count", len(values)))
         if echo != (address, len(values)):  # the answer echoes address and count: a late answer to another write
             raise ModbusAdapterError(f"{self.where}: {what} answered for {echo[1]} registers at {echo[0]}")
