@@ -56,8 +56,9 @@ def test_a_sigma_px_outside_its_range_is_a_one_line_refusal(session, tmp_path, c
 
 def test_the_floor_is_the_photon_noise_bound_of_a_star_at_full_well():
     """Cramer-Rao bound of a Gaussian PSF of width s with N photo-electrons, s / sqrt(N), for the brightest
-    unsaturated star (peak pixel N / (2 pi s^2) at a full well of 10^6 e-): the same for every width (0.5 to 5 px,
-    the peak taken as the pixel-integrated Gaussian's, exact as s grows: 1 % at s = 3 px)."""
+    unsaturated star (its central pixel, the pixel-integrated Gaussian's share of N, at a full well of 10^6 e-): the
+    same for every width, 1 / sqrt(2 pi W), to within 1 % from s = 3 px on (the peak pixel's share tends to
+    1 / (2 pi s^2) as s grows)."""
     full_well_e = 1.0e6
     for s in (3.0, 4.0, 5.0):
         peak_fraction = math.erf(0.5 / (s * math.sqrt(2.0))) ** 2  # the central pixel's share of the star's light
