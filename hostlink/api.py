@@ -215,14 +215,11 @@ if TYPE_CHECKING:
     from hostlink.portkit.vectors import write_vectors
     from hostlink.progress import progress_bar
     from hostlink.sky.attitude import (
-        DEFAULT_REJECT_ARCSEC,
-        PRECISIONS,
-        REFRACTION_MODELS,
-        REFRACTION_MODES,
         SessionAttitudes,
         refraction_mode,
         solve_attitudes,
     )
+    from hostlink.sky.attitude_choices import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES
     from hostlink.sky.pointing import SipModel, attitude_quaternion, boresight_radec_roll, sip_model
     from hostlink.sky.references import SessionReferences, session_references
     from hostlink.sky.render import RenderConfig, RenderedFrame, render_frame, render_stars
@@ -236,11 +233,12 @@ if TYPE_CHECKING:
         write_simulation,
     )
     from onboard.firmware import EstimatorBudget
-    from onboard.params import DISTORTION_NAMES, ESTIMATE_NAMES, CameraParams, Distortion
+    from onboard.params import CameraParams, Distortion
     from onboard.prior import refined_mask
     from onboard.recursive import RecursiveConfig, parse_estimate_names
     from onboard.site import Site, Weather
     from protocol.messages import Estimate
+    from protocol.names import DISTORTION_NAMES, ESTIMATE_NAMES
     from protocol.param_table import DISTORTION_UNITS
 
 __all__ = [

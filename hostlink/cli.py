@@ -144,11 +144,50 @@ def main(argv: list[str] | None = None) -> int:
         if not _stdout_closed():
             return _internal_error(args.command, exc)
         return 128 + 13  # the reader of stdout went away (`| head`): quiet, as a shell tool killed by SIGPIPE
+    except OSError as exc:
+        if os.environ.get("HOSTLINK_DEBUG"):
+            raise
+        if not _users_file_error(exc):
+            return _internal_error(args.command, exc)
+        print(f"hostlink {args.command}: error: {_short(exc.filename)}: {exc.strerror}", file=sys.stderr)
+        return UserError.exit_code
     except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
         if os.environ.get("HOSTLINK_DEBUG"):
             raise
         return _internal_error(args.command, exc)
     return int(code or 0)
+
+
+#: errno names of the file errors a user causes with a path they give (too long, missing, not a folder, a folder,
+#: no permission, read-only or full file system, a loop of links): reported as ``PATH: reason`` with exit 2 when a
+#: command's own checks let one through, rather than as an internal error.
+_USER_FILE_ERRNOS = (
+    "ENAMETOOLONG",
+    "ENOENT",
+    "ENOTDIR",
+    "EISDIR",
+    "EACCES",
+    "EPERM",
+    "EROFS",
+    "ENOSPC",
+    "EDQUOT",
+    "ELOOP",
+    "EEXIST",
+)
+#: Longest path printed in a one-line error [characters] (a 5,000-character name is cut, its end kept).
+_MAX_PATH_CHARS = 120
+
+
+def _users_file_error(exc: OSError) -> bool:
+    import errno
+
+    codes = {getattr(errno, name) for name in _USER_FILE_ERRNOS if hasattr(errno, name)}
+    return exc.errno in codes and exc.filename is not None and bool(exc.strerror)
+
+
+def _short(path: object) -> str:
+    text = os.fsdecode(path) if isinstance(path, (str, bytes, os.PathLike)) else str(path)
+    return text if len(text) <= _MAX_PATH_CHARS else f"...{text[-_MAX_PATH_CHARS:]} ({len(text)} characters)"
 
 
 def _internal_error(command: str, exc: BaseException) -> int:

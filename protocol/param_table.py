@@ -12,10 +12,11 @@ Modbus mailbox checks and the bank records all derive from it.
 "Equal to float32" (docs/commands.md, ``hostlink upload``) means: every file value rounded to float32 (round to
 nearest even, as numpy does) equals the value the sensor reports, bit for bit.
 
-Pure: bytes in, values out. The parameter names (:data:`DISTORTION_NAMES`, :data:`ESTIMATE_NAMES`) are defined here,
-at the bottom layer, so that the wire, the sensor and the host spell them once; :func:`camera_fields_from_file` and
-:func:`camera_file_from_fields` flatten a parameter-file object into the table's camera fields and back. The mapping
-to ``onboard.params.CameraParams`` lives in ``onboard.banks`` (protocol imports nothing from onboard).
+Pure: bytes in, values out. The parameter names (:data:`DISTORTION_NAMES`, :data:`ESTIMATE_NAMES`) are defined in
+:mod:`protocol.names`, at the bottom layer, so that the wire, the sensor and the host spell them once;
+:func:`camera_fields_from_file` and :func:`camera_file_from_fields` flatten a parameter-file object into the table's
+camera fields and back. The mapping to ``onboard.params.CameraParams`` lives in ``onboard.banks`` (protocol imports
+nothing from onboard).
 """
 
 from __future__ import annotations
@@ -26,10 +27,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from protocol.crc import crc32
+from protocol.names import DISTORTION_NAMES, ESTIMATE_NAMES
 
-#: Distortion keys of a camera parameter file (docs/camera-model.md: radial k1 k2 k3, decentering p1 p2, thin prism
-#: s1 s2), in the order of every parameter vector and table. THE list: every other module imports it.
-DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "p1", "p2", "s1", "s2")
 #: Units of the distortion coefficients (docs/camera-model.md: radial terms in powers of r^2, the others per px).
 DISTORTION_UNITS = {
     "k1": "px^-2",
@@ -40,9 +39,6 @@ DISTORTION_UNITS = {
     "s1": "px^-1",
     "s2": "px^-1",
 }
-#: Names of the estimable parameters, in the order of every parameter vector in the project (``--estimate`` names,
-#: the sigma fields below, the onboard estimate's values): focal length, principal point, then the distortion.
-ESTIMATE_NAMES: tuple[str, ...] = ("f", "x0", "y0", *DISTORTION_NAMES)
 #: Camera fields of the table. Names are those of the parameter file (``principal_point_px``/``image_size_px`` split).
 CAMERA_FIELDS: tuple[str, ...] = (
     "focal_length_mm",

@@ -383,7 +383,15 @@ def calibrate_archive(
     chunk_frames = DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames
     if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
         raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")
-    with tempfile.TemporaryDirectory(prefix="hostlink-calibrate-", dir=spool_dir) as tmp:
+    try:
+        spool = tempfile.TemporaryDirectory(prefix="hostlink-calibrate-", dir=spool_dir)
+    except OSError as exc:  # a --spool-dir that is no folder, or one (or the system's temporary folder) not writable
+        where = spool_dir if spool_dir is not None else tempfile.gettempdir()
+        raise UserError(
+            f"{where}: cannot make the calibration's spool folder there ({exc.strerror or exc}); --spool-dir picks "
+            "another"
+        ) from None
+    with spool as tmp:
         chunks, references = spool_session(
             source, chunk_frames, nominal, Path(tmp), site, weather, dut1_s, on_frames, on_rows
         )

@@ -296,11 +296,27 @@ def _joined_sigma(parts: list[np.ndarray | None]) -> np.ndarray | None:
     return np.concatenate(parts)
 
 
+#: Largest full well of a detector pixel [electrons]: scientific CCDs reach a few 10^5, the deepest ~10^6.
+_MAX_FULL_WELL_E = 1.0e6
+#: Smallest 1-sigma centroid noise per axis a single exposure reaches [px]: the photon-noise Cramer-Rao bound of a
+#: Gaussian PSF of width s and N electrons is s / sqrt(N) (King 1983, PASP 95, 163; Mendez et al. 2013, PASP 125,
+#: 580), and an unsaturated star holds N <= 2 pi s^2 W (its peak pixel, N / (2 pi s^2), below the full well W), so
+#: sigma >= 1 / sqrt(2 pi W) whatever the PSF's width: 4.0e-4 px at W = 10^6 e-. A smaller stated noise (a bound
+#: that left out the star's shot noise, or a unit mistake) is taken as this floor: believed as given, one star of
+#: 1e-9 px would outweigh every other by 10^16 and overflow the weighted fit.
+SIGMA_PX_FLOOR = 1.0 / float(np.sqrt(2.0 * np.pi * _MAX_FULL_WELL_E))
+#: Largest stated centroid noise [px]: the largest detector side the project reads (``onboard.params``
+#: MAX_IMAGE_SIDE_PX, 2**24); a larger "noise" says nothing about a position on any detector (a column in other
+#: units) and is refused.
+SIGMA_PX_CEILING = float(1 << 24)
+
+
 def session_sigma_px(session: Session, rows: np.ndarray) -> np.ndarray | None:
     """The stars' 1-sigma centroid noise per axis [px] from the session's optional ``sigma_px`` column (a typed
     field where the reader gives one, else the column kept as text), or None without it. ``rows``: the stars' session
-    rows, for the error. Raises :class:`UserError` (one line, naming the file line) for a value that is not a
-    positive finite number of pixels."""
+    rows, for the error. Raises :class:`UserError` (one line, naming the file line and column) for a value that is
+    not a finite number of pixels in (0, :data:`SIGMA_PX_CEILING`]; a positive value below :data:`SIGMA_PX_FLOOR`
+    (the photon-noise limit of any single exposure) is taken as the floor."""
     typed = getattr(session, "sigma_px", None)
     raw = typed if typed is not None else session.extra.get("sigma_px")
     if raw is None:
@@ -309,16 +325,16 @@ def session_sigma_px(session: Session, rows: np.ndarray) -> np.ndarray | None:
     for k, text in enumerate(raw):
         try:
             values[k] = float(text)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             pass
-    bad = np.flatnonzero(~(np.isfinite(values) & (values > 0)))
+    bad = np.flatnonzero(~(np.isfinite(values) & (values > 0) & (values <= SIGMA_PX_CEILING)))
     if bad.size:
         k = int(bad[0])
         raise UserError(
-            f"sigma_px on line {int(rows[k]) + 2}: {raw[k]!r}: expected a positive number of pixels (the star's "
-            "1-sigma centroid noise per axis)"
+            f"sigma_px on line {int(rows[k]) + 2}: {raw[k]!r}: expected a positive number of pixels up to "
+            f"{SIGMA_PX_CEILING:.0f} (the star's 1-sigma centroid noise per axis)"
         )
-    return values
+    return np.maximum(values, SIGMA_PX_FLOOR)
 
 
 def frame_chunks(frame_starts: np.ndarray, max_obs: int) -> list[tuple[int, int]]:

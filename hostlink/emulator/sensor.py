@@ -25,7 +25,7 @@ from hostlink.files.session import Session
 from hostlink.files.times import iso_to_t_us
 from onboard.camera import radec_to_unit
 from onboard.firmware import Firmware
-from protocol.messages import MAX_STARS, Ack, CentroidFrame, EndOfStream, Message, StreamControl
+from protocol.messages import MAG_FIXED, MAX_STARS, Ack, CentroidFrame, EndOfStream, Message, StreamControl
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,30 @@ class EndpointOptions:
     extra: dict[str, object] = field(default_factory=dict)  # --option settings, parsed (emulator.setup)
 
 
+#: Largest magnitude the wire carries: int16 millimagnitudes (``protocol.messages.MAG_FIXED``; -32768 = none).
+_WIRE_MAG_LIMIT = 32767 / MAG_FIXED.steps_per_unit
+#: Star ids and frame counters travel as uint32 (``protocol.messages.CentroidFrame``).
+_WIRE_U32_END = 1 << 32
+
+
+def _check_wire_ranges(session: Session) -> None:
+    """ValueError (naming the file line) for a star the sensor could not send: a magnitude beyond the wire's range
+    (NaN is "none"), or a star id or frame counter outside uint32. Centroids are checked against the detector by
+    the caller."""
+    checks = []
+    if session.mag is not None:
+        mag = np.asarray(session.mag, dtype=np.float64)
+        beyond = np.abs(np.nan_to_num(mag, nan=0.0)) > _WIRE_MAG_LIMIT  # (an infinity too; NaN is "none")
+        checks.append(("mag", mag, beyond, f"within +-{_WIRE_MAG_LIMIT}"))
+    for name in ("star_id", "frame"):
+        ids = np.asarray(getattr(session, name), dtype=np.int64)
+        checks.append((name, ids, (ids < 0) | (ids >= _WIRE_U32_END), f"in 0..{_WIRE_U32_END - 1}"))
+    for name, values, bad, allowed in checks:
+        if np.any(bad):
+            k = int(np.argmax(bad))
+            raise ValueError(f"line {k + 2}: {name} {values[k].item()!r} is not one the sensor sends ({allowed})")
+
+
 def session_frames(session: Session, cycle: bool = False) -> Iterator[SourceFrame]:
     """Frames of a session in file order (``cycle``: forever, shifting the frame counter and the clock by the
     session's span each pass). At most MAX_STARS stars per frame (a session with more is refused up front)."""
@@ -60,6 +84,7 @@ def session_frames(session: Session, cycle: bool = False) -> Iterator[SourceFram
     counts = [s.stop - s.start for s in slices]
     if max(counts) > MAX_STARS:
         raise ValueError(f"a frame has {max(counts)} stars; the sensor's frame buffer holds {MAX_STARS}")
+    _check_wire_ranges(session)
     t_us = np.array([iso_to_t_us(session.t_utc[s.start]) for s in slices], dtype=np.int64)
     frames = np.array([int(session.frame[s.start]) for s in slices], dtype=np.int64)
     have_ref = session.ra_deg is not None and session.dec_deg is not None

@@ -97,9 +97,11 @@ def build_sensor(
         seam = RecursiveEstimator(names, config, precision=precision) if estimator else None
         sensor_firmware = Firmware(sensor_banks(nominal_params, flash, power_cut_after_units), seam, budget)
     if replay:
-        from hostlink.files.session import read_session
+        from hostlink.files.session import check_on_detector, read_session
 
         session = read_session(replay)
+        # a centroid off the sensor's detector is not one it could send (nor fit the wire's fixed point)
+        check_on_detector(session, nominal_params.image_size_px, replay, nominal or DEFAULT_NOMINAL)
         cycle = False
     else:
         sim = simulate(

@@ -14,6 +14,7 @@ writing the same file (a catalogue cache filled by two commands at once) never s
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import secrets
@@ -105,6 +106,11 @@ class AtomicFile:
         """Create the temporary file and return its handle (text or binary as configured)."""
         if self.handle is None:
             try:
+                for folder in (self.path.parent, *self.path.parent.parents):
+                    if folder.exists() or folder.is_symlink():
+                        if not folder.is_dir():  # mkdir would say "File exists" of the file in the way
+                            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+                        break
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 fd, self.temporary = create_exclusive(self.path, self.suffix)
                 if self.binary:
@@ -212,3 +218,152 @@ def save_figure(path: str | Path, figure: Any, dpi: int = 110) -> None:
     ``hostlink calibrate --plot``)."""
     with atomic_open(path, binary=True) as handle:
         figure.savefig(handle, format="png", dpi=dpi)
+
+
+def _write_new_file(path: Path, data: bytes) -> None:
+    """Create ``path`` (never an existing file, never through a symbolic link), write ``data``, fsync and close."""
+    fd = os.open(path, _CREATE_FLAGS, 0o666)
+    with os.fdopen(fd, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def _tree_conflict(directory: Path, names: list[str]) -> str | None:
+    """What in ``directory`` stands in the way of writing the files ``names`` (relative, ``/``-separated): a
+    directory where a file goes, or something other than a directory where a folder goes; None when nothing does."""
+    for name in names:
+        parts = name.split("/")
+        for k in range(1, len(parts)):
+            folder = directory.joinpath(*parts[:k])
+            if folder.exists() and not folder.is_dir():
+                return f"{folder}: in the way of the folder {'/'.join(parts[:k])} (not a directory)"
+        target = directory / name
+        if target.is_dir() and not target.is_symlink():
+            return f"{target}: a directory is in the way of the file {name}"
+    return None
+
+
+def write_tree(directory: str | Path, files: dict[str, str | bytes]) -> list[Path]:
+    """Write a set of files (relative name, ``/`` for sub-folders -> text or bytes) under ``directory`` all at once,
+    or none of them: the files are built in a temporary directory (``.NAME.<random hex>.tmp``, created exclusively:
+    beside ``directory`` when it does not exist yet, else inside it) and moved into place only when every one is
+    complete. A new ``directory`` is the temporary one renamed (atomic); in an existing one each file is renamed onto
+    its place (a file already there replaced, never written through a symbolic link) after a check that nothing
+    stands in the way, and the files replaced so far are put back if a rename fails. On any failure nothing new is
+    left behind (the temporary directory, and the folders created for it, removed) and a one-line
+    :class:`UserError` names ``directory``. Returns the paths written, in the order of ``files``."""
+    if not str(directory):
+        raise UserError("'': not a directory name")
+    given = Path(directory)
+    out = Path(os.path.abspath(given))  # "." and ".." named by what they are (the temporary name is made from it)
+    names = list(files)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{given}: not a directory")
+    created: list[Path] = []  # parent folders this call made (removed again on failure)
+    try:
+        for parent in reversed([out.parent, *out.parent.parents]):
+            if not parent.exists():
+                parent.mkdir()
+                created.append(parent)
+        fresh = not out.exists()
+        conflict = None if fresh else _tree_conflict(out, names)
+        if conflict is not None:
+            raise UserError(f"{given}: nothing written: {conflict}")
+        staging = _make_staging(out if fresh else out / out.name)
+    except OSError as exc:
+        _remove_folders(created)
+        raise UserError(f"{given}: cannot write ({exc.strerror or exc}); nothing written") from None
+    except UserError:
+        _remove_folders(created)
+        raise
+    try:
+        for name in names:
+            data = files[name]
+            path = staging / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            _write_new_file(path, data.encode("utf-8") if isinstance(data, str) else bytes(data))
+        if fresh:
+            os.rename(staging, out)
+            _fsync_directory(out.parent)
+        else:
+            _move_into(staging, out, names)
+    except OSError as exc:
+        _remove_tree(staging)
+        _remove_folders(created)
+        raise UserError(f"{given}: cannot write ({exc.strerror or exc}); nothing written") from None
+    except BaseException:
+        _remove_tree(staging)
+        _remove_folders(created)
+        raise
+    if not fresh:
+        _remove_tree(staging)
+    return [given / name for name in names]
+
+
+def _make_staging(anchor: Path) -> Path:
+    """A new, empty temporary directory named after ``anchor`` (:func:`temporary_name`, in ``anchor``'s folder),
+    created exclusively: a name already taken (a planted symbolic link included) is never used, another is drawn."""
+    for _ in range(_NAME_TRIES):
+        staging = temporary_name(anchor)
+        try:
+            staging.mkdir()
+            return staging
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{_NAME_TRIES} temporary names next to {anchor.name} are taken")
+
+
+def _move_into(staging: Path, out: Path, names: list[str]) -> None:
+    """Rename each staged file onto its place under ``out``; on a failure, undo: the new files removed, the files
+    they replaced (kept aside in ``staging/.replaced``) renamed back, the folders made removed."""
+    aside = staging / ".replaced"
+    aside.mkdir()
+    done: list[tuple[Path, Path | None]] = []  # (placed file, the file it replaced kept aside)
+    made: list[Path] = []
+    try:
+        for k, name in enumerate(names):
+            target = out / name
+            for folder in reversed([target.parent, *target.parent.parents]):
+                if folder != out and out in folder.parents and not folder.exists():
+                    folder.mkdir()
+                    made.append(folder)
+            old = None
+            if target.exists() or target.is_symlink():
+                old = aside / str(k)
+                os.rename(target, old)
+            try:
+                os.rename(staging / name, target)
+            except OSError:
+                if old is not None:
+                    os.rename(old, target)
+                raise
+            done.append((target, old))
+    except OSError:
+        for target, old in reversed(done):
+            try:
+                if old is not None:
+                    os.replace(old, target)
+                else:
+                    target.unlink()
+            except OSError:
+                pass  # the first error is the one reported
+        _remove_folders(made)
+        raise
+    for folder in sorted({(out / name).parent for name in names}):
+        _fsync_directory(folder)
+
+
+def _remove_tree(path: Path) -> None:
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def _remove_folders(folders: list[Path]) -> None:
+    """Remove folders this process created, innermost first, each only if empty."""
+    for folder in reversed(folders):
+        try:
+            folder.rmdir()
+        except OSError:
+            pass

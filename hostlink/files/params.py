@@ -139,11 +139,12 @@ def save_params(path: str | Path, params: CameraParams, extras: dict | None = No
 
 
 def emit_param_file(data: dict, out: str | Path | None = None) -> None:
-    """Print a parameter-file object as JSON on stdout and, with ``out``, also write it there (atomically)."""
+    """Print a parameter-file object as JSON on stdout and, with ``out``, also write it there (atomically; first, so
+    that a file that cannot be written leaves nothing on stdout to be taken for a result)."""
     text = json_text(data)
-    sys.stdout.write(text)
     if out:
         write_text(out, text)
+    sys.stdout.write(text)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -116,7 +116,7 @@ def check_on_detector(session: Session, image_size_px: tuple[int, int], session_
         k = int(np.argmax(off))
         raise UserError(
             f"{session_name}: {int(off.sum())} centroid(s) off the {width} x {height} px detector of {params_name} "
-            f"(first: frame {int(session.frame[k])}, ({session.x_px[k]:.1f}, {session.y_px[k]:.1f}) px); "
+            f"(first: frame {int(session.frame[k])}, ({session.x_px[k]:.7g}, {session.y_px[k]:.7g}) px); "
             "the parameter file does not describe this camera"
         )
 

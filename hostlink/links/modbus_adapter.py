@@ -12,7 +12,8 @@ timeout from ``comm_params.timeout_connect`` at every exchange (so :meth:`Regist
 change it between exchanges) and call their own ``recv`` for every read from the line (wrapped here to learn whether
 any byte of an answer came); ``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
 the connection by itself (default 3: "No response received ... CLOSING CONNECTION"), which this client turns off
-because the link decides when to reconnect.
+because the link decides when to reconnect (the limit is ``transaction.max_until_disconnect``, the running count
+``transaction.count_until_disconnect``, reset to the limit only by an answer: both are set).
 """
 
 from __future__ import annotations
@@ -102,6 +103,11 @@ class RegisterClient:
                 reconnect_delay_max=0,
             )
         self._client.set_max_no_responses(_NEVER_CLOSE)
+        # set_max_no_responses sets the limit but not the running count (retries + 3 until the first answer): without
+        # this, four unanswered requests before any answer still closed the connection with pymodbus's own message
+        transaction = getattr(self._client, "transaction", None)
+        if transaction is not None and hasattr(transaction, "count_until_disconnect"):
+            transaction.count_until_disconnect = _NEVER_CLOSE
         self._rx_bytes = 0  # bytes received in the current exchange (the sync client's recv, wrapped)
         receive = self._client.recv
 
@@ -153,10 +159,13 @@ class RegisterClient:
     def write(self, address: int, values: list[int]) -> None:
         """Write holding registers from ``address`` (function code 16)."""
         what = f"write of {len(values)} holding registers at {address}"
+        self._rx_bytes = 0
         try:
             rr = self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
-            raise ModbusAdapterError(f"{self.where}: {what} failed ({one_line(exc)})") from None
+            raise ModbusAdapterError(
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+            ) from None
         echo = (getattr(rr, "address", address), getattr(rr, "count", len(values)))
         if echo != (address, len(values)):  # the answer echoes address and count: a late answer to another write
             raise ModbusAdapterError(f"{self.where}: {what} answered for {echo[1]} registers at {echo[0]}")

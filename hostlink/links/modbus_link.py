@@ -15,14 +15,14 @@ and ``command`` (function code 16), then one read of the ``result_*`` registers;
 
 Integrity and recovery: every block read as a snapshot (result, status, tables, estimate, stream window) carries a
 CRC-32 check register (``checked_blocks`` in the map); a block whose check fails is read again, never decoded. An
-exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made
-again (after two failures in a row on a fresh connection: stale bytes dropped) until the link timeout has passed
-without an answer; then one LinkError (the link is gone). Each exchange waits for its answer as long as
-:class:`AnswerTimer` says (the line time plus the device's response time as measured, like TCP's retransmission
-timeout), so a lost answer costs the device's usual response time, and reads are as long as the line's measured
-byte fault rate makes fastest (:meth:`AnswerTimer.read_registers`). Command writes are repeated only for commands
-that may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY); STAGE_BEGIN and COMMIT are written again only when
-``result_counter`` shows they did not run.
+exchange that fails on the way (timeout, garbled or short answer) is counted in ``stats.corrupt_frames`` and made again
+(on a fresh connection when no answer came: a request that lost a byte must not take the next one down with it)
+until the link timeout has passed without an answer; then one LinkError (the link is gone). Each exchange waits for its
+answer as long as :class:`AnswerTimer` says (the line time plus the device's response time as measured, like TCP's
+retransmission timeout), so a lost answer costs the device's usual response time, and reads are as long as the line's
+measured byte fault rate makes fastest (:meth:`AnswerTimer.read_registers`). Command writes are repeated only for
+commands that may run twice (STREAM_CONTROL, STAGE_CHUNK, STAGE_VERIFY); STAGE_BEGIN and COMMIT are written again only
+when ``result_counter`` shows they did not run.
 """
 
 from __future__ import annotations
@@ -72,9 +72,13 @@ _TIMEOUTS_BEFORE_BACKOFF = 2
 _PATIENCE_TIMEOUTS = 5
 #: Pause before an exchange is made again after a failure that came at once (a refused connection: do not spin) [s].
 _RETRY_PAUSE_S = 0.005
-#: Failed exchanges in a row after which the connection is opened again: the bytes of a failed answer are read and
-#: dropped within its own exchange, so the next one starts clean unless an answer came late or cut short; a second
-#: failure in a row resynchronises (reconnecting costs a TCP handshake, so it is not done after every loss).
+#: Failed exchanges in a row after which the connection is opened again when answers (even damaged) did come: the
+#: bytes of a failed answer are read and dropped within its own exchange, so the next one starts clean unless an
+#: answer came late or cut short; a second failure in a row resynchronises (a TCP handshake, not after every loss).
+#: An exchange that got no byte back reopens at once: its request may have lost a byte on the way up, leaving the
+#: device's framer waiting for it (Modbus TCP's length field, RTU's frame), and the next request on that connection
+#: would complete the broken one and be lost with it (with faults host -> sensor that doomed try ended 1 of 2 runs
+#: of link_faults.py --both-directions in a LinkError).
 _RESET_AFTER_FAILURES = 2
 #: Smallest read on a noisy line [registers] (the read size is chosen by AnswerTimer.read_registers).
 _MIN_CHUNK = 8
@@ -316,7 +320,7 @@ class ModbusLink(Link):
                 self.stats.corrupt_frames += 1
                 self.timer.exchanged(answer_registers + request_registers, ok=False)
                 failures += 1
-                if failures % _RESET_AFTER_FAILURES == 0:
+                if not exc.answered or failures % _RESET_AFTER_FAILURES == 0:
                     # resynchronise: late or partial bytes of failed exchanges must not be taken for the next answer
                     self._client.reset()
                 if now - t0 < wait_s and not exc.answered:

@@ -809,16 +809,7 @@ def firmware_core_files() -> dict[str, str]:
 
 def write_c(directory: str | Path) -> list[Path]:
     """Write the generated files and the firmware core (:func:`firmware_core_files`) into ``directory`` (created if
-    needed; each file atomically). Returns the paths."""
-    from hostlink.errors import UserError
-    from hostlink.files.atomic import write_text
+    needed), all of them or none (:func:`hostlink.files.atomic.write_tree`). Returns the paths."""
+    from hostlink.files.atomic import write_tree
 
-    out = Path(directory)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: not a directory")
-    paths = []
-    for name, text in {**generate_c(), **firmware_core_files()}.items():
-        path = out / name
-        write_text(path, text)
-        paths.append(path)
-    return paths
+    return write_tree(directory, {**generate_c(), **firmware_core_files()})

@@ -573,17 +573,8 @@ def generate_ground() -> dict[str, str]:
 
 
 def write_ground(directory: str | Path) -> list[Path]:
-    """Write the generated files under ``directory`` (created if needed; each file atomically). Returns the paths."""
-    from hostlink.errors import UserError
-    from hostlink.files.atomic import write_text
+    """Write the generated files under ``directory`` (created if needed), all of them or none
+    (:func:`hostlink.files.atomic.write_tree`). Returns the paths."""
+    from hostlink.files.atomic import write_tree
 
-    out = Path(directory)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: not a directory")
-    texts = generate_ground()
-    paths = []
-    for name, text in texts.items():
-        path = out / name
-        write_text(path, text)  # creates the directories (a UserError if it cannot)
-        paths.append(path)
-    return paths
+    return write_tree(directory, generate_ground())

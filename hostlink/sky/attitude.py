@@ -43,6 +43,7 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.files.session import Session, check_on_detector
 from hostlink.files.times import fixed_time_from_iso, tai_minus_utc_s
+from hostlink.sky.attitude_choices import DEFAULT_REJECT_ARCSEC, PRECISIONS, REFRACTION_MODELS, REFRACTION_MODES
 from hostlink.sky.observed_correction import attitude_observed_correction, correct_observed
 from hostlink.sky.references import session_references
 from onboard import attitude as att
@@ -52,12 +53,6 @@ from onboard.params import CameraParams
 from onboard.refraction import topocentric_observed
 from onboard.site import Site, Weather
 
-REFRACTION_MODES = ("reference", "observed", "none")
-REFRACTION_MODELS = ("atan", "seed001")
-PRECISIONS = ("float64", "float32")
-#: Default residual above which a star is dropped as misidentified [arcsec]: far above noise (a few arcsec) and
-#: uncorrected differential refraction across a field (< 20" at 75 deg), far below a wrong identity (degrees).
-DEFAULT_REJECT_ARCSEC = 60.0
 #: Frame status values: solved, fewer usable stars than ``min_stars``, or stars in a degenerate geometry.
 STATUS_OK, STATUS_TOO_FEW, STATUS_DEGENERATE = "ok", "too_few_stars", "degenerate"
 
