@@ -174,7 +174,7 @@ def track_phase(run: BenchRun, link: Link, say: Callable[[str], None], show_prog
     cfg = run.cfg
     with progress_bar("streaming drift frames", cfg.drift_frames, show_progress) as advance:
         frames, run.drift_estimates, run.drift_work, run.drift_stream = stream_phase(
-            link, cfg.drift_frames, cfg.poll_every_frames, advance, run.replay_frames
+            link, cfg.drift_frames, cfg.poll_every_frames, advance, run.replay_frames, drift_first_frame(cfg)
         )
     count = run.drift_stream
     run.drift_first_counter = int(frames[0].frame) if frames else None
@@ -260,15 +260,21 @@ def sensor_reference_session(
 
 
 def stream_phase(
-    link: Link, n_frames: int, poll_every: int, progress: Callable[[int], None], source_frames: int | None = None
+    link: Link,
+    n_frames: int,
+    poll_every: int,
+    progress: Callable[[int], None],
+    source_frames: int | None = None,
+    phase_first_frame: int = 0,
 ) -> tuple[list[CentroidFrame], list[tuple[int, Estimate]], EstimatorWork, StreamCount]:
     """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading
     the onboard estimate every ``poll_every`` frames and once more at the end of the phase.
 
     Returns (frames, estimates, work, count) where estimates are (frame counter of the estimate's last update,
     Estimate), ``work`` (:class:`EstimatorWork`) counts the phase's exposures and estimator updates (from the status)
-    and ``count`` (:class:`StreamCount`) where the frames went; ``source_frames``, the frames of the sensor's replay,
-    gives how many it still held at the start."""
+    and ``count`` (:class:`StreamCount`) where the frames went; ``source_frames``, the frames of the sensor's
+    replay, and ``phase_first_frame``, the phase's first frame counter in it (the sensor skips to it:
+    ``--phase-start``), give how many it still held at the start."""
     from hostlink.links.operations import poll_estimate, stream_frames
 
     before = link.status()
@@ -287,7 +293,9 @@ def stream_phase(
         received=int(result.frames_received),
         lost_on_link=int(result.lost_messages),
         exposures=exposures,
-        held_at_start=None if source_frames is None else int(source_frames) - int(before.frames_processed),
+        held_at_start=None
+        if source_frames is None
+        else int(source_frames) - max(int(before.frames_processed), int(phase_first_frame)),
         ended_early=bool(result.ended),
     )
     return result.frames, estimates, EstimatorWork(exposures=exposures, updates=updates), count
