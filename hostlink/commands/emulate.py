@@ -93,6 +93,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "whatever the speed of this machine (frames it has no time for are skipped and counted)",
     )
     parser.add_argument(
+        "--phase-start",
+        type=int,
+        action="append",
+        default=[],
+        metavar="FRAME",
+        help="with --replay (repeatable): the frame counter where a phase of the replay begins, as a bench's scene "
+        "generator switches scenes; a stream started again after an exposure begins at the next phase start past "
+        "it, so the exposures taken while the host stopped the previous stream never shift the next phase",
+    )
+    parser.add_argument(
         "--drop-every",
         type=int,
         default=0,
@@ -155,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
         power_cut_after_units=args.power_cut_after,
         precision=args.precision,
         firmware=args.firmware or os.environ.get("HOSTLINK_FIRMWARE") or "python",
+        phase_starts=tuple(args.phase_start),
     )
     options = EndpointOptions(
         baud=args.baud, bitrate=args.bitrate, port=args.port, unit=args.unit, drop_every=args.drop_every, extra=extra

@@ -123,9 +123,14 @@ class EmulatedSensor:
     are the same.
     """
 
-    def __init__(self, firmware: Firmware, source: Iterator[SourceFrame]) -> None:
+    def __init__(self, firmware: Firmware, source: Iterator[SourceFrame], phase_starts: tuple[int, ...] = ()) -> None:
         self.firmware = firmware
         self._source = source
+        #: frame counters where the source's phases begin (a bench's scene generator): a stream started after the
+        #: camera took an exposure begins at the next phase start past that exposure, so the exposures a stopping
+        #: stream took (in flight when the host stopped it) never shift the next phase
+        self.phase_starts = tuple(sorted(int(s) for s in phase_starts))
+        self._last_counter: int | None = None  # frame counter of the last exposure taken
         self._lock = threading.Lock()
         self._ended = False
         self._end_sent = False
@@ -145,6 +150,8 @@ class EmulatedSensor:
         stream runs), so that the host counts the frames lost before the first one it receives."""
         with self._lock:
             starting = isinstance(command, StreamControl) and command.enable and not self.firmware.streaming
+            if starting:
+                self._skip_to_phase_start()
             if starting and self._peek_frame_counter() is not None:
                 # the camera tells the firmware its next exposure's counter; the firmware's ACK carries it
                 self.firmware.set_next_frame(self._peek_frame_counter())
@@ -153,6 +160,17 @@ class EmulatedSensor:
                 self._end_sent = False  # a restarted stream reports the end again if the source is exhausted
                 self.streams_started += 1
             return reply
+
+    def _skip_to_phase_start(self) -> None:
+        """Move the source on to the first phase start past the last exposure taken (nothing before the first
+        exposure, or past the last phase start): the frames skipped are never exposed."""
+        if self._last_counter is None:
+            return
+        later = [s for s in self.phase_starts if s > self._last_counter]
+        if not later:
+            return
+        while (counter := self._peek_frame_counter()) is not None and counter < later[0]:
+            self._next = None
 
     def _peek_frame_counter(self) -> int | None:
         """The next exposure's frame counter (taken from the source and kept), None when the source is exhausted."""
@@ -182,6 +200,7 @@ class EmulatedSensor:
                 self._end_sent = True
                 return EndOfStream(frames_sent=self.frames_sent)
             self.firmware.process_frame(item.frame, item.r_ref)
+            self._last_counter = int(item.frame.frame)
             self.frames_sent += 1
             return item.frame
 

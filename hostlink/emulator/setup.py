@@ -66,13 +66,15 @@ def build_sensor(
     power_cut_after_units: int | None = None,
     precision: str = "float32",
     firmware: str = "python",
+    phase_starts: tuple[int, ...] = (),
 ) -> EmulatedSensor:
     """Firmware with the factory set ``nominal`` in bank A, fed by ``replay`` or by the simulator; ``budget`` models
     the sensor's processor (which exposures its estimator processes; default :class:`EstimatorBudget`); ``flash``:
     the flash image file (:func:`sensor_banks`; ``power_cut_after_units``: its test hook); ``precision``: the
     sensor's arithmetic (``onboard.firmware.PRECISIONS``: "float32", or "fixed" for a sensor without an FPU);
     ``firmware``: "python" (the reference model, ``onboard.firmware``) or "c" (the C core, ``onboard/c``, built and
-    run in this process: :func:`c_firmware`)."""
+    run in this process: :func:`c_firmware`); ``phase_starts``: frame counters where the replay's phases begin
+    (:class:`EmulatedSensor`: a restarted stream begins at the next one)."""
     from hostlink.sky.simulate import SimConfig, simulate
 
     nominal_params = load_params(nominal or DEFAULT_NOMINAL)
@@ -115,7 +117,7 @@ def build_sensor(
         raise UserError(f"{replay or 'simulated session'}: {exc}") from None
     if first is None:
         raise UserError(f"{replay}: the session has no frames")
-    return EmulatedSensor(sensor_firmware, _chain(first, source))
+    return EmulatedSensor(sensor_firmware, _chain(first, source), phase_starts)
 
 
 def sensor_banks(

@@ -83,13 +83,23 @@ def bench_nominal(cfg: BenchConfig) -> CameraParams:
 
 
 def spare_frames(cfg: BenchConfig) -> int:
-    """Frames the sensor's replay holds beyond the two phases: ``cfg.spare_frames``, or max(256, 2 cal_frames).
+    """Frames the sensor's replay holds beyond each phase: ``cfg.spare_frames``, or max(256, 2 cal_frames).
 
-    They pay for the frames the sensor takes that never count for the drift phase: those in flight when the host
-    stops the calibration stream (dropped when the drift stream starts) and those lost on the link. The frames in
+    They pay for the frames the sensor takes that never count for a phase: after the calibration phase, those in
+    flight when the host stops its stream (dropped when the drift stream starts; the emulated sensor's next stream
+    begins at the drift phase's first frame, :func:`drift_first_frame`, whatever it took meanwhile); after the drift
+    phase, those lost on the link. The frames in
     flight are the host's backlog: the emulated sensor exposes as fast as its link carries frames, and a host that
     reads at a fraction q of that rate is cal_frames (1/q - 1) frames behind when it has its cal_frames (on CAN the
     host's receive queue holds them all: nothing is lost, they are late). 2 cal_frames spare frames cover q >= 1/3; 256
     cover a host that keeps up. A run that still runs out says so and fails
     (``hostlink.mission.summary.incomplete_reason``)."""
     return int(cfg.spare_frames) if cfg.spare_frames is not None else max(256, 2 * int(cfg.cal_frames))
+
+
+def drift_first_frame(cfg: BenchConfig) -> int:
+    """The frame counter of the drift phase's first exposure in the sensor's replay: after the calibration phase and
+    its spare frames (static camera), so the exposures the sensor takes while the host stops the calibration stream
+    come out of the spare frames and the drift phase, its truth and its tracking score begin at the same exposure
+    however many were in flight (the emulated sensor's ``--phase-start``)."""
+    return int(cfg.cal_frames) + spare_frames(cfg)

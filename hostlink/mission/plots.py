@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hostlink.mission.config import drift_first_frame
 from hostlink.mission.summary import BenchRun, estimate_rows, rms, tracking_text, truth_focal_mm
 
 #: Resolution of the saved figures [dots per inch].
@@ -108,7 +109,7 @@ def _drift_figure(plt, run: BenchRun, summary: dict):
     """The true focal length through the drift phase and the onboard estimate with its 1-sigma band [um]."""
     cfg, drift = run.cfg, estimate_rows(run.drift_estimates)
     f_drift_true = truth_focal_mm(run.drift_sim)
-    fr = np.arange(f_drift_true.size) + cfg.cal_frames + int(run.drift_sim.session.frame[0])  # sensor frame counter
+    fr = np.arange(f_drift_true.size) + drift_first_frame(cfg) + int(run.drift_sim.session.frame[0])  # frame counter
     f_ref = cfg.camera.focal_length_mm
     fig, ax = plt.subplots(figsize=(8, 4.5))
     ax.plot(fr, (f_drift_true - f_ref) * 1000.0, color="k", lw=1.2, label="true focal length")

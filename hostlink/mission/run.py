@@ -26,7 +26,7 @@ from hostlink.emulator.process import EmulatorProcess
 from hostlink.errors import LinkError, UserError
 from hostlink.files.params import save_params
 from hostlink.files.session import Session, write_session
-from hostlink.mission.config import BenchConfig, bench_nominal, spare_frames
+from hostlink.mission.config import BenchConfig, bench_nominal, drift_first_frame, spare_frames
 from hostlink.mission.summary import BenchRun, EstimatorWork, Phase, StreamCount
 from hostlink.progress import progress_bar
 from onboard.site import Site, Weather
@@ -63,6 +63,7 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
     t = time.perf_counter()
     args = ["--replay", str(replay_path), "--nominal", str(nominal_path), "--noise-px", repr(cfg.noise_px)]
     args += ["--precision", cfg.precision, "--firmware", cfg.firmware]
+    args += ["--phase-start", str(drift_first_frame(cfg))]  # the drift stream begins at the drift phase's first frame
     flash = out / "sensor-flash.img"  # the sensor's NOR-flash banks (--flash); a fresh sensor for every run
     flash.unlink(missing_ok=True)
     with EmulatorProcess(cfg.transport, [*args, *cfg.emulator_args], flash_path=flash) as emulator:
@@ -92,7 +93,7 @@ def simulate_phase(cfg: BenchConfig, out: Path, say: Callable[[str], None]) -> t
     t = time.perf_counter()
     nominal = bench_nominal(cfg)
     cal_sim, drift_sim = simulate_phases(cfg)
-    replay = concatenate_sessions(cal_sim.session, drift_sim.session, cfg.cal_frames)
+    replay = concatenate_sessions(cal_sim.session, drift_sim.session, drift_first_frame(cfg))
     replay_path, nominal_path = out / "sensor-replay.csv", out / "nominal.json"
     write_session(replay_path, sensor_reference_session(replay, cfg.site, cfg.weather, cfg.precision))
     save_params(out / "true-camera.json", cfg.camera)
@@ -173,9 +174,10 @@ def track_phase(run: BenchRun, link: Link, say: Callable[[str], None], show_prog
     cfg = run.cfg
     with progress_bar("streaming drift frames", cfg.drift_frames, show_progress) as advance:
         frames, run.drift_estimates, run.drift_work, run.drift_stream = stream_phase(
-            link, cfg.drift_frames, cfg.poll_every_frames, advance, run.replay_frames
+            link, cfg.drift_frames, cfg.poll_every_frames, advance, run.replay_frames, drift_first_frame(cfg)
         )
     count = run.drift_stream
+    run.drift_first_counter = int(frames[0].frame) if frames else None
     run.phases.append(Phase("track", time.perf_counter() - t, f"{count.received} of {count.expected} frames"))
     ran_out = ", then the sensor's replay ran out" if count.ended_early else ""
     say(
@@ -188,7 +190,8 @@ def track_phase(run: BenchRun, link: Link, say: Callable[[str], None], show_prog
 # ------------------------------------------------------------------------------------------------- the pieces
 def simulate_phases(cfg: BenchConfig) -> tuple[SimResult, SimResult]:
     """Calibration phase (static camera) + drift phase (sinusoidal focal drift), one continuous session: two
-    ``SimResult`` (the drift phase starts ``cfg.cal_frames`` s later and holds :func:`spare_frames` more frames)."""
+    ``SimResult``, each holding :func:`spare_frames` more frames than its phase (the drift phase starts at frame
+    :func:`drift_first_frame`, that many seconds later)."""
     from hostlink.files.times import iso_plus_seconds
     from hostlink.sky.simulate import SimConfig, simulate
 
@@ -203,12 +206,12 @@ def simulate_phases(cfg: BenchConfig) -> tuple[SimResult, SimResult]:
         min_stars=cfg.min_stars,
         max_stars=cfg.max_stars,
     )
-    cal = simulate(SimConfig(frames=cfg.cal_frames, seed=cfg.seed, t0_iso=cfg.t0_iso, **common))
+    cal = simulate(SimConfig(frames=cfg.cal_frames + spare_frames(cfg), seed=cfg.seed, t0_iso=cfg.t0_iso, **common))
     drift = simulate(
         SimConfig(
             frames=cfg.drift_frames + spare_frames(cfg),
             seed=cfg.seed + 1000,
-            t0_iso=iso_plus_seconds(cfg.t0_iso, float(cfg.cal_frames)),
+            t0_iso=iso_plus_seconds(cfg.t0_iso, float(drift_first_frame(cfg))),
             focal_drift_um=cfg.drift_um,
             focal_drift_period_frames=cfg.drift_period_frames,
             **common,
@@ -257,15 +260,21 @@ def sensor_reference_session(
 
 
 def stream_phase(
-    link: Link, n_frames: int, poll_every: int, progress: Callable[[int], None], source_frames: int | None = None
+    link: Link,
+    n_frames: int,
+    poll_every: int,
+    progress: Callable[[int], None],
+    source_frames: int | None = None,
+    phase_first_frame: int = 0,
 ) -> tuple[list[CentroidFrame], list[tuple[int, Estimate]], EstimatorWork, StreamCount]:
     """Stream ``n_frames`` frames through the one stream loop (``hostlink.links.operations.stream_frames``), reading
     the onboard estimate every ``poll_every`` frames and once more at the end of the phase.
 
     Returns (frames, estimates, work, count) where estimates are (frame counter of the estimate's last update,
     Estimate), ``work`` (:class:`EstimatorWork`) counts the phase's exposures and estimator updates (from the status)
-    and ``count`` (:class:`StreamCount`) where the frames went; ``source_frames``, the frames of the sensor's replay,
-    gives how many it still held at the start."""
+    and ``count`` (:class:`StreamCount`) where the frames went; ``source_frames``, the frames of the sensor's
+    replay, and ``phase_first_frame``, the phase's first frame counter in it (the sensor skips to it:
+    ``--phase-start``), give how many it still held at the start."""
     from hostlink.links.operations import poll_estimate, stream_frames
 
     before = link.status()
@@ -284,7 +293,9 @@ def stream_phase(
         received=int(result.frames_received),
         lost_on_link=int(result.lost_messages),
         exposures=exposures,
-        held_at_start=None if source_frames is None else int(source_frames) - int(before.frames_processed),
+        held_at_start=None
+        if source_frames is None
+        else int(source_frames) - max(int(before.frames_processed), int(phase_first_frame)),
         ended_early=bool(result.ended),
     )
     return result.frames, estimates, EstimatorWork(exposures=exposures, updates=updates), count

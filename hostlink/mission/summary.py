@@ -13,7 +13,7 @@ import numpy as np
 
 from hostlink.calibration.bundle import ARCSEC_PER_RAD
 from hostlink.calibration.report import fitted_attitudes
-from hostlink.mission.config import BenchConfig
+from hostlink.mission.config import BenchConfig, drift_first_frame
 from onboard.params import CameraParams
 
 if TYPE_CHECKING:  # annotations only
@@ -118,7 +118,8 @@ class BenchRun:
     ``data`` and ``ref_info``: the calibration data built from the streamed session and where its reference
     directions came from; ``outcome``: the host calibration; ``uploaded`` / ``active``: the safe upload's result and
     the set read back afterwards; ``cal_stream`` / ``drift_stream``: where each streaming phase's frames went;
-    ``spare_frames``: frames the sensor's replay holds beyond the two phases, ``replay_frames`` all its frames."""
+    ``spare_frames``: frames the sensor's replay holds beyond each phase, ``replay_frames`` all its frames;
+    ``drift_first_counter``: the frame counter of the first frame the drift stream delivered."""
 
     cfg: BenchConfig
     nominal: CameraParams
@@ -137,6 +138,7 @@ class BenchRun:
     drift_work: EstimatorWork = EstimatorWork(0, 0)
     spare_frames: int = 0
     replay_frames: int | None = None
+    drift_first_counter: int | None = None
     phases: list[Phase] = field(default_factory=list)
 
 
@@ -203,19 +205,32 @@ def attitude_error_summary(phi_arcsec: np.ndarray) -> dict:
 
 
 def drift_frame_index(cfg: BenchConfig, drift_sim: SimResult, frames: np.ndarray) -> np.ndarray:
-    """Index into the drift phase's truth of each sensor frame counter (the drift phase follows the calibration
-    phase's ``cfg.cal_frames`` frames in the sensor's replay)."""
-    return frames - cfg.cal_frames - int(drift_sim.session.frame[0])
+    """Index into the drift phase's truth of each sensor frame counter (the drift phase begins at frame
+    :func:`~hostlink.mission.config.drift_first_frame` of the sensor's replay)."""
+    return frames - drift_first_frame(cfg) - int(drift_sim.session.frame[0])
+
+
+def within_drift_phase(cfg: BenchConfig, drift_index: np.ndarray) -> np.ndarray:
+    """Which estimates (by drift-phase index, in reading order) the tracking figure scores: those of the phase's own
+    ``cfg.drift_frames`` exposures, and the first one read past them (the phase's last state; the sensor takes
+    exposures until the host's stop reaches it). The later reads come from exposures still in flight, past the phase,
+    and how many there are depends on the host's timing."""
+    drift_index = np.asarray(drift_index, dtype=np.int64)
+    keep = drift_index < cfg.drift_frames
+    past = np.flatnonzero(~keep)
+    if past.size:
+        keep[past[0]] = True
+    return keep
 
 
 def replay_truth_attitudes(
     cfg: BenchConfig, cal_sim: SimResult, drift_sim: SimResult, frames: np.ndarray
 ) -> np.ndarray:
     """The true attitude (n, 3, 3) of each sensor frame counter in ``frames``: the calibration phase's frames, then
-    the drift phase's from ``cfg.cal_frames`` on (a calibration stream that lost frames on the link goes on into
-    those)."""
+    the drift phase's from :func:`~hostlink.mission.config.drift_first_frame` on (a calibration stream that lost
+    frames on the link goes on into the calibration phase's spare frames)."""
     frames = np.asarray(frames, dtype=np.int64)
-    in_cal = frames < cfg.cal_frames
+    in_cal = frames < drift_first_frame(cfg)
     out = np.empty((frames.size, 3, 3))
     out[in_cal] = truth_attitudes(cal_sim)[frames[in_cal] - int(cal_sim.session.frame[0])]
     out[~in_cal] = truth_attitudes(drift_sim)[drift_frame_index(cfg, drift_sim, frames[~in_cal])]
@@ -244,6 +259,7 @@ def summarise(run: BenchRun) -> dict:
     f_true = truth_focal_mm(run.drift_sim)
     drift_index = drift_frame_index(cfg, run.drift_sim, est["frame"])
     valid = (drift_index >= 0) & (drift_index < f_true.size) & (est["n_updates"] > 0)
+    valid &= within_drift_phase(cfg, drift_index)
     err_um = (est["f_mm"][valid] - f_true[drift_index[valid]]) * 1000.0
     # "once converged": after the first third of the drift phase (the filter restarted at the upload and its drift
     # detector needs a few hundred frames to switch the focal random walk on)
@@ -300,12 +316,19 @@ def summarise(run: BenchRun) -> dict:
             "amplitude_um": cfg.drift_um,
             "period_frames": cfg.drift_period_frames,
             "frames_streamed": run.drift_stream.received,
+            "first_frame_drift_index": None
+            if run.drift_first_counter is None
+            else int(drift_frame_index(cfg, run.drift_sim, np.array([run.drift_first_counter]))[0]),
             **run.drift_stream.as_dict(),
             "incomplete_because": incomplete_reason(run.drift_stream, run.cal_stream, run.spare_frames),
             "estimates_read": int(est["frame"].size),
             "estimator_updates": run.drift_work.updates,
             "focal_error_rms_um_converged": rms(err_um[settled]) if np.any(settled) else None,
             "focal_error_rms_um_all": rms(err_um) if err_um.size else None,
+            # the estimator's own 1-sigma over the same estimates: the scatter its error should show if it is honest
+            "focal_sigma_rms_um_converged": rms(est["sigma_f_mm"][valid][settled] * 1000.0)
+            if np.any(settled)
+            else None,
             "not_tracked_because": None
             if np.any(settled)
             else tracking_gap_reason(cfg, est["frame"].size, run.drift_work),
@@ -386,7 +409,9 @@ def tracking_text(summary: dict) -> str:
     track = summary["drift_tracking"]
     if track["focal_error_rms_um_converged"] is None:
         return f"not scored: {track['not_tracked_because']}"
-    return f"tracking error {track['focal_error_rms_um_converged']:.2f} um RMS once converged"
+    text = f"tracking error {track['focal_error_rms_um_converged']:.2f} um RMS once converged"
+    sigma = track.get("focal_sigma_rms_um_converged")
+    return text if sigma is None else f"{text} (onboard 1-sigma {sigma:.2f})"
 
 
 def summary_table(summary: dict) -> list[tuple[str, str, str]]:
