@@ -880,6 +880,120 @@ FALLBACK_DEPTH_PERCENTILE = 90
 ENGINE_MISS_SCANNED_FRAMES = 3
 
 
+@dataclass(frozen=True)
+class _SessionContext:
+    """What every frame of one :func:`identify_session` call shares: the session, the nominal camera and its
+    horizontal field [deg], the catalogue as unit vectors, and the engine's pattern database (None without it)."""
+
+    session: Session
+    nominal: CameraParams
+    fov_deg: float
+    sky: _Sky
+    database: object
+
+
+def _identify_frame_k(
+    ctx: _SessionContext, k: int, database, fov_deg: float, tol: float, pairs=None, scales=()
+) -> tuple[FrameIdentity, np.ndarray]:
+    """:func:`identify_frame` on the unidentified rows of the session's ``k``-th frame."""
+    session, starts = ctx.session, ctx.session.frame_starts
+    a, b = int(starts[k]), int(starts[k + 1])
+    rows = a + np.flatnonzero(session.star_id[a:b] == 0)
+    mag = None if session.mag is None else session.mag[rows]
+    return identify_frame(
+        int(session.frame[a]),
+        session.x_px[rows],
+        session.y_px[rows],
+        mag,
+        ctx.nominal,
+        ctx.sky,
+        database,
+        fov_deg,
+        tol,
+        pairs,
+        scales,
+    )
+
+
+def _identified(results: dict[int, tuple[FrameIdentity, np.ndarray]], k: int) -> bool:
+    return k in results and results[k][0].status == "identified"
+
+
+def _fallback_pairs(ctx: _SessionContext, todo: list[int], results: dict) -> PairCatalogue:
+    """The own matcher's pair index: as deep as the identified frames see (:data:`FALLBACK_DEPTH_PERCENTILE` of
+    their stars' magnitudes plus :data:`FALLBACK_MAG_MARGIN`), but no deeper than the field's size needs
+    (:func:`fallback_depth_mag`; the matcher works on the brightest centroids, and a 50-deg field's pairs to Hp 7.5
+    take 40 s to index, to Hp 5.5 a second); pairs as wide as the detector's diagonal at the smallest scanned scale."""
+    sky, nominal = ctx.sky, ctx.nominal
+    found = [k for k in todo if _identified(results, k)]
+    hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
+    hips = hips[hips != 0]
+    field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
+    depth = (
+        min(
+            float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
+            + FALLBACK_MAG_MARGIN,
+            field_depth + FALLBACK_MAG_MARGIN,
+        )
+        if hips.size
+        else field_depth
+    )
+    width, height = nominal.image_size_px
+    half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
+    return pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
+
+
+def _engine_pass(ctx: _SessionContext, todo: list[int], progress) -> dict[int, tuple[FrameIdentity, np.ndarray]]:
+    """Every frame through the engine at the nominal field (module docstring, step 1)."""
+    results = {}
+    for done, k in enumerate(todo):
+        results[k] = _identify_frame_k(ctx, k, ctx.database, ctx.fov_deg, solver_adapter.FOV_MARGIN)
+        if progress is not None:
+            progress(done + 1, len(todo))
+    return results
+
+
+def _fallback_pass(ctx: _SessionContext, todo: list[int], results: dict) -> None:
+    """The frames the engine left, through the own matcher (updating ``results``): at the engine's measured scale,
+    or by a scan of scales (slow, ~0.1 s per scale and frame): every frame when the engine is not there; when it is
+    there but matched no frame (its patterns need stars the frames may lack), at most
+    :data:`ENGINE_MISS_SCANNED_FRAMES` frames are scanned, the others then tried at the scale the first identified
+    one measured (one camera for the session: the other frames need no scan)."""
+    failed = [k for k in todo if not _identified(results, k)]
+    if not failed:
+        return
+    width = ctx.nominal.image_size_px[0]
+    engine_scale_known = any(_identified(results, k) for k in results)
+    scan_budget = ENGINE_MISS_SCANNED_FRAMES if ctx.database is not None and not engine_scale_known else len(failed)
+    scales = [results[k][0].scale for k in todo if _identified(results, k)]
+    scale = float(np.median(scales)) if scales else math.nan
+    pairs = _fallback_pairs(ctx, todo, results)
+    tried_without_scale = []
+    for k in failed:
+        known = math.isfinite(scale)
+        if not known and scan_budget <= 0:
+            tried_without_scale.append(k)  # tried below, should a scanned frame measure the scale
+            continue
+        scan_budget -= 0 if known else 1
+        refined = (
+            solver_adapter.horizontal_fov_deg(ctx.nominal.focal_length_px * scale, width) if known else ctx.fov_deg
+        )
+        tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
+        retry = _identify_frame_k(ctx, k, ctx.database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
+        if k not in results or retry[0].status == "identified" or retry[0].n_candidates > results[k][0].n_candidates:
+            results[k] = retry
+        if not known and retry[0].status == "identified":
+            scale = retry[0].scale
+        elif not known:
+            tried_without_scale.append(k)
+    if math.isfinite(scale):
+        refined = solver_adapter.horizontal_fov_deg(ctx.nominal.focal_length_px * scale, width)
+        for k in tried_without_scale:  # the frames scanned before the session's scale was known
+            retry = _identify_frame_k(ctx, k, None, refined, REFINED_FOV_TOLERANCE, pairs, (scale,))
+            if retry[0].status == "identified":
+                results[k] = retry
+
+
 def identify_session(
     session: Session,
     nominal: CameraParams,
@@ -894,7 +1008,8 @@ def identify_session(
     bright [Hp mag] (default all). ``use_engine``: False (or tetra3rs not installed) identifies with the project's
     own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
-    them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
+    them: the geocentric apparent place with the time known, the J2000 place without) filled in. Stages: the engine
+    (:func:`_engine_pass`), the own matcher for the frames it left (:func:`_fallback_pass`), the identities written."""
     check_field(nominal)
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
@@ -902,98 +1017,19 @@ def identify_session(
         catalogue = load_catalogue()
     if maglim is not None:
         catalogue = catalogue.subset(np.flatnonzero(catalogue.mag <= maglim))
-    width, height = nominal.image_size_px
-    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
-    sky = _sky(catalogue)
+    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
     engine = use_engine and solver_adapter.engine_available()
-    database = (
-        solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
-    )  # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
+    # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
+    database = solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
+    ctx = _SessionContext(session, nominal, fov, _sky(catalogue), database)
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
-    results: dict[int, tuple[FrameIdentity, np.ndarray]] = {}
-
-    def run(k: int, db, fov_deg: float, tol: float, pairs=None, scales=()) -> tuple[FrameIdentity, np.ndarray]:
-        a, b = int(starts[k]), int(starts[k + 1])
-        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
-        mag = None if session.mag is None else session.mag[rows]
-        return identify_frame(
-            int(session.frame[a]),
-            session.x_px[rows],
-            session.y_px[rows],
-            mag,
-            nominal,
-            sky,
-            db,
-            fov_deg,
-            tol,
-            pairs,
-            scales,
-        )
-
-    if engine:
-        for done, k in enumerate(todo):
-            results[k] = run(k, database, fov, solver_adapter.FOV_MARGIN)
-            if progress is not None:
-                progress(done + 1, len(todo))
-    failed = [k for k in todo if k not in results or results[k][0].status != "identified"]
-    # the own matcher: at the engine's measured scale, or by a scan of scales (slow, ~0.1 s per scale and frame):
-    # every frame when the engine is not there; when it is there but matched no frame (its patterns need stars the
-    # frames may lack), at most ENGINE_MISS_SCANNED_FRAMES frames are scanned, the others then tried at the scale the
-    # first identified one measured
-    engine_scale_known = any(results[k][0].status == "identified" for k in results)
-    scan_budget = ENGINE_MISS_SCANNED_FRAMES if engine and not engine_scale_known else len(failed)
-    if failed:
-        found = [k for k in todo if k in results and results[k][0].status == "identified"]
-        scales = [results[k][0].scale for k in found]
-        scale = float(np.median(scales)) if scales else math.nan
-        hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
-        hips = hips[hips != 0]
-        # as deep as the identified frames see, but no deeper than the field's size needs: the matcher works on the
-        # brightest centroids, and a 50-deg field's pairs to Hp 7.5 take 40 s to index (to Hp 5.5, a second)
-        field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
-        depth = (
-            min(
-                float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
-                + FALLBACK_MAG_MARGIN,
-                field_depth + FALLBACK_MAG_MARGIN,
-            )
-            if hips.size
-            else field_depth
-        )
-        half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
-        pairs = pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
-        tried_without_scale = []
-        for k in failed:
-            known = math.isfinite(scale)
-            if not known and scan_budget <= 0:
-                tried_without_scale.append(k)  # tried below, should a scanned frame measure the scale
-                continue
-            scan_budget -= 0 if known else 1
-            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width) if known else fov
-            tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
-            retry = run(k, database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
-            if (
-                k not in results
-                or retry[0].status == "identified"
-                or retry[0].n_candidates > results[k][0].n_candidates
-            ):
-                results[k] = retry
-            if not known and retry[0].status == "identified":
-                scale = retry[0].scale  # one camera for the session: the other frames need no scan
-            elif not known:
-                tried_without_scale.append(k)
-        if math.isfinite(scale):
-            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width)
-            for k in tried_without_scale:  # the frames scanned before the session's scale was known
-                retry = run(k, None, refined, REFINED_FOV_TOLERANCE, pairs, (scale,))
-                if retry[0].status == "identified":
-                    results[k] = retry
+    results = _engine_pass(ctx, todo, progress) if engine else {}
+    _fallback_pass(ctx, todo, results)
     star_id = session.star_id.copy()
     for k in todo:
         a, b = int(starts[k]), int(starts[k + 1])
-        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
-        star_id[rows] = results[k][1]
+        star_id[a + np.flatnonzero(session.star_id[a:b] == 0)] = results[k][1]
     out = _with_identities(session, star_id, catalogue)
     name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
     return Identification(out, tuple(results[k][0] for k in todo), name, fov)
