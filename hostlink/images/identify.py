@@ -244,6 +244,12 @@ REFINE_MIN_STARS = 10
 REFINE_ITERATIONS = 3
 #: ... and k2 too from this many (a wide lens's distortion is not a pure cube of the radius).
 REFINE_K2_STARS = 20
+#: ... and the principal point from this many: a strong distortion about the nominal's centre when the lens's is some
+#: pixels away misplaces the edge stars by tens of pixels (a 20-px offset under 12 % of corner distortion: 10-40 px
+#: at the corners of the rendered wide set, where round 1 then named 1 % of its stars wrongly); with the radial terms
+#: pinned by many stars the centre separates from the attitude's rotation.
+REFINE_CENTRE_STARS = 40
+REFINE_CENTRE_STEP_PX = 0.01
 #: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
 _K1 = 3
 
@@ -252,8 +258,10 @@ def _refine_radial(
     x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frame's own focal length and radial terms k1 (and k2 from :data:`REFINE_K2_STARS` stars): Gauss-Newton on
-    sum |b(x, y; f, k1, k2) - C r|^2, derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`,
-    the attitude C refitted by Markley's SVD after each step. A wide lens's unmodelled distortion, which grows as the
+    sum |b(x, y; f, k1, k2, and the principal point from :data:`REFINE_CENTRE_STARS`) - C r|^2 jointly with a small
+    rotation of the attitude (without it a shift of the centre, which is nearly a rotation, has no direction to go),
+    derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`, the attitude C refitted by Markley's
+    SVD after each step. A wide lens's unmodelled distortion, which grows as the
     cube of the radius and faster, is then out of the predictions of the frame's other stars and out of the
     interstar angles its later candidates are verified by, and the match radius can follow the centroid noise
     instead of the lens. Returns (theta, C); the given ones when no step lowers the residual."""
@@ -263,6 +271,8 @@ def _refine_radial(
     steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
     if x_px.size >= REFINE_K2_STARS:
         steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
+    if x_px.size >= REFINE_CENTRE_STARS:
+        steps[1] = steps[2] = REFINE_CENTRE_STEP_PX
     for _ in range(REFINE_ITERATIONS):
         b = pixels_to_unit(x_px, y_px, current)
         residual = (b - r @ att.T).ravel()
@@ -271,12 +281,16 @@ def _refine_radial(
             shifted = current.copy()
             shifted[index] += step
             columns.append(((pixels_to_unit(x_px, y_px, shifted) - b) / step).ravel())
+        # the attitude's small rotation phi: C -> (I - [phi x]) C moves b - C r by -(C r) x phi
+        cr = r @ att.T
+        for axis in np.eye(3):
+            columns.append(-np.cross(cr, axis).ravel())
         jac = np.stack(columns, axis=1)
         norm = np.linalg.norm(jac, axis=0)
         if not np.all(norm > 0):
             break
         delta = np.linalg.lstsq(jac / norm, -residual, rcond=None)[0] / norm
-        for (index, _), d in zip(steps.items(), delta, strict=True):
+        for (index, _), d in zip(steps.items(), delta[:-3], strict=True):
             current[index] += d
         try:
             att = attitude_from_vectors(pixels_to_unit(x_px, y_px, current), r)
@@ -286,6 +300,24 @@ def _refine_radial(
         if cost < best[2]:
             best = (current.copy(), att, cost)
     return best[0], best[1]
+
+
+#: The residual pattern's gate: a verified star whose residual after the frame's own refinement exceeds this many times
+#: the median residual of the frame's verified stars, and at least :data:`RESIDUAL_GATE_MIN_PX`, is not that star (for
+#: a 2-D Gaussian residual 8 medians are 9.4 sigma: no true star is lost to noise; a model still short of the lens at
+#: the field edge leaves its true stars there at a few medians). The interstar vote passes a wrong pair whose error
+#: is within its tolerance of most pairs; on a wide field that tolerance (0.5 % of a 1000-px pair) is 5 px, and the
+#: rendered wide set's round 1 named edge stars 10-40 px from their true place.
+RESIDUAL_GATE_MEDIANS = 8.0
+RESIDUAL_GATE_MIN_PX = 2.0
+#: Gate and refit at most this many times (each refit without the worst lets the next gate see the rest).
+RESIDUAL_GATE_ROUNDS = 4
+
+
+def _residual_outliers(residual_px: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(K,) bool: the residuals [px] beyond the gate (:data:`RESIDUAL_GATE_MEDIANS`) set by the ``keep`` ones."""
+    gate = max(RESIDUAL_GATE_MEDIANS * float(np.median(residual_px[keep])), RESIDUAL_GATE_MIN_PX)
+    return residual_px > gate
 
 
 #: Pruning a matcher's proposal: a star agreeing with fewer than this fraction of the others is dropped, and the vote
@@ -332,8 +364,17 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
     except DegenerateGeometry:
         return _Verified(keep, mirrored, scale, agreement, None, None)
     if np.count_nonzero(keep) >= REFINE_MIN_STARS:
-        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_s)
+        theta_0 = theta_s
+        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0)
         b = pixels_to_unit(data.x_px, data.y_px, theta_s)
+        for _ in range(RESIDUAL_GATE_ROUNDS):
+            misfit = keep & _residual_outliers(residuals_rad(b, r, c) * theta_s[0], keep)
+            if not np.any(misfit) or np.count_nonzero(keep & ~misfit) < REFINE_MIN_STARS:
+                break
+            keep &= ~misfit  # refitted without them: a few wrong pairs far off pull a least-squares fit everywhere
+            c = attitude_from_vectors(pixels_to_unit(data.x_px[keep], data.y_px[keep], theta_0), r[keep])
+            theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0)
+            b = pixels_to_unit(data.x_px, data.y_px, theta_s)
     return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
 
 
@@ -697,6 +738,44 @@ def _boresight_and_roll(c: np.ndarray) -> tuple[float, float, float]:
     return boresight_radec_roll(c)
 
 
+#: Photometric check: a candidate whose catalogue star is more than this much fainter [mag] than its centroid's
+#: brightness implies (the frame's zero point: the median of catalogue minus instrumental magnitude over its verified
+#: stars) is not that star: a bright uncatalogued point (a planet, an aircraft, a hot pixel) or a wide lens's edge
+#: star, misplaced by the distortion the frame has not yet measured, must not take the name of a faint catalogue star
+#: that happens to lie near it. One-sided: clouds, vignetting, extinction and saturation make a star look fainter
+#: than its catalogue magnitude, never brighter; only the camera's band against Hp (a red star in a red-sensitive
+#: camera) and noise do. Measured: correct names lie at most 1.7 mag on that side on granasat (colour JPEG), 0.8 on
+#: the rendered wide set (benchmarks/bench_widefield.py), whose wrong names of round 1 lay 2.5-4.5 mag beyond.
+PHOTOMETRIC_TOL_MAG = 2.5
+
+
+def _zero_point(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky) -> float:
+    """The frame's photometric zero point [mag]: the median of catalogue minus instrumental magnitude over the
+    stars ``rows`` named ``stars`` (NaN without magnitudes)."""
+    if mag is None or rows.size == 0:
+        return math.nan
+    offset = sky.mag[stars] - mag[rows]
+    offset = offset[np.isfinite(offset)]
+    return float(np.median(offset)) if offset.size else math.nan
+
+
+def _too_faint(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky, zero_point: float) -> np.ndarray:
+    """(K,) bool: the candidates whose catalogue star is more than :data:`PHOTOMETRIC_TOL_MAG` fainter than their
+    centroid's instrumental magnitude plus ``zero_point`` implies (False where either is unknown)."""
+    if mag is None or not math.isfinite(zero_point):
+        return np.zeros(rows.size, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        return sky.mag[stars] > mag[rows] + zero_point + PHOTOMETRIC_TOL_MAG
+
+
+def _faintest_detectable(mag: np.ndarray | None, zero_point: float) -> float:
+    """The faintest catalogue magnitude a candidate of the frame may have (:func:`_too_faint` of its faintest
+    centroid); +inf when unknown."""
+    if mag is None or not math.isfinite(zero_point) or not np.any(np.isfinite(mag)):
+        return math.inf
+    return float(np.nanmax(mag)) + zero_point + PHOTOMETRIC_TOL_MAG
+
+
 def _confirm(
     ident: FrameIdentity,
     x_px: np.ndarray,
@@ -708,10 +787,13 @@ def _confirm(
     sky: _Sky,
     image_size_px: tuple[int, int],
     scale: float | None = None,
+    mag: np.ndarray | None = None,
 ) -> tuple[FrameIdentity, np.ndarray]:
     """Verify, extend and verify again a proposal (module docstring, steps 2-4): the frame's identity and the
     (N,) Hipparcos number of each centroid (0 where not identified). ``scale``: F / F_nominal when known (a
-    matcher's proposal, whose wrong pairs are then pruned), else estimated from the proposal."""
+    matcher's proposal, whose wrong pairs are then pruned), else estimated from the proposal. ``mag``: the
+    centroids' instrumental magnitudes, when known: candidates far too faint for them are dropped
+    (:func:`_too_faint`) and the extension goes no deeper than the frame's faintest centroid implies."""
     n = x_px.shape[0]
     hip_out = np.zeros(n, dtype=np.int64)
     n_proposed = int(rows.size)
@@ -723,7 +805,11 @@ def _confirm(
     for round_no in range(MAX_EXTEND_ROUNDS):
         taken = np.zeros(n, dtype=bool)
         taken[rows[v.keep]] = True
+        zero_point = _zero_point(mag, rows[v.keep], stars[v.keep], sky)
+        mag_limit = min(mag_limit, _faintest_detectable(mag, zero_point))
         new_rows, new_stars = _extend(x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px)
+        fits = ~_too_faint(mag, new_rows, new_stars, sky, zero_point)
+        new_rows, new_stars = new_rows[fits], new_stars[fits]
         if round_no >= EXTEND_ROUNDS and new_rows.size == 0:
             break  # nothing new: the solution is complete at this depth
         rows = np.concatenate([rows[v.keep], new_rows])
@@ -735,6 +821,7 @@ def _confirm(
             return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
         # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
         mag_limit = max(mag_limit, float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN)
+    v = replace(v, keep=v.keep & ~_too_faint(mag, rows, stars, sky, _zero_point(mag, rows[v.keep], stars[v.keep], sky)))
     ambiguous = v.keep & _ambiguous(x_px[rows], y_px[rows], stars, sky, theta, v, image_size_px, mag_limit)
     n_ambiguous = int(np.count_nonzero(ambiguous))
     v = replace(v, keep=v.keep & ~ambiguous)
@@ -826,7 +913,7 @@ def identify_frame(
             x_px, y_px, order, brightness, nominal, theta, sky, database, fov_deg, fov_tolerance
         )
         if proposal is not None:
-            best = _confirm(ident, x_px, y_px, *proposal, theta, sky, nominal.image_size_px)
+            best = _confirm(ident, x_px, y_px, *proposal, theta, sky, nominal.image_size_px, mag=mag)
             if best[0].status == "identified":
                 return best
     if pairs is None:
@@ -843,7 +930,7 @@ def identify_frame(
             proposals = anchor_candidates(b, pairs, pairs.tree, pairs.rows, theta_s[0], n_anchor, rel_tol, skip)
             for rows, stars, mirrored in proposals:
                 result = _confirm(
-                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale
+                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale, mag
                 )
                 if result[0].status == "identified":
                     return result
