@@ -250,12 +250,25 @@ REFINE_K2_STARS = 20
 #: pinned by many stars the centre separates from the attitude's rotation.
 REFINE_CENTRE_STARS = 40
 REFINE_CENTRE_STEP_PX = 0.01
+#: :func:`_refine_radial` fits k1 only when the 10th to 90th percentiles of its stars' squared radii span this fraction
+#: of the 90th (a disc about the centre spans 0.9, a ring does not) or all of them this fraction of the corner's, and
+#: k2 only when the percentiles span
+#: :data:`REFINE_K2_SPAN` of the corner's squared radius (0.65 for stars spread over a square detector): simulated
+#: 50-deg mustache frames whose proposals verified 26-104 stars in a ring (0.3-0.58 of the corner's r^2) fitted f 15 %
+#: short with k1 of the wrong sign, or k1 2.5 times too strong, and the frame was lost.
+REFINE_K1_SPAN = 0.5
+REFINE_K2_SPAN = 0.35
 #: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
 _K1 = 3
 
 
 def _refine_radial(
-    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    c: np.ndarray,
+    theta: np.ndarray,
+    r_corner_px: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frame's own focal length and radial terms k1 (and k2 from :data:`REFINE_K2_STARS` stars): Gauss-Newton on
     sum |b(x, y; f, k1, k2, and the principal point from :data:`REFINE_CENTRE_STARS`) - C r|^2 jointly with a small
@@ -264,13 +277,20 @@ def _refine_radial(
     SVD after each step. A wide lens's unmodelled distortion, which grows as the
     cube of the radius and faster, is then out of the predictions of the frame's other stars and out of the
     interstar angles its later candidates are verified by, and the match radius can follow the centroid noise
-    instead of the lens. Returns (theta, C); the given ones when no step lowers the residual."""
+    instead of the lens. The radial terms only when the stars' squared radii span enough of the
+    corner's (``r_corner_px``): stars in a ring alone (a proposal's first verified ones) cannot tell the focal length
+    from distortion, and a fit of both there bends the rest of the field away. Returns
+    (theta, C); the given ones when no step lowers the residual."""
     best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
     current, att = np.array(theta, dtype=np.float64), c
     r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
-    steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
-    if x_px.size >= REFINE_K2_STARS:
-        steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
+    steps = {0: 1e-6 * current[0]}
+    r2 = (x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2
+    low, high = np.percentile(r2, [10.0, 90.0])
+    if float(high - low) >= REFINE_K1_SPAN * float(high) or float(np.ptp(r2)) >= REFINE_K1_SPAN * r_corner_px**2:
+        steps[_K1] = 1e-4 / max(r_max2, 1.0)  # 1e-4 of the outermost star's radius
+        if x_px.size >= REFINE_K2_STARS and float(high - low) >= REFINE_K2_SPAN * r_corner_px**2:
+            steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
     if x_px.size >= REFINE_CENTRE_STARS:
         steps[1] = steps[2] = REFINE_CENTRE_STEP_PX
     for _ in range(REFINE_ITERATIONS):
@@ -325,10 +345,13 @@ def _residual_outliers(residual_px: np.ndarray, keep: np.ndarray) -> np.ndarray:
 PRUNE_MIN_AGREEMENT = 0.5
 
 
-def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False) -> _Verified:
+def _verify(
+    x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False, r_corner_px: float = 0.0
+) -> _Verified:
     """The project's own checks of candidate pairs (module docstring, steps 2 and 4) at one parity. ``scale``: the
     focal-length scale when already known (else estimated from the pairs); ``prune``: drop the least consistent
-    candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs."""
+    candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs. ``r_corner_px``: the
+    detector's half-diagonal (:data:`REFINE_K2_SPAN`; 0: the farthest candidate's radius)."""
     n = x_px.shape[0]
     nothing = _Verified(np.zeros(n, dtype=bool), mirrored, math.nan, math.nan, None, None)
     if n < 3:
@@ -365,7 +388,8 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
         return _Verified(keep, mirrored, scale, agreement, None, None)
     if np.count_nonzero(keep) >= REFINE_MIN_STARS:
         theta_0 = theta_s
-        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0)
+        r_corner = r_corner_px or float(np.max(np.hypot(data.x_px - theta_s[1], data.y_px - theta_s[2])))
+        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0, r_corner)
         b = pixels_to_unit(data.x_px, data.y_px, theta_s)
         for _ in range(RESIDUAL_GATE_ROUNDS):
             misfit = keep & _residual_outliers(residuals_rad(b, r, c) * theta_s[0], keep)
@@ -373,7 +397,7 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
                 break
             keep &= ~misfit  # refitted without them: a few wrong pairs far off pull a least-squares fit everywhere
             c = attitude_from_vectors(pixels_to_unit(data.x_px[keep], data.y_px[keep], theta_0), r[keep])
-            theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0)
+            theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0, r_corner)
             b = pixels_to_unit(data.x_px, data.y_px, theta_s)
     return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
 
@@ -383,12 +407,14 @@ def _absolute_scale(v: _Verified, theta: np.ndarray) -> float:
     return float(v.theta[0] / theta[0]) if v.theta is not None else v.scale
 
 
-def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
+def _verify_best_parity(
+    x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False, r_corner_px: float = 0.0
+) -> _Verified:
     """Both parities, the hinted one first; the first whose triples agree wins."""
-    first = _verify(x_px, y_px, r, theta, mirrored_hint, scale, prune)
+    first = _verify(x_px, y_px, r, theta, mirrored_hint, scale, prune, r_corner_px)
     if first.parity_agreement >= PARITY_MIN_AGREEMENT:
         return first
-    second = _verify(x_px, y_px, r, theta, not mirrored_hint, scale, prune)
+    second = _verify(x_px, y_px, r, theta, not mirrored_hint, scale, prune, r_corner_px)
     if second.parity_agreement >= PARITY_MIN_AGREEMENT:
         return second
     return first
@@ -797,7 +823,10 @@ def _confirm(
     n = x_px.shape[0]
     hip_out = np.zeros(n, dtype=np.int64)
     n_proposed = int(rows.size)
-    v = _verify_best_parity(x_px[rows], y_px[rows], sky.r[stars], theta, mirrored_hint, scale, scale is not None)
+    r_corner = 0.5 * math.hypot(*image_size_px)
+    v = _verify_best_parity(
+        x_px[rows], y_px[rows], sky.r[stars], theta, mirrored_hint, scale, scale is not None, r_corner
+    )
     if v.attitude is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
     mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
@@ -816,7 +845,7 @@ def _confirm(
         stars = np.concatenate([stars[v.keep], new_stars])
         if v.theta is not None:
             theta_frame = v.theta  # a wide lens's edge stars verify through the lens the frame measured
-        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored)
+        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored, r_corner_px=r_corner)
         if v.attitude is None:
             return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
         # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
