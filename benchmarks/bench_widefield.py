@@ -4,7 +4,7 @@ from the same images, side by side; the figures of docs/realsky.md ("Wider and n
 
 The set: FRAMES frames of a 50 deg (horizontal) camera, 1600 x 1200 px, at random pointings (the real Hipparcos
 sky, ``hostlink.sky.simulate``), through a lens whose distortion the nominal does not know: radial terms of opposite
-sign (a "mustache": k1 barrel, k2 back outward; 12 % of the radius at the corner) and a principal point 1 % off the
+sign (a "mustache": k1 barrel, k2 back outward; 12 % of the radius at the corner) and a principal point 20 px off the
 centre; the nominal's focal length is 4 % long and has no distortion. Rendered (``hostlink.sky.render`` with its
 field effects) with a PSF twice as wide at the corners as at the centre and comatic there, 40 % vignetting at the
 corner, a sky gradient, then as a colour camera's JPEG (Bayer mosaic interpolated, quality 85). Frames also get, by
