@@ -105,3 +105,40 @@ def test_whole_chain_finds_every_isolated_unsaturated_star_and_no_hot_pixel(sim)
     assert clean.sum() >= 20
     assert np.all(found[clean])  # Hp <= 7 at 2e6 e- for Hp 0: >= 3200 e-, peak SNR >= 30
     assert np.all(d.min(axis=1) < 0.5)  # and nothing else: hot pixels rejected, no false star
+
+
+def test_field_effects_conserve_flux_and_move_a_comatic_star_outward():
+    """The field effects (:class:`hostlink.sky.render.FieldEffects`): without vignetting every star's light is all on
+    the detector (the sub-pixel sampled elliptical PSF integrates to its flux, to 1 %: 4 x 4 samples per pixel of a
+    sigma >= 1.3 px Gaussian); a comatic star's light centroid lies outward from its chief ray by the comatic
+    fraction times its displacement (the second component's centre), and the PSF widens toward the corner."""
+    from hostlink.sky.render import FieldEffects
+
+    size = (201, 201)
+    centre = 100.0
+    effects = FieldEffects(psf_corner_factor=2.0, coma_fraction=0.3, coma_corner_px=4.0)
+    config = RenderConfig(psf_sigma_px=1.3, background_e=0.0, effects=effects)
+    x, y = np.array([100.0, 160.0]), np.array([100.0, 160.0])  # the centre, and along the diagonal at rho^2 = 0.36
+    for xs, ys in zip(x, y, strict=True):
+        mu = expected_electrons(np.array([xs]), np.array([ys]), np.array([1.0e5]), size, config)
+        assert mu.sum() == pytest.approx(1.0e5, rel=0.01)
+        rows, cols = np.mgrid[0 : size[1], 0 : size[0]]
+        cx, cy = (mu * cols).sum() / mu.sum(), (mu * rows).sum() / mu.sum()
+        rho2 = ((xs - centre) ** 2 + (ys - centre) ** 2) / (2 * centre**2)
+        shift = effects.coma_fraction * effects.coma_corner_px * rho2 / np.sqrt(2.0)  # per axis, along the diagonal
+        assert cx - xs == pytest.approx(shift, abs=0.01)
+        assert cy - ys == pytest.approx(shift, abs=0.01)
+
+
+def test_bayer_jpeg_rgb_keeps_the_channel_responses_of_a_flat_field():
+    """A flat field through the Bayer mosaic and its bilinear interpolation: each channel the signal times its
+    response (0.9, 1.0, 0.75), scaled so that ``white_adu`` above the bias is 255."""
+    from hostlink.sky.render import bayer_jpeg_rgb
+
+    config = RenderConfig()
+    image = np.full((16, 20), config.bias_adu + 400.0)
+    rgb = bayer_jpeg_rgb(image, config, white_adu=1020.0)
+    assert rgb.shape == (16, 20, 3) and rgb.dtype == np.uint8
+    np.testing.assert_array_equal(rgb[..., 0], 90)  # 0.9 x 400 x 255 / 1020
+    np.testing.assert_array_equal(rgb[..., 1], 100)
+    np.testing.assert_array_equal(rgb[..., 2], 75)

@@ -244,25 +244,55 @@ REFINE_MIN_STARS = 10
 REFINE_ITERATIONS = 3
 #: ... and k2 too from this many (a wide lens's distortion is not a pure cube of the radius).
 REFINE_K2_STARS = 20
+#: ... and the principal point from this many: a strong distortion about the nominal's centre when the lens's is some
+#: pixels away misplaces the edge stars by tens of pixels (a 20-px offset under 12 % of corner distortion: 10-40 px
+#: at the corners of the rendered wide set, where round 1 then named 1 % of its stars wrongly); with the radial terms
+#: pinned by many stars the centre separates from the attitude's rotation.
+REFINE_CENTRE_STARS = 40
+REFINE_CENTRE_STEP_PX = 0.01
+#: :func:`_refine_radial` fits k1 only when the 10th to 90th percentiles of its stars' squared radii span this fraction
+#: of the 90th (a disc about the centre spans 0.9, a ring does not) or all of them this fraction of the corner's, and
+#: k2 only when the percentiles span
+#: :data:`REFINE_K2_SPAN` of the corner's squared radius (0.65 for stars spread over a square detector): simulated
+#: 50-deg mustache frames whose proposals verified 26-104 stars in a ring (0.3-0.58 of the corner's r^2) fitted f 15 %
+#: short with k1 of the wrong sign, or k1 2.5 times too strong, and the frame was lost.
+REFINE_K1_SPAN = 0.5
+REFINE_K2_SPAN = 0.35
 #: Index of k1 in the camera vector (ESTIMATE_NAMES: f, cx, cy, then the distortion keys, k1 first).
 _K1 = 3
 
 
 def _refine_radial(
-    x_px: np.ndarray, y_px: np.ndarray, r: np.ndarray, c: np.ndarray, theta: np.ndarray
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    r: np.ndarray,
+    c: np.ndarray,
+    theta: np.ndarray,
+    r_corner_px: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frame's own focal length and radial terms k1 (and k2 from :data:`REFINE_K2_STARS` stars): Gauss-Newton on
-    sum |b(x, y; f, k1, k2) - C r|^2, derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`,
-    the attitude C refitted by Markley's SVD after each step. A wide lens's unmodelled distortion, which grows as the
+    sum |b(x, y; f, k1, k2, and the principal point from :data:`REFINE_CENTRE_STARS`) - C r|^2 jointly with a small
+    rotation of the attitude (without it a shift of the centre, which is nearly a rotation, has no direction to go),
+    derivatives by forward differences of :func:`onboard.camera.pixels_to_unit`, the attitude C refitted by Markley's
+    SVD after each step. A wide lens's unmodelled distortion, which grows as the
     cube of the radius and faster, is then out of the predictions of the frame's other stars and out of the
     interstar angles its later candidates are verified by, and the match radius can follow the centroid noise
-    instead of the lens. Returns (theta, C); the given ones when no step lowers the residual."""
+    instead of the lens. The radial terms only when the stars' squared radii span enough of the
+    corner's (``r_corner_px``): stars in a ring alone (a proposal's first verified ones) cannot tell the focal length
+    from distortion, and a fit of both there bends the rest of the field away. Returns
+    (theta, C); the given ones when no step lowers the residual."""
     best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
     current, att = np.array(theta, dtype=np.float64), c
     r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
-    steps = {0: 1e-6 * current[0], _K1: 1e-4 / max(r_max2, 1.0)}  # 1e-4 of the outermost star's radius
-    if x_px.size >= REFINE_K2_STARS:
-        steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
+    steps = {0: 1e-6 * current[0]}
+    r2 = (x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2
+    low, high = np.percentile(r2, [10.0, 90.0])
+    if float(high - low) >= REFINE_K1_SPAN * float(high) or float(np.ptp(r2)) >= REFINE_K1_SPAN * r_corner_px**2:
+        steps[_K1] = 1e-4 / max(r_max2, 1.0)  # 1e-4 of the outermost star's radius
+        if x_px.size >= REFINE_K2_STARS and float(high - low) >= REFINE_K2_SPAN * r_corner_px**2:
+            steps[_K1 + 1] = 1e-4 / max(r_max2, 1.0) ** 2
+    if x_px.size >= REFINE_CENTRE_STARS:
+        steps[1] = steps[2] = REFINE_CENTRE_STEP_PX
     for _ in range(REFINE_ITERATIONS):
         b = pixels_to_unit(x_px, y_px, current)
         residual = (b - r @ att.T).ravel()
@@ -271,12 +301,16 @@ def _refine_radial(
             shifted = current.copy()
             shifted[index] += step
             columns.append(((pixels_to_unit(x_px, y_px, shifted) - b) / step).ravel())
+        # the attitude's small rotation phi: C -> (I - [phi x]) C moves b - C r by -(C r) x phi
+        cr = r @ att.T
+        for axis in np.eye(3):
+            columns.append(-np.cross(cr, axis).ravel())
         jac = np.stack(columns, axis=1)
         norm = np.linalg.norm(jac, axis=0)
         if not np.all(norm > 0):
             break
         delta = np.linalg.lstsq(jac / norm, -residual, rcond=None)[0] / norm
-        for (index, _), d in zip(steps.items(), delta, strict=True):
+        for (index, _), d in zip(steps.items(), delta[:-3], strict=True):
             current[index] += d
         try:
             att = attitude_from_vectors(pixels_to_unit(x_px, y_px, current), r)
@@ -288,15 +322,36 @@ def _refine_radial(
     return best[0], best[1]
 
 
+#: The residual pattern's gate: a verified star whose residual after the frame's own refinement exceeds this many times
+#: the median residual of the frame's verified stars, and at least :data:`RESIDUAL_GATE_MIN_PX`, is not that star (for
+#: a 2-D Gaussian residual 8 medians are 9.4 sigma: no true star is lost to noise; a model still short of the lens at
+#: the field edge leaves its true stars there at a few medians). The interstar vote passes a wrong pair whose error
+#: is within its tolerance of most pairs; on a wide field that tolerance (0.5 % of a 1000-px pair) is 5 px, and the
+#: rendered wide set's round 1 named edge stars 10-40 px from their true place.
+RESIDUAL_GATE_MEDIANS = 8.0
+RESIDUAL_GATE_MIN_PX = 2.0
+#: Gate and refit at most this many times (each refit without the worst lets the next gate see the rest).
+RESIDUAL_GATE_ROUNDS = 4
+
+
+def _residual_outliers(residual_px: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(K,) bool: the residuals [px] beyond the gate (:data:`RESIDUAL_GATE_MEDIANS`) set by the ``keep`` ones."""
+    gate = max(RESIDUAL_GATE_MEDIANS * float(np.median(residual_px[keep])), RESIDUAL_GATE_MIN_PX)
+    return residual_px > gate
+
+
 #: Pruning a matcher's proposal: a star agreeing with fewer than this fraction of the others is dropped, and the vote
 #: repeated over the rest, until none is dropped (true stars then form the majority the final vote needs).
 PRUNE_MIN_AGREEMENT = 0.5
 
 
-def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False) -> _Verified:
+def _verify(
+    x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False, r_corner_px: float = 0.0
+) -> _Verified:
     """The project's own checks of candidate pairs (module docstring, steps 2 and 4) at one parity. ``scale``: the
     focal-length scale when already known (else estimated from the pairs); ``prune``: drop the least consistent
-    candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs."""
+    candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs. ``r_corner_px``: the
+    detector's half-diagonal (:data:`REFINE_K2_SPAN`; 0: the farthest candidate's radius)."""
     n = x_px.shape[0]
     nothing = _Verified(np.zeros(n, dtype=bool), mirrored, math.nan, math.nan, None, None)
     if n < 3:
@@ -332,8 +387,18 @@ def _verify(x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, pr
     except DegenerateGeometry:
         return _Verified(keep, mirrored, scale, agreement, None, None)
     if np.count_nonzero(keep) >= REFINE_MIN_STARS:
-        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_s)
+        theta_0 = theta_s
+        r_corner = r_corner_px or float(np.max(np.hypot(data.x_px - theta_s[1], data.y_px - theta_s[2])))
+        theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0, r_corner)
         b = pixels_to_unit(data.x_px, data.y_px, theta_s)
+        for _ in range(RESIDUAL_GATE_ROUNDS):
+            misfit = keep & _residual_outliers(residuals_rad(b, r, c) * theta_s[0], keep)
+            if not np.any(misfit) or np.count_nonzero(keep & ~misfit) < REFINE_MIN_STARS:
+                break
+            keep &= ~misfit  # refitted without them: a few wrong pairs far off pull a least-squares fit everywhere
+            c = attitude_from_vectors(pixels_to_unit(data.x_px[keep], data.y_px[keep], theta_0), r[keep])
+            theta_s, c = _refine_radial(data.x_px[keep], data.y_px[keep], r[keep], c, theta_0, r_corner)
+            b = pixels_to_unit(data.x_px, data.y_px, theta_s)
     return _Verified(keep, mirrored, scale, agreement, c, residuals_rad(b, r, c), theta_s)
 
 
@@ -342,12 +407,14 @@ def _absolute_scale(v: _Verified, theta: np.ndarray) -> float:
     return float(v.theta[0] / theta[0]) if v.theta is not None else v.scale
 
 
-def _verify_best_parity(x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False) -> _Verified:
+def _verify_best_parity(
+    x_px, y_px, r, theta, mirrored_hint: bool, scale=None, prune=False, r_corner_px: float = 0.0
+) -> _Verified:
     """Both parities, the hinted one first; the first whose triples agree wins."""
-    first = _verify(x_px, y_px, r, theta, mirrored_hint, scale, prune)
+    first = _verify(x_px, y_px, r, theta, mirrored_hint, scale, prune, r_corner_px)
     if first.parity_agreement >= PARITY_MIN_AGREEMENT:
         return first
-    second = _verify(x_px, y_px, r, theta, not mirrored_hint, scale, prune)
+    second = _verify(x_px, y_px, r, theta, not mirrored_hint, scale, prune, r_corner_px)
     if second.parity_agreement >= PARITY_MIN_AGREEMENT:
         return second
     return first
@@ -453,12 +520,38 @@ def _ambiguous(
     return np.any(other & bright_enough, axis=1)
 
 
-def _completeness(sky: _Sky, theta: np.ndarray, v: _Verified, image_size_px, identified: np.ndarray) -> float:
+#: Completeness is counted only in the cells of a COMPLETENESS_CELLS x COMPLETENESS_CELLS grid over the detector that
+#: hold at least one centroid: a part of the frame with no detection at all (a horizon, trees, a cloud bank) says
+#: nothing about whether the solution is right (the rendered wide set's frames with a quarter of trees fell to 34-37 %).
+COMPLETENESS_CELLS = 8
+
+
+def _completeness(
+    sky: _Sky,
+    theta: np.ndarray,
+    v: _Verified,
+    image_size_px,
+    identified: np.ndarray,
+    x_px: np.ndarray | None = None,
+    y_px: np.ndarray | None = None,
+) -> float:
     """Of the catalogue stars the solution puts on the detector that are at least as bright as the median
     identified star, the fraction identified (a true solution finds most of them; a chance alignment of faint
-    stars in a rich field leaves the bright ones of that field unmatched)."""
+    stars in a rich field leaves the bright ones of that field unmatched); with the frame's centroids ``x_px, y_px``,
+    only in the cells where the frame has any (:data:`COMPLETENESS_CELLS`)."""
     mags = sky.mag[identified]
-    near, _, _ = _predict(sky, theta, v, image_size_px, float(np.median(mags)))
+    near, xp, yp = _predict(sky, theta, v, image_size_px, float(np.median(mags)))
+    if x_px is not None and near.size:
+        width, height = image_size_px
+
+        def cell(x, y):
+            cx = np.clip((np.asarray(x) + 0.5) * COMPLETENESS_CELLS // width, 0, COMPLETENESS_CELLS - 1)
+            cy = np.clip((np.asarray(y) + 0.5) * COMPLETENESS_CELLS // height, 0, COMPLETENESS_CELLS - 1)
+            return (cy * COMPLETENESS_CELLS + cx).astype(np.int64)
+
+        occupied = np.zeros(COMPLETENESS_CELLS * COMPLETENESS_CELLS, dtype=bool)
+        occupied[cell(x_px, y_px)] = True
+        near = near[occupied[cell(xp, yp)]]
     if near.size == 0:
         return 1.0
     return float(np.count_nonzero(np.isin(near, identified))) / near.size
@@ -697,6 +790,44 @@ def _boresight_and_roll(c: np.ndarray) -> tuple[float, float, float]:
     return boresight_radec_roll(c)
 
 
+#: Photometric check: a candidate whose catalogue star is more than this much fainter [mag] than its centroid's
+#: brightness implies (the frame's zero point: the median of catalogue minus instrumental magnitude over its verified
+#: stars) is not that star: a bright uncatalogued point (a planet, an aircraft, a hot pixel) or a wide lens's edge
+#: star, misplaced by the distortion the frame has not yet measured, must not take the name of a faint catalogue star
+#: that happens to lie near it. One-sided: clouds, vignetting, extinction and saturation make a star look fainter
+#: than its catalogue magnitude, never brighter; only the camera's band against Hp (a red star in a red-sensitive
+#: camera) and noise do. Measured: correct names lie at most 1.7 mag on that side on granasat (colour JPEG), 0.8 on
+#: the rendered wide set (benchmarks/bench_widefield.py), whose wrong names of round 1 lay 2.5-4.5 mag beyond.
+PHOTOMETRIC_TOL_MAG = 2.5
+
+
+def _zero_point(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky) -> float:
+    """The frame's photometric zero point [mag]: the median of catalogue minus instrumental magnitude over the
+    stars ``rows`` named ``stars`` (NaN without magnitudes)."""
+    if mag is None or rows.size == 0:
+        return math.nan
+    offset = sky.mag[stars] - mag[rows]
+    offset = offset[np.isfinite(offset)]
+    return float(np.median(offset)) if offset.size else math.nan
+
+
+def _too_faint(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky, zero_point: float) -> np.ndarray:
+    """(K,) bool: the candidates whose catalogue star is more than :data:`PHOTOMETRIC_TOL_MAG` fainter than their
+    centroid's instrumental magnitude plus ``zero_point`` implies (False where either is unknown)."""
+    if mag is None or not math.isfinite(zero_point):
+        return np.zeros(rows.size, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        return sky.mag[stars] > mag[rows] + zero_point + PHOTOMETRIC_TOL_MAG
+
+
+def _faintest_detectable(mag: np.ndarray | None, zero_point: float) -> float:
+    """The faintest catalogue magnitude a candidate of the frame may have (:func:`_too_faint` of its faintest
+    centroid); +inf when unknown."""
+    if mag is None or not math.isfinite(zero_point) or not np.any(np.isfinite(mag)):
+        return math.inf
+    return float(np.nanmax(mag)) + zero_point + PHOTOMETRIC_TOL_MAG
+
+
 def _confirm(
     ident: FrameIdentity,
     x_px: np.ndarray,
@@ -708,14 +839,20 @@ def _confirm(
     sky: _Sky,
     image_size_px: tuple[int, int],
     scale: float | None = None,
+    mag: np.ndarray | None = None,
 ) -> tuple[FrameIdentity, np.ndarray]:
     """Verify, extend and verify again a proposal (module docstring, steps 2-4): the frame's identity and the
     (N,) Hipparcos number of each centroid (0 where not identified). ``scale``: F / F_nominal when known (a
-    matcher's proposal, whose wrong pairs are then pruned), else estimated from the proposal."""
+    matcher's proposal, whose wrong pairs are then pruned), else estimated from the proposal. ``mag``: the
+    centroids' instrumental magnitudes, when known: candidates far too faint for them are dropped
+    (:func:`_too_faint`) and the extension goes no deeper than the frame's faintest centroid implies."""
     n = x_px.shape[0]
     hip_out = np.zeros(n, dtype=np.int64)
     n_proposed = int(rows.size)
-    v = _verify_best_parity(x_px[rows], y_px[rows], sky.r[stars], theta, mirrored_hint, scale, scale is not None)
+    r_corner = 0.5 * math.hypot(*image_size_px)
+    v = _verify_best_parity(
+        x_px[rows], y_px[rows], sky.r[stars], theta, mirrored_hint, scale, scale is not None, r_corner
+    )
     if v.attitude is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
     mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
@@ -723,18 +860,23 @@ def _confirm(
     for round_no in range(MAX_EXTEND_ROUNDS):
         taken = np.zeros(n, dtype=bool)
         taken[rows[v.keep]] = True
+        zero_point = _zero_point(mag, rows[v.keep], stars[v.keep], sky)
+        mag_limit = min(mag_limit, _faintest_detectable(mag, zero_point))
         new_rows, new_stars = _extend(x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px)
+        fits = ~_too_faint(mag, new_rows, new_stars, sky, zero_point)
+        new_rows, new_stars = new_rows[fits], new_stars[fits]
         if round_no >= EXTEND_ROUNDS and new_rows.size == 0:
             break  # nothing new: the solution is complete at this depth
         rows = np.concatenate([rows[v.keep], new_rows])
         stars = np.concatenate([stars[v.keep], new_stars])
         if v.theta is not None:
             theta_frame = v.theta  # a wide lens's edge stars verify through the lens the frame measured
-        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored)
+        v = _verify(x_px[rows], y_px[rows], sky.r[stars], theta_frame, v.mirrored, r_corner_px=r_corner)
         if v.attitude is None:
             return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
         # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
         mag_limit = max(mag_limit, float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN)
+    v = replace(v, keep=v.keep & ~_too_faint(mag, rows, stars, sky, _zero_point(mag, rows[v.keep], stars[v.keep], sky)))
     ambiguous = v.keep & _ambiguous(x_px[rows], y_px[rows], stars, sky, theta, v, image_size_px, mag_limit)
     n_ambiguous = int(np.count_nonzero(ambiguous))
     v = replace(v, keep=v.keep & ~ambiguous)
@@ -752,7 +894,7 @@ def _confirm(
         return replace(ident, status=f"only {n_ok} of {rows.size} candidates verified"), hip_out
     if not v.parity_agreement >= PARITY_MIN_AGREEMENT:
         return replace(ident, status="parity not unanimous"), hip_out
-    completeness = _completeness(sky, theta, v, image_size_px, stars[v.keep])
+    completeness = _completeness(sky, theta, v, image_size_px, stars[v.keep], x_px, y_px)
     if completeness < MIN_COMPLETENESS:
         return replace(ident, status=f"only {100 * completeness:.0f} % of the bright stars in the field found"), hip_out
     if scale is not None and abs(ident.scale / scale - 1.0) > SCALE_AGREEMENT:
@@ -826,7 +968,7 @@ def identify_frame(
             x_px, y_px, order, brightness, nominal, theta, sky, database, fov_deg, fov_tolerance
         )
         if proposal is not None:
-            best = _confirm(ident, x_px, y_px, *proposal, theta, sky, nominal.image_size_px)
+            best = _confirm(ident, x_px, y_px, *proposal, theta, sky, nominal.image_size_px, mag=mag)
             if best[0].status == "identified":
                 return best
     if pairs is None:
@@ -843,7 +985,7 @@ def identify_frame(
             proposals = anchor_candidates(b, pairs, pairs.tree, pairs.rows, theta_s[0], n_anchor, rel_tol, skip)
             for rows, stars, mirrored in proposals:
                 result = _confirm(
-                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale
+                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale, mag
                 )
                 if result[0].status == "identified":
                     return result
@@ -880,6 +1022,120 @@ FALLBACK_DEPTH_PERCENTILE = 90
 ENGINE_MISS_SCANNED_FRAMES = 3
 
 
+@dataclass(frozen=True)
+class _SessionContext:
+    """What every frame of one :func:`identify_session` call shares: the session, the nominal camera and its
+    horizontal field [deg], the catalogue as unit vectors, and the engine's pattern database (None without it)."""
+
+    session: Session
+    nominal: CameraParams
+    fov_deg: float
+    sky: _Sky
+    database: object
+
+
+def _identify_frame_k(
+    ctx: _SessionContext, k: int, database, fov_deg: float, tol: float, pairs=None, scales=()
+) -> tuple[FrameIdentity, np.ndarray]:
+    """:func:`identify_frame` on the unidentified rows of the session's ``k``-th frame."""
+    session, starts = ctx.session, ctx.session.frame_starts
+    a, b = int(starts[k]), int(starts[k + 1])
+    rows = a + np.flatnonzero(session.star_id[a:b] == 0)
+    mag = None if session.mag is None else session.mag[rows]
+    return identify_frame(
+        int(session.frame[a]),
+        session.x_px[rows],
+        session.y_px[rows],
+        mag,
+        ctx.nominal,
+        ctx.sky,
+        database,
+        fov_deg,
+        tol,
+        pairs,
+        scales,
+    )
+
+
+def _identified(results: dict[int, tuple[FrameIdentity, np.ndarray]], k: int) -> bool:
+    return k in results and results[k][0].status == "identified"
+
+
+def _fallback_pairs(ctx: _SessionContext, todo: list[int], results: dict) -> PairCatalogue:
+    """The own matcher's pair index: as deep as the identified frames see (:data:`FALLBACK_DEPTH_PERCENTILE` of
+    their stars' magnitudes plus :data:`FALLBACK_MAG_MARGIN`), but no deeper than the field's size needs
+    (:func:`fallback_depth_mag`; the matcher works on the brightest centroids, and a 50-deg field's pairs to Hp 7.5
+    take 40 s to index, to Hp 5.5 a second); pairs as wide as the detector's diagonal at the smallest scanned scale."""
+    sky, nominal = ctx.sky, ctx.nominal
+    found = [k for k in todo if _identified(results, k)]
+    hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
+    hips = hips[hips != 0]
+    field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
+    depth = (
+        min(
+            float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
+            + FALLBACK_MAG_MARGIN,
+            field_depth + FALLBACK_MAG_MARGIN,
+        )
+        if hips.size
+        else field_depth
+    )
+    width, height = nominal.image_size_px
+    half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
+    return pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
+
+
+def _engine_pass(ctx: _SessionContext, todo: list[int], progress) -> dict[int, tuple[FrameIdentity, np.ndarray]]:
+    """Every frame through the engine at the nominal field (module docstring, step 1)."""
+    results = {}
+    for done, k in enumerate(todo):
+        results[k] = _identify_frame_k(ctx, k, ctx.database, ctx.fov_deg, solver_adapter.FOV_MARGIN)
+        if progress is not None:
+            progress(done + 1, len(todo))
+    return results
+
+
+def _fallback_pass(ctx: _SessionContext, todo: list[int], results: dict) -> None:
+    """The frames the engine left, through the own matcher (updating ``results``): at the engine's measured scale,
+    or by a scan of scales (slow, ~0.1 s per scale and frame): every frame when the engine is not there; when it is
+    there but matched no frame (its patterns need stars the frames may lack), at most
+    :data:`ENGINE_MISS_SCANNED_FRAMES` frames are scanned, the others then tried at the scale the first identified
+    one measured (one camera for the session: the other frames need no scan)."""
+    failed = [k for k in todo if not _identified(results, k)]
+    if not failed:
+        return
+    width = ctx.nominal.image_size_px[0]
+    engine_scale_known = any(_identified(results, k) for k in results)
+    scan_budget = ENGINE_MISS_SCANNED_FRAMES if ctx.database is not None and not engine_scale_known else len(failed)
+    scales = [results[k][0].scale for k in todo if _identified(results, k)]
+    scale = float(np.median(scales)) if scales else math.nan
+    pairs = _fallback_pairs(ctx, todo, results)
+    tried_without_scale = []
+    for k in failed:
+        known = math.isfinite(scale)
+        if not known and scan_budget <= 0:
+            tried_without_scale.append(k)  # tried below, should a scanned frame measure the scale
+            continue
+        scan_budget -= 0 if known else 1
+        refined = (
+            solver_adapter.horizontal_fov_deg(ctx.nominal.focal_length_px * scale, width) if known else ctx.fov_deg
+        )
+        tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
+        retry = _identify_frame_k(ctx, k, ctx.database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
+        if k not in results or retry[0].status == "identified" or retry[0].n_candidates > results[k][0].n_candidates:
+            results[k] = retry
+        if not known and retry[0].status == "identified":
+            scale = retry[0].scale
+        elif not known:
+            tried_without_scale.append(k)
+    if math.isfinite(scale):
+        refined = solver_adapter.horizontal_fov_deg(ctx.nominal.focal_length_px * scale, width)
+        for k in tried_without_scale:  # the frames scanned before the session's scale was known
+            retry = _identify_frame_k(ctx, k, None, refined, REFINED_FOV_TOLERANCE, pairs, (scale,))
+            if retry[0].status == "identified":
+                results[k] = retry
+
+
 def identify_session(
     session: Session,
     nominal: CameraParams,
@@ -894,7 +1150,8 @@ def identify_session(
     bright [Hp mag] (default all). ``use_engine``: False (or tetra3rs not installed) identifies with the project's
     own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
-    them: the geocentric apparent place with the time known, the J2000 place without) filled in."""
+    them: the geocentric apparent place with the time known, the J2000 place without) filled in. Stages: the engine
+    (:func:`_engine_pass`), the own matcher for the frames it left (:func:`_fallback_pass`), the identities written."""
     check_field(nominal)
     if np.any(guided.candidate_rows(session)):  # faint candidates build no pattern (guided.py)
         return guided.identify_without_candidates(
@@ -906,98 +1163,19 @@ def identify_session(
         catalogue = load_catalogue()
     if maglim is not None:
         catalogue = catalogue.subset(np.flatnonzero(catalogue.mag <= maglim))
-    width, height = nominal.image_size_px
-    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
-    sky = _sky(catalogue)
+    fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
     engine = use_engine and solver_adapter.engine_available()
-    database = (
-        solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
-    )  # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
+    # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
+    database = solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
+    ctx = _SessionContext(session, nominal, fov, _sky(catalogue), database)
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
-    results: dict[int, tuple[FrameIdentity, np.ndarray]] = {}
-
-    def run(k: int, db, fov_deg: float, tol: float, pairs=None, scales=()) -> tuple[FrameIdentity, np.ndarray]:
-        a, b = int(starts[k]), int(starts[k + 1])
-        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
-        mag = None if session.mag is None else session.mag[rows]
-        return identify_frame(
-            int(session.frame[a]),
-            session.x_px[rows],
-            session.y_px[rows],
-            mag,
-            nominal,
-            sky,
-            db,
-            fov_deg,
-            tol,
-            pairs,
-            scales,
-        )
-
-    if engine:
-        for done, k in enumerate(todo):
-            results[k] = run(k, database, fov, solver_adapter.FOV_MARGIN)
-            if progress is not None:
-                progress(done + 1, len(todo))
-    failed = [k for k in todo if k not in results or results[k][0].status != "identified"]
-    # the own matcher: at the engine's measured scale, or by a scan of scales (slow, ~0.1 s per scale and frame):
-    # every frame when the engine is not there; when it is there but matched no frame (its patterns need stars the
-    # frames may lack), at most ENGINE_MISS_SCANNED_FRAMES frames are scanned, the others then tried at the scale the
-    # first identified one measured
-    engine_scale_known = any(results[k][0].status == "identified" for k in results)
-    scan_budget = ENGINE_MISS_SCANNED_FRAMES if engine and not engine_scale_known else len(failed)
-    if failed:
-        found = [k for k in todo if k in results and results[k][0].status == "identified"]
-        scales = [results[k][0].scale for k in found]
-        scale = float(np.median(scales)) if scales else math.nan
-        hips = np.concatenate([results[k][1] for k in found]) if found else np.zeros(0, np.int64)
-        hips = hips[hips != 0]
-        # as deep as the identified frames see, but no deeper than the field's size needs: the matcher works on the
-        # brightest centroids, and a 50-deg field's pairs to Hp 7.5 take 40 s to index (to Hp 5.5, a second)
-        field_depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
-        depth = (
-            min(
-                float(np.percentile(sky.mag[np.searchsorted(sky.hip, hips)], FALLBACK_DEPTH_PERCENTILE))
-                + FALLBACK_MAG_MARGIN,
-                field_depth + FALLBACK_MAG_MARGIN,
-            )
-            if hips.size
-            else field_depth
-        )
-        half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
-        pairs = pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
-        tried_without_scale = []
-        for k in failed:
-            known = math.isfinite(scale)
-            if not known and scan_budget <= 0:
-                tried_without_scale.append(k)  # tried below, should a scanned frame measure the scale
-                continue
-            scan_budget -= 0 if known else 1
-            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width) if known else fov
-            tol = REFINED_FOV_TOLERANCE if known else solver_adapter.FOV_MARGIN
-            retry = run(k, database, refined, tol, pairs, (scale,) if known else SCAN_SCALES)
-            if (
-                k not in results
-                or retry[0].status == "identified"
-                or retry[0].n_candidates > results[k][0].n_candidates
-            ):
-                results[k] = retry
-            if not known and retry[0].status == "identified":
-                scale = retry[0].scale  # one camera for the session: the other frames need no scan
-            elif not known:
-                tried_without_scale.append(k)
-        if math.isfinite(scale):
-            refined = solver_adapter.horizontal_fov_deg(nominal.focal_length_px * scale, width)
-            for k in tried_without_scale:  # the frames scanned before the session's scale was known
-                retry = run(k, None, refined, REFINED_FOV_TOLERANCE, pairs, (scale,))
-                if retry[0].status == "identified":
-                    results[k] = retry
+    results = _engine_pass(ctx, todo, progress) if engine else {}
+    _fallback_pass(ctx, todo, results)
     star_id = session.star_id.copy()
     for k in todo:
         a, b = int(starts[k]), int(starts[k + 1])
-        rows = a + np.flatnonzero(session.star_id[a:b] == 0)
-        star_id[rows] = results[k][1]
+        star_id[a + np.flatnonzero(session.star_id[a:b] == 0)] = results[k][1]
     out = _with_identities(session, star_id, catalogue)
     name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
     return Identification(out, tuple(results[k][0] for k in todo), name, fov)

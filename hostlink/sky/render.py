@@ -14,6 +14,12 @@ Model of one exposure, in electrons [e-] per pixel, then converted to counts [AD
 3. read noise: + Normal(0, read_noise_e); counts = round(bias + e / gain), clipped to [0, 2^bits - 1] (the
    ADC's full scale: saturation).
 
+Optional field effects of a real wide lens (:class:`FieldEffects`, all off by default, the model above unchanged
+then): a PSF that widens toward the corners and is elongated radially there (coma-like: an extra component of the
+star's light displaced outward), vignetting (the light, stars and sky alike, falls off as the square of the radius),
+and a sky gradient (light pollution toward one edge). :func:`bayer_jpeg_rgb` turns a rendered frame into what a
+colour camera's JPEG holds (a Bayer mosaic, interpolated, scaled to 8 bits).
+
 Everything is drawn from one ``numpy.random.Generator`` seeded by ``RenderConfig.seed`` (and the frame), so a render
 is deterministic. :func:`pixel_integrated_gaussian` is the one PSF formula: the Cramer-Rao bound of the centroiders
 (:func:`hostlink.images.centroid.centroid_crb_px`) differentiates the same model.
@@ -21,6 +27,7 @@ is deterministic. :func:`pixel_integrated_gaussian` is the one PSF formula: the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -33,6 +40,26 @@ if TYPE_CHECKING:  # the simulator (catalogue, ERFA) is not needed to render giv
 _SQRT_2PI = float(np.sqrt(2.0 * np.pi))
 #: Half-width of a star's drawn box in PSF sigmas: the Gaussian beyond 6 sigma holds < 1e-8 of the flux.
 _BOX_SIGMAS = 6.0
+
+
+@dataclass(frozen=True)
+class FieldEffects:
+    """A real wide lens's departures from the uniform Gaussian PSF, each off at its default. ``psf_corner_factor``:
+    the PSF sigma at the detector's corner over the centre's (growing as the square of the radius); ``coma_fraction``
+    of each star's light drawn as a second Gaussian displaced outward by ``coma_corner_px`` x (r / R)^2 (R the
+    half-diagonal) and elongated radially (a comatic star); ``vignetting_corner``: the fraction of the light lost at
+    the corner (1 - v (r / R)^2, stars and sky); ``gradient_e``: sky electrons added linearly from 0 at the top row to
+    this at the bottom (light pollution toward a horizon below the frame)."""
+
+    psf_corner_factor: float = 1.0
+    coma_fraction: float = 0.0
+    coma_corner_px: float = 0.0
+    vignetting_corner: float = 0.0
+    gradient_e: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        return self != FieldEffects()
 
 
 @dataclass(frozen=True)
@@ -50,6 +77,7 @@ class RenderConfig:
     hot_pixels: int = 20
     hot_pixel_e: float = 4000.0
     seed: int = 0
+    effects: FieldEffects = field(default_factory=FieldEffects)
 
     @property
     def saturation_adu(self) -> float:
@@ -102,6 +130,8 @@ def expected_electrons(
     """The noiseless image [e- per pixel] (step 1 of the module docstring): background plus every star's
     pixel-integrated Gaussian, each drawn in a box of +-6 sigma around it."""
     width, height = image_size_px
+    if config.effects.active:
+        return _expected_electrons_field(x_px, y_px, flux_e, image_size_px, config)
     mu = np.full((height, width), float(config.background_e))
     half = int(np.ceil(_BOX_SIGMAS * config.psf_sigma_px)) + 1
     for xs, ys, n in zip(np.asarray(x_px, float), np.asarray(y_px, float), np.asarray(flux_e, float), strict=True):
@@ -113,6 +143,77 @@ def expected_electrons(
         py = pixel_integrated_gaussian(np.arange(y0, y1), ys, config.psf_sigma_px)
         mu[y0:y1, x0:x1] += n * np.outer(py, px)
     return mu
+
+
+#: Sub-pixel samples per axis of the field-effect PSF (an elliptical Gaussian is not separable into pixel-integrated
+#: factors; 4 x 4 samples integrate a sigma >= 1 px Gaussian to < 1 % of its flux per pixel).
+_SUBSAMPLES = 4
+
+
+def _expected_electrons_field(
+    x_px: np.ndarray, y_px: np.ndarray, flux_e: np.ndarray, image_size_px: tuple[int, int], config: RenderConfig
+) -> np.ndarray:
+    """:func:`expected_electrons` with :class:`FieldEffects`: each star a main Gaussian of the sigma of its radius
+    plus its comatic component, radially elongated, integrated over each pixel by sub-pixel sampling; then
+    vignetting of stars and sky, then the gradient."""
+    fx = config.effects
+    width, height = image_size_px
+    cx, cy = 0.5 * (width - 1), 0.5 * (height - 1)
+    r_corner2 = cx * cx + cy * cy
+    mu = np.full((height, width), float(config.background_e))
+    sub = (np.arange(_SUBSAMPLES) + 0.5) / _SUBSAMPLES - 0.5
+    for xs, ys, n in zip(np.asarray(x_px, float), np.asarray(y_px, float), np.asarray(flux_e, float), strict=True):
+        rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) / r_corner2
+        sigma = config.psf_sigma_px * (1.0 + (fx.psf_corner_factor - 1.0) * rho2)
+        radius = math.hypot(xs - cx, ys - cy)
+        ux, uy = ((xs - cx) / radius, (ys - cy) / radius) if radius > 0 else (1.0, 0.0)
+        shift = fx.coma_corner_px * rho2
+        components = [(1.0 - fx.coma_fraction, xs, ys, sigma, sigma)]
+        if fx.coma_fraction > 0:
+            components.append((fx.coma_fraction, xs + shift * ux, ys + shift * uy, sigma + shift, sigma))
+        half = int(np.ceil(_BOX_SIGMAS * (sigma + shift))) + 1
+        x0, x1 = max(int(np.floor(xs)) - half, 0), min(int(np.floor(xs)) + half + 2, width)
+        y0, y1 = max(int(np.floor(ys)) - half, 0), min(int(np.floor(ys)) + half + 2, height)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        gx = (np.arange(x0, x1)[None, :, None, None] + sub[None, None, None, :]).repeat(y1 - y0, 0)
+        gy = (np.arange(y0, y1)[:, None, None, None] + sub[None, None, :, None]).repeat(x1 - x0, 1)
+        box = np.zeros((y1 - y0, x1 - x0))
+        for weight, px, py, s_radial, s_tangential in components:
+            dr = (gx - px) * ux + (gy - py) * uy
+            dt = -(gx - px) * uy + (gy - py) * ux
+            density = np.exp(-0.5 * ((dr / s_radial) ** 2 + (dt / s_tangential) ** 2))
+            box += weight * density.mean(axis=(2, 3)) / (2.0 * math.pi * s_radial * s_tangential)
+        mu[y0:y1, x0:x1] += n * box
+    if fx.vignetting_corner:
+        yy, xx = np.mgrid[0:height, 0:width]
+        mu *= 1.0 - fx.vignetting_corner * ((xx - cx) ** 2 + (yy - cy) ** 2) / r_corner2
+    if fx.gradient_e:
+        mu += fx.gradient_e * (np.arange(height, dtype=np.float64) / max(height - 1, 1))[:, None]
+    return mu
+
+
+def bayer_jpeg_rgb(image_adu: np.ndarray, config: RenderConfig, white_adu: float | None = None) -> np.ndarray:
+    """What a colour camera's 8-bit file holds of a rendered frame: each pixel sees one colour of an RGGB Bayer
+    mosaic (the channels' responses 0.9, 1.0, 0.75 of a white star), the missing colours are interpolated bilinearly
+    from the neighbours (the camera's demosaicing), the bias removed and the counts scaled so that ``white_adu``
+    (default: full scale less the bias) is 255. Returns (height, width, 3) uint8; write it as JPEG to add the
+    compression."""
+    from scipy.ndimage import convolve
+
+    height, width = image_adu.shape
+    signal = np.asarray(image_adu, dtype=np.float64) - config.bias_adu
+    white = (config.saturation_adu - config.bias_adu) if white_adu is None else white_adu
+    yy, xx = np.mgrid[0:height, 0:width]
+    masks = (((yy % 2) == 0) & ((xx % 2) == 0), ((yy + xx) % 2) == 1, ((yy % 2) == 1) & ((xx % 2) == 1))
+    kernel = np.array([[0.25, 0.5, 0.25], [0.5, 1.0, 0.5], [0.25, 0.5, 0.25]])
+    channels = []
+    for mask, response in zip(masks, (0.9, 1.0, 0.75), strict=True):
+        sampled = np.where(mask, signal * response, 0.0)
+        weight = convolve(mask.astype(np.float64), kernel, mode="mirror")
+        channels.append(convolve(sampled, kernel, mode="mirror") / weight)
+    rgb = np.stack(channels, axis=-1) * (255.0 / white)
+    return np.clip(np.round(rgb), 0, 255).astype(np.uint8)
 
 
 def render_stars(
