@@ -648,13 +648,10 @@ def _single_pixel_spikes(sub: np.ndarray, objects: np.ndarray) -> np.ndarray:
     return neighbours < _SPIKE_SCREEN_RATIO * peak
 
 
-def _projectors(columns: list[np.ndarray]) -> np.ndarray:
-    """(M, P, P) orthogonal projectors onto the span of each design matrix (P, 2) of ``columns``."""
-    out = []
-    for a in columns:
-        q, _ = np.linalg.qr(a)
-        out.append(q @ q.T)
-    return np.stack(out)
+def _orthonormal_bases(columns: list[np.ndarray]) -> np.ndarray:
+    """(P, M, 2) orthonormal bases U of the span of each design matrix (P, 2) of ``columns`` (QR): the orthogonal
+    projector onto the m-th span is U[:, m] U[:, m]^T."""
+    return np.stack([np.linalg.qr(a)[0] for a in columns], axis=1)
 
 
 def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma_px: float, chi2_limit: float):
@@ -690,8 +687,9 @@ def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma
         for dy in _HOT_POSITIONS_PX
         for dx in _HOT_POSITIONS_PX
     ]
-    q = _projectors([np.column_stack([m, flat]) for m in [spike, *stars]])
-    explained = np.einsum("np,mpq,nq->nm", d, q, d)  # d^T Q d for every detection and model
+    basis = _orthonormal_bases([np.column_stack([m, flat]) for m in [spike, *stars]])
+    # d^T Q d = |U^T d|^2 for the projector Q = U U^T of each model (U: an orthonormal basis of its 2 columns)
+    explained = np.sum((d @ basis.reshape(d.shape[1], -1)).reshape(objects.size, -1, 2) ** 2, axis=2)
     total = np.einsum("np,np->n", d, d)
     chi2_spike = total - explained[:, 0]
     chi2_star = total - np.max(explained[:, 1:], axis=1)
@@ -1412,6 +1410,7 @@ def _crb_max_block(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: 
     mu, jac = psf_model_batch(cols, rows, params, sigma)
     variance = (mu if shot else 0.0) + (noise_e**2)[:, None, None]
     jac = jac.reshape(x_px.size, -1, 4)
-    fisher = np.einsum("npi,np,npj->nij", jac, 1.0 / variance.reshape(x_px.size, -1), jac)
+    weighted = jac / variance.reshape(x_px.size, -1, 1)
+    fisher = np.matmul(np.swapaxes(weighted, 1, 2), jac)  # J^T W J per star: a batched product, not a 3-way einsum
     cov = np.linalg.inv(fisher)
     return np.sqrt(np.maximum(cov[:, 0, 0], cov[:, 1, 1]))
