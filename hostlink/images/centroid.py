@@ -1218,20 +1218,13 @@ def _levenberg_marquardt_batch(
         if active.size == 0:
             break
         ja, ra = j[active], r[active]
-        normal = np.einsum("npi,npj->nij", ja, ja)
-        gradient = np.einsum("npi,np->ni", ja, ra)
+        jt = np.swapaxes(ja, 1, 2)
+        normal = jt @ ja  # J^T J and J^T r per star: batched products (a 3-operand einsum is ~8 times slower)
+        gradient = (jt @ ra[..., None])[..., 0]
         diag = np.einsum("nii->ni", normal)
         lhs = normal + damping[active, None, None] * diag[:, :, None] * eye
-        singular = np.zeros(active.size, dtype=bool)
-        try:
-            step = -np.linalg.solve(lhs, gradient[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.zeros_like(gradient)
-            for k in range(active.size):
-                try:
-                    step[k] = -np.linalg.solve(lhs[k], gradient[k])
-                except np.linalg.LinAlgError:
-                    singular[k] = True  # a degenerate stamp: no fit
+        step, singular = _solve_each(lhs, gradient)
+        step = -step
         done[active[singular]] = True
         trial = params.copy()
         trial[active] += step
@@ -1253,6 +1246,20 @@ def _levenberg_marquardt_batch(
         done[active[settled]] = True
         done[active[~better & (damping[active] > 1e12)]] = True
     return params, converged
+
+
+def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """x with lhs[k] x[k] = rhs[k] for each of the (n, 4, 4) systems, and which are singular (their x 0: a
+    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the batch is then split in
+    halves until the singular ones stand alone (each system solved by the same LAPACK call as on its own)."""
+    try:
+        return np.linalg.solve(lhs, rhs[..., None])[..., 0], np.zeros(lhs.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        if lhs.shape[0] == 1:
+            return np.zeros_like(rhs), np.ones(1, dtype=bool)
+    half = lhs.shape[0] // 2
+    (x1, s1), (x2, s2) = _solve_each(lhs[:half], rhs[:half]), _solve_each(lhs[half:], rhs[half:])
+    return np.concatenate([x1, x2]), np.concatenate([s1, s2])
 
 
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
