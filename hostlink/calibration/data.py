@@ -439,7 +439,9 @@ def _blas_controller():
 def one_blas_thread():
     """A context in which BLAS runs on one thread (the previous limit restored on exit): for code whose matrix
     products are thin (N x 3 by 3 x 3, per-frame Gram matrices), which OpenBLAS would spread over threads that
-    spend more time synchronising than computing (on granasat's identification, 3 times the CPU time)."""
+    spend more time synchronising than computing (on granasat's identification, 3 times the CPU time). The limit is
+    the process's (OpenBLAS keeps one): threads that enter and leave this at once can leave it at one thread, which
+    only slows large products elsewhere in the process."""
     return _blas_controller().limit(limits=1, user_api="blas")
 
 
