@@ -515,8 +515,10 @@ def _centroid_screened(sub, rms, good, clipped, truncated, options: CentroidOpti
     good, clipped, truncated = good[~unresolved], clipped[~unresolved], truncated[~unresolved]
     if good.size == 0:
         return None
+    first = sigma
     if options.psf_sigma_px is None and np.any(unresolved):  # the pairs widened the first estimate
         sigma = _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
+    if sigma != first:  # each star's window is its own: with the same sigma, the same centroids
         x, y = _windowed_centroids(sub, good, sigma)
     else:
         x, y = x[~unresolved], y[~unresolved]
