@@ -86,3 +86,25 @@ def test_vote_counts_every_frames_disagreeing_pairs_as_one_frame_at_a_time_does(
         keep, field_rad = consistent_stars_and_field(data, b, chunk_obs=chunk_obs)
         np.testing.assert_array_equal(keep, want)
         assert abs(field_rad - field) <= 1e-12
+
+
+def test_gram_matrices_run_on_one_blas_thread_and_restore_the_limit():
+    """The per-frame Gram matrices are computed with BLAS on one thread (``one_blas_thread``: OpenBLAS's threads
+    cost more than these thin products), the process's limit restored after; the entries are the vectors' dot
+    products (to a few ulps: BLAS may fuse the three multiply-adds)."""
+    from threadpoolctl import threadpool_info
+
+    from hostlink.calibration.data import gram_matrices, one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    with one_blas_thread():
+        assert blas_threads() and all(n == 1 for n in blas_threads())
+    assert blas_threads() == before
+    v = np.random.default_rng(4).normal(size=(3, 40, 3))
+    v /= np.linalg.norm(v, axis=2, keepdims=True)  # unit vectors: |a.b| <= 1, three products summed: ~3 ulps
+    g = gram_matrices(v)
+    assert blas_threads() == before
+    np.testing.assert_allclose(g, np.einsum("mik,mjk->mij", v, v), rtol=0, atol=4 * np.finfo(float).eps)

@@ -178,6 +178,24 @@ def test_the_batched_psf_fit_reaches_scipys_least_squares_minimum():
         assert abs(fit.x[0] - fx[k]) < 1e-5 and abs(fit.x[1] - fy[k]) < 1e-5, (k, fit.x[:2], fx[k], fy[k])
 
 
+def test_a_singular_stamp_in_the_batch_is_flagged_and_the_others_solved_as_on_their_own():
+    """The fit's batched step (:func:`_solve_each`): numpy refuses a whole batch for one singular system; the
+    singular ones (here two, one at an end) are flagged with a zero step, and every other system gets exactly the
+    solution numpy gives it alone (the same LAPACK call: bit for bit)."""
+    from hostlink.images.centroid import _solve_each
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(9, 4, 4)) + 4.0 * np.eye(4)
+    b = rng.normal(size=(9, 4))
+    a[2, :, 1] = 0.0  # a column of zeros: an exact zero pivot
+    a[8] = 0.0
+    x, singular = _solve_each(a, b)
+    assert singular.tolist() == [k in (2, 8) for k in range(9)]
+    assert np.all(x[singular] == 0.0)
+    for k in np.flatnonzero(~singular):
+        assert np.array_equal(x[k], np.linalg.solve(a[k], b[k]))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # rejections
 

@@ -6,6 +6,7 @@ Everything is float64 numpy columns, one row per identified star, rows grouped b
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -436,8 +437,28 @@ def gram_matrices(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """The Gram matrices v v^T (m, n, n) of stacked padded frames ``v`` (m, n, 3): every dot product between two of
     a frame's vectors. The transposed factor is a contiguous copy, so numpy calls BLAS gemm rather than syrk (its
     choice for v @ v^T of one buffer): the same three-term dot products, ~40 % faster for these thin factors
-    (OpenBLAS). ``out``: an (m, n, n) buffer to reuse."""
-    return np.matmul(v, np.ascontiguousarray(v.transpose(0, 2, 1)), out=out)
+    (OpenBLAS). On one BLAS thread (:func:`one_blas_thread`): each product is a few milliseconds at most, and
+    OpenBLAS's threads spend more waiting than computing (the same numbers: each entry is one thread's three-term
+    dot product either way). ``out``: an (m, n, n) buffer to reuse."""
+    with one_blas_thread():
+        return np.matmul(v, np.ascontiguousarray(v.transpose(0, 2, 1)), out=out)
+
+
+@functools.cache
+def _blas_controller():
+    """The process's thread-pool controller (threadpoolctl): found once (it scans the loaded libraries)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
+def one_blas_thread():
+    """A context in which BLAS runs on one thread (the previous limit restored on exit): for code whose matrix
+    products are thin (N x 3 by 3 x 3, per-frame Gram matrices), which OpenBLAS would spread over threads that
+    spend more time synchronising than computing (on granasat's identification, 3 times the CPU time). The limit is
+    the process's (OpenBLAS keeps one): threads that enter and leave this at once can leave it at one thread, which
+    only slows large products elsewhere in the process."""
+    return _blas_controller().limit(limits=1, user_api="blas")
 
 
 def pair_angles_at_rad(v: np.ndarray, positions: np.ndarray, gram: np.ndarray | None = None) -> np.ndarray:

@@ -121,7 +121,17 @@ def identify_then_admit(session: Session, identify, catalogue: Catalogue | None 
     """``identify(session)`` (an :class:`hostlink.images.identify.Identification`) on the session without its
     candidates, then the candidates admitted (module docstring) with the camera calibrated on what it identified.
     Returns the identification with every row back in place (candidates not admitted unidentified) and one more
-    record in ``rounds``: ``{"round": "guided", ...}`` with the per-frame admissions."""
+    record in ``rounds``: ``{"round": "guided", ...}`` with the per-frame admissions. BLAS on one thread
+    (:func:`hostlink.calibration.data.one_blas_thread`): the products here are thin (the catalogue's directions by
+    an attitude, per-frame pairs)."""
+    from hostlink.calibration.data import one_blas_thread
+
+    with one_blas_thread():
+        return _identify_then_admit(session, identify, catalogue)
+
+
+def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None):
+    """:func:`identify_then_admit`."""
     held = candidate_rows(session)
     if not np.any(held):
         return identify(session)
