@@ -4,6 +4,7 @@ sensor's phase starts (``hostlink emulate --phase-start``) and the bench replay'
 
 import numpy as np
 import pytest
+from stream_frames import NOMINAL, one_star_frame
 
 from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
 from hostlink.mission.config import BenchConfig, drift_first_frame
@@ -11,24 +12,13 @@ from hostlink.mission.run import concatenate_sessions, simulate_phases
 from hostlink.mission.summary import drift_frame_index, replay_truth_attitudes, truth_attitudes
 from onboard import banks
 from onboard.firmware import Firmware
-from onboard.params import CameraParams
 from protocol import messages as m
 
-NOMINAL = CameraParams(
-    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
-)
 PHASE_START = 30  # the second phase's first frame counter in a 60-frame replay
 
 
 def _frame(k: int) -> m.CentroidFrame:
-    return m.CentroidFrame(
-        frame=k,
-        t_us=1_700_000_000_000_000 + 1_000_000 * k,
-        star_id=np.array([k + 1], np.uint32),
-        x_px=np.array([k + 0.5]),
-        y_px=np.array([2.25]),
-        mag=np.array([3.0]),
-    )
+    return one_star_frame(k, period_us=1_000_000)  # one exposure a second, as the bench's replay
 
 
 class _CountingFirmware(Firmware):
