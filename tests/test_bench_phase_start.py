@@ -98,3 +98,13 @@ def test_the_tracking_figure_scores_the_phase_and_its_first_read_past_it():
     index = np.array([10, 60, 99, 130, 180, 400])
     assert within_drift_phase(cfg, index).tolist() == [True, True, True, True, False, False]
     assert within_drift_phase(cfg, np.array([104])).tolist() == [True]  # a 5-frame-like phase keeps its end read
+
+
+def test_a_phase_start_without_a_replay_is_a_one_line_refusal(capsys):
+    """The simulated source cycles without end: a stream restarted before a far phase start (4e9) would skip
+    exposures for hours. --phase-start goes with --replay, whose length bounds the skip."""
+    from hostlink.cli import main
+
+    code = main(["emulate", "--transport", "serial", "--phase-start", "4000000000"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--phase-start goes with --replay" in err, err
