@@ -321,12 +321,11 @@ def test_the_sil_harness_runs_clean_under_address_and_undefined_behaviour_saniti
     shutil.copy(SIL_HARNESS, tmp_path / SIL_HARNESS.name)
     exe = tmp_path / "sil"
     sources = sorted(str(p) for p in tmp_path.glob("*.c"))
-    flags = [*firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-g", "-O1", "-fsanitize=address,undefined"]
+    flags = [*firmware_c.WARNING_FLAGS, "-ffp-contract=off", "-O1", *firmware_c.SANITIZE_FLAGS]
     build = subprocess.run(
         [
             firmware_c.find_compiler(),
             *flags,
-            "-fno-sanitize-recover=all",
             f"-I{tmp_path}",
             *sources,
             "-o",
