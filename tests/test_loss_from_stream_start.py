@@ -24,7 +24,7 @@ def _frame(k: int) -> m.CentroidFrame:
     return one_star_frame(k)
 
 
-def _sensor(first: int = 0, n: int = 10, drop_every: int = 0) -> EmulatedSensor:
+def _sensor(first: int = 0, n: int = 10) -> EmulatedSensor:
     source = (SourceFrame(frame=_frame(k), r_ref=None) for k in range(first, first + n))
     return EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), source)
 
