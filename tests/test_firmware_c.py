@@ -344,6 +344,15 @@ def test_the_sil_harness_runs_clean_under_address_and_undefined_behaviour_saniti
         assert "commands 100000" in run.stdout and "replies 0 undecodable" in run.stdout, run.stdout
 
 
+def test_the_cached_build_is_keyed_by_the_code_alone():
+    """The library's cache key hashes what is compiled: the core's README ships with it (export-c writes it) but is
+    not a build source, so editing it does not rebuild every cached library (the sanitized one takes ~20 s)."""
+    assert "README.md" in firmware_c.core_sources()
+    built = firmware_c.build_sources()
+    assert built and all(name.endswith((".c", ".h")) for name in built)
+    assert {n for n in firmware_c.core_sources() if n.endswith((".c", ".h"))} <= set(built)
+
+
 def test_hostlink_export_c_writes_the_core_beside_the_codec_and_the_tree_compiles_stand_alone(tmp_path):
     """``hostlink export-c DIR``: the codec and the firmware core in one folder, every .c compiled with the flight-code
     flags and linked into one object (no undefined symbol but the C library's)."""
