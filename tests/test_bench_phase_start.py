@@ -4,6 +4,7 @@ sensor's phase starts (``hostlink emulate --phase-start``) and the bench replay'
 
 import numpy as np
 import pytest
+from stream_frames import NOMINAL, one_star_frame
 
 from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
 from hostlink.mission.config import BenchConfig, drift_first_frame
@@ -11,24 +12,13 @@ from hostlink.mission.run import concatenate_sessions, simulate_phases
 from hostlink.mission.summary import drift_frame_index, replay_truth_attitudes, truth_attitudes
 from onboard import banks
 from onboard.firmware import Firmware
-from onboard.params import CameraParams
 from protocol import messages as m
 
-NOMINAL = CameraParams(
-    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
-)
 PHASE_START = 30  # the second phase's first frame counter in a 60-frame replay
 
 
 def _frame(k: int) -> m.CentroidFrame:
-    return m.CentroidFrame(
-        frame=k,
-        t_us=1_700_000_000_000_000 + 1_000_000 * k,
-        star_id=np.array([k + 1], np.uint32),
-        x_px=np.array([k + 0.5]),
-        y_px=np.array([2.25]),
-        mag=np.array([3.0]),
-    )
+    return one_star_frame(k, period_us=1_000_000)  # one exposure a second, as the bench's replay
 
 
 class _CountingFirmware(Firmware):
@@ -108,3 +98,13 @@ def test_the_tracking_figure_scores_the_phase_and_its_first_read_past_it():
     index = np.array([10, 60, 99, 130, 180, 400])
     assert within_drift_phase(cfg, index).tolist() == [True, True, True, True, False, False]
     assert within_drift_phase(cfg, np.array([104])).tolist() == [True]  # a 5-frame-like phase keeps its end read
+
+
+def test_a_phase_start_without_a_replay_is_a_one_line_refusal(capsys):
+    """The simulated source cycles without end: a stream restarted before a far phase start (4e9) would skip
+    exposures for hours. --phase-start goes with --replay, whose length bounds the skip."""
+    from hostlink.cli import main
+
+    code = main(["emulate", "--transport", "serial", "--phase-start", "4000000000"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--phase-start goes with --replay" in err, err

@@ -5,8 +5,8 @@ carries) and on Modbus (window_seq from 1); the emulated sensor acknowledges a s
 import os
 import shutil
 
-import numpy as np
 import pytest
+from stream_frames import NOMINAL, one_star_frame
 
 from hostlink.emulator.modbus_endpoint import RegisterSensor
 from hostlink.emulator.sensor import EmulatedSensor, SourceFrame
@@ -15,28 +15,16 @@ from hostlink.links.can_link import StreamAssembler
 from hostlink.links.modbus_link import ModbusLink
 from onboard import banks
 from onboard.firmware import Firmware
-from onboard.params import CameraParams
 from protocol import can_frames as cf
 from protocol import messages as m
 from protocol.framing import encode_frame
 
-NOMINAL = CameraParams(
-    focal_length_mm=70.0, pixel_pitch_um=12.0, principal_point_px=(511.5, 511.5), image_size_px=(1024, 1024)
-)
-
 
 def _frame(k: int) -> m.CentroidFrame:
-    return m.CentroidFrame(
-        frame=k,
-        t_us=1_700_000_000_000_000 + 100_000 * k,
-        star_id=np.array([k + 1], np.uint32),
-        x_px=np.array([k + 0.5]),
-        y_px=np.array([2.25]),
-        mag=np.array([3.0]),
-    )
+    return one_star_frame(k)
 
 
-def _sensor(first: int = 0, n: int = 10, drop_every: int = 0) -> EmulatedSensor:
+def _sensor(first: int = 0, n: int = 10) -> EmulatedSensor:
     source = (SourceFrame(frame=_frame(k), r_ref=None) for k in range(first, first + n))
     return EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), source)
 

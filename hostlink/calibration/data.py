@@ -16,6 +16,7 @@ import numpy as np
 
 from hostlink.errors import UserError
 from hostlink.files.session import Session
+from onboard.params import MAX_IMAGE_SIDE_PX
 from onboard.site import Site, Weather
 
 if TYPE_CHECKING:
@@ -309,7 +310,7 @@ SIGMA_PX_FLOOR = 1.0 / float(np.sqrt(2.0 * np.pi * _MAX_FULL_WELL_E))
 #: Largest stated centroid noise [px]: the largest detector side the project reads (``onboard.params``
 #: MAX_IMAGE_SIDE_PX, 2**24); a larger "noise" says nothing about a position on any detector (a column in other
 #: units) and is refused.
-SIGMA_PX_CEILING = float(1 << 24)
+SIGMA_PX_CEILING = float(MAX_IMAGE_SIDE_PX)
 
 
 def session_sigma_px(session: Session, rows: np.ndarray) -> np.ndarray | None:

@@ -90,6 +90,9 @@ def build_sensor(
         check_fixed_range(nominal_params)
     if firmware not in FIRMWARES:
         raise UserError(f"--firmware: expected one of {', '.join(FIRMWARES)}, got {firmware!r}")
+    if phase_starts and not replay:
+        # the simulated source cycles forever: a restarted stream would skip exposures without end to a far start
+        raise UserError("--phase-start goes with --replay (the phases of a replayed session)")
     config = RecursiveConfig(centroid_noise_px=noise_px)
     if firmware == "c":
         sensor_firmware = c_firmware(

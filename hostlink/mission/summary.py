@@ -254,16 +254,6 @@ def summarise(run: BenchRun) -> dict:
         attitude_error_vectors_arcsec(data, outcome.params.model_vector(), truth_c, frame_index)
     )
 
-    # focal tracking in the drift phase
-    est = estimate_rows(run.drift_estimates)
-    f_true = truth_focal_mm(run.drift_sim)
-    drift_index = drift_frame_index(cfg, run.drift_sim, est["frame"])
-    valid = (drift_index >= 0) & (drift_index < f_true.size) & (est["n_updates"] > 0)
-    valid &= within_drift_phase(cfg, drift_index)
-    err_um = (est["f_mm"][valid] - f_true[drift_index[valid]]) * 1000.0
-    # "once converged": after the first third of the drift phase (the filter restarted at the upload and its drift
-    # detector needs a few hundred frames to switch the focal random walk on)
-    settled = drift_index[valid] >= cfg.drift_frames // 3
     n_dof = len(outcome.estimate) + 3 * data.n_frames
     floor_px = float(np.sqrt(2.0) * cfg.noise_px * np.sqrt(max(1.0 - n_dof / (2.0 * data.n_obs), 0.0)))
     truth = cfg.camera
@@ -312,32 +302,43 @@ def summarise(run: BenchRun) -> dict:
             "lost_messages": int(run.drift_stream.lost_on_link + (run.cal_stream.lost_on_link if run.cal_stream else 0))
         },
         "calibration_stream": run.cal_stream.as_dict() if run.cal_stream else None,
-        "drift_tracking": {
-            "amplitude_um": cfg.drift_um,
-            "period_frames": cfg.drift_period_frames,
-            "frames_streamed": run.drift_stream.received,
-            "first_frame_drift_index": None
-            if run.drift_first_counter is None
-            else int(drift_frame_index(cfg, run.drift_sim, np.array([run.drift_first_counter]))[0]),
-            **run.drift_stream.as_dict(),
-            "incomplete_because": incomplete_reason(run.drift_stream, run.cal_stream, run.spare_frames),
-            "estimates_read": int(est["frame"].size),
-            "estimator_updates": run.drift_work.updates,
-            "focal_error_rms_um_converged": rms(err_um[settled]) if np.any(settled) else None,
-            "focal_error_rms_um_all": rms(err_um) if err_um.size else None,
-            # the estimator's own 1-sigma over the same estimates: the scatter its error should show if it is honest
-            "focal_sigma_rms_um_converged": rms(est["sigma_f_mm"][valid][settled] * 1000.0)
-            if np.any(settled)
-            else None,
-            "not_tracked_because": None
-            if np.any(settled)
-            else tracking_gap_reason(cfg, est["frame"].size, run.drift_work),
-            "focal_true_rms_deviation_um": rms(
-                (f_true[: cfg.drift_frames] - np.mean(f_true[: cfg.drift_frames])) * 1e3
-            ),
-        },
+        "drift_tracking": drift_tracking_summary(run),
         "after_upload": after_upload_summary(cfg, run.drift_sim, run.drift_estimates),
         "phases": [asdict(p) for p in run.phases],
+    }
+
+
+def drift_tracking_summary(run: BenchRun) -> dict:
+    """The drift phase's focal tracking (``summary.json``'s ``drift_tracking``): the onboard estimates read within the
+    phase (:func:`within_drift_phase`) against the simulator's true focal length, RMS over all of them and once
+    converged, beside the estimator's own 1-sigma and what the stream delivered."""
+    cfg = run.cfg
+    est = estimate_rows(run.drift_estimates)
+    f_true = truth_focal_mm(run.drift_sim)
+    drift_index = drift_frame_index(cfg, run.drift_sim, est["frame"])
+    valid = (drift_index >= 0) & (drift_index < f_true.size) & (est["n_updates"] > 0)
+    valid &= within_drift_phase(cfg, drift_index)
+    err_um = (est["f_mm"][valid] - f_true[drift_index[valid]]) * 1000.0
+    # "once converged": after the first third of the drift phase (the filter restarted at the upload and its drift
+    # detector needs a few hundred frames to switch the focal random walk on)
+    settled = drift_index[valid] >= cfg.drift_frames // 3
+    return {
+        "amplitude_um": cfg.drift_um,
+        "period_frames": cfg.drift_period_frames,
+        "frames_streamed": run.drift_stream.received,
+        "first_frame_drift_index": None
+        if run.drift_first_counter is None
+        else int(drift_frame_index(cfg, run.drift_sim, np.array([run.drift_first_counter]))[0]),
+        **run.drift_stream.as_dict(),
+        "incomplete_because": incomplete_reason(run.drift_stream, run.cal_stream, run.spare_frames),
+        "estimates_read": int(est["frame"].size),
+        "estimator_updates": run.drift_work.updates,
+        "focal_error_rms_um_converged": rms(err_um[settled]) if np.any(settled) else None,
+        "focal_error_rms_um_all": rms(err_um) if err_um.size else None,
+        # the estimator's own 1-sigma over the same estimates: the scatter its error should show if it is honest
+        "focal_sigma_rms_um_converged": rms(est["sigma_f_mm"][valid][settled] * 1000.0) if np.any(settled) else None,
+        "not_tracked_because": None if np.any(settled) else tracking_gap_reason(cfg, est["frame"].size, run.drift_work),
+        "focal_true_rms_deviation_um": rms((f_true[: cfg.drift_frames] - np.mean(f_true[: cfg.drift_frames])) * 1e3),
     }
 
 

@@ -92,9 +92,11 @@ def _cache_root() -> Path:
 
 
 def build_sources() -> dict[str, str]:
-    """Every file the library is built from: the core, the generated codec and the binding."""
+    """Every file the library is built from: the core, the generated codec and the binding (C sources and headers
+    only: the core's README is shipped with it but compiles to nothing, so an edit of it keeps the cached build)."""
     binding = resources.files("hostlink.portkit").joinpath(BINDING_SOURCE).read_text()
-    return {**core_sources(), **generate_c(), BINDING_SOURCE: binding}
+    code = {name: text for name, text in core_sources().items() if name.endswith((".c", ".h"))}
+    return {**code, **generate_c(), BINDING_SOURCE: binding}
 
 
 def compile_command(compiler: str, directory: Path, output: Path, extra: tuple[str, ...] = ()) -> list[str]:

@@ -1,19 +1,20 @@
 /* sil_harness.c: the C firmware core run standalone (software in the loop) for the sanitizer test
- * (tests/test_firmware_c.py): a RAM NOR flash behind the HAL (erase to 0xFF, program clears bits in whole 8-byte
- * units, a power budget that cuts an operation part-way), a seeded generator of commands (uploads, refused and
- * mutated commands, random bytes), power cuts and reboots. Every reply must decode; a NOR rule broken by the core
- * (a program that is not whole aligned units) stops the run with exit status 1. Usage: sil N [fuzz]: N commands; with
- * "fuzz" every one of them is mutated (a byte changed, cut, or random bytes after its type byte). */
+ * (tests/test_firmware_c.py): the core's RAM NOR flash behind the HAL (ram_flash.c: erase to 0xFF, program clears
+ * bits in whole 8-byte units, a power budget that cuts an operation part-way), a seeded generator of commands
+ * (uploads, refused and mutated commands, random bytes), power cuts and reboots. Every reply must decode; a NOR rule
+ * broken by the core (a call outside the flash, a program that is not whole aligned units) stops the run with exit
+ * status 1. Usage: sil N [fuzz]: N commands; with "fuzz" every one of them is mutated (a byte changed, cut, or
+ * random bytes after its type byte). */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
 #include "firmware.h"
+#include "ram_flash.h"
 #include "st_messages.h"
 
-static uint8_t flash[BANKS_FLASH_BYTES];
-static long budget = -1; /* flash bytes the power still allows; -1 = no cut */
+static ram_flash_t flash; /* the core's example HAL (ram_flash.c): NOR rules, a power budget in bytes */
 static uint32_t rng_state = 12345u;
 
 static uint32_t next_random(void)
@@ -24,61 +25,13 @@ static uint32_t next_random(void)
     return rng_state;
 }
 
-static int spend(void)
+/* a flash call that broke the NOR rules (outside the flash, not whole aligned units) stops the run */
+static void check_flash_use(void)
 {
-    if (budget < 0) {
-        return 1;
-    }
-    if (budget == 0) {
-        return 0;
-    }
-    budget -= 1;
-    return 1;
-}
-
-static int hal_read(void *ctx, uint32_t address, uint8_t *out, uint32_t n)
-{
-    (void)ctx;
-    if (address + n > BANKS_FLASH_BYTES) {
-        fprintf(stderr, "read past the flash: %u + %u\n", address, n);
+    if (flash.misuse) {
+        fprintf(stderr, "a flash call broke the NOR rules (outside the flash or not whole aligned units)\n");
         exit(1);
     }
-    memcpy(out, &flash[address], n);
-    return 0;
-}
-
-static int hal_erase(void *ctx, uint32_t sector)
-{
-    uint32_t i;
-    (void)ctx;
-    if (sector >= BANKS_N_SECTORS) {
-        fprintf(stderr, "erase of sector %u\n", sector);
-        exit(1);
-    }
-    for (i = 0u; i < BANKS_SECTOR_BYTES; ++i) {
-        if (!spend()) {
-            return 1;
-        }
-        flash[sector * BANKS_SECTOR_BYTES + i] = 0xFFu;
-    }
-    return 0;
-}
-
-static int hal_program(void *ctx, uint32_t address, const uint8_t *data, uint32_t n)
-{
-    uint32_t i;
-    (void)ctx;
-    if (address % BANKS_WRITE_BYTES != 0u || n % BANKS_WRITE_BYTES != 0u || address + n > BANKS_FLASH_BYTES) {
-        fprintf(stderr, "program of %u bytes at %u breaks the NOR rules\n", n, address);
-        exit(1);
-    }
-    for (i = 0u; i < n; ++i) {
-        if (!spend()) {
-            return 1;
-        }
-        flash[address + i] = (uint8_t)(flash[address + i] & data[i]);
-    }
-    return 0;
 }
 
 static uint32_t hal_random(void *ctx)
@@ -93,18 +46,16 @@ static void boot(void)
 {
     banks_hal_t hal;
     banks_store_t store;
+    uint8_t uid[BANKS_UID_BYTES];
     params_limits_t limits = params_default_limits(70.0);
     firmware_budget_t b = firmware_default_budget();
-    hal.ctx = NULL;
-    hal.read = hal_read;
-    hal.erase = hal_erase;
-    hal.program = hal_program;
-    hal.random32 = hal_random;
-    memset(hal.uid, 0x5A, sizeof hal.uid);
+    memset(uid, 0x5A, sizeof uid);
+    ram_flash_hal(&flash, hal_random, uid, &hal);
     if (banks_boot(&store, &hal, &limits) != BANKS_OK || firmware_init(&fw, &store, NULL, NULL, &b) != 0) {
         fprintf(stderr, "boot failed\n");
         exit(1);
     }
+    check_flash_use();
 }
 
 static void good_table(uint8_t table[ST_PARAM_TABLE_BYTES], uint32_t variant)
@@ -142,7 +93,7 @@ int main(int argc, char **argv)
     uint32_t nonce = 0u;
     long k;
     long answered = 0, undecodable = 0, cuts = 0, commits = 0;
-    memset(flash, 0xFF, sizeof flash);
+    ram_flash_erase_all(&flash);
     boot();
     good_table(table, 0u);
     for (k = 0; k < n_commands; ++k) {
@@ -210,10 +161,11 @@ int main(int argc, char **argv)
             }
         }
         if (a % 97u == 1u) { /* a power cut somewhere in this command's flash writes */
-            budget = (long)(next_random() % (BANKS_SECTOR_BYTES + 200u));
+            flash.power_budget = (int32_t)(next_random() % (BANKS_SECTOR_BYTES + 200u));
         }
         result = firmware_handle(&fw, buf, n, reply, sizeof reply, &reply_len);
-        budget = -1;
+        flash.power_budget = RAM_FLASH_NO_CUT;
+        check_flash_use();
         if (result == FIRMWARE_POWER_CUT || a % 211u == 5u) {
             cuts += result == FIRMWARE_POWER_CUT;
             boot();
