@@ -120,10 +120,13 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"faint candidates admitted: {guided[0]['added']} of the {guided[0]['searched']} catalogue stars "
                 f"searched (by chance, noise would put {guided[0]['expected_false']:.1f} there); "
-                f"{guided[0]['frames_declined']} frame(s) admitted none, chance explaining over 5 % of their admissions"
+                f"{guided[0]['frames_declined']} frame(s) admitted none, chance explaining over "
+                f"{100 * guided[0]['max_false_fraction']:.0f} % of their admissions"
             )
         print(
-            f"identified {result.n_identified} stars in {result.n_frames_identified} of {len(result.frames)} frames "
+            f"identified {result.n_identified} stars"
+            + (f" and admitted {guided[0]['added']} more at predicted places" if guided else "")
+            + f" in {result.n_frames_identified} of {len(result.frames)} frames "
             f"({result.engine}); parity {parity}; focal length {focal_ratio:.4f} x nominal; wrote {args.out}"
         )
     return 0

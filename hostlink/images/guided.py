@@ -72,6 +72,15 @@ MAX_FALSE_FRACTION = 0.05
 #: A frame needs this many identified stars for its attitude and zero point (three for an attitude, more for a
 #: residual that says how well it predicts).
 MIN_FRAME_STARS = 6
+#: The normal distribution's sigma over its median absolute deviation (a robust scatter of the zero point).
+MAD_TO_SIGMA = 1.4826
+#: Catalogue stars more than this far from the boresight [deg] are not projected: the pinhole model maps only
+#: directions in front of the camera.
+MAX_OFF_BORESIGHT_DEG = 89.0
+#: The projected cone reaches 2 % beyond the undistorted field's half-diagonal in cos (2 deg beyond a 30-deg half-
+#: diagonal, 7 deg beyond a 6-deg one): a barrel lens brings stars from outside that cone onto the detector, and the
+#: projection itself then keeps only the stars that land on it.
+FIELD_CONE_MARGIN = 0.98
 
 
 @dataclass(frozen=True)
@@ -93,7 +102,7 @@ def candidate_rows(session: Session) -> np.ndarray:
     values = session.extra.get(SNR_COLUMN) if session.extra else None
     if values is None:
         return np.zeros(len(session), dtype=bool)
-    return np.array([str(v).strip() not in ("", "nan") for v in values], dtype=bool)
+    return np.array([str(v).strip().lower() not in ("", "nan") for v in values], dtype=bool)
 
 
 def identify_without_candidates(session: Session, identify):
@@ -166,6 +175,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
             added=int(sum(f.admitted for f in frames)),
             expected_false=float(sum(f.expected_false for f in frames if f.status == "admitted")),
             frames_declined=int(sum(f.status.startswith("not admitted") for f in frames)),
+            max_false_fraction=MAX_FALSE_FRACTION,
             searched=int(sum(f.searched for f in frames)),
             per_frame=[vars(f) for f in frames],
         )
@@ -259,7 +269,7 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} unsaturated identified stars")
     offsets = catalogue.mag[np.searchsorted(catalogue.hip, star_id[bright])] - mag[bright]
     zero_point = float(np.median(offsets))
-    scatter = 1.4826 * float(np.median(np.abs(offsets - zero_point)))
+    scatter = MAD_TO_SIGMA * float(np.median(np.abs(offsets - zero_point)))
     window = max(PHOTOMETRIC_SIGMAS * scatter, MIN_PHOTOMETRIC_WINDOW_MAG)
     near, xp, yp = _predicted(directions, c, theta, mirrored, image_size_px)
     searched = ~np.isin(catalogue.hip[near], star_id[named])
@@ -322,9 +332,9 @@ def _predicted(directions, c, theta, mirrored: bool, image_size_px):
     """(catalogue rows, x, y [px]) of the catalogue stars the attitude ``c`` puts on the detector."""
     width, height = image_size_px
     b = directions @ c.T
-    front = np.flatnonzero(b[:, 2] > math.cos(math.radians(89.0)))
+    front = np.flatnonzero(b[:, 2] > math.cos(math.radians(MAX_OFF_BORESIGHT_DEG)))
     half_diagonal = math.hypot(width, height) / (2.0 * theta[0])
-    front = front[b[front, 2] >= math.cos(math.atan(half_diagonal)) * 0.98]
+    front = front[b[front, 2] >= math.cos(math.atan(half_diagonal)) * FIELD_CONE_MARGIN]
     if front.size == 0:
         return front, np.zeros(0), np.zeros(0)
     try:
