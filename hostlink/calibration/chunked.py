@@ -178,7 +178,8 @@ def calibrate_chunks(
     fit = _fit_with_floor if weighted else _fit
     res, held, *floor = fit(source, nominal, start, options, estimate is None, voted, run_pass, warm)
     floor_t_px2 = floor[0] if floor else 0.0  # the statistics and in-memory attitudes weighted as the fit
-    source, keep_data = floored_source(source, floor_t_px2), keep_data and with_floor(keep_data, floor_t_px2)
+    source = floored_source(source, floor_t_px2)
+    keep_data = None if keep_data is None else with_floor(keep_data, floor_t_px2)  # outcome.data: the noise used
     dropped = np.union1d(voted, res.gated_rows)
     before, inter_before_rad, inter_after_rad = _statistics(source, theta0, res.theta, dropped)
     outcome = CalibrationOutcome(
