@@ -20,6 +20,8 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``interstar_methods``: seed 000 cosine / sine interstar least squares and its improved two-step iteration.
 - ``seed004``: seed 004's three-step Levenberg-Marquardt.
 - ``robust``: the pre-pass (focal scale, parity), interstar voting, Huber weights.
+- ``noisefloor``: the stars' noise as a scale of their given sigma_px and a floor common to the session, two
+  variance components estimated from the residuals (restricted maximum likelihood).
 - ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
 - ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.
 - ``synthetic``: random star fields through a known camera, exact truth, for judging a method (not the sky simulator).

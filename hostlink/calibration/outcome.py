@@ -73,6 +73,9 @@ class CalibrationOutcome:
     #: stars weighted by the session's sigma_px: the fitted noise relative to the given one (its sigma_px and
     #: sigma_estimated_px are then this scale, not pixels); None: one noise for every star, in ``sigma_px``
     noise_scale: float | None = None
+    #: stars weighted by the session's sigma_px: the noise floor common to the session [px], each star's noise per
+    #: axis sqrt((noise_scale sigma_px)^2 + noise_floor_px^2) (hostlink.calibration.noisefloor); None otherwise
+    noise_floor_px: float | None = None
     #: why the fit stopped (:class:`hostlink.calibration.lm.Status` of the bundle's last round; None: other methods)
     status: str | None = None
 
@@ -224,6 +227,7 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
         extras["time_unknown"] = outcome.time_note
     if outcome.noise_scale is not None:
         extras["noise_scale"] = outcome.noise_scale  # fitted noise / the session's sigma_px
+        extras["noise_floor_px"] = outcome.noise_floor_px  # the noise floor added to it in quadrature [px]
     failure = outcome.failure()
     if failure:
         extras["failed"] = failure

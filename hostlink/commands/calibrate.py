@@ -305,8 +305,8 @@ def _noise_line(outcome) -> str:
     """The noise the fit found: in pixels, or relative to the session's per-star sigma_px when it weighted by it."""
     if outcome.noise_scale is not None:
         return (
-            f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right), stars "
-            "weighted by sigma_px"
+            f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right) and a "
+            f"floor of {outcome.noise_floor_px or 0.0:.4f} px in quadrature, stars weighted by both"
         )
     return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
 
