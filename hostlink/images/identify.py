@@ -9,7 +9,9 @@ Per frame:
    whole frame, then only the brightest 30, 20, 15 and 10 centroids (false stars among the bright ones spoil its
    patterns). Frames it cannot match go to the project's own pair-anchored matcher (:func:`anchor_candidates`,
    a hypothesise-and-test over catalogue pairs of the same angle) at the focal length the session's identified
-   frames measured (one camera for the whole session); without the engine, over a scan of focal lengths.
+   frames measured (one camera for the whole session); without the engine, over a scan of focal lengths. The own
+   matcher gives a frame at most :data:`MAX_ANCHOR_PAIRS` anchor pairs (an operation count, in the order of
+   :func:`_anchor_schedule`); a frame it has not identified within them is "no match within N anchor pairs".
 2. Re-derive with the project's own code, trusting nothing of the engine but its pairs (centroid, Hipparcos number):
    directions b through the nominal camera (for a mirrored detector with x mirrored about the principal point),
    reference directions r at J2000.0 (annual aberration changes an interstar angle by at most 20.5" x the angle in
@@ -1156,8 +1158,8 @@ def _engine_pass(ctx: _SessionContext, todo: list[int], progress) -> dict[int, t
 
 def _fallback_pass(ctx: _SessionContext, todo: list[int], results: dict) -> None:
     """The frames the engine left, through the own matcher (updating ``results``): at the engine's measured scale,
-    or by a scan of scales (slow, ~0.1 s per scale and frame): every frame when the engine is not there; when it is
-    there but matched no frame (its patterns need stars the frames may lack), at most
+    or by a scan of scales (slow: up to :data:`MAX_ANCHOR_PAIRS` anchor pairs, ~0.1 s each): every frame when the
+    engine is not there; when it is there but matched no frame (its patterns need stars the frames may lack), at most
     :data:`ENGINE_MISS_SCANNED_FRAMES` frames are scanned, the others then tried at the scale the first identified
     one measured (one camera for the session: the other frames need no scan)."""
     failed = [k for k in todo if not _identified(results, k)]
