@@ -3,6 +3,7 @@ sky through a distorted camera, with false stars), at nominal focal errors of -1
 mirrored detector: at least 99 % of the detectable stars identified, no wrong identity accepted, the parity and
 the focal-length scale reported correctly."""
 
+import json
 from dataclasses import replace
 
 import erfa
@@ -13,7 +14,7 @@ from hostlink.cli import main
 from hostlink.files.params import load_params, save_params
 from hostlink.files.session import read_session, write_session
 from hostlink.files.times import utc_to_tt
-from hostlink.images.identify import identify_session
+from hostlink.images.identify import MAX_ANCHOR_PAIRS, identify_session
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 from onboard.params import Distortion
 
@@ -186,12 +187,17 @@ def test_cli_fails_with_one_line_when_nothing_is_identified(simulated, tmp_path,
     )
     path = tmp_path / "noise.csv"
     write_session(path, noise)
-    out = tmp_path / "out.csv"
-    code = main(["identify", str(path), "--nominal", "builtin:seed004_nominal", "--out", str(out)])
+    out, report = tmp_path / "out.csv", tmp_path / "report.json"
+    code = main(
+        ["identify", str(path), "--nominal", "builtin:seed004_nominal", "--out", str(out), "--report", str(report)]
+    )
     err = capsys.readouterr().err
     assert code == 2
     assert "no frame identified" in err and err.count("\n") == 1
     assert not out.exists()
+    # the own matcher stopped at its operation budget, and the report says so
+    (frame,) = json.loads(report.read_text())["per_frame"]
+    assert frame["status"].startswith(f"no match within {MAX_ANCHOR_PAIRS} anchor pairs")
 
 
 def test_ra_dec_columns_are_filled_for_the_newly_identified_rows(tmp_path):

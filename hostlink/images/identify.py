@@ -9,7 +9,9 @@ Per frame:
    whole frame, then only the brightest 30, 20, 15 and 10 centroids (false stars among the bright ones spoil its
    patterns). Frames it cannot match go to the project's own pair-anchored matcher (:func:`anchor_candidates`,
    a hypothesise-and-test over catalogue pairs of the same angle) at the focal length the session's identified
-   frames measured (one camera for the whole session); without the engine, over a scan of focal lengths.
+   frames measured (one camera for the whole session); without the engine, over a scan of focal lengths. The own
+   matcher gives a frame at most :data:`MAX_ANCHOR_PAIRS` anchor pairs (an operation count, in the order of
+   :func:`_anchor_schedule`); a frame it has not identified within them is "no match within N anchor pairs".
 2. Re-derive with the project's own code, trusting nothing of the engine but its pairs (centroid, Hipparcos number):
    directions b through the nominal camera (for a mirrored detector with x mirrored about the principal point),
    reference directions r at J2000.0 (annual aberration changes an interstar angle by at most 20.5" x the angle in
@@ -572,6 +574,9 @@ class PairCatalogue:
     r: np.ndarray
     rows: np.ndarray
     tree: object
+    #: (S,) uint16: each sky star's rank among ``rows`` (None when more than 65536 stars take part): a 16-bit sort
+    #: key, which numpy's stable sort orders in linear time (radix sort), for :func:`_pairs_of_angle`
+    rank16: np.ndarray | None = None
 
 
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
@@ -587,7 +592,11 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     dot = np.clip(np.sum(sky.r[a] * sky.r[b], axis=1), -1.0, 1.0)
     angle = np.arccos(dot)
     order = np.argsort(angle, kind="stable")
-    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree)
+    rank16 = None
+    if rows.size <= 1 << 16:
+        rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
+        rank16[rows] = np.arange(rows.size, dtype=np.uint16)
+    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, rank16)
 
 
 #: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
@@ -649,7 +658,8 @@ def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) ->
     other = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
     count = np.bincount(star, minlength=pairs.r.shape[0])
     offset = np.concatenate([[0], np.cumsum(count)])
-    return _PairsOfAngle(angle_rad, slack_rad, offset, other[np.argsort(star, kind="stable")], count > 0)
+    key = star if pairs.rank16 is None else pairs.rank16[star]  # the same order: rows ascend with the sky index
+    return _PairsOfAngle(angle_rad, slack_rad, offset, other[np.argsort(key, kind="stable")], count > 0)
 
 
 def _pyramid_may_hit(
@@ -677,11 +687,15 @@ def _pyramid_may_hit(
     cand = np.flatnonzero(may)
     lo = with_first.offset[first[cand]]
     count = with_first.offset[first[cand] + 1] - lo
+    # the partners' positions: lo of its hypothesis plus the rank within it (one repeat of the per-hypothesis shift)
     hyp = np.repeat(cand, count)
-    s = with_first.partner[np.repeat(lo, count) + np.arange(hyp.size) - np.repeat(np.cumsum(count) - count, count)]
-    angle_rad = np.arccos(np.clip(np.sum(r[second[hyp]] * r[s], axis=1), -1.0, 1.0))
+    s = with_first.partner[np.arange(hyp.size) + np.repeat(lo - (np.cumsum(count) - count), count)]
+    # |angle - with_second.angle_rad| <= slack as cosines (arccos decreases on [0, pi]; the window starts above 0)
+    dot = np.einsum("ij,ij->i", r[second[hyp]], r[s])
+    cos_hi = math.cos(with_second.angle_rad - with_second.slack_rad)
+    cos_lo = math.cos(min(with_second.angle_rad + with_second.slack_rad, math.pi))
     may[:] = False
-    may[hyp[np.abs(angle_rad - with_second.angle_rad) <= with_second.slack_rad]] = True
+    may[hyp[(dot >= cos_lo) & (dot <= cos_hi)]] = True
     return may
 
 
@@ -694,6 +708,7 @@ def anchor_candidates(
     anchor_stars: int = ANCHOR_STARS,
     rel_tol: float = ANCHOR_REL_TOL,
     skip_first: int = 0,
+    anchor_pairs: list[tuple[int, int]] | None = None,
 ) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
     """The project's own lost-in-space matcher (a pair-anchored hypothesise-and-test, as in the pyramid method of
     Mortari et al. 2004): for an anchor pair of bright measured directions ``b`` (K, 3), every catalogue pair of the
@@ -704,7 +719,9 @@ def anchor_candidates(
     pair (brightest first, pairs among the first ``anchor_stars``), (rows into b, sky indices, mirrored); the
     caller verifies each until one holds. A hypothesis must first put a third anchor star on a catalogue star (the
     pyramid's pruning); the tree is asked only about the hypotheses a necessary condition on the catalogue pairs
-    leaves (:func:`_pyramid_may_hit`), which changes no answer and skips most of the work on a narrow field."""
+    leaves (:func:`_pyramid_may_hit`), which changes no answer and skips most of the work on a narrow field.
+    ``anchor_pairs``: only these anchor pairs (rows into b), in this order, instead of every pair among the first
+    ``anchor_stars`` (:func:`_anchor_schedule`)."""
     k = b.shape[0]
     if k < 2 + MIN_HITS:
         return
@@ -723,7 +740,9 @@ def anchor_candidates(
             windows[key] = _pairs_of_angle(pairs, angle_rad, slack_rad)
         return windows[key]
 
-    for i, j in zip(*np.triu_indices(min(k, anchor_stars), 1), strict=True):
+    if anchor_pairs is None:
+        anchor_pairs = list(zip(*np.triu_indices(min(k, anchor_stars), 1), strict=True))
+    for i, j in anchor_pairs:
         ang = float(np.arccos(np.clip(b[i] @ b[j], -1.0, 1.0)))
         if j < skip_first:
             continue  # an anchor pair a previous round already tried
@@ -976,13 +995,20 @@ def identify_frame(
     known = len(scales) == 1
     rounds = [(MATCH_STARS, ANCHOR_STARS, 0)] + ([(DEEP_MATCH_STARS, DEEP_ANCHOR_STARS, ANCHOR_STARS)] if known else [])
     rel_tol = ANCHOR_REL_TOL_KNOWN if known else ANCHOR_REL_TOL
+    budget, cut = MAX_ANCHOR_PAIRS, False
     for n_match, n_anchor, skip in rounds:
         bright = order[:n_match]
-        for scale in scales:
+        for scale, anchor_pairs in _anchor_schedule(min(n, n_match), n_anchor, skip, scales):
+            if budget < len(anchor_pairs):  # the budget is spent: the rest is not tried
+                anchor_pairs = anchor_pairs[:budget]
+                cut = True
+            budget -= len(anchor_pairs)
             theta_s = np.array(theta, dtype=np.float64)
             theta_s[0] *= scale
             b = pixels_to_unit(x_px[bright], y_px[bright], theta_s)
-            proposals = anchor_candidates(b, pairs, pairs.tree, pairs.rows, theta_s[0], n_anchor, rel_tol, skip)
+            proposals = anchor_candidates(
+                b, pairs, pairs.tree, pairs.rows, theta_s[0], n_anchor, rel_tol, anchor_pairs=anchor_pairs
+            )
             for rows, stars, mirrored in proposals:
                 result = _confirm(
                     ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale, mag
@@ -991,7 +1017,42 @@ def identify_frame(
                     return result
                 if result[0].n_candidates > best[0].n_candidates:
                     best = result
+            if cut:
+                status = f"no match within {MAX_ANCHOR_PAIRS} anchor pairs"
+                return replace(best[0], status=f"{status} ({best[0].status})"), best[1]
     return best
+
+
+#: Fallback matcher: the anchor pairs (one pair at one focal-length scale each) one frame may try in all, over the
+#: scan of scales and both rounds; a frame that has not verified within them is reported as "no match within N anchor
+#: pairs". The figure: every pair among the :data:`ANCHOR_STARS` brightest at the nominal scale (the likeliest, tried
+#: as before the budget), then the three pairs among the three brightest at each other scanned scale (one false star
+#: among those three still leaves a pair of true stars; if the three brightest have not given a verified match,
+#: fainter anchors rarely do). The rounds at a known scale (pairs among the :data:`DEEP_ANCHOR_STARS` brightest, 66)
+#: fit it whole: it cuts only scans, where a frame of noise spent minutes on the 1071 pairs of 51 scales.
+MAX_ANCHOR_PAIRS = ANCHOR_STARS * (ANCHOR_STARS - 1) // 2 + 3 * (len(SCAN_SCALES) - 1)
+
+
+def _anchor_schedule(
+    k: int, n_anchor: int, skip: int, scales: tuple[float, ...]
+) -> Iterator[tuple[float, list[tuple[int, int]]]]:
+    """The order the fallback matcher tries anchor pairs (rows into the ``k`` brightest stars) in: (scale, pairs) to
+    hand to :func:`anchor_candidates`. At the first (or only) scale, every pair among the first ``n_anchor`` with its
+    second star at or after ``skip``, brightest first. Over the other scales of a scan, star by star: the pairs among
+    the first three stars at every scale, then the pairs of the fourth star with the three before it at every scale,
+    and so on, so that a budget (:data:`MAX_ANCHOR_PAIRS`) spent in this order keeps the brightest stars' pairs at
+    every scale (the true scale may be the last one scanned) instead of every pair at the first scales."""
+    n_stars = min(k, n_anchor)
+    pairs = [(int(i), int(j)) for i, j in zip(*np.triu_indices(n_stars, 1), strict=True) if j >= skip]
+    if pairs and scales:
+        yield scales[0], pairs
+    blocks = [[(i, j) for j in range(1, min(3, n_stars)) for i in range(j)]]  # the pairs among the first three
+    blocks += [[(i, j) for i in range(j)] for j in range(3, n_stars)]
+    for block in blocks:
+        block = [(i, j) for i, j in block if j >= skip]
+        if block:
+            for scale in scales[1:]:
+                yield scale, block
 
 
 #: Fallback matcher: when no frame has been identified to tell how deep the camera sees, the catalogue depth is the
@@ -1097,8 +1158,8 @@ def _engine_pass(ctx: _SessionContext, todo: list[int], progress) -> dict[int, t
 
 def _fallback_pass(ctx: _SessionContext, todo: list[int], results: dict) -> None:
     """The frames the engine left, through the own matcher (updating ``results``): at the engine's measured scale,
-    or by a scan of scales (slow, ~0.1 s per scale and frame): every frame when the engine is not there; when it is
-    there but matched no frame (its patterns need stars the frames may lack), at most
+    or by a scan of scales (slow: up to :data:`MAX_ANCHOR_PAIRS` anchor pairs, ~0.1 s each): every frame when the
+    engine is not there; when it is there but matched no frame (its patterns need stars the frames may lack), at most
     :data:`ENGINE_MISS_SCANNED_FRAMES` frames are scanned, the others then tried at the scale the first identified
     one measured (one camera for the session: the other frames need no scan)."""
     failed = [k for k in todo if not _identified(results, k)]
