@@ -4,19 +4,22 @@
 
 1. *Blank regions* (:func:`saturated_regions`): the pixels at the clip level in regions too wide for any star's core
    (a morphological opening by a square of :data:`BLANK_MIN_WIDTH_PX`; a saturated star or planet core is a few PSF
-   sigmas across) hold no star and no noise. They are masked from SEP's background mesh (a mesh box mostly masked is
-   interpolated from its neighbours, Bertin & Arnouts 1996, sec. 3.1) and, widened by :data:`BLANK_MARGIN_PX`, from
-   the detection.
-2. *Local noise* (:func:`local_noise_map`): SEP's noise map assumes independent Gaussian pixel noise; an 8-bit
-   camera clips it at zero, a JPEG correlates neighbouring pixels. What the detection filter actually sees is measured
-   on the filtered image in each mesh box, as (P97.725 - P50) / 2 (half the distance from the median to the upper
-   2-sigma point of a Gaussian: blind to the clipped lower half), converted to the per-pixel noise of independent
-   pixels that gives it (divided by sqrt(sum k^2) of the normalised kernel), the boxes' values median-filtered over
-   3 x 3 boxes (a box a bright star or the step of a horizon fills is an outlier among its neighbours) and
-   interpolated bilinearly between box centres. The noise map is the larger of SEP's and this one, pixel by pixel;
-   the offset map (each box's median of the filtered image, filtered and interpolated alike) is what SEP's mesh
-   leaves of the background. Both were global before (one percentile over the whole frame): a glow or a gradient
-   then raised the threshold of the whole frame (docs/realsky.md).
+   sigmas across), widened by :data:`BLANK_MARGIN_PX`, hold no star and no noise. They are masked from SEP's
+   background mesh (a mesh box mostly masked is interpolated from its neighbours, Bertin & Arnouts 1996, sec. 3.1)
+   and from the detection.
+2. *Local noise and offset* (:func:`local_noise_map`): SEP's noise map assumes independent Gaussian pixel noise; an
+   8-bit camera clips it at zero, a JPEG correlates neighbouring pixels. What the detection filter actually sees is
+   measured on the filtered image in each mesh box, as (P97.725 - P50) / 2 (half the distance from the median to the
+   upper 2-sigma point of a Gaussian: blind to the clipped lower half), converted to the per-pixel noise of
+   independent pixels that gives it (divided by sqrt(sum k^2) of the normalised kernel); what SEP's mesh leaves of
+   the background, as the median of the filtered image in boxes 4 x finer. Each is the median over 5 x 5 of its
+   boxes (a box a bright star or the step of a horizon fills is outvoted), interpolated bilinearly between the box
+   centres. Both were global before (one percentile over the whole frame): a glow or a gradient then raised the
+   threshold of the whole frame (docs/realsky.md).
+3. *Steps* (:func:`_step_offset`): where the fine boxes' medians depart from that smooth offset by more than
+   :data:`_EDGE_OFFSET_SIGMAS` (a horizon, a roof line: SEP's mesh straddles the step and overshoots on one side),
+   they are the offset; the boxes of the step itself, along a line at least :data:`_STEP_MIN_LENGTH_BOXES` long, are
+   not searched.
 
 Every value of the noise map is finite and positive where any box was measurable (a box wholly masked takes its
 nearest measured neighbour's value), so every star's ``sigma_px`` is.
@@ -51,6 +54,10 @@ _EDGE_OFFSET_SIGMAS = 1.0
 #: the filtered image hold a step between them: nothing is detected there (the bilinear offset leaves up to half the
 #: step on its bright side).
 _EDGE_STEP_SIGMAS = 3.0
+#: A step's boxes are not searched only where they extend over this many fine boxes (module docstring, :func:`_long`).
+_STEP_MIN_LENGTH_BOXES = 8
+#: A noise below this many float32 epsilons of the background level is SEP's rounding, not noise (a flat image).
+_ROUNDING_NOISE_EPS = 100.0
 #: The upper 2-sigma point of a Gaussian [percent]: (P97.725 - P50) / 2 is its sigma.
 _UPPER_2SIGMA_PERCENT = 97.725
 
@@ -129,7 +136,23 @@ def _step_offset(residual: np.ndarray, filtered_noise: np.ndarray) -> tuple[np.n
     kept = np.where(np.abs(residual) > _EDGE_OFFSET_SIGMAS * filtered_noise, residual, 0.0)
     if not kept.any():
         return kept, np.zeros(kept.shape, dtype=bool)
-    return kept, _median_span(residual) > _EDGE_STEP_SIGMAS * filtered_noise
+    return kept, _long(_median_span(residual) > _EDGE_STEP_SIGMAS * filtered_noise)
+
+
+def _long(step: np.ndarray) -> np.ndarray:
+    """``step`` keeping only its connected parts (8-connected) that extend over at least
+    :data:`_STEP_MIN_LENGTH_BOXES` boxes along a row or a column: a horizon or a roof line, not the halo of a bright
+    star (which bends the offset in a compact patch: on granasat's pleyades_8sec, patches of 1 x 1 to 4 x 2 boxes,
+    one holding a saturated star)."""
+    from scipy import ndimage
+
+    if not step.any():
+        return step
+    labels, _ = ndimage.label(step, structure=np.ones((3, 3), dtype=int))
+    keep = np.zeros(labels.max() + 1, dtype=bool)
+    for k, part in enumerate(ndimage.find_objects(labels), start=1):
+        keep[k] = max(part[0].stop - part[0].start, part[1].stop - part[1].start) >= _STEP_MIN_LENGTH_BOXES
+    return keep[labels]
 
 
 def _median_span(grid: np.ndarray) -> np.ndarray:
@@ -187,10 +210,12 @@ def _filled(grid: np.ndarray) -> np.ndarray:
 
 
 def _median(grid: np.ndarray, size: int) -> np.ndarray:
-    """``size`` x ``size`` median filter over the boxes, the grid's edge values repeated beyond it."""
+    """``size`` x ``size`` median filter over the boxes, the grid mirrored beyond its edge without repeating the edge
+    box (repeated, a border box that a star inflates weighs 3 of 5 along that axis: the noise 40 % high beside a pair
+    of stars at the border of tests/test_sky_render.py's frame, enough to change its centroid)."""
     from scipy import ndimage
 
-    return ndimage.median_filter(grid, size=size, mode="nearest")
+    return ndimage.median_filter(grid, size=size, mode="mirror")
 
 
 def _bilinear(grid: np.ndarray, row_centres: np.ndarray, col_centres: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -223,18 +248,27 @@ def kernel_norm(kernel: np.ndarray) -> float:
 
 
 def filtered_noise_correction(
-    sub: np.ndarray, sep_rms: np.ndarray, kernel: np.ndarray, box_px: int, blank: np.ndarray
+    sub: np.ndarray,
+    sep_rms: np.ndarray,
+    kernel: np.ndarray,
+    box_px: int,
+    blank: np.ndarray,
+    background_level: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(offset map [ADU], noise map [ADU], filtered image less the offset, pixels where nothing is detected: the
     blank regions widened by :data:`BLANK_MARGIN_PX` and the steps of sharp edges) that make SEP's background and
     noise describe the detection image as it is, box by box (module docstring, step 2). ``sub``: the image less SEP's
     background; ``kernel``: the detection kernel; ``blank``: the blank regions (:func:`saturated_regions`), where the
-    filtered image is set to 0 (nothing is searched there, :func:`hostlink.images.centroid._candidates`)."""
+    filtered image is set to 0 (nothing is searched there, :func:`hostlink.images.centroid._candidates`);
+    ``background_level``: SEP's global background [ADU], whose float32 rounding floors the noise
+    (:data:`_ROUNDING_NOISE_EPS`)."""
     from scipy import ndimage
 
     k = np.asarray(kernel, dtype=np.float64)
     filtered = ndimage.convolve(sub, k / k.sum(), mode="nearest")
     offset, noise, edge = local_noise_map(filtered, sep_rms, kernel_norm(k), box_px, blank)
+    # a flat image's "noise" is the rounding of SEP's float32 background: not noise
+    noise = np.maximum(noise, _ROUNDING_NOISE_EPS * float(np.finfo(np.float32).eps) * abs(background_level))
     filtered -= offset
     ignored = blank | edge
     filtered[ignored] = 0.0

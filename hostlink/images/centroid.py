@@ -432,7 +432,9 @@ def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | Non
         blank = np.zeros(data.shape, dtype=bool) if blank is None else blank
         bkg = sep.Background(data, mask=blank, bw=box, bh=box, fw=3, fh=3)
         sub = data - bkg.back()
-        offset, rms, filtered, ignored = filtered_noise_correction(sub, bkg.rms(), _FILTER_KERNEL, box, blank)
+        offset, rms, filtered, ignored = filtered_noise_correction(
+            sub, bkg.rms(), _FILTER_KERNEL, box, blank, bkg.globalback
+        )
         sub -= offset
         objects, segmap = sep.extract(
             sub,
