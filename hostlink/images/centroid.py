@@ -7,7 +7,9 @@ Per image:
 1. subtract a given dark or median frame (a median of night-sky frames taken at different pointings removes the
    fixed pattern: hot pixels, amplifier glow, vignetted sky), then SEP's spatially varying background
    (``sep.Background``, a 64 px mesh, 3 x 3 median filter) and its noise map, corrected to what the detection
-   filter actually sees (:func:`_filtered_noise_correction`: clipped, skewed or correlated noise);
+   filter actually sees, box by box (:func:`hostlink.images.background.filtered_noise_correction`: clipped, skewed
+   or correlated noise, a glow or a gradient that raises it in one part of the frame), with the blank regions (a
+   saturated glow) masked and the residual of a sharp edge (a horizon) removed (docs/realsky.md);
 2. detect: SEP's matched-filter detection (``sep.extract``) at ``threshold_sigma`` x the local noise with a minimum
    footprint (default 2: SEP counts the footprint's pixels that are themselves above the threshold, and a sharp
    faint star has 1-2; 3 lost 5 of the stars the plate solver names on the granasat frames; 1 keeps 5 more of them,
@@ -72,6 +74,7 @@ import numpy as np
 from hostlink.errors import UserError, one_line
 from hostlink.files.session import Session
 from hostlink.files.times import parse_iso_utc_many
+from hostlink.images.background import filtered_noise_correction, saturated_regions
 from hostlink.images.read import RawImage, read_image
 from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dsource
 
@@ -260,11 +263,12 @@ def centroid_pixels(
     (``options.saturation_adu`` wins; None: no saturation test)."""
     _check_options(options)
     raw = np.ascontiguousarray(pixels, dtype=np.float64)
-    sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options)
-    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms)))
+    level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
+    blank = saturated_regions(raw, level)
+    sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank)
+    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms[~blank])))
     if objects.size == 0:
         return _no_stars(report)
-    level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     screen = _screen(sub, rms, raw, objects, segmap, options, level)
     report.rejected_saturated = 0 if options.keep_saturated else int(screen.saturated.sum())
     report.rejected_hot = int(screen.hot.sum())
@@ -314,6 +318,8 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
     keep = keep[np.argsort(-snr[keep], kind="stable")]
     x, y, flux, snr = x[keep], y[keep], flux[keep], snr[keep]
     sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
+    stated = _noise_stated(sigma_px)  # a row without a centroid noise is not written
+    x, y, flux, sigma_px, snr = x[stated], y[stated], flux[stated], sigma_px[stated], snr[stated]
     return Candidates(x, y, flux, -2.5 * np.log10(flux), sigma_px, snr)
 
 
@@ -410,9 +416,11 @@ def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np
     return raw - background
 
 
-def _extract(data: np.ndarray, options: CentroidOptions):
-    """Module docstring, steps 1-2: SEP's background mesh subtracted, its noise map corrected to what the detection
-    filter sees (:func:`_filtered_noise_correction`), then SEP's matched-filter detection and deblending. Returns the
+def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | None = None):
+    """Module docstring, steps 1-2: SEP's background mesh subtracted (``blank``, the blank regions of
+    :func:`hostlink.images.background.saturated_regions`, masked from it and from the detection), its noise map
+    corrected to what the detection filter sees, box by box (:func:`hostlink.images.background.
+    filtered_noise_correction`), then SEP's matched-filter detection and deblending. Returns the
     background-subtracted image, the noise map [ADU], the image filtered by the detection kernel, SEP's objects and its
     segmentation map."""
     import sep
@@ -421,14 +429,18 @@ def _extract(data: np.ndarray, options: CentroidOptions):
     sep.set_extract_pixstack(_SEP_PIXSTACK)
     sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
     try:
-        bkg = sep.Background(data, bw=box, bh=box, fw=3, fh=3)
+        blank = np.zeros(data.shape, dtype=bool) if blank is None else blank
+        bkg = sep.Background(data, mask=blank, bw=box, bh=box, fw=3, fh=3)
         sub = data - bkg.back()
-        offset, rms, filtered = _filtered_noise_correction(sub, bkg.rms())
+        offset, rms, filtered, ignored = filtered_noise_correction(
+            sub, bkg.rms(), _FILTER_KERNEL, box, blank, bkg.globalback
+        )
         sub -= offset
         objects, segmap = sep.extract(
             sub,
             options.threshold_sigma,
             err=rms,
+            mask=ignored,
             minarea=options.min_area_px,
             filter_kernel=_FILTER_KERNEL,
             deblend_nthresh=32,
@@ -547,6 +559,11 @@ def _measured(sub, rms, x, y, good, clipped, sigma: float, options: CentroidOpti
     report.saturated_kept = int(clipped.sum())
     sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
     sigma_px[clipped] = np.maximum(sigma_px[clipped], SATURATED_SIGMA_PX)
+    # no noise measured where the star sits (every pixel around it clipped): no sigma_px, so no row
+    stated = _noise_stated(sigma_px)
+    report.rejected_no_flux += int(np.count_nonzero(~stated))
+    report.saturated_kept = int(clipped[stated].sum())
+    x, y, flux, clipped, sigma_px = x[stated], y[stated], flux[stated], clipped[stated], sigma_px[stated]
     order = np.argsort(-flux, kind="stable")
     if options.max_stars is not None:
         order = order[: options.max_stars]
@@ -556,31 +573,9 @@ def _measured(sub, rms, x, y, good, clipped, sigma: float, options: CentroidOpti
     return Detections(x[order], y[order], flux[order], mag[order], report, sigma_px[order], clipped[order])
 
 
-def _filtered_noise_correction(sub: np.ndarray, rms: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(offset [ADU], noise map [ADU]) that make SEP's background and noise describe the detection image as it is.
-    SEP assumes independent Gaussian pixel noise: its clipped-mode background and clipped rms are biased when the
-    noise is clipped at zero (an 8-bit camera whose black level sits below zero) or skewed, and its matched-filter
-    threshold is too low when neighbouring pixels are correlated (a demosaiced colour image). Measured on the image
-    filtered by the detection kernel: the offset is the median, the noise half the distance from the median to the
-    upper 2-sigma point, (P97.725 - P50) / 2 (blind to the clipped lower half, counts a heavy upper tail, and the
-    star pixels, < 1 % of a frame, do not reach it), compared with the noise SEP assumes after filtering,
-    median(rms) sqrt(sum k^2) / sum k: the map is scaled up by their ratio (never down). For independent Gaussian noise
-    both corrections vanish (ratio 1.00-1.02). When SEP's rms is 0 (most pixels clipped to one value) the map is the
-    measured noise, uniform. The third value is the filtered image less the offset (the candidates' search,
-    :func:`_candidates`)."""
-    from scipy import ndimage
-
-    kernel = _FILTER_KERNEL / _FILTER_KERNEL.sum()
-    filtered = ndimage.convolve(sub, kernel, mode="nearest")
-    p50, p977 = np.percentile(filtered, [50.0, 97.725])
-    # the per-pixel noise of independent pixels that would give the filtered image's measured noise
-    equivalent = 0.5 * float(p977 - p50) / math.sqrt(float(np.sum(kernel**2)))
-    level = float(np.median(rms))
-    filtered -= p50
-    if level > 0:
-        return float(p50), rms * max(equivalent / level, 1.0), filtered
-    # more than half of the pixels clipped to one value: SEP's clipped rms is 0; the filtered image still knows
-    return float(p50), np.full_like(rms, equivalent), filtered
+def _noise_stated(sigma_px: np.ndarray) -> np.ndarray:
+    """(N,) bool: ``sigma_px`` is a finite positive number (every row written carries one: calibrate weighs by it)."""
+    return np.isfinite(sigma_px) & (sigma_px > 0)
 
 
 def _check_options(options: CentroidOptions) -> None:

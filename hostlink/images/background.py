@@ -1,0 +1,275 @@
+"""The background and the local noise of a night-sky frame for the source extraction
+(:mod:`hostlink.images.centroid`, steps 1-2), made to hold on frames with a horizon: a bright light-polluted glow
+(often saturated), black trees or buildings, a strong sky gradient (docs/realsky.md, "Glow and horizon").
+
+1. *Blank regions* (:func:`saturated_regions`): the pixels at the clip level in regions too wide for any star's core
+   (a morphological opening by a square of :data:`BLANK_MIN_WIDTH_PX`; a saturated star or planet core is a few PSF
+   sigmas across), widened by :data:`BLANK_MARGIN_PX`, hold no star and no noise. They are masked from SEP's
+   background mesh (a mesh box mostly masked is interpolated from its neighbours, Bertin & Arnouts 1996, sec. 3.1)
+   and from the detection.
+2. *Local noise and offset* (:func:`local_noise_map`): SEP's noise map assumes independent Gaussian pixel noise; an
+   8-bit camera clips it at zero, a JPEG correlates neighbouring pixels. What the detection filter actually sees is
+   measured on the filtered image in each mesh box, as (P97.725 - P50) / 2 (half the distance from the median to the
+   upper 2-sigma point of a Gaussian: blind to the clipped lower half), converted to the per-pixel noise of
+   independent pixels that gives it (divided by sqrt(sum k^2) of the normalised kernel); what SEP's mesh leaves of
+   the background, as the median of the filtered image in boxes 4 x finer. Each is the median over 5 x 5 of its
+   boxes (a box a bright star or the step of a horizon fills is outvoted), interpolated bilinearly between the box
+   centres. Both were global before (one percentile over the whole frame): a glow or a gradient then raised the
+   threshold of the whole frame (docs/realsky.md).
+3. *Steps* (:func:`_step_offset`): where the fine boxes' medians depart from that smooth offset by more than
+   :data:`_EDGE_OFFSET_SIGMAS` (a horizon, a roof line: SEP's mesh straddles the step and overshoots on one side),
+   they are the offset; the boxes of the step itself, along a line at least :data:`_STEP_MIN_LENGTH_BOXES` long, are
+   not searched.
+
+Every value of the noise map is finite and positive where any box was measurable (a box wholly masked takes its
+nearest measured neighbour's value), so every star's ``sigma_px`` is.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: A region at the clip level narrower than this [px] in either direction is a star's or a planet's core, not a
+#: blank region (the rendered 50-deg set's brightest planet, Hp -4 with a PSF of 2.6 px at the corner, saturates a
+#: disc ~20 px across; the horizon glow of the same set spans the frame).
+BLANK_MIN_WIDTH_PX = 41
+#: Holes narrower than this [px] in a clipped region are filled (a JPEG's 8 x 8 blocks leave pixels at 254 in a
+#: region clipped at 255; a gap between two saturated stars is wider than that only when they are 9 px apart).
+_HOLE_WIDTH_PX = 9
+#: A blank region is widened by this much [px]: its edge, blurred by the optics and rung by the JPEG's 8 x 8 blocks,
+#: stays a few steps below the clip level over up to ~10 px (the rendered glow of tests/test_images_glow.py).
+BLANK_MARGIN_PX = 16
+#: A mesh box is measured when at least this fraction of its pixels is unmasked.
+_MIN_BOX_FRACTION = 0.25
+#: The noise and the smooth offset are medians over this many fine boxes square (module docstring).
+_SMOOTH_BOXES = 5
+#: The noise and offset boxes are this many times finer than the mesh's, and at least this wide [px].
+_FINE_BOXES_PER_BOX = 4
+_MIN_FINE_BOX_PX = 8
+#: A fine box's residual is an edge's when beyond this many noise sigmas of the filtered image.
+_EDGE_OFFSET_SIGMAS = 1.0
+#: Two adjacent fine boxes whose edge offsets have opposite signs and differ by more than this many noise sigmas of
+#: the filtered image hold a step between them: nothing is detected there (the bilinear offset leaves up to half the
+#: step on its bright side).
+_EDGE_STEP_SIGMAS = 3.0
+#: A step's boxes are not searched only where they extend over this many fine boxes (module docstring, :func:`_long`).
+_STEP_MIN_LENGTH_BOXES = 8
+#: A noise below this many float32 epsilons of the background level is SEP's rounding, not noise (a flat image).
+_ROUNDING_NOISE_EPS = 100.0
+#: The upper 2-sigma point of a Gaussian [percent]: (P97.725 - P50) / 2 is its sigma.
+_UPPER_2SIGMA_PERCENT = 97.725
+
+
+def saturated_regions(raw: np.ndarray, saturation_adu: float | None) -> np.ndarray:
+    """(h, w) bool: the pixels of ``raw`` at or above ``saturation_adu``, their holes narrower than
+    :data:`_HOLE_WIDTH_PX` filled (a closing: a JPEG leaves pixels one step below the clip level inside a clipped
+    region), that lie in a region of them at least :data:`BLANK_MIN_WIDTH_PX` wide (an opening by that square: erosion
+    then dilation, each separable into a minimum and a maximum filter), widened by :data:`BLANK_MARGIN_PX` (its
+    edge, blurred by the optics and the JPEG, is not sky either). None (no clip level known): nothing."""
+    from scipy import ndimage
+
+    if saturation_adu is None:
+        return np.zeros(raw.shape, dtype=bool)
+    clipped = (raw >= saturation_adu).astype(np.uint8)
+    if not clipped.any():
+        return clipped.astype(bool)
+    closed = ndimage.minimum_filter(ndimage.maximum_filter(clipped, _HOLE_WIDTH_PX), _HOLE_WIDTH_PX)
+    opened = ndimage.maximum_filter(ndimage.minimum_filter(closed, BLANK_MIN_WIDTH_PX), BLANK_MIN_WIDTH_PX)
+    return widened(opened.astype(bool))
+
+
+def widened(mask: np.ndarray, margin_px: int = BLANK_MARGIN_PX) -> np.ndarray:
+    """``mask`` grown by ``margin_px`` in every direction (a maximum filter of the square 2 margin + 1)."""
+    from scipy import ndimage
+
+    if not mask.any():
+        return mask.copy()
+    return ndimage.maximum_filter(mask.astype(np.uint8), 2 * margin_px + 1).astype(bool)
+
+
+def local_noise_map(
+    filtered: np.ndarray, sep_rms: np.ndarray, kernel_norm: float, box_px: int, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(offset map [ADU], noise map [ADU], the pixels of a sharp step where nothing is detected) of the module
+    docstring, step 2. ``filtered``: the image less SEP's background, filtered by the detection kernel normalised to
+    unit sum; ``sep_rms``: SEP's noise map (used only when no box is measurable); ``kernel_norm``: sqrt(sum k^2) of
+    that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
+
+    The offset is measured in boxes :data:`_FINE_BOXES_PER_BOX` times finer than the mesh (the median of each), the
+    noise in the mesh's boxes (P50 and P97.725); each is then the median over 5 x 5 of its boxes (a star, or the line
+    of boxes a horizon's step crosses, fills fewer than half of them, and the median of a smooth gradient is its
+    centre value; SEP's own noise map, the clipped standard deviation
+    of each mesh box's pixels, counts a gradient or a step within the box as noise, and its spline swings negative
+    next to a masked box); the step's offset (:func:`_step_offset`) is added."""
+    h, w = filtered.shape
+    fine = max(_MIN_FINE_BOX_PX, box_px // _FINE_BOXES_PER_BOX)
+    stats, row_centres, col_centres = _box_percentiles(filtered, mask, fine, (50.0,))
+    # the noise from the mesh's boxes: the upper percentile of a fine box's few independent pixels (the JPEG and the
+    # filter correlate ~9 neighbours) is biased low (-7 % on the clean frame of tests/test_images_glow.py; half the
+    # mesh: 8 false detections instead of 5 on the clipped 8-bit noise of tests/test_images_centroid.py)
+    spread, noise_rows, noise_cols = _box_percentiles(filtered, mask, box_px, (50.0, _UPPER_2SIGMA_PERCENT))
+    noise = 0.5 * (spread[..., 1] - spread[..., 0]) / kernel_norm
+    if not np.isfinite(noise).any():  # nothing measurable: SEP's map as it is, no offset
+        return np.zeros_like(filtered), _positive(sep_rms), np.zeros(filtered.shape, dtype=bool)
+    medians, noise = _filled(stats[..., 0]), _median(_filled(noise), _SMOOTH_BOXES)
+    noise_map = _positive(_bilinear(noise, noise_rows, noise_cols, h, w))
+    smooth = _median(medians, _SMOOTH_BOXES)
+    filtered_noise = (
+        noise_map[np.rint(row_centres).astype(int)[:, None], np.rint(col_centres).astype(int)] * kernel_norm
+    )
+    step_offset, step = _step_offset(_median(medians, 3) - smooth, filtered_noise)
+    offset_map = _bilinear(smooth + step_offset, row_centres, col_centres, h, w)
+    edge = np.repeat(np.repeat(step, fine, axis=0), fine, axis=1)[:h, :w]  # the boxes start at pixel 0
+    return offset_map, noise_map, edge
+
+
+def _step_offset(residual: np.ndarray, filtered_noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the smooth offset leaves at a sharp edge (a horizon, a roof line), per fine box: ``residual``, the boxes'
+    medians median-filtered over 3 x 3 (a step passes a median filter unchanged, a star filling one or a few boxes
+    does not) less the smooth offset, kept where beyond :data:`_EDGE_OFFSET_SIGMAS` x the filtered image's noise (a
+    fine box's median scatters by ~0.15 of it: a clean frame keeps none, its offset is the smooth one alone). Within
+    the boxes of the step itself no smooth background holds (the bilinear interpolation between the boxes leaves part
+    of the step on its bright side): the second value marks the boxes whose 3 x 3 neighbourhood's medians span more
+    than :data:`_EDGE_STEP_SIGMAS` x that noise, where nothing is detected."""
+    kept = np.where(np.abs(residual) > _EDGE_OFFSET_SIGMAS * filtered_noise, residual, 0.0)
+    if not kept.any():
+        return kept, np.zeros(kept.shape, dtype=bool)
+    return kept, _long(_median_span(residual) > _EDGE_STEP_SIGMAS * filtered_noise)
+
+
+def _long(step: np.ndarray) -> np.ndarray:
+    """``step`` keeping only its connected parts (8-connected) that extend over at least
+    :data:`_STEP_MIN_LENGTH_BOXES` boxes along a row or a column: a horizon or a roof line, not the halo of a bright
+    star (which bends the offset in a compact patch: on granasat's pleyades_8sec, patches of 1 x 1 to 4 x 2 boxes,
+    one holding a saturated star)."""
+    from scipy import ndimage
+
+    if not step.any():
+        return step
+    labels, _ = ndimage.label(step, structure=np.ones((3, 3), dtype=int))
+    keep = np.zeros(labels.max() + 1, dtype=bool)
+    for k, part in enumerate(ndimage.find_objects(labels), start=1):
+        keep[k] = max(part[0].stop - part[0].start, part[1].stop - part[1].start) >= _STEP_MIN_LENGTH_BOXES
+    return keep[labels]
+
+
+def _median_span(grid: np.ndarray) -> np.ndarray:
+    """The range (maximum - minimum) of ``grid`` over each box's 3 x 3 neighbourhood."""
+    from scipy import ndimage
+
+    return ndimage.maximum_filter(grid, size=3, mode="nearest") - ndimage.minimum_filter(grid, size=3, mode="nearest")
+
+
+def _box_percentiles(
+    image: np.ndarray, mask: np.ndarray, box_px: int, percents: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``percents`` of the unmasked pixels of ``image`` in each box of ``box_px`` x ``box_px`` from pixel (0, 0)
+    (the last row and column of boxes cut by the border), (ny, nx, len(percents)), NaN for a box whose unmasked
+    pixels are fewer than :data:`_MIN_BOX_FRACTION` of its pixels; and the boxes' centres, rows and columns [px]."""
+    h, w = image.shape
+    ny, nx = -(-h // box_px), -(-w // box_px)
+    # float32: half the memory; the percentiles' own scatter (~1 % of the noise) is far above its rounding
+    padded = np.full((ny * box_px, nx * box_px), np.nan, dtype=np.float32)
+    padded[:h, :w] = image
+    padded[:h, :w][mask] = np.nan
+    blocks = padded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
+    counted = np.isfinite(blocks).sum(axis=1)
+    inside = np.outer(np.minimum(box_px, h - np.arange(ny) * box_px), np.minimum(box_px, w - np.arange(nx) * box_px))
+    out = np.full((ny * nx, len(percents)), np.nan)
+    whole = counted == box_px * box_px
+    if whole.any():  # the common case, in one call
+        out[whole] = np.percentile(blocks[whole], percents, axis=1).T.astype(np.float64)
+    for k in np.flatnonzero(~whole & (counted >= _MIN_BOX_FRACTION * inside.ravel()) & (counted > 0)):
+        out[k] = np.percentile(blocks[k][np.isfinite(blocks[k])], percents)
+    row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
+    col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
+    return out.reshape(ny, nx, len(percents)), row_centres, col_centres
+
+
+def _positive(noise: np.ndarray) -> np.ndarray:
+    """``noise`` with its non-positive or non-finite values replaced by the smallest positive finite one (a frame
+    whose every pixel is clipped: 1 ADU)."""
+    good = np.isfinite(noise) & (noise > 0)
+    if good.all():
+        return noise
+    floor = float(noise[good].min()) if good.any() else 1.0
+    return np.where(good, noise, floor)
+
+
+def _filled(grid: np.ndarray) -> np.ndarray:
+    """``grid`` with each NaN box given the value of its nearest finite box (Euclidean distance in boxes)."""
+    from scipy import ndimage
+
+    missing = ~np.isfinite(grid)
+    if not missing.any():
+        return grid
+    _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
+    return grid[ri, ci]
+
+
+def _median(grid: np.ndarray, size: int) -> np.ndarray:
+    """``size`` x ``size`` median filter over the boxes, the grid mirrored beyond its edge without repeating the edge
+    box (repeated, a border box that a star inflates weighs 3 of 5 along that axis: the noise 40 % high beside a pair
+    of stars at the border of tests/test_sky_render.py's frame, enough to change its centroid)."""
+    from scipy import ndimage
+
+    return ndimage.median_filter(grid, size=size, mode="mirror")
+
+
+def _bilinear(grid: np.ndarray, row_centres: np.ndarray, col_centres: np.ndarray, h: int, w: int) -> np.ndarray:
+    """The box values ``grid`` (at the box centres) interpolated bilinearly onto every pixel, constant beyond the
+    outermost centres. Separable: along the rows of boxes, then along the columns."""
+    r0, r1, tr = _linear_weights(np.arange(h, dtype=np.float64), row_centres)
+    c0, c1, tc = _linear_weights(np.arange(w, dtype=np.float64), col_centres)
+    down = grid[r0] * (1.0 - tr)[:, None] + grid[r1] * tr[:, None]
+    return np.ascontiguousarray(down[:, c0] * (1.0 - tc)[None, :] + down[:, c1] * tc[None, :])
+
+
+def _linear_weights(at: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each position ``at``: the indices of the two ``centres`` (increasing) around it and the weight of the
+    second, clamped to the first and last centre."""
+    if centres.size == 1:
+        zero = np.zeros(at.size, dtype=np.int64)
+        return zero, zero, np.zeros(at.size)
+    upper = np.clip(np.searchsorted(centres, at), 1, centres.size - 1)
+    lower = upper - 1
+    t = np.clip((at - centres[lower]) / (centres[upper] - centres[lower]), 0.0, 1.0)
+    return lower, upper, t
+
+
+def kernel_norm(kernel: np.ndarray) -> float:
+    """sqrt(sum k^2) of ``kernel`` normalised to unit sum: the noise of the filtered image per unit of independent
+    pixel noise."""
+    k = np.asarray(kernel, dtype=np.float64)
+    k = k / k.sum()
+    return math.sqrt(float(np.sum(k**2)))
+
+
+def filtered_noise_correction(
+    sub: np.ndarray,
+    sep_rms: np.ndarray,
+    kernel: np.ndarray,
+    box_px: int,
+    blank: np.ndarray,
+    background_level: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(offset map [ADU], noise map [ADU], filtered image less the offset, pixels where nothing is detected: the
+    blank regions widened by :data:`BLANK_MARGIN_PX` and the steps of sharp edges) that make SEP's background and
+    noise describe the detection image as it is, box by box (module docstring, step 2). ``sub``: the image less SEP's
+    background; ``kernel``: the detection kernel; ``blank``: the blank regions (:func:`saturated_regions`), where the
+    filtered image is set to 0 (nothing is searched there, :func:`hostlink.images.centroid._candidates`);
+    ``background_level``: SEP's global background [ADU], whose float32 rounding floors the noise
+    (:data:`_ROUNDING_NOISE_EPS`)."""
+    from scipy import ndimage
+
+    k = np.asarray(kernel, dtype=np.float64)
+    filtered = ndimage.convolve(sub, k / k.sum(), mode="nearest")
+    offset, noise, edge = local_noise_map(filtered, sep_rms, kernel_norm(k), box_px, blank)
+    # a flat image's "noise" is the rounding of SEP's float32 background: not noise
+    noise = np.maximum(noise, _ROUNDING_NOISE_EPS * float(np.finfo(np.float32).eps) * abs(background_level))
+    filtered -= offset
+    ignored = blank | edge
+    filtered[ignored] = 0.0
+    return offset, noise, filtered, ignored
