@@ -96,7 +96,7 @@ def test_the_stated_principal_point_sigma_is_the_spread_of_simulated_fits():
 
 def test_the_fit_from_the_nominal_can_end_in_the_mirror_and_calibrate_reports_the_other_minimum():
     # The same session from the distortion-free nominal: the fit ends at the mirrored principal point (y0 160 px,
-    # ~85 of its sigmas, from the truth), whose residual RMS is the truth's to 1e-4 (noise-free, the mirror leaves
+    # ~90 of its sigmas, from the truth), whose residual RMS is the truth's to 1e-4 (noise-free, the mirror leaves
     # 0.001 px: third-order terms). calibrate then runs the fit from the mirrored point and reports where it ends:
     # within 5 sigma of the truth (5 sigma: a Gaussian tail of 6e-7).
     true = _shifted_truth(80.0)
