@@ -10,9 +10,9 @@ import pytest
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
 from hostlink.calibration.model import observation_residuals
 from hostlink.calibration.passes import frame_attitudes
-from hostlink.calibration.report import degeneracies, mirrored_principal_point, prism_shift_direction
+from hostlink.calibration.report import degeneracies, mirror_report, mirrored_principal_point, prism_shift_direction
 from hostlink.calibration.run import calibrate
-from hostlink.calibration.synthetic import synthetic_session
+from hostlink.calibration.synthetic import seed004_true_camera, synthetic_session
 from onboard.params import ESTIMATE_NAMES, params_from_dict
 
 #: The granasat camera of docs/realsky.md (~27 x 20 deg, 1280 x 960 px), distortion-free: the nominal of the real
@@ -122,3 +122,25 @@ def test_the_mirrored_principal_point_reflects_about_the_prism_free_point():
     assert mirrored[2] == pytest.approx(expected[2], abs=1e-9)
     assert mirrored[7] == pytest.approx(expected[7], rel=1e-9) and mirrored[9] == pytest.approx(expected[9], rel=1e-9)
     assert np.allclose(mirrored_principal_point(mirrored, item), theta, rtol=1e-12, atol=1e-12)
+
+
+def test_no_second_fit_when_the_mirrored_point_is_this_one():
+    # Seed 004's camera has no decentering or prism: p - s = 0 at the fit to within its noise, the mirrored start is
+    # the fit itself, and calibrate says so instead of fitting again.
+    ss = synthetic_session(seed004_true_camera(), 200, seed=8)
+    out = calibrate(ss.data, seed004_true_camera())
+    assert {p["parameter"] for p in out.degeneracies["principal_point_prism"]} == {"x0", "y0"}
+    assert all("mirror" not in p for p in out.degeneracies["principal_point_prism"])
+    assert any(m.startswith("the mirrored principal point is this one") for m in out.degeneracies["messages"])
+
+
+def test_a_mirror_fit_that_returns_is_reported_as_no_second_minimum():
+    theta = GRANASAT.model_vector(np.float64)
+    sigma = np.full(10, 1.0)
+    back = {"theta": theta + 0.5, "rms_px": 0.3, "n_stars": 100, "converged": True, "this_rms_px": 0.3}
+    items, message = mirror_report([{"parameter": "y0"}], theta, sigma, {**back, "this_n_stars": 100})
+    assert message.startswith("a fit started from the mirrored principal point returns to this one")
+    assert items[0]["mirror"]["sigmas_apart"] == [0.5, 0.5]
+    away = {**back, "theta": theta + np.r_[0.0, 0.0, 160.0, np.zeros(7)], "this_n_stars": 100}
+    _, message = mirror_report([{"parameter": "y0"}], theta, sigma, away)
+    assert "ends at (666.0, 600.0) px, 0 and 160 sigma from this one" in message

@@ -51,6 +51,7 @@ from hostlink.calibration.report import (
     fitted_attitudes,
     interstar_sums_of_directions,
     merge_sums,
+    mirror_is_distinct,
     mirror_report,
     mirrored_principal_point,
     residual_stats,
@@ -238,7 +239,12 @@ def _with_mirror(
     prism = deg["principal_point_prism"]
     if not prism:
         return deg
-    start = nominal.with_model_vector(mirrored_principal_point(res.theta, prism))
+    sigma = np.sqrt(np.abs(np.diag(_full_covariance(res))))
+    mirrored = mirrored_principal_point(res.theta, prism)
+    if not mirror_is_distinct(res.theta, mirrored, sigma):
+        message = "the mirrored principal point is this one (its decentering equals its prism, p = s): no second fit"
+        return {**deg, "messages": [*deg["messages"], message]}
+    start = nominal.with_model_vector(mirrored)
     other = bundle_adjust_chunks(source, start, replace(options, estimate=res.estimate), voted, run_pass, ())
     mirror = {
         "theta": other.theta,
@@ -248,7 +254,7 @@ def _with_mirror(
         "this_rms_px": stats_from_sums(res.residual_sums)["rms_px"],
         "this_n_stars": res.n_obs,
     }
-    items, message = mirror_report(prism, res.theta, np.sqrt(np.abs(np.diag(_full_covariance(res)))), mirror)
+    items, message = mirror_report(prism, res.theta, sigma, mirror)
     return {**deg, "principal_point_prism": items, "messages": [*deg["messages"], message]}
 
 

@@ -32,6 +32,9 @@ ATTITUDE_LIMIT = 0.95
 #: Each principal-point coordinate with the decentering and thin-prism coefficients that cancel its shift to first
 #: order (:func:`prism_shift_direction`).
 PRINCIPAL_POINT_PRISM = (("x0", "p1", "s1"), ("y0", "p2", "s2"))
+#: A mirrored principal point (its start, or where its fit ends) within this many of the fit's 1-sigma of the fit's
+#: own in both coordinates is the same minimum: 3 sigma, beyond which a Gaussian posterior puts 0.3 % of its mass.
+MIRROR_SAME_SIGMAS = 3.0
 
 
 def fitted_attitudes(data: CalibrationData, theta: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
@@ -257,10 +260,16 @@ def prism_shift_direction(axis: int, focal_px: float) -> np.ndarray:
     return step
 
 
+def mirror_is_distinct(theta: np.ndarray, mirrored: np.ndarray, sigma: np.ndarray) -> bool:
+    """Whether the mirrored start (:func:`mirrored_principal_point`) is at least :data:`MIRROR_SAME_SIGMAS` of this
+    fit's 1-sigma ``sigma`` (model vector) from ``theta`` in x0 or y0: else it is this minimum and no fit is run."""
+    return bool(np.any(np.abs(mirrored[1:3] - theta[1:3]) >= MIRROR_SAME_SIGMAS * sigma[1:3]))
+
+
 def mirrored_principal_point(theta: np.ndarray, prism: list[dict]) -> np.ndarray:
     """The camera ``theta`` with each principal-point coordinate of ``prism`` (:func:`principal_point_prism`)
-    reflected along :func:`prism_shift_direction` about the point where its decentering equals minus its prism
-    (p = -s changes by d / (2 F^2) per px, so that point is d = F^2 (p - s) px away): the other minimum the
+    reflected along :func:`prism_shift_direction` about the point where its decentering equals its prism (p = s;
+    p and -s grow by d / (2 F^2) per px of shift, so that point is d = F^2 (p - s) px away): the other minimum the
     second-order terms leave, where a fit started there ends."""
     out = np.array(theta, dtype=np.float64, copy=True)
     focal_px = float(theta[0])
@@ -284,6 +293,12 @@ def mirror_report(prism: list[dict], theta: np.ndarray, sigma: np.ndarray, mirro
         "n_stars": int(mirror["n_stars"]),
         "converged": bool(mirror["converged"]),
     }
+    if np.all(apart < MIRROR_SAME_SIGMAS):
+        message = (
+            f"a fit started from the mirrored principal point returns to this one ({apart[0]:.2g} and "
+            f"{apart[1]:.2g} sigma away in x0 and y0): no second minimum was found there"
+        )
+        return [{**item, "mirror": record} for item in prism], message
     message = (
         f"a fit started from the mirrored principal point ends at ({t2[1]:.1f}, {t2[2]:.1f}) px, "
         f"{apart[0]:.3g} and {apart[1]:.3g} sigma from this one in x0 and y0, with residual RMS "
@@ -309,8 +324,8 @@ def principal_point_prism(tradeoff: list[dict], correlated: list[dict]) -> list[
             continue
         worst = max(rho, key=lambda n: abs(rho[n]))
         message = (
-            f"{pp} is not determined with {p} and {s} free: shifting the principal point by d px with {p} = -{s} "
-            f"changed by d / (2 F^2) moves no star to first order once the attitudes are re-fitted ({pp} and "
+            f"{pp} is not determined with {p} and {s} free: shifting the principal point by d px with {p} and -{s} "
+            f"each grown by d / (2 F^2) moves no star to first order once the attitudes are re-fitted ({pp} and "
             f"{worst}: rho = {rho[worst]:+.3f}), so the cost along that shift is set by second-order terms and can "
             "have another minimum with the shift reversed: the 1-sigma above is that of this minimum only. Hold "
             "decentering and prism (--estimate f,x0,y0,k1,k2,k3) or the principal point, or add frames with a "
