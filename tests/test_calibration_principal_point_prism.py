@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from hostlink.calibration.bundle import BundleOptions, bundle_adjust
+from hostlink.calibration.mirror import mirror_report, mirrored_principal_point, prism_shift_direction
 from hostlink.calibration.model import observation_residuals
 from hostlink.calibration.passes import frame_attitudes
-from hostlink.calibration.report import degeneracies, mirror_report, mirrored_principal_point, prism_shift_direction
+from hostlink.calibration.report import degeneracies
 from hostlink.calibration.run import calibrate
 from hostlink.calibration.synthetic import seed004_true_camera, synthetic_session
 from onboard.params import ESTIMATE_NAMES, params_from_dict

@@ -23,6 +23,7 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``noisefloor``: the stars' noise as a scale of their given sigma_px and a floor common to the session, two
   variance components estimated from the residuals (restricted maximum likelihood).
 - ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
+- ``mirror``: the principal point with decentering and prism free: the mirrored minimum, fitted and reported.
 - ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.
 - ``synthetic``: random star fields through a known camera, exact truth, for judging a method (not the sky simulator).
 - ``status``: the calibration status a result file carries (converged, not converged, failed), which `hostlink upload`

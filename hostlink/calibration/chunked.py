@@ -24,6 +24,7 @@ from hostlink.calibration.data import (
     session_chunk_data,
     take_frames,
 )
+from hostlink.calibration.mirror import with_mirror
 from hostlink.calibration.model import DEFAULT_CHUNK_OBS, residuals
 from hostlink.calibration.noisefloor import (
     MAX_FLOOR_FITS,
@@ -47,13 +48,9 @@ from hostlink.calibration.outcome import (
 from hostlink.calibration.passes import PassRunner, frame_attitudes, serial_pass
 from hostlink.calibration.report import (
     clipped_rms,
-    degeneracies,
     fitted_attitudes,
     interstar_sums_of_directions,
     merge_sums,
-    mirror_is_distinct,
-    mirror_report,
-    mirrored_principal_point,
     residual_stats,
     residual_sums,
     stats_from_sums,
@@ -205,7 +202,7 @@ def calibrate_chunks(
             "frames_dropped": int(screened.n_frames - res.n_frames),
             "total_stars": int(screened.n_stars - res.n_obs),
         },
-        degeneracies=_with_mirror(source, nominal, res, options, voted, run_pass),
+        degeneracies=with_mirror(source, nominal, res, options, voted, run_pass),
         history=res.history,
         converged=res.converged,
         prepass=prepass_report(prepass, nominal, start),
@@ -220,50 +217,6 @@ def calibrate_chunks(
     if keep_data is not None:
         _add_in_memory_results(outcome, keep_data, voted, res, theta0)
     return outcome
-
-
-def _with_mirror(
-    source: ChunkSource,
-    nominal: CameraParams,
-    res: ChunkedBundleResult,
-    options: BundleOptions,
-    voted: np.ndarray,
-    run_pass: PassRunner,
-) -> dict:
-    """The degeneracies of the fit ``res``; when its principal point is left to second-order terms with decentering
-    and prism free (:func:`hostlink.calibration.report.principal_point_prism`), the same fit (same parameters, same
-    weights: ``source`` is the floored one) started from the mirrored principal point
-    (:func:`hostlink.calibration.report.mirrored_principal_point`) is run and reported beside it, so the user sees
-    the other minimum rather than a 1-sigma that only describes this one (docs/calibration.md)."""
-    deg = degeneracies(res.normal, res.estimate, res.normal_u_diag)
-    prism = deg["principal_point_prism"]
-    if not prism:
-        return deg
-    sigma = np.sqrt(np.abs(np.diag(_full_covariance(res))))
-    mirrored = mirrored_principal_point(res.theta, prism)
-    if not mirror_is_distinct(res.theta, mirrored, sigma):
-        message = "the mirrored principal point is this one (its decentering equals its prism, p = s): no second fit"
-        return {**deg, "messages": [*deg["messages"], message]}
-    start = nominal.with_model_vector(mirrored)
-    other = bundle_adjust_chunks(source, start, replace(options, estimate=res.estimate), voted, run_pass, ())
-    mirror = {
-        "theta": other.theta,
-        "rms_px": stats_from_sums(other.residual_sums)["rms_px"],
-        "n_stars": other.n_obs,
-        "converged": other.converged,
-        "this_rms_px": stats_from_sums(res.residual_sums)["rms_px"],
-        "this_n_stars": res.n_obs,
-    }
-    items, message = mirror_report(prism, res.theta, sigma, mirror)
-    return {**deg, "principal_point_prism": items, "messages": [*deg["messages"], message]}
-
-
-def _full_covariance(res: ChunkedBundleResult) -> np.ndarray:
-    """The (10, 10) covariance of the model vector, zero for the parameters not estimated."""
-    cov = np.zeros((10, 10), dtype=np.float64)
-    idx = [ESTIMATE_NAMES.index(n) for n in res.estimate]
-    cov[np.ix_(idx, idx)] = res.covariance
-    return cov
 
 
 def _screen(source: ChunkSource, theta: np.ndarray) -> _Screened:
