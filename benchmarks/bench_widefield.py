@@ -345,6 +345,7 @@ def main() -> None:
     nominal = nominal_camera(true_camera())
     nominal_path = work / "nominal.json"
     nominal_path.write_text(json.dumps(params_to_dict(nominal)))
+    (work / "true.json").write_text(json.dumps(params_to_dict(true_camera())))  # for bench_noise_model.py --truth
     os.environ.setdefault("PYTHONPATH", str(Path(__file__).resolve().parents[1]))
     times = run_chain(work, nominal_path)
     result = {"ours": score(work, truths), "time_s": times}

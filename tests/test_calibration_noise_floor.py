@@ -55,8 +55,7 @@ def _runs(floor_px: float):
         data, _, noise_free, ss = floor_session(seed, floor_px)
         out = calibrate(data, NOMINAL, estimate=ESTIMATE_NAMES)
         kept = data.select(~(out.voted_out | out.gated))[0]
-        t = (out.noise_floor_px / out.noise_scale) ** 2
-        comps = variance_components(chunk_noise_sums(kept, out.theta, t))
+        comps = variance_components(chunk_noise_sums(kept, out.theta, out.noise_weights))
         err = (out.theta - CAMERA.model_vector())[ALL]
         runs.append((out, comps, float(err @ fisher(noise_free, ss.attitudes_true) @ err)))
     return runs

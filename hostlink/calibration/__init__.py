@@ -22,6 +22,9 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``robust``: the pre-pass (focal scale, parity), interstar voting, Huber weights.
 - ``noisefloor``: the stars' noise as a scale of their given sigma_px and a floor common to the session, two
   variance components estimated from the residuals (restricted maximum likelihood).
+- ``noisefield``: a floor that grows with the field radius (floor^2 = b + c q), its estimate and the likelihood-ratio
+  choice against the constant one.
+- ``floorfit``: the fit with the floor re-estimated between fits, and its record in the result.
 - ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
 - ``mirror``: the principal point with decentering and prism free: the mirrored minimum, fitted and reported.
 - ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,16 +25,10 @@ from hostlink.calibration.data import (
     session_chunk_data,
     take_frames,
 )
+from hostlink.calibration.floorfit import fit_with_floor, noise_outcome, radial_allowed
 from hostlink.calibration.mirror import with_mirror
 from hostlink.calibration.model import DEFAULT_CHUNK_OBS, residuals
-from hostlink.calibration.noisefloor import (
-    MAX_FLOOR_FITS,
-    floor_settled,
-    floored_source,
-    noise_sums,
-    variance_components,
-    with_floor,
-)
+from hostlink.calibration.noisefloor import NoiseModel, floored_source, with_floor
 from hostlink.calibration.outcome import (
     CalibrationOutcome,
     ReferencesSummary,
@@ -149,6 +144,7 @@ def calibrate_chunks(
     progress: Callable[[dict], None] | None = None,
     run_pass: PassRunner = serial_pass,
     keep_data: CalibrationData | None = None,
+    noise_model: str = "auto",
 ) -> CalibrationOutcome:
     """The bundle calibration of :func:`hostlink.calibration.run.calibrate` over the chunks of ``source`` (whole
     frames, each with its source rows), in memory O(K^2 + one chunk): the pre-pass on the evenly spaced frames
@@ -158,6 +154,7 @@ def calibrate_chunks(
     the outcome's ``noise_scale`` is then the noise the residuals show relative to the given one (1 when it is
     right), and the covariance is scaled by its square. The in-memory calibration is this on its data as one chunk
     (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
+    ``noise_model``: "auto" (the floor constant or radial as the data choose) or "constant".
     Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
     theta0 = nominal.model_vector(np.float64)
     sample, warm = warm_levels(source, source.n_frames())
@@ -175,11 +172,11 @@ def calibrate_chunks(
     options = BundleOptions(
         estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
     )
-    fit = _fit_with_floor if weighted else _fit
+    fit = partial(fit_with_floor, _fit, radial=radial_allowed(noise_model)) if weighted else _fit
     res, held, *floor = fit(source, nominal, start, options, estimate is None, voted, run_pass, warm)
-    floor_t_px2 = floor[0] if floor else 0.0  # the statistics and in-memory attitudes weighted as the fit
-    source = floored_source(source, floor_t_px2)
-    keep_data = None if keep_data is None else with_floor(keep_data, floor_t_px2)  # outcome.data: the noise used
+    noise, comps = floor[0] if floor else (NoiseModel(), None)  # the statistics and attitudes weighted as the fit
+    source = floored_source(source, noise)
+    keep_data = None if keep_data is None else with_floor(keep_data, noise)  # outcome.data: the noise used
     dropped = np.union1d(voted, res.gated_rows)
     before, inter_before_rad, inter_after_rad = _statistics(source, theta0, res.theta, dropped)
     outcome = CalibrationOutcome(
@@ -211,8 +208,7 @@ def calibrate_chunks(
         n_frames_used=res.n_frames,
         field_rad=screened.field_rad,
         status=res.status.value,
-        noise_scale=res.sigma_estimated_px if weighted else None,
-        noise_floor_px=res.sigma_estimated_px * math.sqrt(floor_t_px2) if weighted else None,
+        **(noise_outcome(res.sigma_estimated_px, noise, comps) if weighted else {}),
     )
     if keep_data is not None:
         _add_in_memory_results(outcome, keep_data, voted, res, theta0)
@@ -258,37 +254,6 @@ def _fit(
         restart = nominal.with_model_vector(theta_restart)
         res = bundle_adjust_chunks(source, restart, replace(options, estimate=chosen), voted, run_pass, ())
     return res, held
-
-
-def _fit_with_floor(
-    source: ChunkSource,
-    nominal: CameraParams,
-    start: CameraParams,
-    options: BundleOptions,
-    choose: bool,
-    voted: np.ndarray,
-    run_pass: PassRunner,
-    warm: tuple[CalibrationData, ...],
-) -> tuple[ChunkedBundleResult, list[dict], float]:
-    """:func:`_fit` of stars of given sigma_px with the noise floor (:mod:`hostlink.calibration.noisefloor`): a
-    fit without a floor, the two variance components from its inliers' residuals, and a fit again with each star's
-    noise sqrt(sigma_px^2 + t) (t = floor^2 / scale^2) until the floor has settled (at most
-    :data:`~hostlink.calibration.noisefloor.MAX_FLOOR_FITS` fits). Returns the last fit, its held parameters and
-    the t it weighted with (the warm-start samples are given the same noise)."""
-    t_px2 = 0.0
-    for k in range(MAX_FLOOR_FITS):
-        src = floored_source(source, t_px2)
-        samples = tuple(with_floor(w, t_px2) for w in warm)
-        res, held = _fit(src, nominal, start, options, choose, voted, run_pass, samples)
-        if k == MAX_FLOOR_FITS - 1:
-            break
-        dropped = np.union1d(voted, res.gated_rows)
-        sums = noise_sums(source, res.theta, dropped, t_px2)
-        t_new = variance_components(sums).t_px2
-        if floor_settled(sums, t_px2, t_new):
-            break
-        t_px2 = t_new
-    return res, held, t_px2
 
 
 def _statistics(

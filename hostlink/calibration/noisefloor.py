@@ -31,6 +31,7 @@ import numpy as np
 from hostlink.calibration.data import SIGMA_PX_CEILING, SIGMA_PX_FLOOR, CalibrationData
 from hostlink.calibration.frames import inverse_3x3
 from hostlink.calibration.model import attitude_terms, camera_terms
+from hostlink.calibration.noisefield import LR_CRITICAL, fisher_errors, minus_two_log_l, radial_components
 from hostlink.calibration.normal import attitude_normal
 from hostlink.calibration.passes import frame_attitudes
 from hostlink.calibration.source import ChunkSource, without_rows
@@ -46,26 +47,73 @@ _GRID = np.logspace(-6.0, 6.0, 121)
 _GOLDEN_TOL = 1e-6
 
 
+#: Width of a bin of q, the squared field radius relative to the half-diagonal (:mod:`hostlink.calibration.
+#: noisefield`): 1/32, so the radial term c q varies within a bin by c / 32, its weight by at most 3 % at the corner
+#: where it is all the variance, a relative error of ~1e-3 in the likelihood's terms (second order in the spread).
+Q_BIN_WIDTH = 1.0 / 32.0
+#: q up to 2 (a principal point off the centre puts far corners beyond the half-diagonal); beyond, the last bin.
+Q_BINS = 64
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """The noise the weights use, relative to the fitted scale s: each star's sqrt(sigma_px^2 + t + t_edge q), q its
+    squared distance from ``center_px`` over ``r_max_px``^2 (the floor^2 / s^2 at the centre and its growth to
+    q = 1, [px^2])."""
+
+    t_px2: float = 0.0
+    t_edge_px2: float = 0.0
+    center_px: tuple[float, float] = (0.0, 0.0)
+    r_max_px: float = 1.0
+
+
+def field_geometry(params) -> NoiseModel:
+    """A model without floor whose field radius is taken from the principal point of ``params`` (the nominal: the
+    same for every fit) relative to the half-diagonal of its image."""
+    w, h = params.image_size_px
+    return NoiseModel(0.0, 0.0, tuple(float(c) for c in params.principal_point_px), 0.5 * math.hypot(w, h))
+
+
+def field_q(data: CalibrationData, noise: NoiseModel) -> np.ndarray:
+    """(N,) each star's squared field radius relative to the half-diagonal."""
+    dx, dy = data.x_px - noise.center_px[0], data.y_px - noise.center_px[1]
+    return (dx * dx + dy * dy) / (noise.r_max_px * noise.r_max_px)
+
+
 @dataclass
 class NoiseSums:
-    """Per bin of ln sigma_px: sum of r_i, of |e_i|^2 [px^2] and of r_i sigma_px_i^2 [px^2]."""
+    """Per occupied bin (``key``: the bin of ln sigma_px times :data:`Q_BINS` plus the bin of q): sum of r_i, of
+    |e_i|^2 [px^2], of r_i sigma_px_i^2 [px^2] and of r_i q_i."""
 
+    key: np.ndarray
     r: np.ndarray
     e2: np.ndarray
     r_s2: np.ndarray
+    r_q: np.ndarray
 
     def merge(self, other: NoiseSums) -> NoiseSums:
-        return NoiseSums(self.r + other.r, self.e2 + other.e2, self.r_s2 + other.r_s2)
+        return _reduced(*(np.concatenate([a, b]) for a, b in zip(self.columns(), other.columns(), strict=True)))
+
+    def columns(self) -> tuple[np.ndarray, ...]:
+        return self.key, self.r, self.e2, self.r_s2, self.r_q
+
+
+def _reduced(key: np.ndarray, *values: np.ndarray) -> NoiseSums:
+    """The sums of ``values`` per distinct ``key``."""
+    keys, inverse = np.unique(key, return_inverse=True)
+    return NoiseSums(keys, *(np.bincount(inverse, v, keys.size) for v in values))
 
 
 def empty_noise_sums() -> NoiseSums:
-    return NoiseSums(np.zeros(NOISE_BINS), np.zeros(NOISE_BINS), np.zeros(NOISE_BINS))
+    return NoiseSums(np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
 
 
 @dataclass(frozen=True)
 class NoiseComponents:
-    """The estimated components: ``scale`` s (a = s^2), ``floor_px`` (b = floor^2), the ratio ``t`` = b / a
-    [px^2], the standard errors of a and b, and the degrees of freedom sum r_i."""
+    """The estimated components: ``scale`` s (a = s^2), ``floor_px`` (b = floor^2 at the centre), the ratio ``t`` =
+    b / a [px^2], the standard errors of a and b, the degrees of freedom sum r_i; the radial term ``edge_px2`` c
+    (floor(q)^2 = b + c q, 0 for the constant model), its standard error, ``model`` ("constant" or "radial", as
+    chosen) and the likelihood-ratio statistic ``lr`` of the radial model against the constant one."""
 
     scale: float
     floor_px: float
@@ -73,40 +121,57 @@ class NoiseComponents:
     a_sigma: float
     b_sigma_px2: float
     dof: float
+    edge_px2: float = 0.0
+    c_sigma_px2: float = 0.0
+    model: str = "constant"
+    lr: float = 0.0
+
+    def weights(self, geometry: NoiseModel) -> NoiseModel:
+        """The :class:`NoiseModel` of these components on the field ``geometry``."""
+        return replace(geometry, t_px2=self.t_px2, t_edge_px2=self.edge_px2 / self.scale**2)
 
 
-def with_floor(data: CalibrationData, t_px2: float) -> CalibrationData:
-    """``data`` with each star's noise sqrt(sigma_px^2 + t) (the floor relative to the scale, t = floor^2 / s^2): the
-    noise the weights and the gate use, up to the fitted scale s. ``data`` itself when t is 0 or it has none."""
-    if data.sigma_px is None or t_px2 <= 0.0:
+def with_floor(data: CalibrationData, noise: NoiseModel | float) -> CalibrationData:
+    """``data`` with each star's noise sqrt(sigma_px^2 + t + t_edge q) (the floor relative to the scale, t = floor^2 /
+    s^2; a number: a constant t): the noise the weights and the gate use, up to the fitted scale s. ``data`` itself
+    when there is no floor or no sigma_px."""
+    if not isinstance(noise, NoiseModel):
+        noise = NoiseModel(float(noise))
+    if data.sigma_px is None or (noise.t_px2 <= 0.0 and noise.t_edge_px2 <= 0.0):
         return data
-    return replace(data, sigma_px=np.sqrt(data.sigma_px * data.sigma_px + t_px2))
+    added = noise.t_px2 + (noise.t_edge_px2 * field_q(data, noise) if noise.t_edge_px2 > 0.0 else 0.0)
+    return replace(data, sigma_px=np.sqrt(data.sigma_px * data.sigma_px + added))
 
 
-def _load_with_floor(load, t_px2: float, handle) -> CalibrationData:
-    return with_floor(handle if load is None else load(handle), t_px2)
+def _load_with_floor(load, noise: NoiseModel, handle) -> CalibrationData:
+    return with_floor(handle if load is None else load(handle), noise)
 
 
-def floored_source(source: ChunkSource, t_px2: float) -> ChunkSource:
+def _has_floor(noise: NoiseModel | float) -> bool:
+    if isinstance(noise, NoiseModel):
+        return noise.t_px2 > 0.0 or noise.t_edge_px2 > 0.0
+    return noise > 0.0
+
+
+def floored_source(source: ChunkSource, noise: NoiseModel | float) -> ChunkSource:
     """``source`` whose chunks read :func:`with_floor` (spooled chunks on load, where a worker reads them)."""
-    if t_px2 <= 0.0:
+    if not _has_floor(noise):
         return source
     if source.load is None:
-        return ChunkSource(tuple(with_floor(h, t_px2) for h in source.handles))
-    return ChunkSource(source.handles, partial(_load_with_floor, source.load, t_px2), source.count)
+        return ChunkSource(tuple(with_floor(h, noise) for h in source.handles))
+    return ChunkSource(source.handles, partial(_load_with_floor, source.load, noise), source.count)
 
 
-def chunk_noise_sums(data: CalibrationData, theta: np.ndarray, t_px2: float) -> NoiseSums:
+def chunk_noise_sums(data: CalibrationData, theta: np.ndarray, noise: NoiseModel) -> NoiseSums:
     """The :class:`NoiseSums` of the stars of ``data`` (given sigma_px; the inliers) at the camera ``theta``: each
-    frame's attitude fitted by weighted least squares (weights 1 / (sigma_px^2 + t); no Huber weights: the model's
-    likelihood is Gaussian, and these are the inliers; with the fit's Huber weights at 3 robust sigmas the
+    frame's attitude fitted by weighted least squares (weights 1 / (sigma_px^2 + t + t_edge q); no Huber weights: the
+    model's likelihood is Gaussian, and these are the inliers; with the fit's Huber weights at 3 robust sigmas the
     floor of a session without one came out ~10 of its standard errors high), the residual
     |e_i|^2 [px^2] and the redundancy r_i = 2 - tr(H_ii), H_ii = W_i J_i A_f^-1 J_i^T with A_f the frame's
     weighted attitude normal matrix."""
-    out = empty_noise_sums()
     if data.n_frames == 0:
-        return out
-    fit = with_floor(data, t_px2)
+        return empty_noise_sums()
+    fit = with_floor(data, noise)
     cam = camera_terms(fit.x_px, fit.y_px, theta)
     att = frame_attitudes(fit, theta, np.inf, 3.0, cam)
     e, jp = attitude_terms(fit.x_px, fit.y_px, fit.r, np.repeat(att, fit.counts, axis=0), theta, cam)
@@ -118,19 +183,19 @@ def chunk_noise_sums(data: CalibrationData, theta: np.ndarray, t_px2: float) -> 
     lever = np.einsum("nai,nij,naj->n", jw, a_inv, jw)
     r = np.maximum(2.0 - lever, 0.0)
     s2 = data.sigma_px * data.sigma_px
+    q = field_q(data, noise)
     idx = np.clip(((np.log(data.sigma_px) - _LN_LO) / NOISE_BIN_WIDTH).astype(np.int64), 0, NOISE_BINS - 1)
+    key = idx * Q_BINS + np.clip((q / Q_BIN_WIDTH).astype(np.int64), 0, Q_BINS - 1)
     e2 = e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1]
-    return NoiseSums(
-        np.bincount(idx, r, NOISE_BINS), np.bincount(idx, e2, NOISE_BINS), np.bincount(idx, r * s2, NOISE_BINS)
-    )
+    return _reduced(key, r, e2, r * s2, r * q)
 
 
-def noise_sums(source: ChunkSource, theta: np.ndarray, dropped_rows: np.ndarray, t_px2: float) -> NoiseSums:
+def noise_sums(source: ChunkSource, theta: np.ndarray, dropped_rows: np.ndarray, noise: NoiseModel) -> NoiseSums:
     """:func:`chunk_noise_sums` over the chunks of ``source`` (the given sigma_px, no floor), less ``dropped_rows``
     (sorted: voted and gated stars) and the frames they leave with fewer than three stars."""
     out = empty_noise_sums()
     for chunk in source:
-        out = out.merge(chunk_noise_sums(without_rows(chunk, dropped_rows), theta, t_px2))
+        out = out.merge(chunk_noise_sums(without_rows(chunk, dropped_rows), theta, noise))
     return out
 
 
@@ -141,14 +206,8 @@ def _profile(r: np.ndarray, e2: np.ndarray, s2: np.ndarray, t: float) -> tuple[f
     return float(np.sum(r * np.log(a * u))), a
 
 
-def variance_components(sums: NoiseSums) -> NoiseComponents:
-    """The restricted maximum-likelihood (a, b) of the module docstring from the binned sums (the floor at the
-    boundary t = 0 unless a positive ratio is strictly more likely)."""
-    keep = sums.r > 0
-    r, e2 = sums.r[keep], sums.e2[keep]
-    s2 = sums.r_s2[keep] / r
-    if r.size == 0 or np.sum(e2) <= 0.0:
-        raise ValueError("no residual to estimate the noise from")
+def _constant_ratio(r: np.ndarray, e2: np.ndarray, s2: np.ndarray) -> float:
+    """The ratio t = b / a of the constant floor maximising the profile (0 unless another is strictly better)."""
     median = float(np.median(s2))
     best_t, (best_l, _) = 0.0, _profile(r, e2, s2, 0.0)
     grid = _GRID * median
@@ -167,9 +226,27 @@ def variance_components(sums: NoiseSums) -> NoiseComponents:
         t = math.exp(0.5 * (lo + hi))
         value = _profile(r, e2, s2, t)[0]
         if value < best_l - tol:
-            best_t, best_l = t, value
-    a = _profile(r, e2, s2, best_t)[1]
-    b = a * best_t
+            best_t = t
+    return best_t
+
+
+def _binned(sums: NoiseSums) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    keep = sums.r > 0
+    r = sums.r[keep]
+    return r, sums.e2[keep], sums.r_s2[keep] / r, sums.r_q[keep] / r
+
+
+def variance_components(sums: NoiseSums, radial: bool = True) -> NoiseComponents:
+    """The restricted maximum-likelihood components from the binned sums: the constant floor's (a, b) of the module
+    docstring (the floor at the boundary t = 0 unless a positive ratio is strictly more likely), and with ``radial``
+    the (a, b, c) of :mod:`hostlink.calibration.noisefield` from there, chosen when its likelihood ratio exceeds
+    :data:`~hostlink.calibration.noisefield.LR_CRITICAL` (no further pass over the data: the same sums)."""
+    r, e2, s2, q = _binned(sums)
+    if r.size == 0 or np.sum(e2) <= 0.0:
+        raise ValueError("no residual to estimate the noise from")
+    t = _constant_ratio(r, e2, s2)
+    a = _profile(r, e2, s2, t)[1]
+    b = a * t
     v = a * s2 + b
     fisher = 0.5 * np.array(
         [[np.sum(r * s2 * s2 / v**2), np.sum(r * s2 / v**2)], [np.sum(r * s2 / v**2), np.sum(r / v**2)]]
@@ -179,7 +256,28 @@ def variance_components(sums: NoiseSums) -> NoiseComponents:
         a_sigma, b_sigma = float(np.sqrt(max(cov[0, 0], 0.0))), float(np.sqrt(max(cov[1, 1], 0.0)))
     except np.linalg.LinAlgError:  # every star of one sigma_px: the two components are not separable
         a_sigma, b_sigma = float("inf"), float("inf")
-    return NoiseComponents(math.sqrt(a), math.sqrt(b), best_t, a_sigma, b_sigma, float(np.sum(r)))
+    constant = NoiseComponents(math.sqrt(a), math.sqrt(b), t, a_sigma, b_sigma, float(np.sum(r)))
+    if not radial:
+        return constant
+    regressors = np.column_stack([s2, np.ones_like(s2), q])
+    theta = radial_components(r, e2, regressors, np.array([a, b, 0.0]))
+    lr = minus_two_log_l(r, e2, regressors, np.array([a, b, 0.0])) - minus_two_log_l(r, e2, regressors, theta)
+    if not (lr > LR_CRITICAL and theta[2] > 0.0):
+        return replace(constant, lr=max(lr, 0.0))
+    err = fisher_errors(r, regressors, theta, np.ones(3, dtype=bool))  # at a boundary b = 0 too: its local spread
+    a, b, c = (float(x) for x in theta)
+    return NoiseComponents(
+        math.sqrt(a),
+        math.sqrt(b),
+        b / a,
+        float(err[0]),
+        float(err[1]),
+        float(np.sum(r)),
+        c,
+        float(err[2]),
+        "radial",
+        lr,
+    )
 
 
 #: Fits of the camera with the floor re-estimated in between: the floor found after the first (no floor) is within
@@ -190,10 +288,9 @@ MAX_FLOOR_FITS = 3
 FLOOR_SETTLED = 0.05
 
 
-def floor_settled(sums: NoiseSums, t_old_px2: float, t_new_px2: float) -> bool:
-    """Whether going from the ratio ``t_old`` to ``t_new`` changes no star's noise by more than
-    :data:`FLOOR_SETTLED` (over the stars of ``sums``)."""
-    keep = sums.r > 0
-    s2 = sums.r_s2[keep] / sums.r[keep]
-    change = np.sqrt((s2 + t_new_px2) / (s2 + t_old_px2))
-    return bool(np.all(np.abs(change - 1.0) <= FLOOR_SETTLED))
+def floor_settled(sums: NoiseSums, old: NoiseModel, new: NoiseModel, share: float = FLOOR_SETTLED) -> bool:
+    """Whether going from the noise model ``old`` to ``new`` changes no star's noise by more than ``share``
+    (over the bins of ``sums``, at each bin's mean sigma_px^2 and q)."""
+    _, _, s2, q = _binned(sums)
+    change = np.sqrt((s2 + new.t_px2 + new.t_edge_px2 * q) / (s2 + old.t_px2 + old.t_edge_px2 * q))
+    return bool(np.all(np.abs(change - 1.0) <= share))

@@ -76,6 +76,12 @@ class CalibrationOutcome:
     #: stars weighted by the session's sigma_px: the noise floor common to the session [px], each star's noise per
     #: axis sqrt((noise_scale sigma_px)^2 + noise_floor_px^2) (hostlink.calibration.noisefloor); None otherwise
     noise_floor_px: float | None = None
+    #: the floor at the half-diagonal from the nominal principal point [px] (= noise_floor_px for a constant floor),
+    #: the noise model's record (hostlink.calibration.floorfit.noise_model_record: which model, its components and
+    #: their standard errors, the likelihood ratio) and the model the weights used (noisefloor.NoiseModel)
+    noise_floor_edge_px: float | None = None
+    noise_model: dict | None = None
+    noise_weights: object | None = None
     #: why the fit stopped (:class:`hostlink.calibration.lm.Status` of the bundle's last round; None: other methods)
     status: str | None = None
 
@@ -228,6 +234,8 @@ def result_extras(outcome: CalibrationOutcome, references: SessionReferences | N
     if outcome.noise_scale is not None:
         extras["noise_scale"] = outcome.noise_scale  # fitted noise / the session's sigma_px
         extras["noise_floor_px"] = outcome.noise_floor_px  # the noise floor added to it in quadrature [px]
+        extras["noise_floor_edge_px"] = outcome.noise_floor_edge_px  # the floor at the half-diagonal [px]
+        extras["noise_model"] = outcome.noise_model  # constant or radial, components, sigmas, likelihood ratio
     failure = outcome.failure()
     if failure:
         extras["failed"] = failure

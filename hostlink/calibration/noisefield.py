@@ -1,0 +1,108 @@
+"""A noise floor that grows towards the edge of the field: each star's variance per axis
+v_i = a sigma_px_i^2 + b + c q_i, q_i = (rho_i / rho_max)^2 its squared field radius from the nominal principal point
+relative to the half-diagonal of the image (a = s^2, floor(q)^2 = b + c q [px^2]).
+
+Why this form: the aberrations that grow off axis in a wide lens are, to lowest order (Seidel), coma, whose blur
+(and so the centroid error it adds, for the stars' random colour, focus and sampling) grows linearly with the field
+radius, and astigmatism and field curvature, which grow with its square; a centroid error linear in rho adds a
+variance in rho^2, and the constant b is what is the same everywhere (JPEG blocks, PSF mismatch). A variance in
+rho^4 (the astigmatism's blur) is the next term; two parameters are what nine frames of a few hundred stars can
+determine.
+
+Estimation: the restricted likelihood of :mod:`hostlink.calibration.noisefloor` (|e_i|^2 / v_i chi-square with
+r_i degrees of freedom, -2 log L = sum r_i log v_i + |e_i|^2 / v_i up to a constant) in the three components,
+maximised by Fisher scoring (the iterated REML estimate of variance components: theta = F^-1 h with
+F_kl = sum r_i T_ki T_li / v_i^2 and h_k = sum |e_i|^2 T_ki / v_i^2, T_i = (sigma_px_i^2, 1, q_i); Koch 1999, sec.
+3.6.3; Foerstner 1979) under b, c >= 0 (an active set: a component that would go negative is held at 0, and freed
+again when the likelihood's gradient points inward), with a halved step whenever a full one would not lower -2 log L.
+
+Choice: the constant floor (c = 0) is the null hypothesis, on the boundary of the radial one, so the likelihood-ratio
+statistic LR = (-2 log L)_constant - (-2 log L)_radial is distributed as an equal mixture of chi-square with 0 and 1
+degrees of freedom under it (Self and Liang 1987, J. Am. Stat. Assoc. 82, 605, case 5); the radial floor is chosen
+when LR exceeds :data:`LR_CRITICAL`, a 1e-3 chance of choosing it for a session whose floor is constant.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: The 0.999 quantile of the 50:50 mixture of chi-square(0) and chi-square(1): 0.5 P(chi2_1 > x) = 1e-3, i.e. the
+#: chi-square(1) 0.998 quantile (scipy.stats.chi2.isf(0.002, 1) = 9.5495).
+LR_CRITICAL = 9.5495
+#: Fisher scoring stops when no component moves by more than this share of the largest variance's size.
+_SCORING_TOL = 1e-10
+_MAX_SCORING = 200
+
+
+def minus_two_log_l(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray) -> float:
+    """-2 log of the restricted likelihood (up to a constant) of the components ``theta`` (a, b, c) over bins of
+    redundancy ``r``, squared residuals ``e2`` and regressors ``t`` (n, 3): sum r log v + e2 / v, v = t theta."""
+    v = t @ theta
+    return float(np.sum(r * np.log(v) + e2 / v))
+
+
+def _scoring_step(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """theta after one Fisher-scoring step over the ``free`` components (the others held at 0)."""
+    v = t @ theta
+    tf = t[:, free]
+    info = (tf * (r / v**2)[:, None]).T @ tf
+    h = tf.T @ (e2 / v**2)
+    out = np.zeros(3)
+    out[free] = np.linalg.lstsq(info, h, rcond=None)[0]
+    return out
+
+
+def _gradient(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    v = t @ theta
+    return t.T @ (r / v - e2 / v**2)
+
+
+def radial_components(r: np.ndarray, e2: np.ndarray, t: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """The restricted maximum-likelihood (a, b, c) >= 0 (a > 0) of the module docstring, by Fisher scoring from
+    ``start`` (the constant floor's estimate, c = 0), the active set as described there."""
+    theta = np.asarray(start, dtype=np.float64).copy()
+    free = theta > 0.0
+    free[0] = True
+    best = minus_two_log_l(r, e2, t, theta)
+    for _ in range(_MAX_SCORING):
+        grad = _gradient(r, e2, t, theta)
+        free |= (theta <= 0.0) & (grad < 0.0)  # a held component the likelihood wants above 0
+        step = _scoring_step(r, e2, t, theta, free) - theta
+        lam = 1.0
+        while True:
+            trial = theta + lam * step
+            neg = free & (trial < 0.0)
+            neg[0] = False
+            if np.any(neg):  # stop at the boundary: the first component to reach 0 is held there
+                k = np.flatnonzero(neg)
+                lam = min(lam, float(np.min(theta[k] / (theta[k] - trial[k]))))
+                trial = np.maximum(theta + lam * step, 0.0)
+                free &= ~(trial <= 0.0)
+                free[0] = True
+            value = minus_two_log_l(r, e2, t, trial) if trial[0] > 0.0 else math.inf
+            if value <= best or lam < 1e-6:
+                break
+            lam *= 0.5
+        moved = float(np.max(np.abs(trial - theta)))
+        if value <= best:
+            theta, best = trial, value
+        scale = float(np.max(t @ theta))
+        if moved <= _SCORING_TOL * scale:
+            break
+    return theta
+
+
+def fisher_errors(r: np.ndarray, t: np.ndarray, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Standard errors of the ``free`` components: the square roots of the diagonal of the inverse Fisher information
+    F_kl = 1/2 sum r_i T_ki T_li / v_i^2 (inf when the components cannot be told apart); 0 for the others."""
+    v = t @ theta
+    tf = t[:, free]
+    fisher = 0.5 * (tf * (r / v**2)[:, None]).T @ tf
+    out = np.zeros(3)
+    try:
+        out[free] = np.sqrt(np.maximum(np.diag(np.linalg.inv(fisher)), 0.0))
+    except np.linalg.LinAlgError:
+        out[free] = math.inf
+    return out
