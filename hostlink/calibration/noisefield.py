@@ -59,37 +59,41 @@ def _gradient(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray) -
     return t.T @ (r / v - e2 / v**2)
 
 
+def _free_target(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The scoring step's target over the components the likelihood lets move: those above 0, and those at 0 whose
+    gradient points inward; one at 0 whose target would be negative is held there and the target solved again (a
+    set with none free, every v_i at 0, cannot arise: the start has a v_i > 0 and steps keep it)."""
+    free = (theta > 0.0) | (_gradient(r, e2, t, theta) < 0.0)
+    while True:
+        target = _scoring_step(r, e2, t, theta, free)
+        stuck = free & (theta <= 0.0) & (target < 0.0)
+        if not np.any(stuck):
+            return target
+        free &= ~stuck
+
+
 def radial_components(r: np.ndarray, e2: np.ndarray, t: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """The restricted maximum-likelihood (a, b, c) >= 0 (a > 0) of the module docstring, by Fisher scoring from
-    ``start`` (the constant floor's estimate, c = 0), the active set as described there."""
+    """The restricted maximum-likelihood (a, b, c) >= 0 (every v_i > 0) of the module docstring, by Fisher scoring
+    from ``start`` (the constant floor's estimate, c = 0): each step goes towards :func:`_free_target`, stopped where
+    a component reaches 0 (held there while the likelihood wants it lower), and halved until -2 log L does not
+    rise."""
     theta = np.asarray(start, dtype=np.float64).copy()
-    free = theta > 0.0
-    free[0] = True
     best = minus_two_log_l(r, e2, t, theta)
     for _ in range(_MAX_SCORING):
-        grad = _gradient(r, e2, t, theta)
-        free |= (theta <= 0.0) & (grad < 0.0)  # a held component the likelihood wants above 0
-        step = _scoring_step(r, e2, t, theta, free) - theta
-        lam = 1.0
+        step = _free_target(r, e2, t, theta) - theta
+        down = step < 0.0
+        lam = min(1.0, float(np.min(theta[down] / -step[down]))) if np.any(down) else 1.0
         while True:
-            trial = theta + lam * step
-            neg = free & (trial < 0.0)
-            neg[0] = False
-            if np.any(neg):  # stop at the boundary: the first component to reach 0 is held there
-                k = np.flatnonzero(neg)
-                lam = min(lam, float(np.min(theta[k] / (theta[k] - trial[k]))))
-                trial = np.maximum(theta + lam * step, 0.0)
-                free &= ~(trial <= 0.0)
-                free[0] = True
-            value = minus_two_log_l(r, e2, t, trial) if trial[0] > 0.0 else math.inf
+            trial = np.maximum(theta + lam * step, 0.0)
+            value = minus_two_log_l(r, e2, t, trial) if np.all(t @ trial > 0.0) else math.inf
             if value <= best or lam < 1e-6:
                 break
             lam *= 0.5
+        if value > best:
+            break
         moved = float(np.max(np.abs(trial - theta)))
-        if value <= best:
-            theta, best = trial, value
-        scale = float(np.max(t @ theta))
-        if moved <= _SCORING_TOL * scale:
+        theta, best = trial, value
+        if moved <= _SCORING_TOL * float(np.max(t @ theta)):
             break
     return theta
 
