@@ -16,8 +16,11 @@ counts each frame's attitude (3 parameters, the bulk of them); the camera's K pa
 of the degrees of freedom (< 1e-3 for the sessions calibrated). Standard errors: the inverse Fisher information of
 (a, b), F_jk = 1/2 sum r_i (dv_i/da_j)(dv_i/da_k) / v_i^2.
 
-The sums are kept per bin of log sigma_px (:data:`NOISE_BIN_WIDTH` wide), added over chunks, so a session of any
-length is summarised in a few kilobytes and the result does not depend on how its frames are split.
+The sums are kept per occupied bin of ln sigma_px (:data:`NOISE_BIN_WIDTH` wide) and of q, the squared field radius
+relative to the half-diagonal (:data:`Q_BIN_WIDTH` wide), added over chunks, so a session of any length is summarised
+in at most one entry per occupied bin (a few hundred kilobytes at most) and the result does not depend on how its
+frames are split. From the same sums :func:`variance_components` also fits a floor that grows with the field radius
+(floor^2 = b + c q, :mod:`hostlink.calibration.noisefield`) and keeps it when the likelihood ratio says so.
 """
 
 from __future__ import annotations
