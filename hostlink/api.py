@@ -44,7 +44,8 @@ Images:
 Calibration:
     :func:`calibrate_session` (batch ground calibration), :func:`calibrate_archive` (the same for sessions of any
     length: files, globs, Parquet, chunk by chunk in bounded memory, optionally on a Dask cluster),
-    :func:`result_extras`, :func:`cross_validate` (a calibration judged on stars held out of its fit: k-fold
+    :func:`result_extras`, :func:`noise_model_text` (the noise model's line; :data:`NOISE_MODELS`),
+    :func:`cross_validate` (a calibration judged on stars held out of its fit: k-fold
     over the frames, :class:`CrossValidation`), :func:`replay_session` (the
     onboard recursive estimator over a session, as the sensor runs it), :func:`replay_chunks` (the same over chunks,
     its trace streamed), :func:`replay_config`, :func:`replay_prior`,
@@ -105,6 +106,7 @@ if TYPE_CHECKING:
         validation_residual_from_directions_px,
         validation_residual_px,
     )
+    from hostlink.calibration.floorfit import NOISE_MODELS, noise_model_text
     from hostlink.calibration.holdout import CrossValidation, cross_validate
     from hostlink.calibration.plots import write_calibration_plots
     from hostlink.calibration.replay import (
@@ -339,6 +341,8 @@ __all__ = [
     "replay_session",
     "replay_chunks",
     "result_extras",
+    "NOISE_MODELS",
+    "noise_model_text",
     # links
     "accept_estimate",
     "estimate_record",

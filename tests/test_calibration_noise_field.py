@@ -11,6 +11,7 @@ import pytest
 import scipy.optimize
 import scipy.stats
 from synthetic_sessions import synthetic_session
+from test_calibration_chunked import assert_same_camera
 from test_calibration_noise_floor import floor_session
 
 from hostlink.calibration.data import build_data
@@ -28,8 +29,8 @@ from hostlink.calibration.noisefloor import (
 )
 from hostlink.calibration.normal import accumulate_normals, reduced_normal
 from hostlink.calibration.outcome import result_extras
-from hostlink.calibration.run import calibrate
-from hostlink.calibration.source import frames_of
+from hostlink.calibration.run import calibrate, calibrate_chunks
+from hostlink.calibration.source import ChunkSource, frames_of
 from hostlink.files.params import load_params
 from onboard.params import ESTIMATE_NAMES
 
@@ -242,3 +243,17 @@ def test_the_result_says_which_model_and_its_values(radial_runs):
     assert extras["noise_floor_edge_px"] > extras["noise_floor_px"]
     text = noise_model_text(record)
     assert "growing with field radius" in text and f"{record['floor_edge_px']:.4f} px" in text
+
+
+def test_the_radial_floor_does_not_depend_on_how_the_frames_are_chunked():
+    """A radial session (200 frames) calibrated in memory and as three chunks of frames: the same model, the same
+    components (1e-9 relative: only the summation order differs) and the same camera (tests/test_calibration_chunked.
+    py's tolerance)."""
+    data = radial_session(6, frames=200)[0]
+    whole = calibrate(data, NOMINAL, estimate=ESTIMATE_NAMES)
+    chunks = ChunkSource(tuple(frames_of(data, a, b) for a, b in ((0, 61), (61, 140), (140, 200))))
+    parts = calibrate_chunks(chunks, NOMINAL, ESTIMATE_NAMES)
+    assert whole.noise_model["model"] == parts.noise_model["model"] == "radial"
+    for key in ("floor_px2", "edge_px2", "lr"):
+        assert parts.noise_model[key] == pytest.approx(whole.noise_model[key], rel=1e-9, abs=1e-15)
+    assert_same_camera(whole, parts)

@@ -372,6 +372,7 @@ def calibrate_archive(
     spool_dir: str | Path | None = None,
     on_frames: Callable[[int], None] | None = None,
     on_rows: Callable[[int], None] | None = None,
+    noise_model: str = "auto",
 ) -> tuple[CalibrationOutcome, ReferencesSummary]:
     """Bundle calibration of a session of any length in bounded memory: ``source`` is what
     :func:`hostlink.files.session.read_session_chunks` reads (a path, a glob, several files; CSV or Parquet),
@@ -380,7 +381,8 @@ def calibrate_archive(
     memory O(K^2 + one chunk), time linear in the frames. ``dask``: None (this process), ``"local"`` (a
     LocalCluster of ``dask_workers`` workers, default 2) or a scheduler address (``tcp://host:port``; its workers
     must see ``spool_dir``). ``on_frames``: frames read so far, after each chunk of the reading pass
-    (:func:`spool_session`); ``on_rows``: rows read so far (against :func:`estimated_session_rows`). Other
+    (:func:`spool_session`); ``on_rows``: rows read so far (against :func:`estimated_session_rows`);
+    ``noise_model`` as in :func:`hostlink.calibration.run.calibrate`. Other
     arguments, the checks and the failure rule as :func:`hostlink.calibration.run.calibrate_session`; the outcome
     has no in-memory data (``data`` None; its counts in ``n_stars_used``/``n_frames_used``), and its rejected stars
     counted by reason (:func:`hostlink.calibration.outcome.rejected_counts`)."""
@@ -406,13 +408,16 @@ def calibrate_archive(
         )
         try:
             if dask is None:
-                outcome = calibrate_chunks(chunks, nominal, estimate, noise_px, max_iter, progress)
+                outcome = calibrate_chunks(
+                    chunks, nominal, estimate, noise_px, max_iter, progress, noise_model=noise_model
+                )
             else:
                 from hostlink.calibration.distributed import DEFAULT_WORKERS, DaskPasses, dask_client
 
                 with dask_client(dask, dask_workers or DEFAULT_WORKERS) as client:
+                    passes = DaskPasses(client)
                     outcome = calibrate_chunks(
-                        chunks, nominal, estimate, noise_px, max_iter, progress, DaskPasses(client)
+                        chunks, nominal, estimate, noise_px, max_iter, progress, passes, noise_model=noise_model
                     )
         except ValueError as exc:
             raise UserError(f"calibration failed: {exc}") from None
