@@ -287,7 +287,9 @@ def score(work: Path, truths: list[dict]) -> dict:
         "wrong_names": wrong_total,
         "detected_true_stars": detectable_total,
         "true_stars_named": found_total,
-        "calibration": {k: cal.get(k) for k in ("status", "rejected", "method")} | {"after": after},
+        "calibration": {k: cal.get(k) for k in ("status", "n_rejected", "method")}
+        | {"after": after, "noise_model": cal.get("noise_model")}
+        | {k: cal.get(k) for k in ("focal_length_mm", "principal_point_px", "sigma")},
         "per_frame": per_frame,
         "rounds": report.get("rounds"),
         "per_frame_status": [f["status"] for f in report["per_frame"]],
