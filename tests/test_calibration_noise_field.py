@@ -257,3 +257,15 @@ def test_the_radial_floor_does_not_depend_on_how_the_frames_are_chunked():
     for key in ("floor_px2", "edge_px2", "lr"):
         assert parts.noise_model[key] == pytest.approx(whole.noise_model[key], rel=1e-9, abs=1e-15)
     assert_same_camera(whole, parts)
+
+
+def test_stars_of_one_sigma_px_leave_the_centre_floor_unseparated_and_the_growth_stated():
+    """Every star given the same sigma_px (0.05 px): the scale and b cannot be told apart (their errors inf, as the
+    constant floor's are), c still can: chosen, its error finite and the truth within 3 of it."""
+    data = radial_session(1, frames=200)[0]
+    same = build_data(data.x_px, data.y_px, data.r, data.frame_index(), sigma_px=np.full(data.n_obs, 0.05))
+    record = calibrate(same, NOMINAL, estimate=ESTIMATE_NAMES).noise_model
+    assert record["model"] == "radial"
+    assert record["floor_sigma_px2"] == np.inf
+    assert 0.0 < record["edge_sigma_px2"] < np.inf
+    assert abs(record["edge_px2"] - C_PX2) <= 3.0 * record["edge_sigma_px2"]

@@ -34,6 +34,9 @@ LR_CRITICAL = 9.5495
 #: Fisher scoring stops when no component moves by more than this share of the largest variance's size.
 _SCORING_TOL = 1e-10
 _MAX_SCORING = 200
+#: Beyond this condition number of the Fisher information two components are not separable (sigma_px^2 and 1 are
+#: then proportional: their columns agree to ~1e-8 of their size, below what float64 sums resolve in F).
+_SEPARABLE_COND = 1e12
 
 
 def minus_two_log_l(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarray) -> float:
@@ -98,15 +101,30 @@ def radial_components(r: np.ndarray, e2: np.ndarray, t: np.ndarray, start: np.nd
     return theta
 
 
+def _separable(fisher: np.ndarray) -> bool:
+    """Whether the components of ``fisher`` can be told apart: the condition number of its correlation form (scaled
+    to a unit diagonal, so the components' units do not count) within :data:`_SEPARABLE_COND`."""
+    d = np.sqrt(np.diag(fisher))
+    return bool(np.all(d > 0.0) and np.linalg.cond(fisher / np.outer(d, d)) <= _SEPARABLE_COND)
+
+
 def fisher_errors(r: np.ndarray, t: np.ndarray, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Standard errors of the ``free`` components: the square roots of the diagonal of the inverse Fisher information
-    F_kl = 1/2 sum r_i T_ki T_li / v_i^2 (inf when the components cannot be told apart); 0 for the others."""
+    F_kl = 1/2 sum r_i T_ki T_li / v_i^2; 0 for the others. When a and b cannot be told apart (every star of one
+    sigma_px: :func:`_separable`) theirs are inf, as for the constant floor, and
+    c's is that of the two separable components (a sigma_px^2 + b, c)."""
     v = t @ theta
     tf = t[:, free]
     fisher = 0.5 * (tf * (r / v**2)[:, None]).T @ tf
     out = np.zeros(3)
-    try:
+    if _separable(fisher):
         out[free] = np.sqrt(np.maximum(np.diag(np.linalg.inv(fisher)), 0.0))
-    except np.linalg.LinAlgError:
-        out[free] = math.inf
+        return out
+    out[:2] = math.inf
+    tc = t[:, 1:]
+    fisher_c = 0.5 * (tc * (r / v**2)[:, None]).T @ tc
+    if free[2] and _separable(fisher_c):
+        out[2] = math.sqrt(max(np.linalg.inv(fisher_c)[1, 1], 0.0))
+    elif free[2]:
+        out[2] = math.inf
     return out
