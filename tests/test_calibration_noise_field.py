@@ -171,14 +171,15 @@ def test_the_sums_do_not_depend_on_how_the_frames_are_split():
 
 
 def test_the_radial_floor_is_chosen_and_recovered_within_its_standard_errors(radial_runs):
-    """Each session: the radial model chosen, b and c within 3 of their standard errors (inverse Fisher information
-    of the three components) of the truth; over the 8, the spread of c agrees with its stated error (the ratio of the
+    """Each session: the radial model chosen, b, c and the scale^2 within 3 of their standard errors (inverse Fisher
+    information of the three components) of the truth; over the 8, the spread of c agrees with its stated error (the ratio of the
     two within 0.4-1.6, the 99 % range of sqrt(chi-square(7) / 7) from sampling alone: 0.40-1.45 at 95 %)."""
     cs, c_sigmas = [], []
     for auto, _, comps, *_ in radial_runs:
         assert auto.noise_model["model"] == "radial" and comps.model == "radial", auto.noise_model
         assert abs(comps.floor_px**2 - B_PX2) <= 3.0 * comps.b_sigma_px2, comps
         assert abs(comps.edge_px2 - C_PX2) <= 3.0 * comps.c_sigma_px2, comps
+        assert abs(comps.scale**2 - 1.0) <= 3.0 * comps.a_sigma, comps  # the given sigma_px is the rest: scale 1
         assert auto.noise_model["lr"] > LR_CRITICAL
         cs.append(comps.edge_px2)
         c_sigmas.append(comps.c_sigma_px2)
