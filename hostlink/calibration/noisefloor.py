@@ -52,7 +52,9 @@ _GOLDEN_TOL = 1e-6
 
 #: Width of a bin of q, the squared field radius relative to the half-diagonal (:mod:`hostlink.calibration.
 #: noisefield`): 1/32, so the radial term c q varies within a bin by c / 32, its weight by at most 3 % at the corner
-#: where it is all the variance, a relative error of ~1e-3 in the likelihood's terms (second order in the spread).
+#: where it is all the variance, a relative error of ~1e-3 in the likelihood's terms (second order in the spread);
+#: near the centre a b below c / 32 spreads the first bins more, but few stars lie there: 4096 bins instead moved b
+#: and c by 0.1 of their standard errors on the simulated sessions of docs/calibration.md.
 Q_BIN_WIDTH = 1.0 / 32.0
 #: q up to 2 (a principal point off the centre puts far corners beyond the half-diagonal); beyond, the last bin.
 Q_BINS = 64
