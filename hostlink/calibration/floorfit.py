@@ -110,11 +110,13 @@ def noise_outcome(scale: float, noise: NoiseModel, comps: NoiseComponents | None
 def noise_model_record(noise: NoiseModel, comps: NoiseComponents | None) -> dict:
     """The result's record of the noise model: which (``constant`` or ``radial``), the floor^2 components b (centre)
     and c (growth to the half-diagonal) [px^2] with their standard errors, the floor at the centre and at the
-    half-diagonal [px], the likelihood-ratio statistic against the constant floor and the threshold it is held to,
+    half-diagonal [px], the likelihood-ratio statistic against the constant floor and the threshold it was held to
+    (:func:`~hostlink.calibration.noisefield.lr_critical`),
     and the field geometry (the nominal principal point and the half-diagonal [px])."""
     record = {"centre_px": list(noise.center_px), "half_diagonal_px": noise.r_max_px, "lr_critical": LR_CRITICAL}
     if comps is None:
         return {"model": "constant", "floor_px2": 0.0, "edge_px2": 0.0, **record}
+    record["lr_critical"] = comps.lr_critical
     return {
         "model": comps.model,
         "floor_px2": comps.floor_px**2,

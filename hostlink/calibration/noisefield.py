@@ -16,10 +16,16 @@ F_kl = sum r_i T_ki T_li / v_i^2 and h_k = sum |e_i|^2 T_ki / v_i^2, T_i = (sigm
 3.6.3; Foerstner 1979) under b, c >= 0 (an active set: a component that would go negative is held at 0, and freed
 again when the likelihood's gradient points inward), with a halved step whenever a full one would not lower -2 log L.
 
-Choice: the constant floor (c = 0) is the null hypothesis, on the boundary of the radial one, so the likelihood-ratio
-statistic LR = (-2 log L)_constant - (-2 log L)_radial is distributed as an equal mixture of chi-square with 0 and 1
-degrees of freedom under it (Self and Liang 1987, J. Am. Stat. Assoc. 82, 605, case 5); the radial floor is chosen
-when LR exceeds :data:`LR_CRITICAL`, a 1e-3 chance of choosing it for a session whose floor is constant.
+Choice: the constant floor (c = 0) is the null hypothesis, on the boundary of the radial one. With the centre floor
+b > 0 (a nuisance parameter inside its range) the likelihood-ratio statistic LR = (-2 log L)_constant -
+(-2 log L)_radial is distributed as an equal mixture of chi-square with 0 and 1 degrees of freedom under it (Self and
+Liang 1987, J. Am. Stat. Assoc. 82, 605: one parameter of interest on the boundary, the nuisance parameters
+inside): 9.55 (:data:`LR_CRITICAL`) is its 1e-3 point. With no floor at all (b = 0, the nuisance on its boundary as
+well) the distribution depends on the angle phi between the b and c directions in the Fisher metric (profiled over
+a; Self and Liang's geometry, :func:`boundary_tail`): below the equal mixture for phi < 90 deg (sigma_px unrelated
+to the field radius: the 1e-3 point 5.1 at phi = 35 deg), above it for phi > 90 deg (sigma_px growing with the
+radius: 2.4e-3 at 9.55 for phi = 148 deg). The radial floor is chosen when LR exceeds the larger of the two 1e-3
+points (:func:`lr_critical`): at most a 1e-3 chance of choosing it for a session whose floor is constant, whatever b.
 """
 
 from __future__ import annotations
@@ -85,20 +91,75 @@ def radial_components(r: np.ndarray, e2: np.ndarray, t: np.ndarray, start: np.nd
     for _ in range(_MAX_SCORING):
         step = _free_target(r, e2, t, theta) - theta
         down = step < 0.0
-        lam = min(1.0, float(np.min(theta[down] / -step[down]))) if np.any(down) else 1.0
+        to_zero = np.full(3, math.inf)
+        to_zero[down] = theta[down] / -step[down]
+        lam = min(1.0, float(np.min(to_zero)))
+        # the components whose path reaches 0 first are set to exactly 0 (theta + lam step leaves them a rounding
+        # error either side, and one left at 1e-20 would end the loop below on a step that moved nothing)
+        reach = to_zero <= lam
         while True:
             trial = np.maximum(theta + lam * step, 0.0)
+            trial[reach] = 0.0
             value = minus_two_log_l(r, e2, t, trial) if np.all(t @ trial > 0.0) else math.inf
             if value <= best or lam < 1e-6:
                 break
             lam *= 0.5
+            reach = to_zero <= lam
         if value > best:
             break
-        moved = float(np.max(np.abs(trial - theta)))
+        # converged when the full step to the target is negligible, not the move: a step cut short at the boundary
+        # moves little while the free components are still far from their maximum
         theta, best = trial, value
-        if moved <= _SCORING_TOL * float(np.max(t @ theta)):
+        if float(np.max(np.abs(step))) <= _SCORING_TOL * float(np.max(t @ theta)):
             break
     return theta
+
+
+#: The false-alarm rate the choice is held to, and the polar grid :func:`boundary_tail` integrates over (the integrand
+#: is smooth between the 4 region boundaries: 20000 points give the tail to ~1e-7 of itself).
+FALSE_ALARM = 1e-3
+_ANGLES = 20_000
+
+
+def boundary_tail(x: float, phi_rad: float) -> float:
+    """P(LR > x) under b = c = 0, asymptotically: Z ~ N(0, I) in the plane whitened by the profiled Fisher metric,
+    the null cone the b ray (polar angle 0), the alternative the wedge between it and the c ray (angle ``phi_rad``);
+    LR = d(Z, null)^2 - d(Z, wedge)^2 = R^2 g(theta) with R^2 ~ chi-square(2) independent of the uniform theta, so
+    P(LR > x) = mean over theta of exp(-x / (2 g(theta))) (Self and Liang 1987, sec. 3: the projections onto the
+    cones). g: sin^2 theta (1 past 90 deg) inside the wedge; that less sin^2(theta - phi) within 90 deg beyond the c
+    ray; 0 elsewhere (both projections the same)."""
+    theta = (np.arange(_ANGLES, dtype=np.float64) + 0.5) * (2.0 * math.pi / _ANGLES)
+    to_null = np.where(theta <= 0.5 * math.pi, np.sin(theta) ** 2, 1.0)
+    g = np.where(theta <= phi_rad, to_null, 0.0)
+    beyond = (theta > phi_rad) & (theta <= phi_rad + 0.5 * math.pi)
+    g = np.where(beyond, to_null - np.sin(theta - phi_rad) ** 2, g)
+    with np.errstate(divide="ignore"):
+        tail = np.where(g > 0.0, np.exp(-x / (2.0 * np.maximum(g, 1e-300))), 0.0)
+    return float(np.mean(tail))
+
+
+def _boundary_critical(phi_rad: float) -> float:
+    """The x where :func:`boundary_tail` is :data:`FALSE_ALARM` (bisection to 1e-6; the tail falls with x)."""
+    lo, hi = 0.0, 50.0
+    while hi - lo > 1e-6:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if boundary_tail(mid, phi_rad) > FALSE_ALARM else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def lr_critical(r: np.ndarray, t: np.ndarray, theta: np.ndarray) -> float:
+    """The likelihood ratio above which the radial floor is chosen, for the bins ``r``, regressors ``t`` and the
+    constant floor's estimate ``theta`` (a, b, 0): the larger of :data:`LR_CRITICAL` (b > 0) and the 1e-3 point of
+    :func:`boundary_tail` (b = 0) at the angle between b and c in the Fisher information profiled over a (its Schur
+    complement). :data:`LR_CRITICAL` when a and b cannot be told apart (every star of one sigma_px: a sigma_px^2 + b
+    is then one component inside its range, the case of the equal mixture)."""
+    v = t @ theta
+    fisher = 0.5 * (t * (r / v**2)[:, None]).T @ t
+    if not _separable(fisher):
+        return LR_CRITICAL
+    m = fisher[1:, 1:] - np.outer(fisher[1:, 0], fisher[0, 1:]) / fisher[0, 0]
+    phi = math.acos(max(-1.0, min(1.0, m[0, 1] / math.sqrt(m[0, 0] * m[1, 1]))))
+    return max(LR_CRITICAL, _boundary_critical(phi))
 
 
 def _separable(fisher: np.ndarray) -> bool:

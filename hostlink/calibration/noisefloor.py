@@ -34,7 +34,7 @@ import numpy as np
 from hostlink.calibration.data import SIGMA_PX_CEILING, SIGMA_PX_FLOOR, CalibrationData
 from hostlink.calibration.frames import inverse_3x3
 from hostlink.calibration.model import attitude_terms, camera_terms
-from hostlink.calibration.noisefield import LR_CRITICAL, fisher_errors, minus_two_log_l, radial_components
+from hostlink.calibration.noisefield import LR_CRITICAL, fisher_errors, lr_critical, minus_two_log_l, radial_components
 from hostlink.calibration.normal import attitude_normal
 from hostlink.calibration.passes import frame_attitudes
 from hostlink.calibration.source import ChunkSource, without_rows
@@ -118,7 +118,8 @@ class NoiseComponents:
     """The estimated components: ``scale`` s (a = s^2), ``floor_px`` (b = floor^2 at the centre), the ratio ``t`` =
     b / a [px^2], the standard errors of a and b, the degrees of freedom sum r_i; the radial term ``edge_px2`` c
     (floor(q)^2 = b + c q, 0 for the constant model), its standard error, ``model`` ("constant" or "radial", as
-    chosen) and the likelihood-ratio statistic ``lr`` of the radial model against the constant one."""
+    chosen), the likelihood-ratio statistic ``lr`` of the radial model against the constant one and the
+    ``lr_critical`` it was held to (:func:`~hostlink.calibration.noisefield.lr_critical`)."""
 
     scale: float
     floor_px: float
@@ -130,6 +131,7 @@ class NoiseComponents:
     c_sigma_px2: float = 0.0
     model: str = "constant"
     lr: float = 0.0
+    lr_critical: float = LR_CRITICAL
 
     def weights(self, geometry: NoiseModel) -> NoiseModel:
         """The :class:`NoiseModel` of these components on the field ``geometry``."""
@@ -245,7 +247,9 @@ def variance_components(sums: NoiseSums, radial: bool = True) -> NoiseComponents
     """The restricted maximum-likelihood components from the binned sums: the constant floor's (a, b) of the module
     docstring (the floor at the boundary t = 0 unless a positive ratio is strictly more likely), and with ``radial``
     the (a, b, c) of :mod:`hostlink.calibration.noisefield` from there, chosen when its likelihood ratio exceeds
-    :data:`~hostlink.calibration.noisefield.LR_CRITICAL` (no further pass over the data: the same sums)."""
+    :func:`~hostlink.calibration.noisefield.lr_critical` (:data:`~hostlink.calibration.noisefield.LR_CRITICAL`, or
+    more when the floor may be 0 and sigma_px grows with the field radius; no further pass over the data: the same
+    sums)."""
     r, e2, s2, q = _binned(sums)
     if r.size == 0 or np.sum(e2) <= 0.0:
         raise ValueError("no residual to estimate the noise from")
@@ -267,8 +271,9 @@ def variance_components(sums: NoiseSums, radial: bool = True) -> NoiseComponents
     regressors = np.column_stack([s2, np.ones_like(s2), q])
     theta = radial_components(r, e2, regressors, np.array([a, b, 0.0]))
     lr = minus_two_log_l(r, e2, regressors, np.array([a, b, 0.0])) - minus_two_log_l(r, e2, regressors, theta)
-    if not (lr > LR_CRITICAL and theta[2] > 0.0):
-        return replace(constant, lr=max(lr, 0.0))
+    critical = lr_critical(r, regressors, np.array([a, b, 0.0]))
+    if not (lr > critical and theta[2] > 0.0):
+        return replace(constant, lr=max(lr, 0.0), lr_critical=critical)
     err = fisher_errors(r, regressors, theta, np.ones(3, dtype=bool))  # at a boundary b = 0 too: its local spread
     a, b, c = (float(x) for x in theta)
     return NoiseComponents(
@@ -282,6 +287,7 @@ def variance_components(sums: NoiseSums, radial: bool = True) -> NoiseComponents
         float(err[2]),
         "radial",
         lr,
+        critical,
     )
 
 
