@@ -4,9 +4,10 @@ licence: tests/data/realsky_openstartracker_LICENSE) through ``hostlink identify
 
 The chain starts from the centroids ``hostlink centroid`` found in the frames, stored in tests/data (the frames
 themselves, 21 MB, are not in the repository), so the test stands alone. Where the frames are present
-(``STARTRACKER_REALSKY_DIR``), they go through a fresh ``hostlink centroid`` run too. Regenerate the stored centroids
-after a change of the detector: ``python scripts/realsky.py --images DIR --write-centroids
-tests/data/realsky_openstartracker_centroids.csv`` (it must still print PASS)."""
+(``STARTRACKER_REALSKY_DIR``, or ``openstartracker/`` under ``STARTRACKER_REALSKY_ROOT``), they go through a fresh
+``hostlink centroid`` run too. Regenerate the stored centroids after a change of the detector: ``python
+scripts/realsky.py --images DIR --write-centroids tests/data/realsky_openstartracker_centroids.csv`` (it must still
+print PASS)."""
 
 import importlib.util
 import os
@@ -26,7 +27,16 @@ pytestmark = pytest.mark.slow  # real frames end to end (issue 29: the fast lane
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "realsky.py"
 STORED = ROOT / "tests" / "data" / "realsky_openstartracker_centroids.csv"
-IMAGES = Path(os.environ.get("STARTRACKER_REALSKY_DIR", "/work/shared/realsky/openstartracker"))
+#: STARTRACKER_REALSKY_DIR, or openstartracker/ under STARTRACKER_REALSKY_ROOT (docs/realsky.md); neither: skipped.
+IMAGES = Path(
+    os.environ.get("STARTRACKER_REALSKY_DIR")
+    or (
+        Path(os.environ["STARTRACKER_REALSKY_ROOT"]) / "openstartracker"
+        if "STARTRACKER_REALSKY_ROOT" in os.environ
+        else ""
+    )
+    or ROOT / "tests" / "no-realsky-root"
+)
 
 
 def load_script():
