@@ -396,3 +396,18 @@ def test_no_floor_and_sigma_growing_with_radius_keeps_the_false_alarm_rate():
     assert np.all(criticals > LR_CRITICAL + 1.0)
     assert abs(np.mean(lrs > 2.706) - tails[0]) <= 3.0 * np.sqrt(tails[0] * (1.0 - tails[0]) / lrs.size)
     assert np.count_nonzero(lrs > criticals) <= 3
+
+
+def test_stars_of_one_sigma_px_state_no_precision_for_the_constant_floor_either():
+    """Per-star bins of one sigma_px (0.05 px; the sums' s2 then exactly equal): the constant floor's Fisher
+    information is singular, and the inverse of it had stated the scale and floor to 0 +- 0 (the negative diagonal
+    clipped); their errors are inf, as the radial model's are, and a sigma_px spread of 30 % gives finite ones."""
+    rng = np.random.default_rng(0)
+    n = 2000
+    q, r = rng.uniform(0.0, 1.0, n), np.full(n, 2.0)
+    for spread, finite in ((0.0, False), (0.3, True)):
+        s2 = (0.05 * (1.0 + spread * rng.standard_normal(n))) ** 2
+        comps = variance_components(_sums(r, (s2 + 0.01) * rng.chisquare(2.0, n), s2, q))
+        assert comps.model == "constant"
+        assert np.isfinite([comps.a_sigma, comps.b_sigma_px2]).tolist() == [finite, finite], comps
+        assert comps.a_sigma > 0.0 and comps.b_sigma_px2 > 0.0

@@ -256,19 +256,13 @@ def variance_components(sums: NoiseSums, radial: bool = True) -> NoiseComponents
     t = _constant_ratio(r, e2, s2)
     a = _profile(r, e2, s2, t)[1]
     b = a * t
-    v = a * s2 + b
-    fisher = 0.5 * np.array(
-        [[np.sum(r * s2 * s2 / v**2), np.sum(r * s2 / v**2)], [np.sum(r * s2 / v**2), np.sum(r / v**2)]]
-    )
-    try:
-        cov = np.linalg.inv(fisher)
-        a_sigma, b_sigma = float(np.sqrt(max(cov[0, 0], 0.0))), float(np.sqrt(max(cov[1, 1], 0.0)))
-    except np.linalg.LinAlgError:  # every star of one sigma_px: the two components are not separable
-        a_sigma, b_sigma = float("inf"), float("inf")
-    constant = NoiseComponents(math.sqrt(a), math.sqrt(b), t, a_sigma, b_sigma, float(np.sum(r)))
+    regressors = np.column_stack([s2, np.ones_like(s2), q])
+    # inf when every star has one sigma_px (a and b not separable; the inverse of the singular information had
+    # stated 0 +- 0 before)
+    a_sigma, b_sigma, _ = fisher_errors(r, regressors, np.array([a, b, 0.0]), np.array([True, True, False]))
+    constant = NoiseComponents(math.sqrt(a), math.sqrt(b), t, float(a_sigma), float(b_sigma), float(np.sum(r)))
     if not radial:
         return constant
-    regressors = np.column_stack([s2, np.ones_like(s2), q])
     theta = radial_components(r, e2, regressors, np.array([a, b, 0.0]))
     lr = minus_two_log_l(r, e2, regressors, np.array([a, b, 0.0])) - minus_two_log_l(r, e2, regressors, theta)
     critical = lr_critical(r, regressors, np.array([a, b, 0.0]))
