@@ -69,7 +69,8 @@ _DELAUNAY_AS = np.array(
         (335779.526232, 1739527262.8478),
         (1072260.70369, 1602961601.2090),
         (450160.398036, -6962890.5431),
-    ]
+    ],
+    dtype=np.float64,
 )
 #: IAU 2000B luni-solar nutation, its 30 largest terms (McCarthy & Luzum 2003, Table 2; the order of the published
 #: table). Columns: multipliers of l, l', F, D, Omega; dpsi sin, t sin, cos; deps cos, t cos, sin [0.1 uas].

@@ -63,7 +63,7 @@ SIGMA_FILE_FIELDS: tuple[str, ...] = (
 
 def unknown_sigma() -> np.ndarray:
     """A sigma vector with nothing known (all NaN), float64, ESTIMATE_NAMES order."""
-    return np.full(N_PARAMS, np.nan)
+    return np.full(N_PARAMS, np.nan, dtype=np.float64)
 
 
 def validate_sigma(sigma: Sequence[float] | np.ndarray) -> None:

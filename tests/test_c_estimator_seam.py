@@ -73,8 +73,9 @@ def test_c_seam_reports_the_python_seams_estimate(precision, sigma):
         assert lib.estimator_seam_update(c_state, x.size, *args, ptr(np.ascontiguousarray(ident, np.uint8))) == 0
         differing += c_saved_state() != recursive.save_state(state)
         n_frames += 1
-    print(f"seam {precision}: {n_frames} frames, {differing} with a differing state")
-    assert n_frames == 300 and differing == 0
+    assert n_frames == 300 and differing == 0, (
+        f"seam {precision}: {n_frames} frames, {differing} with a differing state"
+    )
     values, sig, mask, n = c_estimate()
     v_py, s_py, m_py, n_py = py.estimate(state)
     assert (mask, n) == (m_py, n_py) and n > 250  # the session updates the filter: a comparison of something
@@ -84,7 +85,6 @@ def test_c_seam_reports_the_python_seams_estimate(precision, sigma):
     # 1.1e-15 (tests/test_c_recursive.py); its float32 rounding can then differ only where the double lies that
     # close to a rounding boundary: at most 1 float32 ulp apart
     ulps = np.abs(sig.view(np.int32) - s_py.astype(np.float32).view(np.int32))
-    print(f"seam {precision}: 1-sigma at most {ulps.max()} float32 ulp apart")
-    assert np.all(ulps <= 1)
+    assert np.all(ulps <= 1), f"seam {precision}: 1-sigma at most {ulps.max()} float32 ulp apart"
     for n_stars in (0, 3, 17, 32, 255):
         assert lib.estimator_seam_cost_flops(ref(cfg), n_stars) == py.cost_flops(n_stars)

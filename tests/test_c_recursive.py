@@ -83,8 +83,7 @@ def test_c_estimator_is_bit_exact_with_python_after_every_frame(nominal, precisi
     n_frames, differing, c, state = _replay_both(
         nominal, ESTIMATE_NAMES, config, _frames(REPLAY_FRAMES, seed=11), precision
     )
-    print(f"{precision}: {n_frames} frames, {differing} with a differing state or result")
-    assert n_frames == REPLAY_FRAMES and differing == 0
+    assert n_frames == REPLAY_FRAMES and differing == 0, f"{precision}: {n_frames} frames, {differing} differing"
     assert state.updates > 0.9 * n_frames  # the session updates the filter: a comparison of something
     # the estimate after the session: the same float32 state, read in double by the same operations
     assert np.array_equal(c.state_vector(), recursive.state_vector(state))
