@@ -181,9 +181,10 @@ def test_fisher_scoring_finds_the_bounded_maximum(b, c):
 
 
 def test_the_choice_has_the_mixtures_false_alarm_rate():
-    """400 draws with a constant floor (0.1 px): the likelihood ratio is 1/2 chi-square(0) + 1/2 chi-square(1)
-    (Self and Liang 1987), so P(LR > 2.706) = 0.05: 20 of 400 expected, binomial sd 4.4, held to 8-34 (2.8 sd); the
-    radial model chosen (LR > 9.55: 1e-3) in 0.4 expected, held to at most 3 (Poisson P(>= 4) = 8e-4)."""
+    """400 draws with a constant floor (0.1 px, inside its range): the likelihood ratio is 1/2 chi-square(0) +
+    1/2 chi-square(1) (Self and Liang 1987), so P(LR > 2.706) = 0.05: 20 of 400 expected, binomial sd 4.4, held to
+    8-34 (-2.8 to +3.2 sd); the radial model chosen (LR > 9.55: 1e-3) in 0.4 expected, held to at most 3 (Poisson
+    P(>= 4) = 8e-4). With no floor at all: test_no_floor_and_sigma_growing_with_radius_keeps_the_false_alarm_rate."""
     lrs = np.array([variance_components(_sums(*_bins(2000, 100 + k, 0.01, 0.0))).lr for k in range(400)])
     assert 8 <= np.count_nonzero(lrs > scipy.stats.chi2.isf(0.10, 1)) <= 34
     assert np.count_nonzero(lrs > LR_CRITICAL) <= 3
