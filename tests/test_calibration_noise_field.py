@@ -412,3 +412,22 @@ def test_stars_of_one_sigma_px_state_no_precision_for_the_constant_floor_either(
         assert comps.model == "constant"
         assert np.isfinite([comps.a_sigma, comps.b_sigma_px2]).tolist() == [finite, finite], comps
         assert comps.a_sigma > 0.0 and comps.b_sigma_px2 > 0.0
+
+
+def test_an_unknown_noise_model_is_refused_with_or_without_sigma_px():
+    """noise_model is checked before any pass: 'radial' (not a choice: the data choose it under 'auto') was refused
+    only when the session had sigma_px, and then as 'calibration failed'; now a one-line option error either way."""
+    from hostlink.calibration.outcome import check_run_options
+    from hostlink.errors import UserError
+
+    data = synthetic_session(CAMERA, 20, noise_px=0.05, seed=1).data
+    assert data.sigma_px is None
+    given = build_data(data.x_px, data.y_px, data.r, data.frame_index(), sigma_px=np.full(data.n_obs, 0.05))
+    for session in (data, given):
+        with pytest.raises(ValueError, match="unknown noise model 'radial'"):
+            calibrate(session, NOMINAL, estimate=ESTIMATE_NAMES, noise_model="radial")
+    with pytest.raises(
+        UserError, match="^noise_model: unknown noise model 'Constant' \\(choose from auto, constant\\)$"
+    ):
+        check_run_options(None, 100, "Constant")
+    check_run_options(None, 100, "constant")

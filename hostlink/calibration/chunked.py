@@ -156,6 +156,7 @@ def calibrate_chunks(
     (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
     ``noise_model``: "auto" (the floor constant or radial as the data choose) or "constant".
     Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
+    radial = radial_allowed(noise_model)  # an unknown model refused before any pass, with sigma_px or not
     theta0 = nominal.model_vector(np.float64)
     sample, warm = warm_levels(source, source.n_frames())
     weighted = sample.sigma_px is not None
@@ -172,7 +173,7 @@ def calibrate_chunks(
     options = BundleOptions(
         estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
     )
-    fit = partial(fit_with_floor, _fit, radial=radial_allowed(noise_model)) if weighted else _fit
+    fit = partial(fit_with_floor, _fit, radial=radial) if weighted else _fit
     res, held, *floor = fit(source, nominal, start, options, estimate is None, voted, run_pass, warm)
     noise, comps = floor[0] if floor else (NoiseModel(), None)  # the statistics and attitudes weighted as the fit
     source = floored_source(source, noise)
@@ -390,7 +391,7 @@ def calibrate_archive(
 
     from hostlink.files.session import DEFAULT_CHUNK_FRAMES
 
-    check_run_options(noise_px, max_iter)
+    check_run_options(noise_px, max_iter, noise_model)
     chunk_frames = DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames
     if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
         raise UserError(f"--chunk-frames {chunk_frames!r}: expected a whole number >= 1")

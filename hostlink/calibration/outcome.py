@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostlink.calibration.data import CalibrationData
+from hostlink.calibration.floorfit import radial_allowed
 from hostlink.calibration.model import ARCSEC_PER_RAD
 from hostlink.calibration.report import (
     REASON_FEW_IN_FRAME,
@@ -136,13 +137,18 @@ def start_from_prepass(prepass: ScaleParity, nominal: CameraParams, scale_focal:
     return nominal.with_focal_length_mm(nominal.focal_length_mm * prepass.scale)
 
 
-def check_run_options(noise_px: float | None, max_iter: int) -> None:
-    """UserError (one line, naming the option) for a noise that is not a positive number of pixels or fewer than one
-    iteration: the options every calibration run takes."""
+def check_run_options(noise_px: float | None, max_iter: int, noise_model: str = "auto") -> None:
+    """UserError (one line, naming the option) for a noise that is not a positive number of pixels, fewer than one
+    iteration or an unknown ``noise_model`` (:data:`hostlink.calibration.floorfit.NOISE_MODELS`; refused whether
+    or not the session has sigma_px): the options every calibration run takes."""
     if noise_px is not None and not (math.isfinite(noise_px) and noise_px > 0):
         raise UserError(f"--noise-px {noise_px}: expected a positive number of pixels")
     if max_iter < 1:
         raise UserError(f"--max-iter {max_iter}: expected at least 1")
+    try:
+        radial_allowed(noise_model)
+    except ValueError as exc:
+        raise UserError(f"noise_model: {exc}") from None
 
 
 def check_focal_scale(prepass: ScaleParity, from_nominal: bool, none_agrees: bool) -> None:

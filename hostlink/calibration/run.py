@@ -205,7 +205,7 @@ def calibrate_session(
     identified stars, a mirrored image, a calibration that fails or a result that is not a usable parameter set."""
     if method not in METHODS:
         raise UserError(f"--method {method!r}: expected one of {', '.join(METHODS)}")
-    check_run_options(noise_px, max_iter)
+    check_run_options(noise_px, max_iter, noise_model)
     if len(session) == 0:
         raise UserError("no star rows in the session")
     check_on_detector(session, nominal.image_size_px, "the session", "the nominal parameters")
