@@ -25,7 +25,8 @@ well) the distribution depends on the angle phi between the b and c directions i
 a; Self and Liang's geometry, :func:`boundary_tail`): below the equal mixture for phi < 90 deg (sigma_px unrelated
 to the field radius: the 1e-3 point 5.1 at phi = 35 deg), above it for phi > 90 deg (sigma_px growing with the
 radius: 2.4e-3 at 9.55 for phi = 148 deg). The radial floor is chosen when LR exceeds the larger of the two 1e-3
-points (:func:`lr_critical`): at most a 1e-3 chance of choosing it for a session whose floor is constant, whatever b.
+points (:func:`lr_critical`): at most a 1e-3 chance of choosing it for a session whose floor is constant, in both
+limits (b = 0, and b many standard errors above 0; asymptotically, as every rate here).
 """
 
 from __future__ import annotations
