@@ -207,8 +207,8 @@ def test_the_sums_do_not_depend_on_how_the_frames_are_split():
 def test_the_radial_floor_is_chosen_and_recovered_within_its_standard_errors(radial_runs):
     """Each session: the radial model chosen, b, c and the scale^2 within 3 of their standard errors (inverse Fisher
     information of the three components) of the truth; over the 8, the spread of c agrees with its stated error (the
-    ratio of the two within 0.4-1.6, the 99 % range of sqrt(chi-square(7) / 7) from sampling alone: 0.40-1.45 at
-    95 %)."""
+    ratio of the two within the 99 % range of sqrt(chi-square(7) / 7) from sampling alone: 0.376-1.702, from scipy;
+    the 95 % range is 0.491-1.512)."""
     cs, c_sigmas = [], []
     for auto, _, comps, *_ in radial_runs:
         assert auto.noise_model["model"] == "radial" and comps.model == "radial", auto.noise_model
@@ -218,7 +218,8 @@ def test_the_radial_floor_is_chosen_and_recovered_within_its_standard_errors(rad
         assert auto.noise_model["lr"] > LR_CRITICAL
         cs.append(comps.edge_px2)
         c_sigmas.append(comps.c_sigma_px2)
-    assert 0.4 <= np.std(cs, ddof=1) / np.mean(c_sigmas) <= 1.6, (np.std(cs, ddof=1), np.mean(c_sigmas))
+    lo, hi = np.sqrt(scipy.stats.chi2.ppf([0.005, 0.995], len(cs) - 1) / (len(cs) - 1))
+    assert lo <= np.std(cs, ddof=1) / np.mean(c_sigmas) <= hi, (np.std(cs, ddof=1), np.mean(c_sigmas))
 
 
 def test_the_radial_weights_reach_the_bound_where_the_constant_ones_fall_short(radial_runs):
