@@ -94,6 +94,10 @@ _PSF_RMAX_SIGMAS = 4.0
 _PSF_ITERATIONS = 3
 #: Smallest PSF sigma the window may take [px] (SEP's own floor for winpos, 2 / 2.35 x 0.5 = 0.43 px, rounded).
 _MIN_PSF_SIGMA_PX = 0.45
+#: ``sep.winpos`` weighs the pixels its 4-sigma circle cuts by their exact overlap with it (0), not by 11 x 11
+#: sub-pixels (Source Extractor's default): the same centroids within 8e-5 px for 99 % of granasat's detections
+#: (0.015 px at most, a faint star), in 40 % of the time (docs/realsky.md, "Time").
+_WINPOS_SUBPIX = 0
 #: A windowed centroid that moves farther than this from the isophotal one [px] has failed (a neighbour pulled it).
 _WINPOS_MAX_SHIFT_PX = 2.0
 #: An ellipticity is significant beyond this many standard deviations of its noise (a round star exceeds it with
@@ -116,7 +120,10 @@ _PSF_SHAPE_MAX_SIGMA = 0.1
 #: centroid follows the core's asymmetries: measured 0.33 px per axis over the 446 saturated stars of the granasat
 #: JPEG frames after calibration, against 0.19 px for their unsaturated stars (docs/realsky.md).
 SATURATED_SIGMA_PX = 0.3
-#: SEP's buffers: a noisy frame at a low threshold can hold many more pixels above threshold than SEP's default.
+#: SEP's buffer of pixels above the threshold: its default first, then this when a frame fills it (a noisy frame at a
+#: low threshold can hold many more). Only the buffer's size differs, not what is extracted: SEP either fills it and
+#: stops with an error or does not; the large one costs ~50 ms per 1.2 Mpx frame to set up (docs/realsky.md, "Time").
+_SEP_PIXSTACK_FIRST = 300_000
 _SEP_PIXSTACK = 3_000_000
 #: SEP's cleaning (Source Extractor's CLEAN: a detection its bright neighbour's modelled wing could explain is merged
 #: into it) is off: on the granasat frames it removed sharp stars of 8-16 sigma 8-18 px from a bright one (the
@@ -260,7 +267,18 @@ def centroid_pixels(
     by stage: :func:`_extract` (background, noise, detection), :func:`_screen` (rejections before centroiding),
     :func:`_centroid_screened` (centroids, unresolved pairs, the PSF fit), :func:`_measured` (fluxes, ``sigma_px``,
     order). ``background``: a dark or median frame to subtract first; ``saturation_adu``: the clip level of ``pixels``
-    (``options.saturation_adu`` wins; None: no saturation test)."""
+    (``options.saturation_adu`` wins; None: no saturation test). On one BLAS thread
+    (:func:`hostlink.calibration.data.one_blas_thread`): its matrix products are small (4 x 4 normal matrices per
+    star, a frame's background interpolated from a few hundred boxes), and OpenBLAS's threads would spend more time
+    waiting than computing."""
+    from hostlink.calibration.data import one_blas_thread
+
+    with one_blas_thread():
+        return _centroid_pixels(pixels, options, background, saturation_adu)
+
+
+def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_adu: float | None) -> Detections:
+    """:func:`centroid_pixels`, stage by stage."""
     _check_options(options)
     raw = np.ascontiguousarray(pixels, dtype=np.float64)
     level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
@@ -426,7 +444,6 @@ def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | Non
     import sep
 
     box = int(min(options.background_box_px, max(8, min(data.shape) // 2)))
-    sep.set_extract_pixstack(_SEP_PIXSTACK)
     sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
     try:
         blank = np.zeros(data.shape, dtype=bool) if blank is None else blank
@@ -436,7 +453,18 @@ def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | Non
             sub, bkg.rms(), _FILTER_KERNEL, box, blank, bkg.globalback
         )
         sub -= offset
-        objects, segmap = sep.extract(
+        objects, segmap = _sep_extract(sep, sub, rms, ignored, options)
+    except Exception as exc:  # SEP reports buffer overflows as plain exceptions
+        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
+    return sub, rms, filtered, objects, segmap
+
+
+def _sep_extract(sep, sub: np.ndarray, rms: np.ndarray, ignored: np.ndarray, options: CentroidOptions):
+    """``sep.extract`` of :func:`_extract` with SEP's default pixel buffer, again with :data:`_SEP_PIXSTACK` when a
+    frame fills it (the same extraction either way)."""
+
+    def extract():
+        return sep.extract(
             sub,
             options.threshold_sigma,
             err=rms,
@@ -448,9 +476,15 @@ def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | Non
             clean=_SEP_CLEAN,
             segmentation_map=True,
         )
-    except Exception as exc:  # SEP reports buffer overflows as plain exceptions
-        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
-    return sub, rms, filtered, objects, segmap
+
+    sep.set_extract_pixstack(_SEP_PIXSTACK_FIRST)
+    try:
+        return extract()
+    except Exception as exc:
+        if "pixel buffer full" not in str(exc):
+            raise
+    sep.set_extract_pixstack(_SEP_PIXSTACK)
+    return extract()
 
 
 @dataclass(frozen=True)
@@ -709,10 +743,8 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     cols, rows, cut, inside = _stamps(sub, x, y, outer)
     offsets = np.abs(np.arange(-outer, outer + 1))
     inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
-    ring = np.where(inside & ~inner, cut, np.nan).reshape(x.size, -1)
-    counted = np.any(np.isfinite(ring), axis=1)
-    background = np.zeros(x.size)
-    background[counted] = np.nanmedian(ring[counted], axis=1)
+    background = _row_medians(cut.reshape(x.size, -1), (inside & ~inner).reshape(x.size, -1))
+    background[~np.isfinite(background)] = 0.0
     p = (
         pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
         * pixel_integrated_gaussian(cols, x[:, None], sigma_px)[:, None, :]
@@ -721,12 +753,25 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
 
 
+def _row_medians(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The median of each row of ``values`` (n, p) over its ``valid`` entries (NaN where none): the rows wholly
+    valid (every stamp inside the image) in one call, the others one by one (``np.nanmedian``'s masked arrays are
+    several times slower)."""
+    out = np.full(values.shape[0], np.nan)
+    whole = valid.all(axis=1)
+    if whole.any():
+        out[whole] = np.median(values[whole], axis=1)
+    for k in np.flatnonzero(~whole & valid.any(axis=1)):
+        out[k] = np.median(values[k][valid[k]])
+    return out
+
+
 def _windowed_centroids(sub: np.ndarray, good: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """SEP's windowed centroids (XWIN_IMAGE) with window ``sigma_px``; where the window fails or wanders more than
     :data:`_WINPOS_MAX_SHIFT_PX` from the isophotal barycentre, the barycentre."""
     import sep
 
-    xw, yw, flag = sep.winpos(sub, good["x"], good["y"], np.full(good.size, sigma_px))
+    xw, yw, flag = sep.winpos(sub, good["x"], good["y"], np.full(good.size, sigma_px), subpix=_WINPOS_SUBPIX)
     failed = (flag != 0) | (np.hypot(xw - good["x"], yw - good["y"]) > _WINPOS_MAX_SHIFT_PX)
     return np.where(failed, good["x"], xw), np.where(failed, good["y"], yw)
 
@@ -1290,8 +1335,8 @@ def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None
     out_x, out_y = x.copy(), y.copy()
     cols, rows, data, inside = _stamps(sub, x, y, half)
     noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
+    background = _row_medians(data.reshape(x.size, -1), inside.reshape(x.size, -1))
     masked = np.where(inside, data, np.nan).reshape(x.size, -1)
-    background = np.nanmedian(masked, axis=1)
     flux = np.maximum(np.nansum(masked - background[:, None], axis=1), 1.0)
     params = np.column_stack([x, y, flux, background])
     whiten = np.where(inside, 1.0 / np.sqrt(noise_var), 0.0)
