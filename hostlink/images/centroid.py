@@ -205,6 +205,7 @@ class FrameReport:
     rejected_saturated: int = 0
     saturated_kept: int = 0
     rejected_blended: int = 0
+    blended_kept: int = 0
     rejected_edge: int = 0
     rejected_no_flux: int = 0
     candidates: int = 0
@@ -228,6 +229,7 @@ class Detections:
     sigma_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     saturated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     candidates: Candidates | None = None
+    blended: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 @dataclass(frozen=True)
@@ -291,16 +293,22 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     report.rejected_saturated = 0 if options.keep_saturated else int(screen.saturated.sum())
     report.rejected_hot = int(screen.hot.sum())
     report.rejected_blended = int(screen.blended.sum())
-    report.rejected_edge = int(screen.edge.sum())
-    good = objects[screen.keep]
-    if good.size == 0:
+    if not np.any(screen.keep):
         return _no_stars(report)
-    stars = _centroid_screened(
-        sub, rms, good, screen.saturated[screen.keep], screen.fit_at_edge[screen.keep], options, report
+    k = screen.keep
+    screened = _Stars(
+        objects[k]["x"].astype(np.float64),
+        objects[k]["y"].astype(np.float64),
+        objects[k],
+        screen.saturated[k],
+        screen.truncated[k],
+        screen.blend_px[k],
+        np.ones(int(k.sum())),
     )
-    if stars is None:
+    stars, sigma = _centroid_screened(sub, rms, screened, options, report)
+    if stars.x.size == 0:
         return _no_stars(report)
-    detections = _measured(sub, rms, *stars, options, report)
+    detections = _measured(sub, rms, stars, sigma, options, report)
     fainter = options.candidate_sigma is not None and options.candidate_sigma < options.threshold_sigma
     if fainter and detections.x_px.size:  # candidates are what lies below the detection threshold
         detections.candidates = _candidates(sub, rms, filtered, segmap, detections, report.psf_sigma_px, options)
@@ -371,6 +379,52 @@ def _window_iterated(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: fl
     return np.where(ok, cx, x), np.where(ok, cy, y)
 
 
+def _border_windows(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float):
+    """Windowed centroids (:func:`_window_iterated`'s iteration, from ``x``, ``y``) of stars the border cuts, each
+    over a region point-symmetric about its current centroid: along each axis the pixels within D of it, D its
+    distance to the image's edge (the outer pixel's edge), a pixel the region's boundary cuts weighted by its share
+    inside. The first moment of a point-symmetric star over a region point-symmetric about its centre vanishes, so
+    the missing side biases nothing (over the pixels there are, the window pulls the centroid inwards by up to a PSF
+    sigma; a saturated core's is the only centroid there is). Returns x, y and the share of the window's weight the
+    region holds at the end (0 where the centroid failed: no positive windowed flux, or a step leaving the
+    stamp)."""
+    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    h, w = sub.shape
+    cx, cy = x.copy(), y.copy()
+    ok = np.ones(x.size, dtype=bool)
+    for _ in range(_WINDOW_ITERATIONS):
+        wx, wy, share = _symmetric_window(cols, rows, cx, cy, sigma_px, w, h)
+        wi = wy[:, :, None] * wx[:, None, :] * data
+        total = np.sum(wi, axis=(1, 2))
+        ok &= total > 0
+        safe = np.where(ok, total, 1.0)
+        cx = cx + np.where(ok, 2.0 * np.sum(wi * (cols - cx[:, None])[:, None, :], axis=(1, 2)) / safe, 0.0)
+        cy = cy + np.where(ok, 2.0 * np.sum(wi * (rows - cy[:, None])[:, :, None], axis=(1, 2)) / safe, 0.0)
+        ok &= (np.abs(cx - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy - y) <= _WINPOS_MAX_SHIFT_PX)
+    *_, share = _symmetric_window(cols, rows, cx, cy, sigma_px, w, h)
+    return np.where(ok, cx, x), np.where(ok, cy, y), np.where(ok, share, 0.0)
+
+
+def _symmetric_window(cols, rows, cx, cy, sigma_px: float, width: int, height: int):
+    """The window of :func:`_border_windows` along x (N, W) and y (N, H) at (cx, cy): the Gaussian of ``sigma_px``
+    times each pixel's share of [c - D, c + D], D the distance from c to the nearer edge of the image (at -0.5 and
+    size - 0.5); and the share of the full window's weight it keeps (N,)."""
+
+    def axis(at: np.ndarray, centre: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+        reach = np.maximum(np.minimum(centre + 0.5, size - 0.5 - centre), 0.0)[:, None]
+        inside = np.clip(
+            np.minimum(at + 0.5, centre[:, None] + reach) - np.maximum(at - 0.5, centre[:, None] - reach), 0.0, 1.0
+        )
+        gauss = np.exp(-0.5 * ((at - centre[:, None]) / sigma_px) ** 2)
+        return gauss * inside, gauss
+
+    wx, gx = axis(cols, cx, width)
+    wy, gy = axis(rows, cy, height)
+    share = np.sum(wx, axis=1) * np.sum(wy, axis=1) / (np.sum(gx, axis=1) * np.sum(gy, axis=1))
+    return wx, wy, share
+
+
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
 _FILTERED_NOISE_PER_PX = math.sqrt(float(np.sum((_FILTER_KERNEL / _FILTER_KERNEL.sum()) ** 2)))
 
@@ -419,7 +473,8 @@ def _psf_sum_squares(x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarra
 
 def _no_stars(report: FrameReport) -> Detections:
     """The :class:`Detections` of a frame that keeps no star."""
-    return Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), np.zeros(0, bool))
+    none = np.zeros(0, bool)
+    return Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), none, blended=none)
 
 
 def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np.ndarray:
@@ -489,25 +544,26 @@ def _sep_extract(sep, sub: np.ndarray, rms: np.ndarray, ignored: np.ndarray, opt
 
 @dataclass(frozen=True)
 class _Screen:
-    """The rejections before centroiding (module docstring, step 3), (N,) bool over SEP's objects: ``keep``, and each
-    rejection counted once, in order (saturated only when not kept, hot, blended, edge); ``saturated``: a raw pixel
-    of the footprint at the clip level (kept or not); ``fit_at_edge``: cut by the border, kept while its PSF fit
-    converges."""
+    """The rejections before centroiding (module docstring, step 3), (N,) over SEP's objects: ``keep``, and each
+    rejection counted once, in order (saturated only when not kept, hot, blended); ``saturated``: a raw pixel of the
+    footprint at the clip level (kept or not); ``truncated``: cut by the border (centroided on the pixels it has,
+    :func:`_border_windows`); ``blend_px``: the bias bound [px] of a deblended star kept beside a neighbour
+    (:func:`_neighbour_bias_px`), NaN for the others."""
 
     keep: np.ndarray
     saturated: np.ndarray
     hot: np.ndarray
     blended: np.ndarray
-    edge: np.ndarray
-    fit_at_edge: np.ndarray
+    truncated: np.ndarray
+    blend_px: np.ndarray
 
 
 def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: float | None) -> _Screen:
-    """Module docstring, step 3, before any centroid: edge, saturated, hot pixels and deblended neighbours."""
+    """Module docstring, step 3, before any centroid: saturated, hot pixels and deblended neighbours; the stars cut by
+    the border marked."""
     import sep
 
-    # edge: the footprint touches the border (its centroid is biased)
-    edge = (objects["flag"] & sep.OBJ_TRUNC) != 0
+    truncated = (objects["flag"] & sep.OBJ_TRUNC) != 0
     # saturated: a raw pixel of the footprint at the clip level
     saturated = np.zeros(objects.size, bool)
     if level is not None:
@@ -515,96 +571,192 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
         peak_raw = np.full(objects.size + 1, -np.inf)
         np.maximum.at(peak_raw, segmap[labelled], raw[labelled])
         saturated = peak_raw[1:] >= level
-    blended = (objects["flag"] & sep.OBJ_MERGED) != 0
+    merged = (objects["flag"] & sep.OBJ_MERGED) != 0
     # hot pixels: the frame's PSF measured first on the detections that are neither single-pixel spikes by a coarse
     # screen nor clipped, then every detection tested against it (a sharp star passes, a spike does not)
     psf_hot = options.psf_sigma_px
     if psf_hot is None:
-        screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~edge & ~blended
+        screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~truncated & ~merged
         psf_hot = _frame_psf_sigma_px(sub, objects[screened] if np.any(screened) else objects)
     hot = _hot_pixels(sub, rms, objects, psf_hot, options.hot_pixel_chi2) & ~saturated
-    # a deblended star whose neighbours all lie beyond the PSF fit's reach is measured as a single one
-    blended &= _nearest_neighbour_px(objects["x"], objects["y"], blended) <= _BLEND_CLEAR_SIGMAS * psf_hot
-    # a star cut by the border: the PSF fit uses the pixels there are (unbiased); the window cannot (a clipped core);
-    # only where the hot-pixel test saw the whole box around its brightest pixel (nearer the border it cannot judge)
-    h, w = sub.shape
-    judged = (
-        (objects["xpeak"] >= _HOT_BOX_HALF_PX)
-        & (objects["xpeak"] <= w - 1 - _HOT_BOX_HALF_PX)
-        & (objects["ypeak"] >= _HOT_BOX_HALF_PX)
-        & (objects["ypeak"] <= h - 1 - _HOT_BOX_HALF_PX)
-    )
-    fit_at_edge = edge & ~saturated & judged & (options.method == "psf-fit")
-    edge &= ~fit_at_edge
+    # a deblended star whose neighbours all lie beyond the PSF fit's reach is measured as a single one; one nearer is
+    # kept, flagged, with its centroid's bias bound from its neighbours' light, unless that bound exceeds the limit
+    near = merged & (_nearest_neighbour_px(objects["x"], objects["y"], merged) <= _BLEND_CLEAR_SIGMAS * psf_hot)
+    bias = _neighbour_bias_px(objects, near, psf_hot)
+    blended = near & ~(bias <= _BLEND_MAX_BIAS_PX)
+    blend_px = np.where(near & ~blended, bias, np.nan)
     keep = np.ones(objects.size, bool)
     rejected_saturated = saturated.copy() if not options.keep_saturated else np.zeros(objects.size, bool)
-    for mask in (rejected_saturated, hot, blended, edge):
+    for mask in (rejected_saturated, hot, blended):
         mask &= keep
         keep &= ~mask
-    return _Screen(keep, saturated, hot, blended, edge, fit_at_edge)
+    return _Screen(keep, saturated, hot, blended, truncated, blend_px)
 
 
-def _centroid_screened(sub, rms, good, clipped, truncated, options: CentroidOptions, report: FrameReport):
-    """Module docstring, step 4, on the screened objects ``good`` (``clipped``: saturated, ``truncated``: cut by the
-    border): the frame's PSF sigma, windowed centroids, the unresolved pairs rejected (counted as blended), then the
-    PSF fit (a border-cut star whose fit is not taken is rejected at the edge). Returns (x, y, SEP objects, clipped,
-    PSF sigma [px]) of the stars kept, or None when none is."""
-    sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
-    x, y = _windowed_centroids(sub, good, sigma)
+#: A blend (a deblended star beside a neighbour, or one more elongated than the PSF of its part of the field) is kept,
+#: flagged, while the bound on its centroid's bias is at most this [px]: the shift beyond which a windowed centroid
+#: has failed (:data:`_WINPOS_MAX_SHIFT_PX`); the bound enters its ``sigma_px`` (:func:`_measured`), so the
+#: calibration's weights and outlier gate judge it, not the extractor.
+_BLEND_MAX_BIAS_PX = 2.0
+
+
+def _neighbour_bias_px(objects: np.ndarray, which: np.ndarray, sigma_px: float) -> np.ndarray:
+    """(N,) bound [px] on the centroid bias that the detected neighbours' light causes, for the objects ``which``
+    (NaN for the others): |sum_j (F_j / F) (r_j - r) exp(-|r_j - r|^2 / (4 sigma^2))| over the other detections j,
+    F the isophotal fluxes. For a Gaussian PSF of ``sigma_px`` and a Gaussian window of the same sigma, the windowed
+    centroid's fixed point moves by exactly that much per neighbour to first order (the window times the
+    neighbour's PSF is a Gaussian centred half way, of half the variance); the least-squares PSF fit over the whole
+    star moves by the same amount (its cross term is the derivative of the PSF's autocorrelation, a Gaussian of
+    variance 2 sigma^2). A saturated star's isophotal flux is a lower bound: its bound is an upper one."""
+    out = np.full(objects.size, np.nan)
+    rows = np.flatnonzero(which)
+    if rows.size == 0:
+        return out
+    x, y = objects["x"].astype(np.float64), objects["y"].astype(np.float64)
+    flux = objects["flux"].astype(np.float64)
+    dx, dy = x[None, :] - x[rows, None], y[None, :] - y[rows, None]
+    weight = np.exp(-(dx**2 + dy**2) / (4.0 * sigma_px**2)) * np.maximum(flux, 0.0)[None, :]
+    weight[np.arange(rows.size), rows] = 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bias = np.hypot(np.sum(weight * dx, axis=1), np.sum(weight * dy, axis=1)) / flux[rows]
+    out[rows] = np.where(flux[rows] > 0, bias, np.inf)
+    return out
+
+
+@dataclass(frozen=True)
+class _Stars:
+    """The stars of one frame between the stages, (N,) each: centroid [px], SEP's object, ``clipped`` (saturated),
+    ``truncated`` (cut by the border), ``blend_px`` (the bound on a kept blend's centroid bias [px], NaN for a star
+    not flagged as one), ``window_fraction`` (the share of its window's weight a border-cut star's windowed centroid
+    used, 1 elsewhere)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    good: np.ndarray
+    clipped: np.ndarray
+    truncated: np.ndarray
+    blend_px: np.ndarray
+    window_fraction: np.ndarray
+
+    def select(self, rows: np.ndarray) -> _Stars:
+        """The stars ``rows`` (a boolean mask or indices)."""
+        return _Stars(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+
+def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report: FrameReport):
+    """Module docstring, step 4, on the screened ``stars``: the frame's PSF sigma, windowed centroids (a star cut by
+    the border: :func:`_border_windows`), the blend test (:func:`_unresolved_pairs`: a star more elongated than the
+    PSF of its part of the field is kept, flagged, while the bound on its bias is at most :data:`_BLEND_MAX_BIAS_PX`,
+    else rejected as blended), then the PSF fit. Returns the stars kept and the PSF sigma [px]."""
+    clipped = stars.clipped
+    sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, stars.good[~clipped] if np.any(~clipped) else stars.good)
+    stars = _windowed(sub, stars, sigma, report)
     # unresolved pairs (too close for a saddle between them: the deblender sees one peak) are elongated beyond the PSF
     # of their part of the field; a clipped core's shape is not the PSF's (round where the PSF is trailed): saturated
     # stars are neither tested nor part of the PSF's shape
-    ellipticity, ellipticity_sigma = _windowed_ellipticity(sub, rms, x, y, sigma, options.gain_e_per_adu)
-    ellipticity_sigma[clipped | truncated] = np.inf  # a border cuts a star's moments too
-    unresolved = _unresolved_pairs(ellipticity, ellipticity_sigma, options.max_ellipticity, x, y, sub.shape)
+    e, e_sigma, size = _windowed_ellipticity(sub, rms, stars.x, stars.y, sigma, options.gain_e_per_adu)
+    cut = np.flatnonzero(stars.truncated & ~stars.clipped)  # a border cuts a star's moments: the part it has
+    if cut.size:
+        e[cut], e_sigma[cut], size[cut] = _border_ellipticity(
+            sub, rms, stars.x[cut], stars.y[cut], sigma, options.gain_e_per_adu
+        )
+    e_sigma[stars.clipped] = np.inf
+    # a deblended star's neighbour shapes it, a border-cut one is a part: neither is the PSF's shape
+    usable = ~np.isfinite(stars.blend_px) & ~stars.truncated
+    elongated, excess = _unresolved_pairs(e, e_sigma, options.max_ellipticity, stars.x, stars.y, sub.shape, usable)
+    bias = _shape_bias_px(excess, size)
+    unresolved = elongated & ~(bias <= _BLEND_MAX_BIAS_PX)
     report.rejected_blended += int(unresolved.sum())
-    good, clipped, truncated = good[~unresolved], clipped[~unresolved], truncated[~unresolved]
-    if good.size == 0:
-        return None
-    first = sigma
-    if options.psf_sigma_px is None and np.any(unresolved):  # the pairs widened the first estimate
-        sigma = _frame_psf_sigma_px(sub, good[~clipped] if np.any(~clipped) else good)
-    if sigma != first:  # each star's window is its own: with the same sigma, the same centroids
-        x, y = _windowed_centroids(sub, good, sigma)
-    else:
-        x, y = x[~unresolved], y[~unresolved]
+    flagged = elongated & ~unresolved
+    blend_px = stars.blend_px.copy()
+    blend_px[flagged] = np.hypot(np.nan_to_num(blend_px[flagged]), bias[flagged])
+    stars = replace(stars, blend_px=blend_px)
+    if options.psf_sigma_px is None and np.any(elongated):  # the elongated ones widened the first estimate
+        single = ~elongated & ~stars.clipped
+        again = _frame_psf_sigma_px(sub, stars.good[single] if np.any(single) else stars.good[~elongated])
+        if again != sigma:  # each star's window is its own: with the same sigma, the same centroids
+            sigma = again
+            stars = _windowed(sub, replace(stars, x=stars.good["x"], y=stars.good["y"]), sigma, report)
+    stars = stars.select(~unresolved)
     report.psf_sigma_px = float(sigma)
-    if options.method == "psf-fit":  # a clipped core does not follow the PSF: saturated stars keep the window
-        fit = np.flatnonzero(~clipped)
+    if options.method == "psf-fit" and stars.x.size:  # a clipped core does not follow the PSF: saturated stars keep
+        fit = np.flatnonzero(~stars.clipped)  # the window
+        x, y = stars.x.copy(), stars.y.copy()
         x[fit], y[fit], fitted = _psf_fit_centroids(sub, rms, x[fit], y[fit], sigma, options.gain_e_per_adu)
-        lost = np.zeros(x.size, dtype=bool)
-        lost[fit[~fitted]] = True
-        lost &= truncated  # a star cut by the border with no converged fit: its windowed centroid is biased
-        report.rejected_edge += int(lost.sum())
-        x, y, good, clipped = x[~lost], y[~lost], good[~lost], clipped[~lost]
-    return x, y, good, clipped, float(sigma)
+        fraction = stars.window_fraction.copy()
+        fraction[fit[fitted]] = 1.0  # a fitted star's sigma_px is the bound over the pixels it has
+        stars = replace(stars, x=x, y=y, window_fraction=fraction)
+    return stars, float(sigma)
 
 
-def _measured(sub, rms, x, y, good, clipped, sigma: float, options: CentroidOptions, report: FrameReport) -> Detections:
+def _windowed(sub, stars: _Stars, sigma: float, report: FrameReport) -> _Stars:
+    """``stars`` with SEP's windowed centroids (from their isophotal ones), those cut by the border with
+    :func:`_border_windows`; a border-cut star whose window fails is rejected at the edge (counted)."""
+    x, y = _windowed_centroids(sub, stars.good, sigma)
+    fraction = np.ones(x.size)
+    cut = np.flatnonzero(stars.truncated)
+    lost = np.zeros(x.size, dtype=bool)
+    if cut.size:
+        xs, ys, fraction[cut] = _border_windows(sub, stars.good["x"][cut], stars.good["y"][cut], sigma)
+        x[cut], y[cut] = xs, ys
+        lost[cut] = ~(fraction[cut] > 0)
+    report.rejected_edge += int(lost.sum())
+    return replace(stars, x=x, y=y, window_fraction=fraction).select(~lost)
+
+
+def _shape_bias_px(excess: np.ndarray, size_px2: np.ndarray) -> np.ndarray:
+    """Bound [px] on the centroid bias of a star whose windowed ellipticity exceeds the PSF's by ``excess`` (the
+    modulus of the difference), its windowed second moments summing to ``size_px2`` [px^2]: 2 sqrt(excess x size).
+    The excess second moment along the major axis is excess x size in the window of the PSF's sigma, 4 times that
+    unwindowed (a Gaussian star windowed by a Gaussian of its own sigma: d(windowed variance) / d(variance) = 1/4);
+    a companion of flux share q at distance d adds q (1 - q) d^2 to it and moves the light's centroid by q d from
+    the brighter star, at most sqrt(q (1 - q)) d for q <= 1/2: the square root bounds the shift."""
+    with np.errstate(invalid="ignore"):
+        return 2.0 * np.sqrt(np.maximum(excess, 0.0) * np.maximum(size_px2, 0.0))
+
+
+def _measured(sub, rms, stars: _Stars, sigma: float, options: CentroidOptions, report: FrameReport) -> Detections:
     """Module docstring, steps 5-6: each star's PSF flux (a detection without flux rejected), ``sigma_px`` and
-    instrumental magnitude, brightest first (the brightest ``max_stars``)."""
+    instrumental magnitude, brightest first (the brightest ``max_stars``). A kept blend's ``sigma_px`` adds its bias
+    bound b in quadrature, per axis b / sqrt(2) (a shift of b in an unknown direction); a border-cut star centroided
+    by its window (saturated, or its fit not taken) divides it by the square root of the share of the window's
+    weight it used (the information of the pixels it has)."""
+    x, y, good, clipped = stars.x, stars.y, stars.good, stars.clipped
     flux = _psf_fluxes(sub, x, y, sigma)
     # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
     flux[clipped] = np.maximum(flux[clipped], good["flux"][clipped])
     # no flux where the PSF sits: noise that crossed the threshold (no star, and no centroid noise to state)
     measured = flux > 0
     report.rejected_no_flux = int(np.count_nonzero(~measured))
-    x, y, flux, clipped = x[measured], y[measured], flux[measured], clipped[measured]
-    report.saturated_kept = int(clipped.sum())
+    stars, flux = stars.select(measured), flux[measured]
+    x, y, clipped = stars.x, stars.y, stars.clipped
     sigma_px = centroid_sigma_px(x, y, flux, rms, sigma, options.gain_e_per_adu)
     sigma_px[clipped] = np.maximum(sigma_px[clipped], SATURATED_SIGMA_PX)
+    sigma_px /= np.sqrt(stars.window_fraction)
+    blend = np.isfinite(stars.blend_px)
+    sigma_px[blend] = np.hypot(sigma_px[blend], stars.blend_px[blend] / math.sqrt(2.0))
     # no noise measured where the star sits (every pixel around it clipped): no sigma_px, so no row
     stated = _noise_stated(sigma_px)
     report.rejected_no_flux += int(np.count_nonzero(~stated))
-    report.saturated_kept = int(clipped[stated].sum())
-    x, y, flux, clipped, sigma_px = x[stated], y[stated], flux[stated], clipped[stated], sigma_px[stated]
+    stars, flux, sigma_px, blend = stars.select(stated), flux[stated], sigma_px[stated], blend[stated]
     order = np.argsort(-flux, kind="stable")
     if options.max_stars is not None:
         order = order[: options.max_stars]
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(flux > 0, -2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
     report.kept = int(order.size)
-    return Detections(x[order], y[order], flux[order], mag[order], report, sigma_px[order], clipped[order])
+    report.saturated_kept = int(stars.clipped.sum())
+    report.blended_kept = int(blend.sum())
+    return Detections(
+        stars.x[order],
+        stars.y[order],
+        flux[order],
+        mag[order],
+        report,
+        sigma_px[order],
+        stars.clipped[order],
+        blended=blend[order],
+    )
 
 
 def _noise_stated(sigma_px: np.ndarray) -> np.ndarray:
@@ -685,6 +837,24 @@ def _orthonormal_bases(columns: list[np.ndarray]) -> np.ndarray:
     return np.stack([np.linalg.qr(a)[0] for a in columns], axis=1)
 
 
+def _hot_bases(offsets: np.ndarray, dr: int, dc: int, widths: np.ndarray) -> np.ndarray:
+    """The orthonormal bases (P, M, 2) of :func:`_hot_pixels`' models over the box ``offsets`` x ``offsets`` with
+    the brightest pixel at (``dr``, ``dc``) from its centre: the spike on it, then the star at each width and
+    sub-pixel position around it, each with a flat background."""
+    flat = np.ones(offsets.size**2)
+    spike = np.zeros((offsets.size, offsets.size))
+    spike[dr + offsets.size // 2, dc + offsets.size // 2] = 1.0
+    stars = [
+        np.outer(
+            pixel_integrated_gaussian(offsets, dr + dy, width), pixel_integrated_gaussian(offsets, dc + dx, width)
+        ).ravel()
+        for width in widths
+        for dy in _HOT_POSITIONS_PX
+        for dx in _HOT_POSITIONS_PX
+    ]
+    return _orthonormal_bases([np.column_stack([m, flat]) for m in [spike.ravel(), *stars]])
+
+
 def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma_px: float, chi2_limit: float):
     """Hot pixels: detections that a single bright pixel explains better than a star of the frame's own PSF, by a
     likelihood-ratio test. Over the (2h+1)^2 pixels d around the brightest one (h = :data:`_HOT_BOX_HALF_PX`), in
@@ -703,24 +873,22 @@ def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma
     half = _HOT_BOX_HALF_PX
     if objects.size == 0:
         return np.zeros(0, dtype=bool)
-    c = np.clip(objects["xpeak"].astype(np.int64), half, w - 1 - half)
-    r = np.clip(objects["ypeak"].astype(np.int64), half, h - 1 - half)
+    peak_c, peak_r = objects["xpeak"].astype(np.int64), objects["ypeak"].astype(np.int64)
+    c = np.clip(peak_c, half, w - 1 - half)
+    r = np.clip(peak_r, half, h - 1 - half)
     offsets = np.arange(-half, half + 1)
     cut = sub[r[:, None, None] + offsets[None, :, None], c[:, None, None] + offsets[None, None, :]]
     d = cut.reshape(objects.size, -1) / np.maximum(rms[r, c], 1e-12)[:, None]
-    flat = np.ones(offsets.size**2)
-    spike = np.zeros(offsets.size**2)
-    spike[spike.size // 2] = 1.0
     widths = np.geomspace(max(_MIN_PSF_SIGMA_PX, _HOT_SHARPEST_FRACTION * psf_sigma_px), psf_sigma_px, 3)
-    stars = [
-        np.outer(pixel_integrated_gaussian(offsets, dy, width), pixel_integrated_gaussian(offsets, dx, width)).ravel()
-        for width in widths
-        for dy in _HOT_POSITIONS_PX
-        for dx in _HOT_POSITIONS_PX
-    ]
-    basis = _orthonormal_bases([np.column_stack([m, flat]) for m in [spike, *stars]])
-    # d^T Q d = |U^T d|^2 for the projector Q = U U^T of each model (U: an orthonormal basis of its 2 columns)
-    explained = np.sum((d @ basis.reshape(d.shape[1], -1)).reshape(objects.size, -1, 2) ** 2, axis=2)
+    # the box lies inside the image: near the border the brightest pixel is off its centre, and both models with it
+    shift = (peak_r - r) * offsets.size + (peak_c - c)
+    explained = np.zeros((objects.size, 1 + widths.size * _HOT_POSITIONS_PX.size**2))
+    for value in np.unique(shift):
+        rows = np.flatnonzero(shift == value)
+        dr, dc = divmod(int(value) + half * (offsets.size + 1), offsets.size)
+        basis = _hot_bases(offsets, dr - half, dc - half, widths)
+        # d^T Q d = |U^T d|^2 for the projector Q = U U^T of each model (U: an orthonormal basis of its 2 columns)
+        explained[rows] = np.sum((d[rows] @ basis.reshape(d.shape[1], -1)).reshape(rows.size, -1, 2) ** 2, axis=2)
     total = np.einsum("np,np->n", d, d)
     chi2_spike = total - explained[:, 0]
     chi2_star = total - np.max(explained[:, 1:], axis=1)
@@ -783,16 +951,19 @@ def _unresolved_pairs(
     x_px: np.ndarray | None = None,
     y_px: np.ndarray | None = None,
     shape_px: tuple[int, int] | None = None,
-) -> np.ndarray:
+    usable: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Stars more elongated than the frame's PSF where they are: |e - e_psf(x, y)| beyond ``max_ellipticity`` and
     beyond :data:`_ELLIPTICITY_SIGNIFICANCE` x sqrt(spread^2 + noise^2) (the spread of the stars' ellipticities about
     the model beyond their noise, which also holds what the noise estimate misses, e.g. correlated pixels: a single
     star exceeds it with probability exp(-16 / 2) = 3e-4). ``e_psf`` is :func:`_psf_ellipticity_field`, fitted to
-    every star whose ellipticity is known to :data:`_PSF_SHAPE_MAX_SIGMA` (blends are a minority): a real lens's PSF is
+    every star whose ellipticity is known to :data:`_PSF_SHAPE_MAX_SIGMA` (blends are a minority; ``usable``: the
+    stars that may serve, None: all; a deblended star kept beside its neighbour does not): a real lens's PSF is
     elliptical (coma, astigmatism, an undersampled spot on the pixel grid) by 0.1-0.3 and, in a wide field, changes
     across it (elongated radially towards the edge: on the 27-deg granasat frames e ~ 0.2-0.35 beyond 400 px from the
-    centre, against ~0.05 at it). Only what stands out from the PSF of its own part of the field is a blend."""
-    reference = np.flatnonzero(e_sigma < _PSF_SHAPE_MAX_SIGMA)
+    centre, against ~0.05 at it). Only what stands out from the PSF of its own part of the field is a blend. Returns
+    that (N,) bool and each star's |e - e_psf|."""
+    reference = np.flatnonzero((e_sigma < _PSF_SHAPE_MAX_SIGMA) & (True if usable is None else usable))
     e_psf, spread = np.zeros_like(e), 0.0
     if reference.size >= _PSF_SHAPE_STARS:
         if x_px is None or y_px is None or shape_px is None:
@@ -800,7 +971,7 @@ def _unresolved_pairs(
         e_psf, spread = _psf_ellipticity_field(e, e_sigma, x_px, y_px, shape_px, reference)
     deviation = np.hypot(*(e - e_psf).T)
     scatter = np.sqrt(spread**2 + e_sigma**2)  # per component: the PSF's own spread and the star's noise
-    return (deviation > max_ellipticity) & (deviation > _ELLIPTICITY_SIGNIFICANCE * scatter)
+    return (deviation > max_ellipticity) & (deviation > _ELLIPTICITY_SIGNIFICANCE * scatter), deviation
 
 
 #: Reference stars per free coefficient before the PSF's ellipticity is modelled across the field (a quadratic in
@@ -879,9 +1050,10 @@ def _windowed_ellipticity(
     moments M of each star around its centroid, and its standard deviation from the pixel noise (linear
     propagation: dM/dI_i = w_i (q_i - M) / sum w I; variance rms^2, plus the star's shot noise I / gain [ADU^2]
     when the gain is known). A round PSF gives 0; two equal stars d apart along x give Mxx - Myy ~ d^2 / 16 over
-    Mxx + Myy ~ sigma^2 + d^2 / 16: 0.2 at d = 2 sigma, where no saddle separates them."""
+    Mxx + Myy ~ sigma^2 + d^2 / 16: 0.2 at d = 2 sigma, where no saddle separates them. Returns e, its standard
+    deviation and Mxx + Myy [px^2] (NaN where the moments are not measured)."""
     if x.size == 0:
-        return np.zeros((0, 2)), np.zeros(0)
+        return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
     half = int(math.ceil(4 * sigma_px))
     return _in_chunks(
         half, x.size, lambda k: _windowed_ellipticity_block(sub, rms, x[k], y[k], sigma_px, gain_e_per_adu, half)
@@ -890,15 +1062,29 @@ def _windowed_ellipticity(
 
 def _windowed_ellipticity_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None, half: int):
     """:func:`_windowed_ellipticity` of one block of stars."""
-    e = np.zeros((x.size, 2))
-    e_sigma = np.full(x.size, np.inf)
     cols, rows, data, inside = _stamps(sub, x, y, half)
-    var = np.where(inside, _stamps(rms, x, y, half)[2], 0.0) ** 2
-    if gain_e_per_adu:
-        var = var + np.maximum(data, 0.0) / gain_e_per_adu
+    var = _pixel_variance(rms, x, y, half, inside, data, gain_e_per_adu)
     dx = (cols - x[:, None])[:, None, :]
     dy = (rows - y[:, None])[:, :, None]
     weight = np.where(inside, np.exp(-(dx**2 + dy**2) / (2 * sigma_px**2)), 0.0)
+    return _moment_ellipticity(weight, data, dx, dy, var)
+
+
+def _pixel_variance(rms, x, y, half: int, inside, data, gain_e_per_adu: float | None) -> np.ndarray:
+    """Each stamp pixel's noise variance [ADU^2]: the local noise squared, plus the signal's shot noise
+    I / gain when the gain is known (0 outside the image)."""
+    var = np.where(inside, _stamps(rms, x, y, half)[2], 0.0) ** 2
+    if gain_e_per_adu:
+        var = var + np.maximum(data, 0.0) / gain_e_per_adu
+    return var
+
+
+def _moment_ellipticity(weight, data, dx, dy, var):
+    """Ellipticity (n, 2), its standard deviation (n,) and Mxx + Myy (n,) of the second moments of ``data``
+    (n, H, W) weighted by ``weight`` about the stamp's origin offsets ``dx`` (n, 1, W), ``dy`` (n, H, 1)
+    (:func:`_windowed_ellipticity`); ``var`` the pixels' noise variance."""
+    e = np.zeros((data.shape[0], 2))
+    e_sigma = np.full(data.shape[0], np.inf)
     wd = weight * data
     total = np.sum(wd, axis=(1, 2))
     qa, qb, qt = dx**2 - dy**2, 2 * dx * dy, dx**2 + dy**2
@@ -912,7 +1098,29 @@ def _windowed_ellipticity_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu:
         var_b = np.sum(wn**2 * (qb - b[:, None, None]) ** 2 * var, axis=(1, 2))
     e[ok] = np.column_stack([a / t, b / t])[ok]
     e_sigma[ok] = (np.sqrt(0.5 * (var_a + var_b)) / t)[ok]
-    return e, e_sigma
+    return e, e_sigma, np.where(ok, t, np.nan)
+
+
+def _border_ellipticity(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None):
+    """:func:`_windowed_ellipticity` of stars the border cuts, over the region of :func:`_border_windows` (the part
+    of the image point-symmetric about the star), less the ellipticity a round star of the frame's PSF sigma
+    (:func:`psf_model`, at the same position) shows over that region: what is left is the star's own elongation, as
+    for a whole star. Returns e, its standard deviation and Mxx + Myy over the region."""
+    half = int(math.ceil(4 * sigma_px))
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    var = _pixel_variance(rms, x, y, half, inside, data, gain_e_per_adu)
+    h, w = sub.shape
+    wx, wy, _ = _symmetric_window(cols, rows, x, y, sigma_px, w, h)
+    weight = wy[:, :, None] * wx[:, None, :]
+    dx = (cols - x[:, None])[:, None, :]
+    dy = (rows - y[:, None])[:, :, None]
+    e, e_sigma, size = _moment_ellipticity(weight, data, dx, dy, var)
+    round_star = (
+        pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
+        * pixel_integrated_gaussian(cols, x[:, None], sigma_px)[:, None, :]
+    )
+    e_round, *_ = _moment_ellipticity(weight, round_star, dx, dy, np.zeros_like(var))
+    return e - e_round, e_sigma, size
 
 
 def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
@@ -1026,6 +1234,7 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
         "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
         "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
         "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
+        "blended": np.array([str(int(v)) for v in cat("blended")], dtype=object),
     }
     if any(det.candidates is not None for _, det, _ in frames):
         extra["snr"] = np.array([f"{v:.2f}" if np.isfinite(v) else "" for v in snr], dtype=object)
@@ -1055,6 +1264,7 @@ def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
         "mag": np.concatenate([det.mag, c.mag]),
         "sigma_px": np.concatenate([det.sigma_px, c.sigma_px]),
         "saturated": np.concatenate([det.saturated.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
+        "blended": np.concatenate([det.blended.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
         "snr": np.concatenate([np.full(det.x_px.size, np.nan), c.snr]),
     }
 
@@ -1434,29 +1644,45 @@ def centroid_sigma_px(
             psf_sigma_px,
             noise[ok] * gain,
             bool(gain_e_per_adu),
+            (h, w),
         )
     return out
 
 
 def _crb_max_px(
-    x_px: np.ndarray, y_px: np.ndarray, flux_e: np.ndarray, psf_sigma_px: float, noise_e: np.ndarray, shot: bool
+    x_px: np.ndarray,
+    y_px: np.ndarray,
+    flux_e: np.ndarray,
+    psf_sigma_px: float,
+    noise_e: np.ndarray,
+    shot: bool,
+    shape_px: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """max(x, y) of :func:`centroid_crb_px` (no background, Gaussian noise ``noise_e``, no quantisation; the star's
-    shot noise when ``shot``) for every star at once: the same Fisher information over the same box per star."""
+    shot noise when ``shot``) for every star at once: the same Fisher information over the same box per star, over
+    the pixels of the image (``shape_px`` (rows, columns); None: unbounded) alone: a star the border cuts carries
+    the information of the pixels it has."""
     sigma = float(psf_sigma_px)
     half = int(math.ceil(6 * sigma) + 2)
     return _in_chunks(
-        half, x_px.size, lambda k: _crb_max_block(x_px[k], y_px[k], flux_e[k], sigma, noise_e[k], shot, half)
+        half,
+        x_px.size,
+        lambda k: _crb_max_block(x_px[k], y_px[k], flux_e[k], sigma, noise_e[k], shot, half, shape_px),
     )
 
 
-def _crb_max_block(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: int) -> np.ndarray:
+def _crb_max_block(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: int, shape_px=None) -> np.ndarray:
     """:func:`_crb_max_px` of one block of stars."""
     steps = np.arange(-half, half + 2, dtype=np.float64)
     cols = np.floor(x_px)[:, None] + steps[None, :]
     rows = np.floor(y_px)[:, None] + steps[None, :]
     params = np.column_stack([x_px, y_px, flux_e, np.zeros_like(x_px)])
     mu, jac = psf_model_batch(cols, rows, params, sigma)
+    if shape_px is not None:  # the pixels beyond the border carry no information
+        h, w = shape_px
+        outside = ~(((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :])
+        if outside.any():
+            jac = np.where(outside[..., None], 0.0, jac)
     variance = (mu if shot else 0.0) + (noise_e**2)[:, None, None]
     jac = jac.reshape(x_px.size, -1, 4)
     weighted = jac / variance.reshape(x_px.size, -1, 1)
