@@ -911,7 +911,8 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     cols, rows, cut, inside = _stamps(sub, x, y, outer)
     offsets = np.abs(np.arange(-outer, outer + 1))
     inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
-    background = _row_medians(cut.reshape(x.size, -1), (inside & ~inner).reshape(x.size, -1))
+    ring = ~inner.ravel()
+    background = _row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
     background[~np.isfinite(background)] = 0.0
     p = (
         pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
