@@ -18,14 +18,16 @@ Per image:
    of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
-   flux its neighbours hold), *blended* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within
-   :data:`_BLEND_CLEAR_SIGMAS` PSF sigmas; or Gaussian-windowed second moments more elongated than the PSF of the
-   star's own part of the field, :func:`_unresolved_pairs`, :func:`_psf_ellipticity_field`: two stars closer than the
-   deblender can split), *edge* (footprint truncated by the image border, ``OBJ_TRUNC``, and saturated, or its PSF
-   fit not taken: an unsaturated star the border cuts is fitted on the pixels it has), *without flux* (no positive
-   PSF flux: noise); a *saturated* star (a pixel of the footprint at the image's clip level) is kept, flagged and
-   counted (``keep_saturated``, the default: the brightest stars are the anchors of identification), or rejected and
-   counted;
+   flux its neighbours hold; at the border too), *without flux* (no positive PSF flux: noise); keep, flagged and
+   counted, a *blend* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within :data:`_BLEND_CLEAR_SIGMAS` PSF
+   sigmas, :func:`_neighbour_bias_px`; or Gaussian-windowed second moments more elongated than the PSF of the star's
+   own part of the field, :func:`_unresolved_pairs`, :func:`_psf_ellipticity_field`, :func:`_shape_bias_px`: two
+   stars closer than the deblender can split) with the bound on its centroid's bias in its ``sigma_px``, rejected as
+   *blended* only when that bound exceeds :data:`_BLEND_MAX_BIAS_PX`; a star *cut by the border* (``OBJ_TRUNC``) is
+   centroided on the part of its image point-symmetric about it (:func:`_border_windows`) and fitted on the pixels
+   it has, rejected at the *edge* only when that window fails; a *saturated* star (a pixel of the footprint at the
+   image's clip level) is kept, flagged and counted (``keep_saturated``, the default: the brightest stars are the
+   anchors of identification), or rejected and counted;
 4. centroid: SEP's windowed centroid (``sep.winpos``, Source Extractor's XWIN_IMAGE: the iterated Gaussian-weighted
    first moment, which converges to the maximum of the image correlated with the window) with the window sigma
    equal to the frame's PSF sigma (the median over its most significant stars of the half-light radius / 1.1774,
