@@ -19,7 +19,7 @@ _CANDIDATE_CLEAR_SIGMAS = _PSF_FIT_SIGMAS
 
 
 def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
-    """Module docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
+    """Package docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
     footprint (below the threshold, or lost by the extraction) and clear of the kept stars, centroided by
     the window of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for
     every faint star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at

@@ -113,7 +113,7 @@ class _Stars:
 
 
 def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report: FrameReport):
-    """Module docstring, step 4, on the screened ``stars``: the frame's PSF sigma, windowed centroids (a star cut by
+    """Package docstring, step 4, on the screened ``stars``: the frame's PSF sigma, windowed centroids (a star cut by
     the border: :func:`_border_windows`), the blend test (:func:`_unresolved_pairs`: a star more elongated than the
     PSF of its part of the field is kept, flagged, while the bound on its bias is at most :data:`_BLEND_MAX_BIAS_PX`,
     else rejected as blended), then the PSF fit. Returns the stars kept and the PSF sigma [px]."""
@@ -139,14 +139,13 @@ def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report
     flagged = elongated & ~unresolved
     blend_px = stars.blend_px.copy()
     blend_px[flagged] = np.hypot(np.nan_to_num(blend_px[flagged]), bias[flagged])
-    stars = replace(stars, blend_px=blend_px)
-    if options.psf_sigma_px is None and np.any(elongated):  # the elongated ones widened the first estimate
-        single = ~elongated & ~stars.clipped
-        again = _frame_psf_sigma_px(sub, stars.good[single] if np.any(single) else stars.good[~elongated])
+    stars = replace(stars, blend_px=blend_px).select(~unresolved)
+    single = ~elongated[~unresolved] & ~stars.clipped
+    if options.psf_sigma_px is None and np.any(elongated) and np.any(single):  # the elongated ones widened the
+        again = _frame_psf_sigma_px(sub, stars.good[single])  # first estimate
         if again != sigma:  # each star's window is its own: with the same sigma, the same centroids
             sigma = again
             stars = _windowed(sub, replace(stars, x=stars.good["x"], y=stars.good["y"]), sigma, report)
-    stars = stars.select(~unresolved)
     report.psf_sigma_px = float(sigma)
     if options.method == "psf-fit" and stars.x.size:  # a clipped core does not follow the PSF: saturated stars keep
         fit = np.flatnonzero(~stars.clipped)  # the window
@@ -174,7 +173,7 @@ def _windowed(sub, stars: _Stars, sigma: float, report: FrameReport) -> _Stars:
 
 
 def _measured(sub, rms, stars: _Stars, sigma: float, options: CentroidOptions, report: FrameReport) -> Detections:
-    """Module docstring, steps 5-6: each star's PSF flux (a detection without flux rejected), ``sigma_px`` and
+    """Package docstring, steps 5-6: each star's PSF flux (a detection without flux rejected), ``sigma_px`` and
     instrumental magnitude, brightest first (the brightest ``max_stars``). A kept blend's ``sigma_px`` adds its bias
     bound b in quadrature, per axis b / sqrt(2) (a shift of b in an unknown direction); a border-cut star centroided
     by its window (saturated, or its fit not taken) divides it by the square root of the share of the window's

@@ -57,7 +57,7 @@ def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np
 
 
 def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | None = None):
-    """Module docstring, steps 1-2: SEP's background mesh subtracted (``blank``, the blank regions of
+    """Package docstring, steps 1-2: SEP's background mesh subtracted (``blank``, the blank regions of
     :func:`hostlink.images.background.saturated_regions`, masked from it and from the detection), its noise map
     corrected to what the detection filter sees, box by box (:func:`hostlink.images.background.
     filtered_noise_correction`), then SEP's matched-filter detection and deblending. Returns the
@@ -126,7 +126,7 @@ class _Screen:
 
 
 def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: float | None) -> _Screen:
-    """Module docstring, step 3, before any centroid: saturated, hot pixels and deblended neighbours; the stars cut by
+    """Package docstring, step 3, before any centroid: saturated, hot pixels and deblended neighbours; the stars cut by
     the border marked."""
     import sep
 
