@@ -203,12 +203,32 @@ def _box_percentiles(
     out = np.full((ny * nx, len(percents)), np.nan)
     whole = counted == box_px * box_px
     if whole.any():  # the common case, in one call
-        out[whole] = np.percentile(blocks[whole], percents, axis=1).T.astype(np.float64)
+        out[whole] = _row_percentiles(blocks[whole], percents)
     for k in np.flatnonzero(~whole & (counted >= _MIN_BOX_FRACTION * inside.ravel()) & (counted > 0)):
         out[k] = np.percentile(blocks[k][np.isfinite(blocks[k])], percents)
     row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
     col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
     return out.reshape(ny, nx, len(percents)), row_centres, col_centres
+
+
+def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
+    """``np.percentile(rows, percents, axis=1).T`` (method "linear") as float64, the same numbers, from each row
+    sorted: numpy partitions along the first axis of the transposed rows, a strided pass per order statistic (~15 ms
+    for a frame's 4800 boxes of 256 pixels), where sorting each contiguous row takes ~1 ms. The interpolation is
+    numpy's own: v = (n - 1) q / 100 between the neighbouring order statistics a, b with gamma = v - floor(v):
+    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5."""
+    ordered = np.sort(rows, axis=1)
+    n = rows.shape[1]
+    virtual = (n - 1) * (np.asarray(percents, dtype=np.float64) / 100.0)
+    below = np.floor(virtual)
+    gamma = virtual - below
+    a = ordered[:, np.minimum(below, n - 1).astype(np.intp)]
+    b = ordered[:, np.minimum(below + 1, n - 1).astype(np.intp)]
+    diff = b - a
+    out = a + diff * gamma
+    upper = np.broadcast_to(gamma >= 0.5, out.shape)
+    out[upper] = (b - diff * (1 - gamma))[upper]
+    return out.astype(np.float64)
 
 
 def _positive(noise: np.ndarray) -> np.ndarray:
