@@ -535,3 +535,23 @@ def test_stars_within_two_pixels_of_the_border_are_kept_saturated_or_not():
     assert clipped.sum() == n // 2 and np.all(error[clipped] < det.sigma_px[clipped])
     fitted = at_border & ~det.saturated
     assert np.all(error[fitted] < 4.0 * det.sigma_px[fitted])
+
+
+def test_hot_pixels_at_the_clip_level_are_rejected_and_sharp_saturated_stars_kept():
+    """An 8-bit camera clips a hot pixel at 255, where the likelihood test cannot judge it (a clipped pixel is a lower
+    bound). Sharp stars (PSF sigma 0.77 px, as the 35 mm lens on 6.9 um pixels), 62 of 64 saturated, most with a
+    single clipped pixel, beside 30 hot pixels all at 255: every hot pixel rejected and counted as hot (they were kept
+    as the frame's brightest "stars"), every star kept (its edge neighbours hold at least 0.18 of its clipped peak,
+    the least a star of sigma 0.45 px puts there; a hot pixel's hold noise)."""
+    config = RenderConfig(psf_sigma_px=0.77, hot_pixels=30, bits=8)
+    rng = np.random.default_rng(41)
+    x, y = _grid_stars(rng)
+    rendered = render_stars(x, y, np.geomspace(1500.0, 3.0e5, x.size), IMAGE_SIZE, config, seed=12)
+    hx, hy = rendered.hot_pixels_xy.T
+    assert np.all(rendered.image_adu[hy, hx] == config.saturation_adu) and rendered.saturated.sum() == 62
+    options = CentroidOptions(gain_e_per_adu=config.gain_e_per_adu)
+    det = centroid_pixels(rendered.image_adu, options, saturation_adu=config.saturation_adu)
+    truth, ok = _match(det.x_px, det.y_px, x, y)
+    on_star = np.min(np.hypot(*(rendered.hot_pixels_xy[:, None, :] - np.c_[x, y][None]).transpose(2, 0, 1)), 1)
+    assert ok.all() and set(truth.tolist()) == set(range(x.size))  # no hot pixel kept, every star kept
+    assert det.report.rejected_hot == int(np.sum(on_star > 4 * config.psf_sigma_px))

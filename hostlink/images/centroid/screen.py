@@ -146,6 +146,8 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
         screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~truncated & ~merged
         psf_hot = _frame_psf_sigma_px(sub, objects[screened] if np.any(screened) else objects)
     hot = _hot_pixels(sub, rms, objects, psf_hot, options.hot_pixel_chi2) & ~saturated
+    if level is not None:  # a hot pixel the clip level cuts (an 8-bit camera's reads 255)
+        hot |= _clipped_spikes(sub, rms, raw, segmap, level, objects.size)
     # a deblended star whose neighbours all lie beyond the PSF fit's reach is measured as a single one; one nearer is
     # kept, flagged, with its centroid's bias bound from its neighbours' light, unless that bound exceeds the limit
     near = merged & (_nearest_neighbour_px(objects["x"], objects["y"], merged) <= _BLEND_CLEAR_SIGMAS * psf_hot)
@@ -202,6 +204,44 @@ def _orthonormal_bases(columns: list[np.ndarray]) -> np.ndarray:
     """(P, M, 2) orthonormal bases U of the span of each design matrix (P, 2) of ``columns`` (QR): the orthogonal
     projector onto the m-th span is U[:, m] U[:, m]^T. One batched QR (the same LAPACK call per matrix)."""
     return np.swapaxes(np.linalg.qr(np.stack(columns))[0], 0, 1)
+
+
+#: A clipped pixel is a hot one when its edge neighbours' mean lies this many of its noise below what the sharpest
+#: star would put there (:func:`_clipped_spikes`).
+_CLIPPED_SPIKE_SIGMAS = 5.0
+
+
+def _clipped_spikes(sub, rms, raw, segmap, level: float, n_objects: int) -> np.ndarray:
+    """(N,) bool: hot pixels the clip level cuts, which :func:`_hot_pixels` cannot judge (a clipped pixel is a lower
+    bound, not a value): a detection with exactly one pixel at the clip level whose 4 edge neighbours (those inside
+    the image) hold, on average, less than any star able to clip it would put there. A pixel-integrated Gaussian of
+    sigma s centred on a pixel puts r = P(1) / P(0) of its peak pixel's signal into each edge neighbour, the least of
+    any position (off centre the peak pixel falls and the neighbours' mean rises), r = 0.18 for the sharpest star,
+    s = :data:`_MIN_PSF_SIGMA_PX` (not a fraction of the frame's PSF: on a trailed frame, granasat's polar_30sec, the
+    frame's PSF is 1.5 px and stars with a single clipped pixel are far sharper); a clipped peak holds at least the
+    clip level less the background. Hot when the neighbours' mean (less the
+    background) is below r (level - background) - :data:`_CLIPPED_SPIKE_SIGMAS` x noise / 2 (the noise of a mean of
+    4). A saturated star's core of several clipped pixels, or one whose wings are there, is kept."""
+    out = np.zeros(n_objects, dtype=bool)
+    rows, cols = np.nonzero((raw >= level) & (segmap > 0))
+    labels = segmap[rows, cols]
+    counts = np.bincount(labels, minlength=n_objects + 1)
+    single = counts[labels] == 1
+    rows, cols, labels = rows[single], cols[single], labels[single]
+    if labels.size == 0:
+        return out
+    h, w = sub.shape
+    total, number = np.zeros(labels.size), np.zeros(labels.size)
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows + dr, cols + dc
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        total[inside] += sub[r[inside], c[inside]]
+        number += inside
+    peak, edge = pixel_integrated_gaussian(np.array([0.0, 1.0]), 0.0, _MIN_PSF_SIGMA_PX)
+    height = level - (raw[rows, cols] - sub[rows, cols])  # the clip level above the local background
+    least = (edge / peak) * height - _CLIPPED_SPIKE_SIGMAS * rms[rows, cols] / 2.0
+    out[labels[total / np.maximum(number, 1) < least] - 1] = True
+    return out
 
 
 def _hot_bases(offsets: np.ndarray, dr: int, dc: int, widths: np.ndarray) -> np.ndarray:
