@@ -18,11 +18,13 @@ Per image:
    of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
-   flux its neighbours hold; at the border too), *without flux* (no positive PSF flux: noise); keep, flagged and
-   counted, a *blend* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within :data:`_BLEND_CLEAR_SIGMAS` PSF
-   sigmas, :func:`_neighbour_bias_px`; or Gaussian-windowed second moments more elongated than the PSF of the star's
-   own part of the field, :func:`_unresolved_pairs`, :func:`_psf_ellipticity_field`, :func:`_shape_bias_px`: two
-   stars closer than the deblender can split) with the bound on its centroid's bias in its ``sigma_px``, rejected as
+   flux its neighbours hold; at the border too; and one clipped pixel whose neighbours hold less than the sharpest
+   star would, :func:`hostlink.images.centroid.screen._clipped_spikes`), *without flux* (no positive PSF flux:
+   noise); keep, flagged and counted, a *blend* (SEP's ``OBJ_MERGED`` flag: deblended from a neighbour within
+   :data:`_BLEND_CLEAR_SIGMAS` PSF sigmas, :func:`_neighbour_bias_px`; or Gaussian-windowed second moments more
+   elongated than the PSF of the star's own part of the field, :func:`_unresolved_pairs`,
+   :func:`_psf_ellipticity_field`, :func:`_shape_bias_px`: two stars closer than the deblender can split) with the
+   bound on its centroid's bias in its ``sigma_px``, rejected as
    *blended* only when that bound exceeds :data:`_BLEND_MAX_BIAS_PX`; a star *cut by the border* (``OBJ_TRUNC``) is
    centroided on the part of its image point-symmetric about it (:func:`_border_windows`) and fitted on the pixels
    it has, rejected at the *edge* only when that window fails; a *saturated* star (a pixel of the footprint at the
