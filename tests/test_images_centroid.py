@@ -555,3 +555,21 @@ def test_hot_pixels_at_the_clip_level_are_rejected_and_sharp_saturated_stars_kep
     on_star = np.min(np.hypot(*(rendered.hot_pixels_xy[:, None, :] - np.c_[x, y][None]).transpose(2, 0, 1)), 1)
     assert ok.all() and set(truth.tolist()) == set(range(x.size))  # no hot pixel kept, every star kept
     assert det.report.rejected_hot == int(np.sum(on_star > 4 * config.psf_sigma_px))
+
+
+def test_the_bound_without_shot_noise_from_row_and_column_sums_is_the_pixel_sums():
+    """Without the gain every pixel's variance is the star's measured noise, and the Fisher matrix of the separable
+    PSF model is a product of row and column sums (psf._crb_max_separable): the same bound as the sums over the
+    box's pixels, stars cut by the border included, to rounding (1e-12 relative; measured 2e-14)."""
+    from hostlink.images.centroid.psf import _crb_max_block, _crb_max_separable
+
+    rng = np.random.default_rng(17)
+    n = 300
+    x, y = rng.uniform(-0.4, 69.4, n), rng.uniform(-0.4, 49.4, n)  # an image of 70 x 50 px, many cut by its border
+    flux, noise = 10 ** rng.uniform(2.0, 6.0, n), rng.uniform(1.0, 20.0, n)
+    for sigma in (0.45, 0.9, 1.5, 3.0):
+        half = int(math.ceil(6 * sigma) + 2)
+        for shape in ((50, 70), None):
+            pixel_sums = _crb_max_block(x, y, flux, sigma, noise, False, half, shape)
+            separable = _crb_max_separable(x, y, flux, sigma, noise, False, half, shape)
+            np.testing.assert_allclose(separable, pixel_sums, rtol=1e-12)

@@ -316,11 +316,37 @@ def _crb_max_px(
     the information of the pixels it has."""
     sigma = float(psf_sigma_px)
     half = int(math.ceil(6 * sigma) + 2)
+    block = _crb_max_block if shot else _crb_max_separable  # no shot noise: the sums separate into row and column sums
     return _in_chunks(
         half,
         x_px.size,
-        lambda k: _crb_max_block(x_px[k], y_px[k], flux_e[k], sigma, noise_e[k], shot, half, shape_px),
+        lambda k: block(x_px[k], y_px[k], flux_e[k], sigma, noise_e[k], shot, half, shape_px),
     )
+
+
+def _crb_max_separable(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: int, shape_px=None) -> np.ndarray:
+    """:func:`_crb_max_block` when every pixel's variance is the star's ``noise_e``^2 (no shot noise): over the
+    box's pixels inside the image (a rectangle), each Fisher entry sum_ij J_i J_j of the separable model
+    mu = B + N Py(y) Px(x) is a product of a sum over the rows and one over the columns, e.g.
+    sum (N Py dPx)^2 = N^2 (sum Py^2)(sum dPx^2): the same information in O(W) per star instead of O(W^2) (equal to
+    the pixel-by-pixel sums to rounding, tested). ``shot`` must be False (the signature of :func:`_crb_max_block`)."""
+    assert not shot, "the star's shot noise makes the variance vary across the box: not separable"
+    steps = np.arange(-half, half + 2, dtype=np.float64)
+    cols = np.floor(x_px)[:, None] + steps[None, :]
+    rows = np.floor(y_px)[:, None] + steps[None, :]
+    in_cols = np.ones(cols.shape) if shape_px is None else ((cols >= 0) & (cols < shape_px[1])).astype(np.float64)
+    in_rows = np.ones(rows.shape) if shape_px is None else ((rows >= 0) & (rows < shape_px[0])).astype(np.float64)
+    px = pixel_integrated_gaussian(cols, x_px[:, None], sigma) * in_cols
+    py = pixel_integrated_gaussian(rows, y_px[:, None], sigma) * in_rows
+    dpx = pixel_integrated_gaussian_dsource(cols, x_px[:, None], sigma) * in_cols
+    dpy = pixel_integrated_gaussian_dsource(rows, y_px[:, None], sigma) * in_rows
+    # the x-factors and y-factors of the four columns of J: (N dPx, Px, Px, 1) along x, (Py, N dPy, Py, 1) along y
+    n = flux_e[:, None]
+    fx = np.stack([n * dpx, px, px, in_cols], axis=1)  # (stars, 4, columns)
+    fy = np.stack([py, n * dpy, py, in_rows], axis=1)
+    fisher = (fx @ np.swapaxes(fx, 1, 2)) * (fy @ np.swapaxes(fy, 1, 2)) / (noise_e**2)[:, None, None]
+    cov = np.linalg.inv(fisher)
+    return np.sqrt(np.maximum(cov[:, 0, 0], cov[:, 1, 1]))
 
 
 def _crb_max_block(x_px, y_px, flux_e, sigma: float, noise_e, shot: bool, half: int, shape_px=None) -> np.ndarray:
