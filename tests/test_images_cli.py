@@ -68,7 +68,8 @@ def test_three_formats_become_one_session_in_time_order(images, tmp_path, capsys
     printed = capsys.readouterr().out.splitlines()
     per_image = re.compile(
         r"^frame \d \S+: (\d+) stars of (\d+) detections \(rejected: (\d+) hot, (\d+) saturated, (\d+) blended, "
-        r"(\d+) at the edge, (\d+) without flux; \d+ saturated kept\); noise [\d.]+ ADU, PSF sigma [\d.]+ px; "
+        r"(\d+) at the edge, (\d+) without flux; \d+ saturated kept, \d+ blends kept flagged\); "
+        r"noise [\d.]+ ADU, PSF sigma [\d.]+ px; "
         r"time 2018-05-09T03:[012]0:00.000Z"
     )
     counts = [tuple(int(v) for v in per_image.match(line).groups()) for line in printed[:3]]

@@ -81,7 +81,10 @@ def test_mirrored_detector_reverses_columns_in_image_and_truth(sim):
     np.testing.assert_array_equal(mirrored.truth_y_px, normal.truth_y_px)
     det = centroid_pixels(mirrored.image_adu, CentroidOptions(gain_e_per_adu=2.0), saturation_adu=4095)
     d = np.hypot(det.x_px[:, None] - mirrored.truth_x_px, det.y_px[:, None] - mirrored.truth_y_px)
-    assert np.all(d.min(axis=1) < 0.5)  # every detection sits on a mirrored true star
+    single = ~det.blended  # a blend (here a pair 2.9 px apart cut by the border) is flagged, its bias in sigma_px
+    assert np.all(d.min(axis=1)[single] < 0.5)  # every other detection sits on a mirrored true star
+    # a blend's shift is at most sqrt(2) x its sigma_px (its bias bound), and its noise adds: within 4 of them
+    assert np.all(d.min(axis=1)[~single] <= 4.0 * det.sigma_px[~single])
 
 
 def test_a_noisy_simulation_is_refused():
@@ -104,7 +107,10 @@ def test_whole_chain_finds_every_isolated_unsaturated_star_and_no_hot_pixel(sim)
     found[d.argmin(axis=1)[d.min(axis=1) < 0.5]] = True
     assert clean.sum() >= 20
     assert np.all(found[clean])  # Hp <= 7 at 2e6 e- for Hp 0: >= 3200 e-, peak SNR >= 30
-    assert np.all(d.min(axis=1) < 0.5)  # and nothing else: hot pixels rejected, no false star
+    single = ~det.blended  # and nothing else: hot pixels rejected, no false star, a blend flagged with its bias
+    assert np.all(d.min(axis=1)[single] < 0.5)
+    # a blend's shift is at most sqrt(2) x its sigma_px (its bias bound), and its noise adds: within 4 of them
+    assert np.all(d.min(axis=1)[~single] <= 4.0 * det.sigma_px[~single])
 
 
 def test_field_effects_conserve_flux_and_move_a_comatic_star_outward():

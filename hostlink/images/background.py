@@ -73,11 +73,34 @@ def saturated_regions(raw: np.ndarray, saturation_adu: float | None) -> np.ndarr
     if saturation_adu is None:
         return np.zeros(raw.shape, dtype=bool)
     clipped = (raw >= saturation_adu).astype(np.uint8)
-    if not clipped.any():
-        return clipped.astype(bool)
+    if not _may_hold_blank(clipped):
+        return np.zeros(raw.shape, dtype=bool)
     closed = ndimage.minimum_filter(ndimage.maximum_filter(clipped, _HOLE_WIDTH_PX), _HOLE_WIDTH_PX)
     opened = ndimage.maximum_filter(ndimage.minimum_filter(closed, BLANK_MIN_WIDTH_PX), BLANK_MIN_WIDTH_PX)
     return widened(opened.astype(bool))
+
+
+def _may_hold_blank(clipped: np.ndarray) -> bool:
+    """False when no region of :func:`saturated_regions` can exist (the common frame, whose clipped pixels are a few
+    star cores): a square of ``BLANK_MIN_WIDTH_PX`` after the closing lies within the clipped pixels dilated by half
+    the hole width, so each pixel of it has a clipped pixel within ``_HOLE_WIDTH_PX // 2`` px; the square holds every
+    pixel of at least k x k whole aligned blocks of ``_HOLE_WIDTH_PX`` (k = (width - hole + 1) // hole), and the
+    centre of each has its clipped pixel within its own block. No k x k group of blocks each holding a clipped pixel:
+    no blank region (a necessary condition; the full opening decides otherwise)."""
+    from scipy import ndimage
+
+    if not clipped.any():
+        return False
+    b = _HOLE_WIDTH_PX
+    k = (BLANK_MIN_WIDTH_PX - b + 1) // b
+    h, w = clipped.shape
+    ny, nx = -(-h // b), -(-w // b)
+    padded = np.zeros((ny * b, nx * b), dtype=np.uint8)
+    padded[:h, :w] = clipped
+    occupied = padded.reshape(ny, b, nx, b).max(axis=(1, 3))
+    if ny < k or nx < k:
+        return bool(occupied.any())
+    return bool(ndimage.minimum_filter(occupied, size=k, mode="constant", cval=0).any())
 
 
 def widened(mask: np.ndarray, margin_px: int = BLANK_MARGIN_PX) -> np.ndarray:
@@ -180,12 +203,32 @@ def _box_percentiles(
     out = np.full((ny * nx, len(percents)), np.nan)
     whole = counted == box_px * box_px
     if whole.any():  # the common case, in one call
-        out[whole] = np.percentile(blocks[whole], percents, axis=1).T.astype(np.float64)
+        out[whole] = _row_percentiles(blocks[whole], percents)
     for k in np.flatnonzero(~whole & (counted >= _MIN_BOX_FRACTION * inside.ravel()) & (counted > 0)):
         out[k] = np.percentile(blocks[k][np.isfinite(blocks[k])], percents)
     row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
     col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
     return out.reshape(ny, nx, len(percents)), row_centres, col_centres
+
+
+def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
+    """``np.percentile(rows, percents, axis=1).T`` (method "linear") as float64, the same numbers, from each row
+    sorted: numpy partitions along the first axis of the transposed rows, a strided pass per order statistic (~15 ms
+    for a frame's 4800 boxes of 256 pixels), where sorting each contiguous row takes ~1 ms. The interpolation is
+    numpy's own: v = (n - 1) q / 100 between the neighbouring order statistics a, b with gamma = v - floor(v):
+    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5."""
+    ordered = np.sort(rows, axis=1)
+    n = rows.shape[1]
+    virtual = (n - 1) * (np.asarray(percents, dtype=np.float64) / 100.0)
+    below = np.floor(virtual)
+    gamma = virtual - below
+    a = ordered[:, np.minimum(below, n - 1).astype(np.intp)]
+    b = ordered[:, np.minimum(below + 1, n - 1).astype(np.intp)]
+    diff = b - a
+    out = a + diff * gamma
+    upper = np.broadcast_to(gamma >= 0.5, out.shape)
+    out[upper] = (b - diff * (1 - gamma))[upper]
+    return out.astype(np.float64)
 
 
 def _positive(noise: np.ndarray) -> np.ndarray:
@@ -221,10 +264,19 @@ def _median(grid: np.ndarray, size: int) -> np.ndarray:
 def _bilinear(grid: np.ndarray, row_centres: np.ndarray, col_centres: np.ndarray, h: int, w: int) -> np.ndarray:
     """The box values ``grid`` (at the box centres) interpolated bilinearly onto every pixel, constant beyond the
     outermost centres. Separable: along the rows of boxes, then along the columns."""
-    r0, r1, tr = _linear_weights(np.arange(h, dtype=np.float64), row_centres)
-    c0, c1, tc = _linear_weights(np.arange(w, dtype=np.float64), col_centres)
-    down = grid[r0] * (1.0 - tr)[:, None] + grid[r1] * tr[:, None]
-    return np.ascontiguousarray(down[:, c0] * (1.0 - tc)[None, :] + down[:, c1] * tc[None, :])
+    return _weights_matrix(h, row_centres) @ grid @ _weights_matrix(w, col_centres).T
+
+
+def _weights_matrix(n: int, centres: np.ndarray) -> np.ndarray:
+    """(n, len(centres)): row i holds the two weights of :func:`_linear_weights` for position i (a matrix product
+    with it interpolates a whole frame in a few milliseconds; gathering the pixels' two neighbours takes ~10 x
+    longer)."""
+    lower, upper, t = _linear_weights(np.arange(n, dtype=np.float64), centres)
+    weights = np.zeros((n, centres.size))
+    rows = np.arange(n)
+    weights[rows, lower] += 1.0 - t
+    weights[rows, upper] += t
+    return weights
 
 
 def _linear_weights(at: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

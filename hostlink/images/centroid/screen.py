@@ -1,0 +1,304 @@
+"""Extraction and the screening before any centroid: SEP's background, detection and deblending, then the saturated
+stars, the hot pixels, the deblended neighbours and the stars cut by the border (:mod:`hostlink.images.centroid`,
+steps 1-3)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hostlink.errors import UserError, one_line
+from hostlink.images.background import filtered_noise_correction
+from hostlink.images.centroid.options import CentroidOptions
+from hostlink.images.centroid.shapes import (
+    _BLEND_CLEAR_SIGMAS,
+    _BLEND_MAX_BIAS_PX,
+    _nearest_neighbour_px,
+    _neighbour_bias_px,
+)
+from hostlink.images.centroid.windows import _MIN_PSF_SIGMA_PX, _frame_psf_sigma_px
+from hostlink.sky.render import pixel_integrated_gaussian
+
+#: The detection filter (SEP's default 3 x 3 kernel, a Gaussian of sigma ~1 px sampled on pixels).
+_FILTER_KERNEL = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], dtype=np.float32)
+
+
+#: SEP's buffer of pixels above the threshold: its default first, then this when a frame fills it (a noisy frame at a
+#: low threshold can hold many more). Only the buffer's size differs, not what is extracted: SEP either fills it and
+#: stops with an error or does not; the large one costs ~50 ms per 1.2 Mpx frame to set up (docs/realsky.md, "Time").
+_SEP_PIXSTACK_FIRST = 300_000
+
+
+_SEP_PIXSTACK = 3_000_000
+
+
+#: SEP's cleaning (Source Extractor's CLEAN: a detection its bright neighbour's modelled wing could explain is merged
+#: into it) is off: on the granasat frames it removed sharp stars of 8-16 sigma 8-18 px from a bright one (the
+#: stars the plate solver names; found with it off, at the same threshold and footprint). What cleaning guards
+#: against, bumps on a bright star's wing, the blend test and the PSF fit's flux see.
+_SEP_CLEAN = False
+
+
+_SEP_SUB_OBJECTS = 4096
+
+
+def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np.ndarray:
+    """``raw`` less the dark or median frame ``background`` (a copy; a frame of another size is a UserError)."""
+    if background is None:
+        return raw.copy()
+    if background.shape != raw.shape:
+        raise UserError(
+            f"background frame is {background.shape[1]} x {background.shape[0]} px, image is "
+            f"{raw.shape[1]} x {raw.shape[0]} px"
+        )
+    return raw - background
+
+
+def _extract(data: np.ndarray, options: CentroidOptions, blank: np.ndarray | None = None):
+    """Package docstring, steps 1-2: SEP's background mesh subtracted (``blank``, the blank regions of
+    :func:`hostlink.images.background.saturated_regions`, masked from it and from the detection), its noise map
+    corrected to what the detection filter sees, box by box (:func:`hostlink.images.background.
+    filtered_noise_correction`), then SEP's matched-filter detection and deblending. Returns the
+    background-subtracted image, the noise map [ADU], the image filtered by the detection kernel, SEP's objects and its
+    segmentation map."""
+    import sep
+
+    box = int(min(options.background_box_px, max(8, min(data.shape) // 2)))
+    sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
+    try:
+        blank = np.zeros(data.shape, dtype=bool) if blank is None else blank
+        bkg = sep.Background(data, mask=blank, bw=box, bh=box, fw=3, fh=3)
+        sub = data - bkg.back()
+        offset, rms, filtered, ignored = filtered_noise_correction(
+            sub, bkg.rms(), _FILTER_KERNEL, box, blank, bkg.globalback
+        )
+        sub -= offset
+        objects, segmap = _sep_extract(sep, sub, rms, ignored, options)
+    except Exception as exc:  # SEP reports buffer overflows as plain exceptions
+        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
+    return sub, rms, filtered, objects, segmap
+
+
+def _sep_extract(sep, sub: np.ndarray, rms: np.ndarray, ignored: np.ndarray, options: CentroidOptions):
+    """``sep.extract`` of :func:`_extract` with SEP's default pixel buffer, again with :data:`_SEP_PIXSTACK` when a
+    frame fills it (the same extraction either way)."""
+
+    def extract():
+        return sep.extract(
+            sub,
+            options.threshold_sigma,
+            err=rms,
+            mask=ignored,
+            minarea=options.min_area_px,
+            filter_kernel=_FILTER_KERNEL,
+            deblend_nthresh=32,
+            deblend_cont=0.005,
+            clean=_SEP_CLEAN,
+            segmentation_map=True,
+        )
+
+    sep.set_extract_pixstack(_SEP_PIXSTACK_FIRST)
+    try:
+        return extract()
+    except Exception as exc:
+        if "pixel buffer full" not in str(exc):
+            raise
+    sep.set_extract_pixstack(_SEP_PIXSTACK)
+    return extract()
+
+
+@dataclass(frozen=True)
+class _Screen:
+    """The rejections before centroiding (package docstring, step 3), (N,) over SEP's objects: ``keep``, and each
+    rejection counted once, in order (saturated only when not kept, hot, blended); ``saturated``: a raw pixel of the
+    footprint at the clip level (kept or not); ``truncated``: cut by the border (centroided on the pixels it has,
+    :func:`_border_windows`); ``blend_px``: the bias bound [px] of a deblended star kept beside a neighbour
+    (:func:`_neighbour_bias_px`), NaN for the others."""
+
+    keep: np.ndarray
+    saturated: np.ndarray
+    hot: np.ndarray
+    blended: np.ndarray
+    truncated: np.ndarray
+    blend_px: np.ndarray
+
+
+def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: float | None) -> _Screen:
+    """Package docstring, step 3, before any centroid: saturated, hot pixels and deblended neighbours; the stars cut by
+    the border marked."""
+    import sep
+
+    truncated = (objects["flag"] & sep.OBJ_TRUNC) != 0
+    # saturated: a raw pixel of the footprint at the clip level
+    saturated = np.zeros(objects.size, bool)
+    if level is not None:
+        labelled = segmap > 0
+        peak_raw = np.full(objects.size + 1, -np.inf)
+        np.maximum.at(peak_raw, segmap[labelled], raw[labelled])
+        saturated = peak_raw[1:] >= level
+    merged = (objects["flag"] & sep.OBJ_MERGED) != 0
+    # hot pixels: the frame's PSF measured first on the detections that are neither single-pixel spikes by a coarse
+    # screen nor clipped, then every detection tested against it (a sharp star passes, a spike does not)
+    psf_hot = options.psf_sigma_px
+    if psf_hot is None:
+        screened = ~_single_pixel_spikes(sub, objects) & ~saturated & ~truncated & ~merged
+        psf_hot = _frame_psf_sigma_px(sub, objects[screened] if np.any(screened) else objects)
+    hot = _hot_pixels(sub, rms, objects, psf_hot, options.hot_pixel_chi2) & ~saturated
+    if level is not None:  # a hot pixel the clip level cuts (an 8-bit camera's reads 255)
+        hot |= _clipped_spikes(sub, rms, raw, segmap, level, objects.size)
+    # a deblended star whose neighbours all lie beyond the PSF fit's reach is measured as a single one; one nearer is
+    # kept, flagged, with its centroid's bias bound from its neighbours' light, unless that bound exceeds the limit
+    near = merged & (_nearest_neighbour_px(objects["x"], objects["y"], merged) <= _BLEND_CLEAR_SIGMAS * psf_hot)
+    bias = _neighbour_bias_px(objects, near, psf_hot)
+    blended = near & ~(bias <= _BLEND_MAX_BIAS_PX)
+    blend_px = np.where(near & ~blended, bias, np.nan)
+    keep = np.ones(objects.size, bool)
+    rejected_saturated = saturated.copy() if not options.keep_saturated else np.zeros(objects.size, bool)
+    for mask in (rejected_saturated, hot, blended):
+        mask &= keep
+        keep &= ~mask
+    return _Screen(keep, saturated, hot, blended, truncated, blend_px)
+
+
+#: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
+#: the 4 edge neighbours of the brightest pixel below this fraction of it (a pixel-integrated Gaussian of sigma s has
+#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.60 at s = 1 px).
+_SPIKE_SCREEN_RATIO = 0.2
+
+
+#: Hot-pixel test box: +-2 px around the brightest pixel (a PSF of sigma <= 1.5 px puts most of its flux inside).
+_HOT_BOX_HALF_PX = 2
+
+
+#: Hot-pixel test: a spike model fits when its chi^2 is within this many standard deviations sqrt(2 dof) of its
+#: degrees of freedom (pure noise around the one pixel); a bright star whose core is sharper than the Gaussian
+#: model fits neither model well, and the spike far worse: it is no hot pixel.
+_HOT_FIT_SIGMAS = 5.0
+
+
+#: Hot-pixel test: the star model's width ranges from this fraction of the frame's PSF sigma (at least
+#: :data:`_MIN_PSF_SIGMA_PX`) to the full sigma. The frame's sigma is measured on its most significant stars, which an
+#: 8-bit or JPEG camera widens (saturated cores, blooming, compression); a faint star's in-focus core can be half as
+#: wide (on granasat 0.45-0.5 px against the frame's 0.91 px: stars the plate solver names, lost as "hot" before).
+_HOT_SHARPEST_FRACTION = 0.5
+
+
+#: Hot-pixel test: sub-pixel positions of the star model tried around the brightest pixel's centre [px].
+_HOT_POSITIONS_PX = np.linspace(-0.5, 0.5, 5)
+
+
+def _single_pixel_spikes(sub: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """The coarse screen of :data:`_SPIKE_SCREEN_RATIO` (not a rejection: it keeps spikes out of the PSF
+    measurement that the rejection test :func:`_hot_pixels` then uses)."""
+    h, w = sub.shape
+    c = np.clip(objects["xpeak"].astype(np.int64), 1, w - 2)
+    r = np.clip(objects["ypeak"].astype(np.int64), 1, h - 2)
+    peak = sub[r, c]
+    neighbours = (sub[r - 1, c] + sub[r + 1, c] + sub[r, c - 1] + sub[r, c + 1]) / 4.0
+    return neighbours < _SPIKE_SCREEN_RATIO * peak
+
+
+def _orthonormal_bases(columns: list[np.ndarray]) -> np.ndarray:
+    """(P, M, 2) orthonormal bases U of the span of each design matrix (P, 2) of ``columns`` (QR): the orthogonal
+    projector onto the m-th span is U[:, m] U[:, m]^T. One batched QR (the same LAPACK call per matrix)."""
+    return np.swapaxes(np.linalg.qr(np.stack(columns))[0], 0, 1)
+
+
+#: A clipped pixel is a hot one when its edge neighbours' mean lies this many of its noise below what the sharpest
+#: star would put there (:func:`_clipped_spikes`).
+_CLIPPED_SPIKE_SIGMAS = 5.0
+
+
+def _clipped_spikes(sub, rms, raw, segmap, level: float, n_objects: int) -> np.ndarray:
+    """(N,) bool: hot pixels the clip level cuts, which :func:`_hot_pixels` cannot judge (a clipped pixel is a lower
+    bound, not a value): a detection with exactly one pixel at the clip level whose 4 edge neighbours (those inside
+    the image) hold, on average, less than any star able to clip it would put there. A pixel-integrated Gaussian of
+    sigma s centred on a pixel puts r = P(1) / P(0) of its peak pixel's signal into each edge neighbour, the least of
+    any position (off centre the peak pixel falls and the neighbours' mean rises), r = 0.18 for the sharpest star,
+    s = :data:`_MIN_PSF_SIGMA_PX` (not a fraction of the frame's PSF: on a trailed frame, granasat's polar_30sec, the
+    frame's PSF is 1.5 px and stars with a single clipped pixel are far sharper); a clipped peak holds at least the
+    clip level less the background. Hot when the neighbours' mean (less the
+    background) is below r (level - background) - :data:`_CLIPPED_SPIKE_SIGMAS` x noise / 2 (the noise of a mean of
+    4). A saturated star's core of several clipped pixels, or one whose wings are there, is kept."""
+    out = np.zeros(n_objects, dtype=bool)
+    rows, cols = np.nonzero((raw >= level) & (segmap > 0))
+    labels = segmap[rows, cols]
+    counts = np.bincount(labels, minlength=n_objects + 1)
+    single = counts[labels] == 1
+    rows, cols, labels = rows[single], cols[single], labels[single]
+    if labels.size == 0:
+        return out
+    h, w = sub.shape
+    total, number = np.zeros(labels.size), np.zeros(labels.size)
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows + dr, cols + dc
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        total[inside] += sub[r[inside], c[inside]]
+        number += inside
+    peak, edge = pixel_integrated_gaussian(np.array([0.0, 1.0]), 0.0, _MIN_PSF_SIGMA_PX)
+    height = level - (raw[rows, cols] - sub[rows, cols])  # the clip level above the local background
+    least = (edge / peak) * height - _CLIPPED_SPIKE_SIGMAS * rms[rows, cols] / 2.0
+    out[labels[total / np.maximum(number, 1) < least] - 1] = True
+    return out
+
+
+def _hot_bases(offsets: np.ndarray, dr: int, dc: int, widths: np.ndarray) -> np.ndarray:
+    """The orthonormal bases (P, M, 2) of :func:`_hot_pixels`' models over the box ``offsets`` x ``offsets`` with
+    the brightest pixel at (``dr``, ``dc``) from its centre: the spike on it, then the star at each width and
+    sub-pixel position around it, each with a flat background."""
+    flat = np.ones(offsets.size**2)
+    spike = np.zeros((offsets.size, offsets.size))
+    spike[dr + offsets.size // 2, dc + offsets.size // 2] = 1.0
+    stars = [
+        np.outer(
+            pixel_integrated_gaussian(offsets, dr + dy, width), pixel_integrated_gaussian(offsets, dc + dx, width)
+        ).ravel()
+        for width in widths
+        for dy in _HOT_POSITIONS_PX
+        for dx in _HOT_POSITIONS_PX
+    ]
+    return _orthonormal_bases([np.column_stack([m, flat]) for m in [spike.ravel(), *stars]])
+
+
+def _hot_pixels(sub: np.ndarray, rms: np.ndarray, objects: np.ndarray, psf_sigma_px: float, chi2_limit: float):
+    """Hot pixels: detections that a single bright pixel explains better than a star of the frame's own PSF, by a
+    likelihood-ratio test. Over the (2h+1)^2 pixels d around the brightest one (h = :data:`_HOT_BOX_HALF_PX`), in
+    units of the local noise, two linear models each with a flat background: a spike (amplitude on the central pixel
+    only) and the pixel-integrated Gaussian of sigma ``psf_sigma_px`` (:func:`hostlink.sky.render.
+    pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions and of three widths from
+    :data:`_HOT_SHARPEST_FRACTION` of it to all of it; chi^2 = |d|^2 - d^T Q d for each
+    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit``: the star model is
+    rejected (both have 2 free amplitudes: under a true star the difference is noise of a few units, under a spike
+    of amplitude A it grows as (A / noise)^2). A sharp star (sigma 0.5-0.8 px), whose neighbours hold little of
+    its flux, still fits its PSF better than a spike; a faint star, whose neighbours are lost in the noise, fits
+    both about as well and is kept; and only a spike that fits the pixels (its chi^2 within :data:`_HOT_FIT_SIGMAS`
+    standard deviations of its degrees of freedom: nothing but noise around one pixel) is one, so a bright star
+    whose real core is sharper than the Gaussian (the spike then fits far worse still) is kept. Returns (N,) bool."""
+    h, w = sub.shape
+    half = _HOT_BOX_HALF_PX
+    if objects.size == 0:
+        return np.zeros(0, dtype=bool)
+    peak_c, peak_r = objects["xpeak"].astype(np.int64), objects["ypeak"].astype(np.int64)
+    c = np.clip(peak_c, half, w - 1 - half)
+    r = np.clip(peak_r, half, h - 1 - half)
+    offsets = np.arange(-half, half + 1)
+    cut = sub[r[:, None, None] + offsets[None, :, None], c[:, None, None] + offsets[None, None, :]]
+    d = cut.reshape(objects.size, -1) / np.maximum(rms[r, c], 1e-12)[:, None]
+    widths = np.geomspace(max(_MIN_PSF_SIGMA_PX, _HOT_SHARPEST_FRACTION * psf_sigma_px), psf_sigma_px, 3)
+    # the box lies inside the image: near the border the brightest pixel is off its centre, and both models with it
+    shift = (peak_r - r) * offsets.size + (peak_c - c)
+    explained = np.zeros((objects.size, 1 + widths.size * _HOT_POSITIONS_PX.size**2))
+    for value in np.unique(shift):
+        rows = np.flatnonzero(shift == value)
+        dr, dc = divmod(int(value) + half * (offsets.size + 1), offsets.size)
+        basis = _hot_bases(offsets, dr - half, dc - half, widths)
+        # d^T Q d = |U^T d|^2 for the projector Q = U U^T of each model (U: an orthonormal basis of its 2 columns)
+        explained[rows] = np.sum((d[rows] @ basis.reshape(d.shape[1], -1)).reshape(rows.size, -1, 2) ** 2, axis=2)
+    total = np.einsum("np,np->n", d, d)
+    chi2_spike = total - explained[:, 0]
+    chi2_star = total - np.max(explained[:, 1:], axis=1)
+    dof = d.shape[1] - 2
+    spike_fits = chi2_spike <= dof + _HOT_FIT_SIGMAS * math.sqrt(2.0 * dof)
+    return spike_fits & (chi2_star - chi2_spike > chi2_limit)

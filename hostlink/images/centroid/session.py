@@ -1,0 +1,167 @@
+"""Many images -> one session of unidentified stars, with a dark, median or median-of-inputs frame subtracted first
+(:mod:`hostlink.images.centroid`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from hostlink.errors import UserError
+from hostlink.files.session import Session
+from hostlink.files.times import parse_iso_utc_many
+from hostlink.images.centroid.frame import centroid_pixels
+from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
+from hostlink.images.centroid.times import _read_times_file, _time_choices, image_time
+from hostlink.images.read import read_image
+
+#: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
+#: frame keeps): the images then share a pointing.
+_MEDIAN_MAX_STARS = 5
+
+
+def centroid_images(
+    paths: Sequence[str | Path],
+    options: CentroidOptions = CentroidOptions(),  # noqa: B008 (a frozen dataclass)
+    times: TimeOptions = TimeOptions(),  # noqa: B008 (a frozen dataclass)
+) -> CentroidResult:
+    """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
+    the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
+    (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
+    frame of another size, no star in any image) is a one-line :class:`UserError`."""
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise UserError("no image given")
+    chosen = [k for k, v in _time_choices(times).items() if v]
+    if len(chosen) > 1:
+        raise UserError(f"give at most one of {', '.join(chosen)}")
+    sources = [options.dark, options.median, options.median_of_inputs or None]
+    if sum(s is not None for s in sources) > 1:
+        raise UserError("give at most one of --dark, --median, --median-of-inputs")
+    listed = _read_times_file(Path(times.times_file)) if times.times_file is not None else None
+    background = _background_frame(paths, options)
+
+    frames: list[tuple[str, Detections, str]] = []
+    for path in paths:
+        image = read_image(path)
+        time_utc, source = image_time(image, times, listed)
+        det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
+        det.report.path = str(path)
+        det.report.time_utc, det.report.time_source = time_utc, source
+        frames.append((time_utc, det, source))
+    if options.median_of_inputs:
+        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
+    if all(det.report.kept == 0 for _, det, _ in frames):
+        raise UserError(f"no star found in any of the {len(paths)} image(s); lower --threshold-sigma")
+    if times.time_unknown:
+        order = list(range(len(frames)))
+    else:
+        jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
+        order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
+    return _session([frames[k] for k in order])
+
+
+def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, kept: list[int]) -> None:
+    """Refuse ``--median-of-inputs`` on images that share a pointing: their median then holds their stars, and
+    subtracting it removes them. The median of frames at different pointings holds at most a few star-like sources
+    (warm pixel clusters, a star that stayed put), fewer than :data:`_MEDIAN_MAX_STARS` and fewer than a frame
+    keeps."""
+    in_median = centroid_pixels(median, replace(options, max_stars=None, candidate_sigma=None)).report.kept
+    per_frame = float(np.mean(kept)) if kept else 0.0
+    if in_median >= _MEDIAN_MAX_STARS and in_median >= per_frame:
+        raise UserError(
+            f"--median-of-inputs: the median of the images holds {in_median} star-like sources (a frame keeps "
+            f"{per_frame:.0f}): the images share a pointing and the median would remove their stars; give --dark, "
+            "or no background frame"
+        )
+
+
+def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
+    """The session of the frames: per frame its stars (brightest first), then its candidates (most significant first;
+    ``snr`` set only on them)."""
+    parts = [_frame_rows(det) for _, det, _ in frames]
+    counts = [part["x"].size for part in parts]
+    n = int(sum(counts))
+    frame_no = np.repeat(np.arange(len(frames), dtype=np.int64), counts)
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([part[name] for part in parts]) if n else np.zeros(0)
+
+    def repeat(values: list[str]) -> np.ndarray:
+        return np.array([v for v, c in zip(values, counts, strict=True) for _ in range(c)], dtype=object)
+
+    flux, snr = cat("flux"), cat("snr")
+    extra = {
+        "flux_adu": np.array([f"{v:.1f}" for v in flux], dtype=object),
+        "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
+        "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
+        "blended": np.array([str(int(v)) for v in cat("blended")], dtype=object),
+    }
+    if any(det.candidates is not None for _, det, _ in frames):
+        extra["snr"] = np.array([f"{v:.2f}" if np.isfinite(v) else "" for v in snr], dtype=object)
+    extra["image"] = repeat([Path(det.report.path).name for _, det, _ in frames])
+    extra["time_source"] = repeat([source for _, _, source in frames])
+    session = Session(
+        frame=frame_no,
+        t_utc=repeat([t for t, _, _ in frames]),
+        star_id=np.zeros(n, np.int64),
+        x_px=cat("x"),
+        y_px=cat("y"),
+        mag=cat("mag"),
+        extra=extra,
+    )
+    return CentroidResult(session, [det.report for _, det, _ in frames])
+
+
+def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
+    """One frame's rows of the session: its stars, then its candidates (``snr`` NaN on the stars)."""
+    c = det.candidates
+    if c is None:
+        c = Candidates(*(np.zeros(0) for _ in range(6)))
+    return {
+        "x": np.concatenate([det.x_px, c.x_px]),
+        "y": np.concatenate([det.y_px, c.y_px]),
+        "flux": np.concatenate([det.flux_adu, c.flux_adu]),
+        "mag": np.concatenate([det.mag, c.mag]),
+        "sigma_px": np.concatenate([det.sigma_px, c.sigma_px]),
+        "saturated": np.concatenate([det.saturated.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
+        "blended": np.concatenate([det.blended.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
+        "snr": np.concatenate([np.full(det.x_px.size, np.nan), c.snr]),
+    }
+
+
+def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray | None:
+    given = options.dark if options.dark is not None else options.median
+    if given is not None:
+        return read_image(given).pixels
+    if not options.median_of_inputs:
+        return None
+    if len(paths) < 3:
+        raise UserError(f"--median-of-inputs needs at least 3 images taken at different pointings, got {len(paths)}")
+    stack = None
+    for k, path in enumerate(paths):
+        pixels = read_image(path).pixels
+        if stack is None:
+            stack = np.empty((len(paths), *pixels.shape), dtype=np.float32)
+        elif pixels.shape != stack.shape[1:]:
+            raise UserError(
+                f"{path}: {pixels.shape[1]} x {pixels.shape[0]} px, the first image is "
+                f"{stack.shape[2]} x {stack.shape[1]} px: --median-of-inputs needs one size"
+            )
+        stack[k] = pixels
+    return _median_frame(stack)
+
+
+def _median_frame(stack: np.ndarray) -> np.ndarray:
+    """``np.median(stack, axis=0)`` as float64, the same numbers, from the stack sorted along its first axis (the
+    middle frame's value, or the mean of the middle two in the stack's type, as ``np.median``): numpy's partition
+    along that axis takes 3 times longer (ten 1.4 Mpx frames: 0.44 s against 0.13 s). A stack with a NaN goes to
+    ``np.median`` (which makes its pixel NaN; sorting would not)."""
+    if np.isnan(stack).any():
+        return np.median(stack, axis=0).astype(np.float64)
+    ordered = np.sort(stack, axis=0)
+    n = stack.shape[0]
+    middle = ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2
+    return middle.astype(np.float64)

@@ -1,0 +1,42 @@
+"""The order statistics the centroiding computes by sorting rows instead of numpy's strided partition (for speed,
+docs/realsky.md "Time") are numpy's own numbers, bit for bit: the background boxes' percentiles, the stamps' ring
+medians and the median of the input frames (ties as 8-bit and JPEG pixels have them, odd and even counts)."""
+
+import numpy as np
+import pytest
+
+from hostlink.images.background import _row_percentiles
+from hostlink.images.centroid.session import _median_frame
+from hostlink.images.centroid.stamps import _row_medians
+
+
+@pytest.mark.parametrize("n", [1, 7, 64, 100, 256, 4096])
+def test_box_percentiles_are_numpys(n):
+    rng = np.random.default_rng(n)
+    rows = np.round(rng.normal(size=(300, n)) * 6).astype(np.float32)  # ties, as on quantised pixels
+    for percents in [(50.0,), (50.0, 97.725), (0.0, 99.9, 100.0)]:
+        expected = np.percentile(rows, percents, axis=1).T.astype(np.float64)
+        np.testing.assert_array_equal(_row_percentiles(rows, percents), expected)
+
+
+def test_ring_medians_are_numpys_and_a_partial_ring_counts_its_pixels_alone():
+    rng = np.random.default_rng(5)
+    for p in (119, 120):
+        values = np.round(rng.normal(size=(200, p)) * 4)
+        valid = np.ones(values.shape, dtype=bool)
+        valid[:20, : p // 3] = False  # stamps the border cuts
+        valid[20] = False  # no pixel at all
+        out = _row_medians(values, valid)
+        np.testing.assert_array_equal(out[21:], np.median(values[21:], axis=1))
+        for k in range(20):
+            assert out[k] == np.median(values[k][valid[k]])
+        assert np.isnan(out[20])
+
+
+@pytest.mark.parametrize("frames", [3, 4, 10])
+def test_median_frame_is_numpys(frames):
+    rng = np.random.default_rng(frames)
+    stack = np.round(rng.normal(size=(frames, 40, 50)) * 5).astype(np.float32)
+    np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+    stack[1, 3, 4] = np.nan
+    np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
