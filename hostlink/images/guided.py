@@ -163,7 +163,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         "renamed": 0,
         "kept": True,
     }
-    camera = _calibrated(result.session, result.camera)
+    camera = _calibrated(result.session, result.camera, getattr(result, "calibration", None))
     if camera is None:
         record.update(status="calibration failed: no candidate admitted")
         frames = ()
@@ -185,17 +185,20 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
     return replace(result, session=_with_identities(session, star_id, catalogue), rounds=(*result.rounds, record))
 
 
-def _calibrated(session: Session, camera: CameraParams | None) -> CameraParams | None:
-    """The camera calibrated on ``session``'s identified stars (default method), None when that fails."""
+def _calibrated(session: Session, camera: CameraParams | None, outcome=None) -> CameraParams | None:
+    """The camera calibrated on ``session``'s identified stars (default method) from ``camera``, None when that
+    fails. ``outcome``: that calibration when the identification's rounds already ran it
+    (:attr:`hostlink.images.identify.Identification.calibration`), not run again."""
     from hostlink.calibration.run import calibrate_session
     from hostlink.errors import UserError
 
     if camera is None or not np.any(session.star_id != 0):
         return None
-    try:
-        outcome, _ = calibrate_session(session, camera, keep_failed=True)
-    except UserError:
-        return None
+    if outcome is None:
+        try:
+            outcome, _ = calibrate_session(session, camera, keep_failed=True)
+        except UserError:
+            return None
     return None if outcome.failure() else outcome.params
 
 

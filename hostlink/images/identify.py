@@ -170,6 +170,9 @@ class Identification:
     rounds: tuple[dict, ...] = ()
     #: the camera the final round identified with (the nominal, or the calibration of the round before)
     camera: CameraParams | None = None
+    #: the calibration (:class:`hostlink.calibration.run.CalibrationOutcome`) of ``session`` from ``camera`` when the
+    #: rounds ran it (a round after it added nothing), so that what follows need not run it again (None otherwise)
+    calibration: object | None = None
 
     @property
     def n_identified(self) -> int:
@@ -467,21 +470,17 @@ def _extend(
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     radius = _match_radius_px(theta, v)
     d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2  # (centroids, predicted)
-    rows, stars = [], []
-    for i in range(x_px.shape[0]):
-        if taken_rows[i]:
-            continue
-        order = np.argsort(d2[i])
-        j = int(order[0])
-        if d2[i, j] > radius * radius:
-            continue
-        if order.size > 1 and d2[i, int(order[1])] < 4.0 * d2[i, j]:
-            continue  # two catalogue stars nearly as close: ambiguous
-        if int(np.argmin(d2[:, j])) != i:
-            continue  # another centroid is nearer to this star
-        rows.append(i)
-        stars.append(int(near[j]))
-    return np.asarray(rows, dtype=np.int64), np.asarray(stars, dtype=np.int64)
+    free = np.flatnonzero(~taken_rows)
+    if free.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    own = d2[free]
+    j = np.argmin(own, axis=1)  # each free centroid's nearest predicted star
+    nearest = own[np.arange(free.size), j]
+    second = np.partition(own, 1, axis=1)[:, 1] if near.size > 1 else np.full(free.size, np.inf)
+    ok = nearest <= radius * radius
+    ok &= ~(second < 4.0 * nearest)  # two catalogue stars nearly as close: ambiguous
+    ok &= np.argmin(d2, axis=0)[j] == free  # no other centroid nearer to this star
+    return free[ok].astype(np.int64), near[j[ok]].astype(np.int64)
 
 
 def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
@@ -581,7 +580,9 @@ class PairCatalogue:
 
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
     """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
-    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2))."""
+    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2)), in the order (angle, a, b): pairs of
+    exactly the same angle (a double star's partners, angles that round alike) in the order of their sky indices,
+    not the tree's traversal, so that a table cut from a larger one (:meth:`PairCache.pairs`) is the same table."""
     from scipy.spatial import cKDTree
 
     rows = np.flatnonzero(sky.mag <= maglim)
@@ -591,12 +592,109 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
     dot = np.clip(np.sum(sky.r[a] * sky.r[b], axis=1), -1.0, 1.0)
     angle = np.arccos(dot)
-    order = np.argsort(angle, kind="stable")
-    rank16 = None
-    if rows.size <= 1 << 16:
-        rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
-        rank16[rows] = np.arange(rows.size, dtype=np.uint16)
-    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, rank16)
+    order = _ties_by_stars(np.argsort(angle, kind="stable"), angle, a, b)
+    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
+
+
+def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
+    """:attr:`PairCatalogue.rank16` of the stars ``rows`` (None for more than 65536 stars)."""
+    if rows.size > 1 << 16:
+        return None
+    rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
+    rank16[rows] = np.arange(rows.size, dtype=np.uint16)
+    return rank16
+
+
+def _ties_by_stars(order: np.ndarray, angle: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``order`` (ascending ``angle``) with every run of equal angles reordered by (a, b) (one in 13 million pairs
+    to Hp 8.7 within 8.8 deg)."""
+    ordered = angle[order]
+    tied = np.flatnonzero(ordered[1:] == ordered[:-1])
+    if tied.size == 0:
+        return order
+    out = order.copy()
+    starts = tied[np.concatenate([[True], np.diff(tied) > 1])]
+    for start in starts:
+        stop = start + 1
+        while stop < order.size and angle[order[stop]] == angle[order[start]]:
+            stop += 1
+        run = order[start:stop]
+        out[start:stop] = run[np.lexsort((b[run], a[run]))]
+    return out
+
+
+#: :class:`PairCache` builds its table this much wider than asked [fraction of the angle]: the next round of
+#: :func:`identify_iteratively` asks for the detector's diagonal through its calibrated focal length, which differs
+#: from the round before's by the calibration's change (0.5 % on openstartracker), and a table wider than asked is cut
+#: to it in a few array passes where building it again takes seconds (20 million pairs to Hp 9 on a 9-deg field).
+PAIR_CACHE_ANGLE_MARGIN = 0.05
+
+
+class PairCache:
+    """What the rounds of one :func:`identify_iteratively` share and do not change: the catalogue as unit vectors
+    (:func:`_sky`), the own matcher's pair table (:func:`pair_catalogue`, built once a little wider than asked and cut
+    to each round's angle and depth: the same table a fresh build gives) and the engine's pattern database."""
+
+    def __init__(self) -> None:
+        self._skies: dict[int, tuple[Catalogue, _Sky]] = {}
+        self._table: PairCatalogue | None = None
+        self._table_maglim = -math.inf
+        self._databases: dict[tuple, tuple[Catalogue, object]] = {}
+        self._subsets: dict[tuple, tuple[Catalogue, Catalogue]] = {}
+
+    def bright(self, catalogue: Catalogue, maglim: float) -> Catalogue:
+        """The stars of ``catalogue`` at least ``maglim`` bright (one subset per catalogue and limit)."""
+        key = (id(catalogue), maglim)
+        held = self._subsets.get(key)
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, catalogue.subset(np.flatnonzero(catalogue.mag <= maglim)))
+            self._subsets[key] = held
+        return held[1]
+
+    def sky(self, catalogue: Catalogue) -> _Sky:
+        """:func:`_sky` of ``catalogue`` (computed once per catalogue object)."""
+        held = self._skies.get(id(catalogue))
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, _sky(catalogue))
+            self._skies[id(catalogue)] = held
+        return held[1]
+
+    def database(self, catalogue: Catalogue, fov_deg: float, maglim: float | None):
+        """:func:`solver_adapter.pattern_database` (read once)."""
+        key = (id(catalogue), fov_deg, maglim)
+        held = self._databases.get(key)
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, solver_adapter.pattern_database(catalogue, fov_deg, maglim))
+            self._databases[key] = held
+        return held[1]
+
+    def pairs(self, sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
+        """:func:`pair_catalogue` (``sky``, ``max_angle_rad``, ``maglim``), cut from the table held when it covers
+        them (the same sky, as wide and as deep), else built (:data:`PAIR_CACHE_ANGLE_MARGIN` wider) and held."""
+        table = self._table
+        if table is None or table.r is not sky.r or max_angle_rad > table.max_angle_rad or maglim > self._table_maglim:
+            wide = max_angle_rad * (1.0 + PAIR_CACHE_ANGLE_MARGIN)
+            deep = max(maglim, self._table_maglim) if table is not None and table.r is sky.r else maglim
+            table = pair_catalogue(sky, wide, deep)
+            self._table, self._table_maglim = table, deep
+        return _cut(table, sky, max_angle_rad, maglim, self._table_maglim)
+
+
+def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
+    """The pairs of ``table`` (built to ``table_maglim``) within ``max_angle_rad`` of stars brighter than ``maglim``:
+    ``table`` is in (angle, a, b) order, and so is every subset of it."""
+    from scipy.spatial import cKDTree
+
+    n = int(np.searchsorted(table.angle_rad, max_angle_rad, side="right"))
+    a, b, angle = table.a[:n], table.b[:n], table.angle_rad[:n]
+    rows, tree = table.rows, table.tree
+    if maglim < table_maglim:
+        bright = sky.mag <= maglim
+        keep = bright[a] & bright[b]
+        a, b, angle = a[keep], b[keep], angle[keep]
+        rows = np.flatnonzero(bright)
+        tree = cKDTree(sky.r[rows])
+    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
 
 
 #: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
@@ -1093,6 +1191,8 @@ class _SessionContext:
     fov_deg: float
     sky: _Sky
     database: object
+    #: the tables rounds of :func:`identify_iteratively` share (None: built for this call alone)
+    cache: PairCache | None = None
 
 
 def _identify_frame_k(
@@ -1143,6 +1243,8 @@ def _fallback_pairs(ctx: _SessionContext, todo: list[int], results: dict) -> Pai
     )
     width, height = nominal.image_size_px
     half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
+    if ctx.cache is not None:
+        return ctx.cache.pairs(sky, 2.0 * math.atan(half_diagonal), depth)
     return pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
 
 
@@ -1205,6 +1307,7 @@ def identify_session(
     use_engine: bool = True,
     progress=None,
     database_fov_deg: float | None = None,
+    cache: PairCache | None = None,
 ) -> Identification:
     """Identify every frame's unidentified rows (module docstring). ``nominal``: the camera as its user knows it
     (focal length within 10 %); ``catalogue``: default the bundled Hipparcos; ``maglim``: only stars at least this
@@ -1212,23 +1315,32 @@ def identify_session(
     own pair-anchored matcher alone. Rows already identified are kept as they are. ``progress(done, total)`` is called
     after each frame. The returned session has the identified rows' star_id (and ra_deg/dec_deg when the file has
     them: the geocentric apparent place with the time known, the J2000 place without) filled in. Stages: the engine
-    (:func:`_engine_pass`), the own matcher for the frames it left (:func:`_fallback_pass`), the identities written."""
+    (:func:`_engine_pass`), the own matcher for the frames it left (:func:`_fallback_pass`), the identities written.
+    ``cache``: the tables the rounds of :func:`identify_iteratively` share (:class:`PairCache`; the same results)."""
     check_field(nominal)
     if np.any(guided.candidate_rows(session)):  # faint candidates build no pattern (guided.py)
         return guided.identify_without_candidates(
-            session, lambda s: identify_session(s, nominal, catalogue, maglim, use_engine, progress, database_fov_deg)
+            session,
+            lambda s: identify_session(s, nominal, catalogue, maglim, use_engine, progress, database_fov_deg, cache),
         )
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
     if maglim is not None:
-        catalogue = catalogue.subset(np.flatnonzero(catalogue.mag <= maglim))
+        catalogue = (
+            cache.bright(catalogue, maglim) if cache else catalogue.subset(np.flatnonzero(catalogue.mag <= maglim))
+        )
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
     engine = use_engine and solver_adapter.engine_available()
     # ``database_fov_deg``: a later round of :func:`identify_iteratively` reuses the first round's database
-    database = solver_adapter.pattern_database(catalogue, database_fov_deg or fov, maglim) if engine else None
-    ctx = _SessionContext(session, nominal, fov, _sky(catalogue), database)
+    database = None
+    if engine:
+        database = (cache.database if cache else solver_adapter.pattern_database)(
+            catalogue, database_fov_deg or fov, maglim
+        )
+    sky = cache.sky(catalogue) if cache else _sky(catalogue)
+    ctx = _SessionContext(session, nominal, fov, sky, database, cache)
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
     results = _engine_pass(ctx, todo, progress) if engine else {}
@@ -1338,16 +1450,21 @@ def identify_iteratively(
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
 
+    cache = PairCache()  # what does not change between rounds
+
     def one_round(camera: CameraParams) -> Identification:
-        return identify_session(session, camera, catalogue, maglim, use_engine, progress, database_fov_deg=fov)
+        return identify_session(
+            session, camera, catalogue, maglim, use_engine, progress, database_fov_deg=fov, cache=cache
+        )
 
     result = one_round(nominal)
     new = session.star_id == 0
     rounds = [_round_record(1, "nominal", nominal, result, np.zeros_like(session.star_id), new)]
-    camera = nominal
+    camera, outcome = nominal, None
     for number in range(2, max_rounds + 1):
         if result.n_frames_identified == 0:
             break
+        outcome = None
         try:
             outcome, _ = calibrate_session(result.session, camera, keep_failed=True)
         except UserError as exc:
@@ -1363,10 +1480,10 @@ def identify_iteratively(
         )
         rounds.append(record)
         if trial.n_identified <= result.n_identified:
-            record["kept"] = False  # nothing new: the round before stands
+            record["kept"] = False  # nothing new: the round before stands, and ``outcome`` is its calibration
             break
-        result, camera = trial, outcome.params
-    return replace(result, rounds=tuple(rounds), camera=camera)
+        result, camera, outcome = trial, outcome.params, None
+    return replace(result, rounds=tuple(rounds), camera=camera, calibration=outcome)
 
 
 def _round_record(
