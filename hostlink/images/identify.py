@@ -55,7 +55,7 @@ import numpy as np
 from hostlink.calibration.data import build_data
 from hostlink.calibration.robust import estimate_scale, triple_handedness, vote_consistent_stars
 from hostlink.files.session import Session
-from hostlink.images import guided, solver_adapter
+from hostlink.images import blends, guided, solver_adapter
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
@@ -168,6 +168,10 @@ class Identification:
     nominal_fov_deg: float
     #: one record per round of :func:`identify_iteratively` (empty for a single :func:`identify_session`)
     rounds: tuple[dict, ...] = ()
+    #: the identified rows whose detection holds unresolved catalogue companions' light, one record each
+    #: (:func:`hostlink.images.blends.blend_references`: row, hip, companions, offsets and sigma [px]): their ra/dec
+    #: is the blend's expected centroid, their ``sigma_px`` grown by its uncertainty
+    blends: tuple[dict, ...] = ()
     #: the camera the final round identified with (the nominal, or the calibration of the round before)
     camera: CameraParams | None = None
     #: the calibration (:class:`hostlink.calibration.run.CalibrationOutcome`) of ``session`` from ``camera`` when the
@@ -204,6 +208,7 @@ class Identification:
             "parity": None if self.mirrored is None else ("mirrored" if self.mirrored else "normal"),
             "scale": _finite(self.scale),
             "rounds": list(self.rounds),
+            "blends": list(self.blends),
             "per_frame": [f.as_dict() for f in self.frames],
         }
 
@@ -463,8 +468,13 @@ def _extend(
     taken_rows: np.ndarray,
     mag_limit: float,
     image_size_px: tuple[int, int],
+    calibrated_mag: np.ndarray | None = None,
+    window: float = blends.MIN_PHOTOMETRIC_WINDOW_MAG,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Candidates beyond the proposal's (module docstring, step 3): (rows into the frame, sky indices)."""
+    """Candidates beyond the proposal's (module docstring, step 3): (rows into the frame, sky indices). With the
+    centroids' calibrated magnitudes ``calibrated_mag`` (instrumental plus the frame's zero point), only catalogue
+    stars that could be a centroid by themselves (:func:`hostlink.images.blends.could_be` within ``window``) are its
+    candidates and its rivals: a fainter star beside it adds light to it but cannot be it."""
     near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
     if near.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -474,6 +484,9 @@ def _extend(
     if free.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     own = d2[free]
+    if calibrated_mag is not None:
+        explains = blends.could_be(sky.mag[near][None, :], calibrated_mag[free, None], window)
+        own = np.where(explains | ~np.isfinite(calibrated_mag[free, None]), own, np.inf)
     j = np.argmin(own, axis=1)  # each free centroid's nearest predicted star
     nearest = own[np.arange(free.size), j]
     second = np.partition(own, 1, axis=1)[:, 1] if near.size > 1 else np.full(free.size, np.inf)
@@ -505,11 +518,17 @@ def _ambiguous(
     v: _Verified,
     image_size_px: tuple[int, int],
     mag_limit: float,
+    detection_mag: np.ndarray | None = None,
+    window: float = blends.MIN_PHOTOMETRIC_WINDOW_MAG,
 ) -> np.ndarray:
-    """(K,) bool over the candidates (centroids ``x_px, y_px`` named ``stars``): another catalogue star, no fainter
-    than its own identity by more than :data:`AMBIGUITY_MAG_MARGIN` and within ``mag_limit``, is predicted by the
-    verified solution within :func:`_match_radius_px` of the centroid: two catalogue stars could be this star (a
-    close pair the detector does not resolve, or either of two), so it is left unidentified."""
+    """(K,) bool over the candidates (centroids ``x_px, y_px`` named ``stars``): another catalogue star within
+    ``mag_limit`` that could be this centroid is predicted by the verified solution within :func:`_match_radius_px`
+    of it: two catalogue stars could be this star (a close pair the detector does not resolve, or either of two), so
+    it is left unidentified. "Could be": with the centroids' calibrated magnitudes ``detection_mag`` (instrumental
+    plus the frame's zero point) bright enough to explain the measured flux by itself within the photometric
+    ``window`` (:func:`hostlink.images.blends.could_be`: a fainter companion only adds its light, and the centroid is
+    its identity or the blend); where that magnitude is unknown, no fainter than the identity by more than
+    :data:`AMBIGUITY_MAG_MARGIN`."""
     near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
     out = np.zeros(stars.size, dtype=bool)
     if near.size < 2:
@@ -518,6 +537,10 @@ def _ambiguous(
     d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
     other = (d2 <= radius * radius) & (near[None, :] != stars[:, None])
     bright_enough = sky.mag[near][None, :] <= sky.mag[stars][:, None] + AMBIGUITY_MAG_MARGIN
+    if detection_mag is not None:
+        known = np.isfinite(detection_mag)
+        explains = blends.could_be(sky.mag[near][None, :], detection_mag[:, None], window)
+        bright_enough = np.where(known[:, None], explains, bright_enough)
     return np.any(other & bright_enough, axis=1)
 
 
@@ -937,6 +960,18 @@ def _too_faint(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky:
         return sky.mag[stars] > mag[rows] + zero_point + PHOTOMETRIC_TOL_MAG
 
 
+def _calibrated_mag(
+    mag: np.ndarray | None, at: np.ndarray, rows: np.ndarray, stars: np.ndarray, v: _Verified, sky: _Sky
+) -> tuple[np.ndarray | None, float]:
+    """(the calibrated magnitudes of the centroids ``at``: instrumental plus the frame's zero point over its verified
+    stars (``rows`` named ``stars`` where ``v.keep``), the photometric window of that zero point's scatter) for
+    :func:`_extend` and :func:`_ambiguous` ((None, window) without magnitudes)."""
+    if mag is None:
+        return None, blends.MIN_PHOTOMETRIC_WINDOW_MAG
+    zp, scatter = blends.zero_point(sky.mag[stars[v.keep]], mag[rows[v.keep]])
+    return mag[at] + zp, blends.window_mag(scatter)
+
+
 def _faintest_detectable(mag: np.ndarray | None, zero_point: float) -> float:
     """The faintest catalogue magnitude a candidate of the frame may have (:func:`_too_faint` of its faintest
     centroid); +inf when unknown."""
@@ -979,7 +1014,10 @@ def _confirm(
         taken[rows[v.keep]] = True
         zero_point = _zero_point(mag, rows[v.keep], stars[v.keep], sky)
         mag_limit = min(mag_limit, _faintest_detectable(mag, zero_point))
-        new_rows, new_stars = _extend(x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px)
+        calibrated_mag, window = _calibrated_mag(mag, np.arange(n), rows, stars, v, sky)
+        new_rows, new_stars = _extend(
+            x_px, y_px, sky, theta, v, taken, mag_limit, image_size_px, calibrated_mag, window
+        )
         fits = ~_too_faint(mag, new_rows, new_stars, sky, zero_point)
         new_rows, new_stars = new_rows[fits], new_stars[fits]
         if round_no >= EXTEND_ROUNDS and new_rows.size == 0:
@@ -994,7 +1032,17 @@ def _confirm(
         # deeper as the verified stars go deeper (a proposal of bright stars alone reaches the frame's faint ones)
         mag_limit = max(mag_limit, float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN)
     v = replace(v, keep=v.keep & ~_too_faint(mag, rows, stars, sky, _zero_point(mag, rows[v.keep], stars[v.keep], sky)))
-    ambiguous = v.keep & _ambiguous(x_px[rows], y_px[rows], stars, sky, theta, v, image_size_px, mag_limit)
+    ambiguous = v.keep & _ambiguous(
+        x_px[rows],
+        y_px[rows],
+        stars,
+        sky,
+        theta,
+        v,
+        image_size_px,
+        mag_limit,
+        *_calibrated_mag(mag, rows, rows, stars, v, sky),
+    )
     n_ambiguous = int(np.count_nonzero(ambiguous))
     v = replace(v, keep=v.keep & ~ambiguous)
     n_ok = int(np.count_nonzero(v.keep))
@@ -1349,9 +1397,13 @@ def identify_session(
     for k in todo:
         a, b = int(starts[k]), int(starts[k + 1])
         star_id[a + np.flatnonzero(session.star_id[a:b] == 0)] = results[k][1]
+    frames = tuple(results[k][0] for k in todo)
     out = _with_identities(session, star_id, catalogue)
+    scales = [f.scale for f in frames if f.status == "identified"]
+    focal_px = nominal.focal_length_px * (float(np.median(scales)) if scales else 1.0)
+    out, blended = blends.blend_references(out, session.star_id, catalogue, focal_px)
     name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
-    return Identification(out, tuple(results[k][0] for k in todo), name, fov)
+    return Identification(out, frames, name, fov, blends=tuple(blended))
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
@@ -1397,17 +1449,25 @@ def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue
     new = np.flatnonzero((star_id != 0) & (session.star_id == 0))
     ra, dec = session.ra_deg.copy(), session.dec_deg.copy()
     if new.size:
-        from hostlink.sky.apparent import apparent_radec_deg, hip_lookup, stars_at_j2000
+        from hostlink.sky.apparent import hip_lookup
 
-        cat_rows = hip_lookup(catalogue, star_id[new])
-        if session.time_known:
-            jd1, jd2 = session.frame_times_jd()
-            frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[new]
-            ra[new], dec[new] = apparent_radec_deg(catalogue, cat_rows, jd1[frame_of_row], jd2[frame_of_row])
-        else:
-            stars = stars_at_j2000(catalogue, cat_rows)
-            ra[new], dec[new] = np.degrees(stars.ra_rad), np.degrees(stars.dec_rad)
+        ra[new], dec[new] = catalogue_radec_deg(session, catalogue, hip_lookup(catalogue, star_id[new]), new)
     return replace(out, ra_deg=ra, dec_deg=dec)
+
+
+def catalogue_radec_deg(
+    session: Session, catalogue: Catalogue, cat_rows: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(ra, dec) [deg] of the catalogue stars ``cat_rows`` as the session's rows ``rows`` see them: the geocentric
+    apparent place at the row's frame time (docs/file-formats.md), the J2000 place when the time is unknown."""
+    from hostlink.sky.apparent import apparent_radec_deg, stars_at_j2000
+
+    if session.time_known:
+        jd1, jd2 = session.frame_times_jd()
+        frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[rows]
+        return apparent_radec_deg(catalogue, cat_rows, jd1[frame_of_row], jd2[frame_of_row])
+    stars = stars_at_j2000(catalogue, cat_rows)
+    return np.degrees(stars.ra_rad), np.degrees(stars.dec_rad)
 
 
 #: :func:`identify_iteratively`: rounds at most (the first with the nominal camera). Each later round identifies
