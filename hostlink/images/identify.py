@@ -472,9 +472,10 @@ def _extend(
     window: float = blends.MIN_PHOTOMETRIC_WINDOW_MAG,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Candidates beyond the proposal's (module docstring, step 3): (rows into the frame, sky indices). With the
-    centroids' calibrated magnitudes ``calibrated_mag`` (instrumental plus the frame's zero point), only catalogue
-    stars that could be a centroid by themselves (:func:`hostlink.images.blends.could_be` within ``window``) are its
-    candidates and its rivals: a fainter star beside it adds light to it but cannot be it."""
+    centroids' calibrated magnitudes ``calibrated_mag`` (instrumental plus the frame's zero point), a centroid with
+    several catalogue stars nearly as close (within twice the nearest's distance) is named after the one of them
+    whose light alone can explain its flux (:func:`hostlink.images.blends.could_be` within ``window``) when only one
+    can: a fainter star beside it adds light to it but cannot be it."""
     near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
     if near.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -484,14 +485,18 @@ def _extend(
     if free.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     own = d2[free]
-    if calibrated_mag is not None:
-        explains = blends.could_be(sky.mag[near][None, :], calibrated_mag[free, None], window)
-        own = np.where(explains | ~np.isfinite(calibrated_mag[free, None]), own, np.inf)
     j = np.argmin(own, axis=1)  # each free centroid's nearest predicted star
     nearest = own[np.arange(free.size), j]
-    second = np.partition(own, 1, axis=1)[:, 1] if near.size > 1 else np.full(free.size, np.inf)
-    ok = nearest <= radius * radius
-    ok &= ~(second < 4.0 * nearest)  # two catalogue stars nearly as close: ambiguous
+    tied = own < 4.0 * nearest[:, None]  # the other catalogue stars nearly as close ...
+    tied[np.arange(free.size), j] = True
+    ok = np.count_nonzero(tied, axis=1) == 1  # ... make it ambiguous
+    if calibrated_mag is not None:  # ... unless the light of one alone can explain the centroid's flux
+        known = np.isfinite(calibrated_mag[free])
+        able = tied & blends.could_be(sky.mag[near][None, :], calibrated_mag[free, None], window)
+        single = known & (np.count_nonzero(able, axis=1) == 1)
+        j = np.where(single, np.argmax(able, axis=1), j)
+        ok |= single
+    ok &= own[np.arange(free.size), j] <= radius * radius
     ok &= np.argmin(d2, axis=0)[j] == free  # no other centroid nearer to this star
     return free[ok].astype(np.int64), near[j[ok]].astype(np.int64)
 
