@@ -200,7 +200,7 @@ def _frame_scatter(session: Session, catalogue: Catalogue, mag: np.ndarray, fram
 
 def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, list[dict]]:
     """:func:`blend_references` for the rows ``blends`` ((row, catalogue row, companion rows, frame index))."""
-    from hostlink.images.identify import catalogue_radec_deg
+    from hostlink.images.skyindex import catalogue_radec_deg
 
     ra, dec = _reference_columns(session, catalogue)
     sigma = session_number(session, "sigma_px")
@@ -255,7 +255,7 @@ def _reference_columns(session: Session, catalogue: Catalogue) -> tuple[np.ndarr
     """Copies of the session's ra_deg/dec_deg, or new ones with every identified row's catalogue place."""
     if session.ra_deg is not None and session.dec_deg is not None:
         return session.ra_deg.copy(), session.dec_deg.copy()
-    from hostlink.images.identify import catalogue_radec_deg
+    from hostlink.images.skyindex import catalogue_radec_deg
 
     ra, dec = np.full(len(session), np.nan), np.full(len(session), np.nan)
     rows = np.flatnonzero(session.star_id != 0)

@@ -192,7 +192,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
             per_frame=[vars(f) for f in frames],
         )
         record["stars_identified"] = result.n_identified + record["added"]
-    from hostlink.images.identify import _with_identities  # the identified rows' places, as identify fills them
+    from hostlink.images.skyindex import _with_identities  # the identified rows' places, as identify fills them
 
     # every row identified here, detected or admitted, with its unresolved companions' light (blends.py), at the
     # calibrated focal length
