@@ -11,9 +11,12 @@ Per image set (the shared folders: granasat, nine 1280 x 960 JPEG frames of a ~2
   pattern database loaded first, as ours), timed; then its own multi-image calibration (radial model) of the frames
   it solved (``solver_adapter.engine_calibration``).
 
-Per frame: stars each identified; of the solver's stars, how many we identify (a centroid of ours within
-:data:`SAME_STAR_PX` carrying an identity) and how many of those we name differently; and each side's residual on
-its own centroids through its own calibrated camera, the attitude fitted per frame (Markley's SVD) [px and arcsec].
+Per frame: stars each identified; of the solver's stars, how many we identify, counted two ways side by side: by
+position (a centroid of ours within :data:`SAME_STAR_PX` carrying the same identity; of those named differently, how
+many name the other star of an unresolved pair, the same detection) and by identity (the solver's catalogue star named
+by one of our rows of the frame, wherever its centroid; how many of those lie beyond SAME_STAR_PX); the solver given
+our centroids, whose names are compared with ours star by star; and each side's residual on its own centroids through
+its own calibrated camera, the attitude fitted per frame (Markley's SVD) [px and arcsec].
 Times are CPU seconds of this process (time.process_time: the machine may be shared), database loaded first.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_realsky.py [--set granasat|openstartracker|all] [--json OUT]
