@@ -26,7 +26,7 @@ x s, :data:`MIN_PHOTOMETRIC_WINDOW_MAG`) (:func:`window_mag`).
    0.77-3 px, separations to 3 px and flux ratios to 1.
 
 The frames' rows keep their identities otherwise; a session without ``ra_deg``/``dec_deg`` columns gets them for
-every identified row (the catalogue's place, as :func:`hostlink.images.identify._with_identities` writes them) when
+every identified row (the catalogue's place, as :func:`hostlink.images.skyindex._with_identities` writes them) when
 one of its rows is a blend, since the reference service takes a file's columns for every row or for none
 (:func:`hostlink.sky.references.geocentric_references`).
 """
@@ -82,8 +82,7 @@ def window_mag(scatter_mag: float) -> float:
 def could_be(star_mag: np.ndarray, detection_mag: np.ndarray, window: float) -> np.ndarray:
     """Whether catalogue stars of magnitude ``star_mag`` could each be, by themselves, detections of calibrated
     magnitude ``detection_mag`` (instrumental plus the frame's zero point; broadcast): no fainter than it by more than
-    ``window`` [mag]. False where the detection's magnitude is unknown is NOT given: NaN compares False, so the
-    caller decides what an unknown magnitude means."""
+    ``window`` [mag]. An unknown (NaN) magnitude gives False: the caller decides what an unknown magnitude means."""
     with np.errstate(invalid="ignore"):
         return np.asarray(star_mag) <= np.asarray(detection_mag) + window
 
