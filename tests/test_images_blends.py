@@ -192,3 +192,19 @@ def test_a_detection_either_star_could_be_stays_unidentified(rendered):
     result = identify_session(replace(session, mag=mag), CAMERA)
     assert result.n_frames_identified == 1
     assert result.session.star_id[row] == 0
+
+
+def test_the_admission_looks_for_a_blend_at_its_expected_centroid(rendered):
+    """The guided admission (hostlink.images.guided.admit) with the blend's row left unnamed and every other row
+    named as identification names them: the row is admitted as HIP 10309, found where the blend's reference puts it
+    (0.3 px from HIP 10309's own place, several times the admission's radius around a single star's place here)."""
+    from hostlink.images.guided import admit
+
+    session, row, cat, _ = rendered
+    named = identify_session(session, CAMERA).session.star_id.copy()
+    assert named[row] == BRIGHT
+    named[row] = 0
+    star_id, (record,) = admit(session, named, np.zeros(len(session), dtype=bool), CAMERA, cat)
+    assert record.status == "admitted"
+    assert star_id[row] == BRIGHT
+    assert np.count_nonzero(star_id != named) == 1

@@ -152,7 +152,7 @@ def blend_references(
     new, cat_rows = new[found], cat_rows[found].astype(np.int64)
     if new.size == 0:
         return session, []
-    r_all, tree = _catalogue_tree(catalogue)
+    r_all, tree = catalogue_tree(catalogue)
     found = tree.query_ball_point(r_all[cat_rows], 2.0 * math.sin(0.5 * UNRESOLVED_PX / focal_px))
     frame_of_row = np.repeat(np.arange(session.n_frames), np.diff(session.frame_starts))
     blends = []
@@ -170,11 +170,11 @@ def blend_references(
     return _with_photocentres(session, catalogue, blends, focal_px)
 
 
-#: The last catalogue :func:`_catalogue_tree` was asked about, with its J2000 unit vectors and k-d tree.
+#: The last catalogue :func:`catalogue_tree` was asked about, with its J2000 unit vectors and k-d tree.
 _TREE: list = []
 
 
-def _catalogue_tree(catalogue: Catalogue):
+def catalogue_tree(catalogue: Catalogue):
     """(J2000 unit vectors (S, 3), ``scipy.spatial.cKDTree`` of them) of ``catalogue``, kept for the last catalogue
     asked (the rounds of one identification ask about the same one)."""
     if not _TREE or _TREE[0] is not catalogue:

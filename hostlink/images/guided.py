@@ -272,18 +272,23 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     near, xp, yp = _predicted(directions, c, theta, mirrored, image_size_px)
     searched = ~np.isin(catalogue.hip[near], star_id[named])
     near, xp, yp = near[searched], xp[searched], yp[searched]
+    # a star whose unresolved companions add their light is expected at its blend's centroid (blends.py)
+    xp, yp, sigma_ref = _blend_places(
+        near, xp, yp, directions, (c, theta, mirrored), catalogue, star_id[named], scatter
+    )
     predicted_mag = catalogue.mag[near] - zp  # instrumental
     # every row left unidentified: the candidates, and the detected stars identification could not name (with the
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
     cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand] ** 2)  # per candidate
+    # per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
     # candidate i could be catalogue star j: near enough and as bright as predicted
     d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
-    within = d2 <= radius[:, None] ** 2
+    within = d2 <= radius**2
     # ... and every catalogue star that could be this row by itself: unresolved from it, bright enough to explain its
     # flux (a fainter one is a companion whose light is in the row: hostlink.images.blends)
-    blended = d2 <= np.maximum(radius, UNRESOLVED_PX)[:, None] ** 2
+    blended = d2 <= np.maximum(radius, UNRESOLVED_PX) ** 2
     rivals = blended & could_be(predicted_mag[None, :], mag[cand, None], window)
     match = within & agree
     names = star_id.copy()
@@ -300,11 +305,39 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
         admitted += 1
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     width, height = image_size_px
-    expected = float(np.sum(agree * (math.pi * radius**2)[:, None]) / (width * height))
+    expected = float(np.sum(agree * (math.pi * radius**2)) / (width * height))
     record = FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
     if expected > MAX_FALSE_FRACTION * admitted:
         return star_id, replace(record, admitted=0, status="not admitted: chance too high")
     return names, record
+
+
+def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):
+    """(xp, yp, sigma_ref [px]) of the searched catalogue stars ``near`` (their single-star places ``xp, yp``): where
+    a star has catalogue companions within :data:`UNRESOLVED_PX` that the frame has not identified as rows of their
+    own (``named_hip``), its expected place is its blend's reference (:func:`hostlink.images.blends.photocentre`)
+    through the attitude and camera ``view`` = (C, theta, mirrored), with that reference's 1-sigma; 0 elsewhere."""
+    from hostlink.images.blends import catalogue_tree, photocentre
+
+    c, theta, mirrored = view
+    xp, yp, sigma_ref = xp.copy(), yp.copy(), np.zeros(near.size)
+    _, tree = catalogue_tree(catalogue)
+    found = tree.query_ball_point(directions[near], 2.0 * math.sin(0.5 * UNRESOLVED_PX / float(theta[0])))
+    for k, (j, close) in enumerate(zip(near, found, strict=True)):
+        companions = [i for i in close if i != j and catalogue.hip[i] not in named_hip] if len(close) > 1 else []
+        if not companions:
+            continue
+        pc = photocentre(
+            directions[j],
+            float(catalogue.mag[j]),
+            directions[companions],
+            catalogue.mag[companions],
+            float(theta[0]),
+            scatter,
+        )
+        u, v = unit_to_pixels((c @ pc.direction)[None, :], theta)
+        xp[k], yp[k], sigma_ref[k] = (2.0 * theta[1] - u[0]) if mirrored else u[0], v[0], pc.sigma_px
+    return xp, yp, sigma_ref
 
 
 def _frame_attitude(x, y, r, theta):
