@@ -13,8 +13,10 @@ vote for none). Then, with the camera calibrated on the identified stars
 2. the photometric zero point: the median of catalogue magnitude less instrumental magnitude over the frame's
    identified unsaturated stars, and its scatter s (1.4826 x the median absolute deviation);
 3. every catalogue star the attitude puts on the detector that the frame has not identified is searched for within
-   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (sigma_px the row's own
-   centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows left
+   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (its blend's reference,
+   with that reference's sigma added, when unresolved companions add their light: :func:`_blend_places`; sigma_px
+   the row's own centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows
+   left
    unidentified: the candidates, and the detected stars identification did not name (its radius, before the
    camera was calibrated, was several pixels where this one is about one); a row there is admitted when its
    instrumental magnitude agrees with the star's predicted one within
