@@ -13,15 +13,18 @@ vote for none). Then, with the camera calibrated on the identified stars
 2. the photometric zero point: the median of catalogue magnitude less instrumental magnitude over the frame's
    identified unsaturated stars, and its scatter s (1.4826 x the median absolute deviation);
 3. every catalogue star the attitude puts on the detector that the frame has not identified is searched for within
-   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (sigma_px the row's own
-   centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows left
+   r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (its blend's reference,
+   with that reference's sigma added, when unresolved companions add their light: :func:`_blend_places`; sigma_px
+   the row's own centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows
+   left
    unidentified: the candidates, and the detected stars identification did not name (its radius, before the
    camera was calibrated, was several pixels where this one is about one); a row there is admitted when its
    instrumental magnitude agrees with the star's predicted one within
    dm = max(:data:`PHOTOMETRIC_SIGMAS` x s, :data:`MIN_PHOTOMETRIC_WINDOW_MAG`), it is the only such row of that
-   star, that star the only catalogue star that could be in it (within r or :data:`UNRESOLVED_PX`, whichever is
-   larger, and no fainter than the row's magnitude + :data:`COMPANION_MAG`: a star two catalogue stars could be
-   stays unidentified),
+   star, that star the only catalogue star that could be it (within r or :data:`UNRESOLVED_PX`, whichever is
+   larger, and bright enough to explain its flux by itself, :func:`hostlink.images.blends.could_be`: a star two
+   catalogue stars could be stays unidentified; a fainter companion's light is in the row, whose reference is then
+   the pair's photocentre, :func:`hostlink.images.blends.blend_references`),
    and no other row of the frame is nearer to the prediction.
 
 False admissions: the candidates are mostly noise, and noise peaks fall anywhere. Taking every unidentified row of
@@ -43,6 +46,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hostlink.files.session import Session
+from hostlink.images.blends import (
+    MAD_TO_SIGMA,  # noqa: F401 - importable from here as before
+    MIN_PHOTOMETRIC_WINDOW_MAG,  # noqa: F401
+    PHOTOMETRIC_SIGMAS,  # noqa: F401
+    UNRESOLVED_PX,
+    blend_references,
+    could_be,
+    session_flag,
+    session_number,
+    window_mag,
+    zero_point,
+)
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
@@ -52,19 +67,9 @@ from onboard.params import CameraParams
 SNR_COLUMN = "snr"
 #: Radius in units of the combined 1-sigma per axis: a 2-D Gaussian puts 99 % of its mass within sqrt(-2 ln 0.01).
 CONTAINMENT_SIGMAS = math.sqrt(-2.0 * math.log(0.01))
-#: Photometric agreement: within this many of the frame's zero-point scatters ...
-PHOTOMETRIC_SIGMAS = 3.0
-#: ... and never narrower than this [mag] (a zero point from few stars; Hipparcos Hp against an unfiltered detector's
-#: band differs by colour, a few tenths of a magnitude).
-MIN_PHOTOMETRIC_WINDOW_MAG = 0.75
-#: Two stars nearer than this [px] are one detection: the sum of two equal Gaussians of sigma s has a single peak
-#: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (0.8-1.2 px on the granasat frames but the
-#: trailed 30 s one, 0.77 px on a sharp 35 mm lens). A second catalogue star within it makes a row ambiguous (close
-#: doubles: 16 Cyg A and B, 40" apart, are half a pixel at 78" per pixel).
-UNRESOLVED_PX = 3.0
-#: ... when it is at most this much fainter than the row [mag]: 10 % of the light, which moves a blend's centroid by
-#: 10 % of the pair's separation (0.3 px at 3 px).
-COMPANION_MAG = 2.5
+#: A second catalogue star within UNRESOLVED_PX of a row makes it ambiguous when it could be that row by itself
+#: (hostlink.images.blends: its magnitude within the photometric window PHOTOMETRIC_SIGMAS x the zero point's scatter,
+#: at least MIN_PHOTOMETRIC_WINDOW_MAG, of the row's); a fainter one is a companion whose light is in the row.
 #: A frame's admissions stand only when noise would explain at most this fraction of them (the expected number by
 #: chance over the number admitted): a wrong identity that reaches the fit is worse than none, and the calibration's
 #: outlier rejection is built for a few percent.
@@ -72,8 +77,6 @@ MAX_FALSE_FRACTION = 0.05
 #: A frame needs this many identified stars for its attitude and zero point (three for an attitude, more for a
 #: residual that says how well it predicts).
 MIN_FRAME_STARS = 6
-#: The normal distribution's sigma over its median absolute deviation (a robust scatter of the zero point).
-MAD_TO_SIGMA = 1.4826
 #: Catalogue stars more than this far from the boresight [deg] are not projected: the pinhole model maps only
 #: directions in front of the camera.
 MAX_OFF_BORESIGHT_DEG = 89.0
@@ -112,17 +115,28 @@ def identify_without_candidates(session: Session, identify):
     held = candidate_rows(session)
     stars = np.flatnonzero(~held)
     result = identify(session.select(stars))
-    return replace(result, session=_merged(session, stars, result.session, session.star_id.copy()))
+    blends = tuple({**b, "row": int(stars[b["row"]])} for b in result.blends)  # rows of the whole session
+    return replace(result, session=_merged(session, stars, result.session, session.star_id.copy()), blends=blends)
 
 
 def _merged(session: Session, stars: np.ndarray, identified: Session, star_id: np.ndarray) -> Session:
-    """``session`` with ``star_id``, the rows ``stars`` taking ``identified``'s identities and places (ra/dec)."""
+    """``session`` with ``star_id``, the rows ``stars`` taking ``identified``'s identities, places (ra/dec: new
+    columns when only ``identified`` has them, a blend's photocentre) and extra columns (a blend's ``sigma_px``)."""
     star_id[stars] = identified.star_id
     out = replace(session, star_id=star_id)
-    if session.ra_deg is not None and identified.ra_deg is not None:
-        ra, dec = session.ra_deg.copy(), session.dec_deg.copy()
+    if identified.ra_deg is not None and identified.dec_deg is not None:
+        none = np.full(len(session), np.nan)
+        ra = none.copy() if session.ra_deg is None else session.ra_deg.copy()
+        dec = none.copy() if session.dec_deg is None else session.dec_deg.copy()
         ra[stars], dec[stars] = identified.ra_deg, identified.dec_deg
         out = replace(out, ra_deg=ra, dec_deg=dec)
+    if session.extra:
+        extra = {}
+        for name, values in session.extra.items():
+            extra[name] = values.copy()
+            if name in identified.extra:
+                extra[name][stars] = identified.extra[name]
+        out = replace(out, extra=extra)
     return out
 
 
@@ -163,7 +177,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         "renamed": 0,
         "kept": True,
     }
-    camera = _calibrated(result.session, result.camera)
+    camera = _calibrated(result.session, result.camera, getattr(result, "calibration", None))
     if camera is None:
         record.update(status="calibration failed: no candidate admitted")
         frames = ()
@@ -180,22 +194,30 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
             per_frame=[vars(f) for f in frames],
         )
         record["stars_identified"] = result.n_identified + record["added"]
-    from hostlink.images.identify import _with_identities  # the identified rows' places, as identify fills them
+    from hostlink.images.skyindex import _with_identities  # the identified rows' places, as identify fills them
 
-    return replace(result, session=_with_identities(session, star_id, catalogue), rounds=(*result.rounds, record))
+    # every row identified here, detected or admitted, with its unresolved companions' light (blends.py), at the
+    # calibrated focal length
+    focal_px = (camera or result.camera).focal_length_px
+    out, blends = blend_references(_with_identities(session, star_id, catalogue), session.star_id, catalogue, focal_px)
+    record["blends"] = len(blends)
+    return replace(result, session=out, rounds=(*result.rounds, record), blends=tuple(blends))
 
 
-def _calibrated(session: Session, camera: CameraParams | None) -> CameraParams | None:
-    """The camera calibrated on ``session``'s identified stars (default method), None when that fails."""
+def _calibrated(session: Session, camera: CameraParams | None, outcome=None) -> CameraParams | None:
+    """The camera calibrated on ``session``'s identified stars (default method) from ``camera``, None when that
+    fails. ``outcome``: that calibration when the identification's rounds already ran it
+    (:attr:`hostlink.images.identify.Identification.calibration`), not run again."""
     from hostlink.calibration.run import calibrate_session
     from hostlink.errors import UserError
 
     if camera is None or not np.any(session.star_id != 0):
         return None
-    try:
-        outcome, _ = calibrate_session(session, camera, keep_failed=True)
-    except UserError:
-        return None
+    if outcome is None:
+        try:
+            outcome, _ = calibrate_session(session, camera, keep_failed=True)
+        except UserError:
+            return None
     return None if outcome.failure() else outcome.params
 
 
@@ -211,8 +233,8 @@ def admit(
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
     frames = []
-    saturated = _flag(session, "saturated")
-    sigma_px = _number(session, "sigma_px")
+    saturated = session_flag(session, "saturated")
+    sigma_px = session_number(session, "sigma_px")
     starts = session.frame_starts
     for k in range(session.n_frames):
         rows = np.arange(int(starts[k]), int(starts[k + 1]))
@@ -234,26 +256,6 @@ def admit(
     return out, tuple(frames)
 
 
-def _flag(session: Session, name: str) -> np.ndarray:
-    values = session.extra.get(name) if session.extra else None
-    if values is None:
-        return np.zeros(len(session), dtype=bool)
-    return np.array([str(v).strip() == "1" for v in values], dtype=bool)
-
-
-def _number(session: Session, name: str) -> np.ndarray:
-    values = session.extra.get(name) if session.extra else None
-    if values is None:
-        return np.full(len(session), np.nan)
-    out = np.full(len(session), np.nan)
-    for i, v in enumerate(values):
-        try:
-            out[i] = float(v)
-        except (TypeError, ValueError):
-            pass
-    return out
-
-
 def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_size_px, directions, catalogue):
     """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`)."""
     named = (star_id != 0) & ~held
@@ -267,25 +269,29 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     bright = named & ~saturated & np.isfinite(mag)
     if np.count_nonzero(bright) < MIN_FRAME_STARS:
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} unsaturated identified stars")
-    offsets = catalogue.mag[np.searchsorted(catalogue.hip, star_id[bright])] - mag[bright]
-    zero_point = float(np.median(offsets))
-    scatter = MAD_TO_SIGMA * float(np.median(np.abs(offsets - zero_point)))
-    window = max(PHOTOMETRIC_SIGMAS * scatter, MIN_PHOTOMETRIC_WINDOW_MAG)
+    zp, scatter = zero_point(catalogue.mag[np.searchsorted(catalogue.hip, star_id[bright])], mag[bright])
+    window = window_mag(scatter)
     near, xp, yp = _predicted(directions, c, theta, mirrored, image_size_px)
     searched = ~np.isin(catalogue.hip[near], star_id[named])
     near, xp, yp = near[searched], xp[searched], yp[searched]
-    predicted_mag = catalogue.mag[near] - zero_point  # instrumental
+    # a star whose unresolved companions add their light is expected at its blend's centroid (blends.py)
+    xp, yp, sigma_ref = _blend_places(
+        near, xp, yp, directions, (c, theta, mirrored), catalogue, star_id[named], scatter
+    )
+    predicted_mag = catalogue.mag[near] - zp  # instrumental
     # every row left unidentified: the candidates, and the detected stars identification could not name (with the
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
     cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand] ** 2)  # per candidate
+    # per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
     # candidate i could be catalogue star j: near enough and as bright as predicted
     d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
-    within = d2 <= radius[:, None] ** 2
-    # ... and every catalogue star whose light could be in this row: unresolved from it, bright enough
-    blended = d2 <= np.maximum(radius, UNRESOLVED_PX)[:, None] ** 2
-    could_be = blended & (predicted_mag[None, :] <= mag[cand, None] + max(window, COMPANION_MAG))
+    within = d2 <= radius**2
+    # ... and every catalogue star that could be this row by itself: unresolved from it, bright enough to explain its
+    # flux (a fainter one is a companion whose light is in the row: hostlink.images.blends)
+    blended = d2 <= np.maximum(radius, UNRESOLVED_PX) ** 2
+    rivals = blended & could_be(predicted_mag[None, :], mag[cand, None], window)
     match = within & agree
     names = star_id.copy()
     # the row nearest to each prediction, of all the frame's rows (an identified star nearer to it is that star's)
@@ -293,7 +299,7 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     admitted = 0
     for i in np.flatnonzero(np.count_nonzero(match, axis=1) == 1):
         j = int(np.flatnonzero(match[i])[0])
-        if np.count_nonzero(could_be[i]) != 1 or np.count_nonzero(match[:, j]) != 1:
+        if np.count_nonzero(rivals[i]) != 1 or np.count_nonzero(match[:, j]) != 1:
             continue  # two catalogue stars could be this row, or two rows this star
         if nearest_row[j] != cand[i]:
             continue  # another row is nearer to the prediction
@@ -301,11 +307,39 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
         admitted += 1
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     width, height = image_size_px
-    expected = float(np.sum(agree * (math.pi * radius**2)[:, None]) / (width * height))
+    expected = float(np.sum(agree * (math.pi * radius**2)) / (width * height))
     record = FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
     if expected > MAX_FALSE_FRACTION * admitted:
         return star_id, replace(record, admitted=0, status="not admitted: chance too high")
     return names, record
+
+
+def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):
+    """(xp, yp, sigma_ref [px]) of the searched catalogue stars ``near`` (their single-star places ``xp, yp``): where
+    a star has catalogue companions within :data:`UNRESOLVED_PX` that the frame has not identified as rows of their
+    own (``named_hip``), its expected place is its blend's reference (:func:`hostlink.images.blends.photocentre`)
+    through the attitude and camera ``view`` = (C, theta, mirrored), with that reference's 1-sigma; 0 elsewhere."""
+    from hostlink.images.blends import catalogue_tree, photocentre
+
+    c, theta, mirrored = view
+    xp, yp, sigma_ref = xp.copy(), yp.copy(), np.zeros(near.size)
+    _, tree = catalogue_tree(catalogue)
+    found = tree.query_ball_point(directions[near], 2.0 * math.sin(0.5 * UNRESOLVED_PX / float(theta[0])))
+    for k, (j, close) in enumerate(zip(near, found, strict=True)):
+        companions = [i for i in close if i != j and catalogue.hip[i] not in named_hip] if len(close) > 1 else []
+        if not companions:
+            continue
+        pc = photocentre(
+            directions[j],
+            float(catalogue.mag[j]),
+            directions[companions],
+            catalogue.mag[companions],
+            float(theta[0]),
+            scatter,
+        )
+        u, v = unit_to_pixels((c @ pc.direction)[None, :], theta)
+        xp[k], yp[k], sigma_ref[k] = (2.0 * theta[1] - u[0]) if mirrored else u[0], v[0], pc.sigma_px
+    return xp, yp, sigma_ref
 
 
 def _frame_attitude(x, y, r, theta):

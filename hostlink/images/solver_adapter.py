@@ -228,7 +228,9 @@ class EngineCalibration:
     """The engine's own multi-image camera calibration (tetra3rs ``calibrate_camera``, Brown-Conrady radial model),
     for comparison with the project's: focal_px [px], rmse_px over its inliers [px] (after its 3-sigma clipping),
     n_inliers, n_outliers, n_frames it could solve; ``matched``: (index into ``frames``, Hipparcos id) of every star
-    it matched, so the project's own fit can be run on the same stars."""
+    it matched, so the project's own fit can be run on the same stars; ``matched_rows``: (index into ``frames``, the
+    centroid's index in that frame as given, Hipparcos id) of the same stars, so that they can be compared star by
+    star."""
 
     focal_px: float
     rmse_px: float
@@ -237,6 +239,7 @@ class EngineCalibration:
     n_frames: int
     matched: tuple[tuple[int, int], ...] = ()
     camera: object = None  # the engine's fitted camera model (see engine_pixels_to_unit)
+    matched_rows: tuple[tuple[int, int, int], ...] = ()
 
 
 def engine_calibration(
@@ -249,7 +252,7 @@ def engine_calibration(
     whole frame first and then its brightest 30, 20, 15, 10 centroids (``frames`` given brightest first), and fit
     the engine's radial camera model over every solved frame. None when it solves no frame."""
     width, height = (int(s) for s in image_size_px)
-    solved, centroids, matched = [], [], []
+    solved, centroids, matched, matched_rows = [], [], [], []
     for index, (u, v, brightness) in enumerate(frames):
         for size in (u.shape[0], 30, 20, 15, 10):
             if size > u.shape[0] or size < MIN_CENTROIDS:
@@ -269,6 +272,10 @@ def engine_calibration(
                 solved.append(result)
                 centroids.append(c)
                 matched += [(index, int(h)) for h in result.matched_catalog_ids]
+                matched_rows += [
+                    (index, int(i), int(h))
+                    for i, h in zip(result.matched_centroids, result.matched_catalog_ids, strict=True)
+                ]
                 break
     if not solved:
         return None
@@ -281,6 +288,7 @@ def engine_calibration(
         len(solved),
         tuple(matched),
         cal.camera_model,
+        tuple(matched_rows),
     )
 
 

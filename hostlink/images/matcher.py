@@ -1,0 +1,330 @@
+"""The project's own lost-in-space matcher (:mod:`hostlink.images.identify`, module docstring step 1): pair-anchored
+hypothesise-and-test over the catalogue pairs of the same angle (:func:`anchor_candidates`), the order and budget of its
+anchor pairs (:func:`_anchor_schedule`, :data:`MAX_ANCHOR_PAIRS`) and the catalogue depth it indexes
+(:func:`fallback_depth_mag`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from hostlink.images.skyindex import PairCatalogue
+
+#: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
+MATCH_STARS = 20
+
+
+ANCHOR_STARS = 7
+
+
+#: Fallback matcher, second round at a known scale for frames the first did not identify (faint fields where
+#: noise outranks some stars): deeper, and about 5 x slower.
+DEEP_MATCH_STARS = 40
+
+
+DEEP_ANCHOR_STARS = 12
+
+
+#: Fallback matcher: anchor-pair angle tolerance, relative (the focal length is known to ~0.1 % from the session's
+#: identified frames; a scan step otherwise) plus :data:`ANCHOR_ABS_TOL_PX` of centroid error and distortion.
+ANCHOR_REL_TOL = 0.002
+
+
+ANCHOR_ABS_TOL_PX = 1.5
+
+
+#: ... once the session's identified frames have measured the scale (they agree to +-0.05 % on the real set):
+#: half the scan's tolerance, half the hypotheses.
+ANCHOR_REL_TOL_KNOWN = 0.001
+
+
+#: Fallback matcher: a star predicted by an anchor hypothesis must fall within this radius [px] of a catalogue star.
+HIT_RADIUS_PX = 2.0
+
+
+#: Fallback matcher: hits beyond the anchor pair a hypothesis needs (at a catalogue density of 1 star per square
+#: degree and a 4 px = 1' radius on a 6 deg field, three chance hits on one of ~10^4 hypotheses have a probability of
+#: ~1e-3; the verification then tests every star again).
+MIN_HITS = 3
+
+
+#: Fallback matcher: focal-length scales scanned when no identified frame gives one (a nominal within 10 %).
+#: Ordered from the nominal outward (a good nominal is found first); the step is twice :data:`ANCHOR_REL_TOL`.
+SCAN_SCALES = tuple(sorted((float(s) for s in np.round(np.arange(0.90, 1.1001, 0.004), 3)), key=lambda s: abs(s - 1)))
+
+
+def _triad_inverse(b1, b2, r1, r2) -> np.ndarray:
+    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r."""
+
+    def frame(v1, v2):
+        t2 = np.cross(v1, v2)
+        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
+        return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)  # columns t1, t2, t3
+
+    return frame(r1, r2) @ np.swapaxes(frame(b1, b2), -1, -2)
+
+
+@dataclass(frozen=True)
+class _PairsOfAngle:
+    """The catalogue pairs whose separation is within ``slack_rad`` of ``angle_rad`` [rad], as partner lists: the
+    partners of sky star a are ``partner[offset[a]:offset[a + 1]]`` (both orders of every pair); ``member`` (S,)
+    bool: the stars with a partner."""
+
+    angle_rad: float
+    slack_rad: float
+    offset: np.ndarray
+    partner: np.ndarray
+    member: np.ndarray
+
+
+def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) -> _PairsOfAngle | None:
+    """The catalogue pairs of separation ``angle_rad`` +- ``slack_rad`` [rad] (:class:`_PairsOfAngle`); None when
+    the window is not inside (0, max_angle_rad), where the pair index is not complete."""
+    if angle_rad - slack_rad <= 0.0 or angle_rad + slack_rad + 1e-9 >= pairs.max_angle_rad:
+        return None
+    lo, hi = np.searchsorted(pairs.angle_rad, [angle_rad - slack_rad, angle_rad + slack_rad])
+    star = np.concatenate([pairs.a[lo:hi], pairs.b[lo:hi]])
+    other = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
+    count = np.bincount(star, minlength=pairs.r.shape[0])
+    offset = np.concatenate([[0], np.cumsum(count)])
+    key = star if pairs.rank16 is None else pairs.rank16[star]  # the same order: rows ascend with the sky index
+    return _PairsOfAngle(angle_rad, slack_rad, offset, other[np.argsort(key, kind="stable")], count > 0)
+
+
+#: The last unit-vector array :func:`_dot_rows` was given, and its three columns, contiguous.
+_COLUMNS: list = []
+
+
+def _dot_rows(r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """r[i] . r[j] row by row, x + y + z summed axis by axis from contiguous columns (no (M, 3) gathers: 15 times
+    faster for 5 million pairs). It may differ from another summation order in the last bit, which
+    :func:`_pyramid_may_hit` can afford: its bounds are twice the hit chord from any hit."""
+    if not _COLUMNS or _COLUMNS[0] is not r:
+        _COLUMNS[:] = [r, *(np.ascontiguousarray(r[:, axis]) for axis in range(3))]
+    x, y, z = _COLUMNS[1:]
+    return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
+
+
+def _pyramid_may_hit(
+    r: np.ndarray,
+    first: np.ndarray,
+    second: np.ndarray,
+    with_first: _PairsOfAngle | None,
+    with_second: _PairsOfAngle | None,
+) -> np.ndarray:
+    """(M,) bool: the anchor hypotheses (``first``, ``second``: sky indices of the anchor stars b_i, b_j; ``r``: the
+    sky's unit vectors) that can put a third star b_m within the hit chord c of a catalogue star s at all: a
+    necessary condition only (the k-d tree decides). A hypothesis (TRIAD) maps b_i onto its first star exactly,
+    b_j onto the great circle toward its second star, off it by the pair's angle mismatch d (at most the anchor
+    window's tolerance), and preserves angles. So s lies at the angle (b_i, b_m) from the first star to within
+    the angle 2 asin(c / 2) < 1.001 c that the chord subtends, and at (b_j, b_m) from the second to within
+    1.001 c + d: s is a partner of the first star in ``with_first`` and of the second in ``with_second``, the pairs
+    of those angles with slacks of at least that. A side given as None is not tested."""
+    may = np.ones(first.size, dtype=bool)
+    for side, stars in ((with_first, first), (with_second, second)):  # each anchor star has such a partner
+        if side is not None:
+            may &= side.member[stars]
+    if with_first is None or with_second is None:
+        return may
+    # ... and one and the same s: every partner s of the first star, at the second angle from the second star
+    cand = np.flatnonzero(may)
+    lo = with_first.offset[first[cand]]
+    count = with_first.offset[first[cand] + 1] - lo
+    # the partners' positions: lo of its hypothesis plus the rank within it (one repeat of the per-hypothesis shift)
+    hyp = np.repeat(cand, count)
+    s = with_first.partner[np.arange(hyp.size) + np.repeat(lo - (np.cumsum(count) - count), count)]
+    # |angle - with_second.angle_rad| <= slack as cosines (arccos decreases on [0, pi]; the window starts above 0)
+    dot = _dot_rows(r, second[hyp], s)
+    cos_hi = math.cos(with_second.angle_rad - with_second.slack_rad)
+    cos_lo = math.cos(min(with_second.angle_rad + with_second.slack_rad, math.pi))
+    may[:] = False
+    may[hyp[(dot >= cos_lo) & (dot <= cos_hi)]] = True
+    return may
+
+
+def anchor_candidates(
+    b: np.ndarray,
+    pairs: PairCatalogue,
+    tree,
+    tree_rows: np.ndarray,
+    focal_px: float,
+    anchor_stars: int = ANCHOR_STARS,
+    rel_tol: float = ANCHOR_REL_TOL,
+    skip_first: int = 0,
+    anchor_pairs: list[tuple[int, int]] | None = None,
+) -> Iterator[tuple[np.ndarray, np.ndarray, bool]]:
+    """The project's own lost-in-space matcher (a pair-anchored hypothesise-and-test, as in the pyramid method of
+    Mortari et al. 2004): for an anchor pair of bright measured directions ``b`` (K, 3), every catalogue pair of the
+    same angle (within ``rel_tol`` x angle + :data:`ANCHOR_ABS_TOL_PX`), in both orders and both
+    parities, gives an attitude (TRIAD) that predicts the other K - 2 stars; the hypothesis whose predictions land
+    on catalogue stars (``tree``: a k-d tree of the catalogue unit vectors ``tree_rows``) within
+    :data:`HIT_RADIUS_PX` most often, at least :data:`MIN_HITS` times, is proposed. Yields, anchor pair by anchor
+    pair (brightest first, pairs among the first ``anchor_stars``), (rows into b, sky indices, mirrored); the
+    caller verifies each until one holds. A hypothesis must first put a third anchor star on a catalogue star (the
+    pyramid's pruning); the tree is asked only about the hypotheses a necessary condition on the catalogue pairs
+    leaves (:func:`_pyramid_may_hit`), which changes no answer and skips most of the work on a narrow field.
+    ``anchor_pairs``: only these anchor pairs (rows into b), in this order, instead of every pair among the first
+    ``anchor_stars`` (:func:`_anchor_schedule`)."""
+    k = b.shape[0]
+    if k < 2 + MIN_HITS:
+        return
+    hit_chord = HIT_RADIUS_PX / focal_px
+    # slacks of :func:`_pyramid_may_hit`: twice the hit chord from the first anchor star; from the second, plus the
+    # largest anchor-window tolerance (its pair's angle mismatch is at most that)
+    slack_first_rad = 2.0 * hit_chord
+    slack_second_rad = slack_first_rad + rel_tol * pairs.max_angle_rad + ANCHOR_ABS_TOL_PX / focal_px
+    windows: dict[tuple[int, int, float], _PairsOfAngle | None] = {}
+
+    def pairs_of(p: int, q: int, slack_rad: float) -> _PairsOfAngle | None:
+        """The catalogue pairs of the angle (b_p, b_q) +- ``slack_rad`` (:func:`_pyramid_may_hit`)."""
+        key = (min(p, q), max(p, q), slack_rad)
+        if key not in windows:
+            angle_rad = float(np.arccos(np.clip(b[key[0]] @ b[key[1]], -1.0, 1.0)))
+            windows[key] = _pairs_of_angle(pairs, angle_rad, slack_rad)
+        return windows[key]
+
+    if anchor_pairs is None:
+        anchor_pairs = list(zip(*np.triu_indices(min(k, anchor_stars), 1), strict=True))
+    for i, j in anchor_pairs:
+        ang = float(np.arccos(np.clip(b[i] @ b[j], -1.0, 1.0)))
+        if j < skip_first:
+            continue  # an anchor pair a previous round already tried
+        tol = rel_tol * ang + ANCHOR_ABS_TOL_PX / focal_px
+        if ang + tol > pairs.max_angle_rad or ang < 20.0 * tol:
+            continue  # short pairs leave the roll about them too loose for the predictions
+        lo, hi = np.searchsorted(pairs.angle_rad, [ang - tol, ang + tol])
+        if hi <= lo:
+            continue
+        first = np.concatenate([pairs.a[lo:hi], pairs.b[lo:hi]])
+        second = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
+        thirds = [m for m in range(min(k, anchor_stars)) if m not in (i, j)]
+        if not thirds:
+            continue
+        # pyramid pruning, first a necessary condition (the pair index's stars are the tree's): a hypothesis that
+        # cannot put any third anchor star on a catalogue star is dropped before its attitude is computed
+        may_hit = np.ones((len(thirds), first.size), dtype=bool)
+        if tree is pairs.tree:
+            for t, m in enumerate(thirds):
+                may_hit[t] = _pyramid_may_hit(
+                    pairs.r, first, second, pairs_of(i, m, slack_first_rad), pairs_of(j, m, slack_second_rad)
+                )
+            kept = np.flatnonzero(np.any(may_hit, axis=0))
+            first, second, may_hit = first[kept], second[kept], may_hit[:, kept]
+            if kept.size == 0:
+                continue
+        for mirrored in (False, True):
+            found = _best_hypothesis(
+                b, (i, j), first, second, thirds, may_hit, tree, tree_rows, hit_chord, pairs.r, mirrored
+            )
+            if found is not None:
+                yield found[0], found[1], mirrored
+
+
+def _best_hypothesis(
+    b: np.ndarray,
+    anchors: tuple[int, int],
+    first: np.ndarray,
+    second: np.ndarray,
+    thirds: list[int],
+    may_hit: np.ndarray,
+    tree,
+    tree_rows: np.ndarray,
+    hit_chord: float,
+    r: np.ndarray,
+    mirrored: bool,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`anchor_candidates` for one anchor pair (rows ``anchors`` of ``b``) against its catalogue pairs
+    (``first``, ``second``: sky indices; ``r`` the sky's unit vectors) at one parity: the TRIAD hypotheses that put a
+    third anchor star (``thirds``, tried where ``may_hit``) on a catalogue star, and of them the one whose predictions
+    of the other stars hit catalogue stars most often, at least :data:`MIN_HITS` times: (rows into b, sky indices),
+    or None."""
+    i, j = anchors
+    k = b.shape[0]
+    others = np.array([m for m in range(k) if m not in (i, j)])
+    bm = b * np.array([-1.0, 1.0, 1.0]) if mirrored else b
+    c_t = _triad_inverse(bm[i][None], bm[j][None], r[first], r[second])
+    # pyramid pruning: a hypothesis must first put one more anchor star on a catalogue star
+    alive = np.zeros(first.size, dtype=bool)
+    for m, may in zip(thirds, may_hit, strict=True):
+        ask = np.flatnonzero(may & ~alive)
+        if ask.size:
+            dist, _ = tree.query((c_t @ bm[m])[ask], distance_upper_bound=hit_chord)
+            alive[ask[np.isfinite(dist)]] = True
+    live = np.flatnonzero(alive)
+    if live.size == 0:
+        return None
+    predicted = np.einsum("mij,kj->mki", c_t[live], bm[others])
+    dist, idx = tree.query(predicted.reshape(-1, 3), distance_upper_bound=hit_chord)
+    idx = idx.reshape(live.size, others.size)
+    star = tree_rows[np.minimum(idx, tree_rows.size - 1)]
+    # a hit on one of the anchors' own catalogue stars (a close double) is no evidence
+    hits = np.isfinite(dist).reshape(live.size, others.size)
+    hits &= (star != first[live][:, None]) & (star != second[live][:, None])
+    count = hits.sum(axis=1)
+    best = int(np.argmax(count))
+    if count[best] < MIN_HITS:
+        return None
+    got = hits[best]
+    h = live[best]
+    rows = np.concatenate([[i, j], others[got]]).astype(np.int64)
+    stars = np.concatenate([[first[h], second[h]], star[best][got]]).astype(np.int64)
+    return rows, stars
+
+
+#: Fallback matcher: the anchor pairs (one pair at one focal-length scale each) one frame may try in all, over the
+#: scan of scales and both rounds; a frame that has not verified within them is reported as "no match within N anchor
+#: pairs". The figure: every pair among the :data:`ANCHOR_STARS` brightest at the nominal scale (the likeliest, tried
+#: as before the budget), then the three pairs among the three brightest at each other scanned scale (one false star
+#: among those three still leaves a pair of true stars; if the three brightest have not given a verified match,
+#: fainter anchors rarely do). The rounds at a known scale (pairs among the :data:`DEEP_ANCHOR_STARS` brightest, 66)
+#: fit it whole: it cuts only scans, where a frame of noise spent minutes on the 1071 pairs of 51 scales.
+MAX_ANCHOR_PAIRS = ANCHOR_STARS * (ANCHOR_STARS - 1) // 2 + 3 * (len(SCAN_SCALES) - 1)
+
+
+def _anchor_schedule(
+    k: int, n_anchor: int, skip: int, scales: tuple[float, ...]
+) -> Iterator[tuple[float, list[tuple[int, int]]]]:
+    """The order the fallback matcher tries anchor pairs (rows into the ``k`` brightest stars) in: (scale, pairs) to
+    hand to :func:`anchor_candidates`. At the first (or only) scale, every pair among the first ``n_anchor`` with its
+    second star at or after ``skip``, brightest first. Over the other scales of a scan, star by star: the pairs among
+    the first three stars at every scale, then the pairs of the fourth star with the three before it at every scale,
+    and so on, so that a budget (:data:`MAX_ANCHOR_PAIRS`) spent in this order keeps the brightest stars' pairs at
+    every scale (the true scale may be the last one scanned) instead of every pair at the first scales."""
+    n_stars = min(k, n_anchor)
+    pairs = [(int(i), int(j)) for i, j in zip(*np.triu_indices(n_stars, 1), strict=True) if j >= skip]
+    if pairs and scales:
+        yield scales[0], pairs
+    blocks = [[(i, j) for j in range(1, min(3, n_stars)) for i in range(j)]]  # the pairs among the first three
+    blocks += [[(i, j) for i in range(j)] for j in range(3, n_stars)]
+    for block in blocks:
+        block = [(i, j) for i, j in block if j >= skip]
+        if block:
+            for scale in scales[1:]:
+                yield scale, block
+
+
+#: Fallback matcher: when no frame has been identified to tell how deep the camera sees, the catalogue depth is the
+#: magnitude at which a field of the camera's size holds this many catalogue stars on average (Hp 8.0 on a 10 x 10 deg
+#: field, 6.5 on 27 x 20 deg, 5.3 on 50 x 37 deg: a camera that sees a wider field is built for brighter stars, and
+#: the pair index, which grows with the square of the stars within a field's diameter, stays ~100 MB).
+FALLBACK_STARS_PER_FIELD = 90
+
+
+def fallback_depth_mag(sky_mag: np.ndarray, field_sr: float) -> float:
+    """The magnitude at which the catalogue (magnitudes ``sky_mag``, whole sky) holds on average
+    :data:`FALLBACK_STARS_PER_FIELD` stars in a field of ``field_sr`` [sr]."""
+    wanted = int(round(FALLBACK_STARS_PER_FIELD * 4.0 * math.pi / max(field_sr, 1e-9)))
+    mags = np.sort(sky_mag[np.isfinite(sky_mag)])
+    return float(mags[min(max(wanted, 1), mags.size) - 1])
+
+
+#: Fallback matcher: catalogue depth beyond the 90th percentile of the magnitudes the engine identified in the
+#: session (the extension step adds a few stars fainter than the camera's usual depth; the pair index grows with the
+#: square of the star count, so they should not set it) [mag].
+FALLBACK_MAG_MARGIN = 0.5
+
+
+FALLBACK_DEPTH_PERCENTILE = 90

@@ -1,0 +1,248 @@
+"""The catalogue as lost-in-space identification (:mod:`hostlink.images.identify`) indexes it: the J2000 unit vectors
+(:class:`_Sky`), the own matcher's table of catalogue pairs sorted by angle (:func:`pair_catalogue`) and what the rounds
+of :func:`hostlink.images.identify.identify_iteratively` share of it (:class:`PairCache`); the places written for the
+identified rows (:func:`catalogue_radec_deg`); and the widest field the camera model describes (:func:`check_field`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hostlink.files.session import Session
+from hostlink.images import solver_adapter
+from hostlink.sky.catalogue import Catalogue
+from onboard.camera import radec_to_unit
+from onboard.params import CameraParams
+
+
+@dataclass(frozen=True)
+class _Sky:
+    """The catalogue as J2000.0 unit vectors, with magnitudes and Hipparcos numbers (sorted, as the catalogue)."""
+
+    hip: np.ndarray
+    r: np.ndarray
+    mag: np.ndarray
+
+
+def _sky(catalogue: Catalogue) -> _Sky:
+    from hostlink.sky.apparent import stars_at_j2000
+
+    stars = stars_at_j2000(catalogue)
+    return _Sky(catalogue.hip, radec_to_unit(stars.ra_rad, stars.dec_rad), catalogue.mag)
+
+
+def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray:
+    """Column coordinates mirrored about the principal point's column when ``mirrored`` (a mirrored detector seen
+    through a proper camera), unchanged otherwise."""
+    return 2.0 * theta[1] - x_px if mirrored else x_px
+
+
+@dataclass(frozen=True)
+class PairCatalogue:
+    """Every pair of catalogue stars closer than ``max_angle_rad``, sorted by angle: the fallback matcher's index.
+
+    a, b: (P,) int64 indices into the :class:`_Sky` arrays; angle_rad: (P,) their separations, ascending;
+    r: the sky's unit vectors (indexed by a and b); rows: the sky indices of the stars taking part (brighter than
+    the limit), and tree: a k-d tree of their unit vectors (``scipy.spatial.cKDTree``)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    angle_rad: np.ndarray
+    max_angle_rad: float
+    r: np.ndarray
+    rows: np.ndarray
+    tree: object
+    #: (S,) uint16: each sky star's rank among ``rows`` (None when more than 65536 stars take part): a 16-bit sort
+    #: key, which numpy's stable sort orders in linear time (radix sort), for :func:`_pairs_of_angle`
+    rank16: np.ndarray | None = None
+
+
+def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
+    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
+    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2)), in the order (angle, a, b): pairs of
+    exactly the same angle (a double star's partners, angles that round alike) in the order of their sky indices,
+    not the tree's traversal, so that a table cut from a larger one (:meth:`PairCache.pairs`) is the same table."""
+    from scipy.spatial import cKDTree
+
+    rows = np.flatnonzero(sky.mag <= maglim)
+    chord = 2.0 * math.sin(0.5 * max_angle_rad)
+    tree = cKDTree(sky.r[rows])
+    pairs = tree.query_pairs(chord, output_type="ndarray")
+    a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
+    # the dot product axis by axis, summed x + y, then + z, as a sum over the 3 components of each row adds them
+    # (without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs)
+    dot = np.zeros(a.size)
+    for axis in range(3):
+        component = np.ascontiguousarray(sky.r[:, axis])
+        dot += component[a] * component[b]
+    angle = np.arccos(np.clip(dot, -1.0, 1.0))
+    # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
+    order = _ties_by_stars(np.argsort(angle), angle, a, b)
+    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
+
+
+def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
+    """:attr:`PairCatalogue.rank16` of the stars ``rows`` (None for more than 65536 stars)."""
+    if rows.size > 1 << 16:
+        return None
+    rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
+    rank16[rows] = np.arange(rows.size, dtype=np.uint16)
+    return rank16
+
+
+def _ties_by_stars(order: np.ndarray, angle: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``order`` (ascending ``angle``) with every run of equal angles reordered by (a, b) (one in 13 million pairs
+    to Hp 8.7 within 8.8 deg)."""
+    ordered = angle[order]
+    tied = np.flatnonzero(ordered[1:] == ordered[:-1])
+    if tied.size == 0:
+        return order
+    out = order.copy()
+    starts = tied[np.concatenate([[True], np.diff(tied) > 1])]
+    for start in starts:
+        stop = start + 1
+        while stop < order.size and angle[order[stop]] == angle[order[start]]:
+            stop += 1
+        run = order[start:stop]
+        out[start:stop] = run[np.lexsort((b[run], a[run]))]
+    return out
+
+
+#: :class:`PairCache` builds its table this much wider than asked [fraction of the angle]: the next round of
+#: :func:`identify_iteratively` asks for the detector's diagonal through its calibrated focal length, which differs
+#: from the round before's by the calibration's change (0.5 % on openstartracker), and a table wider than asked is cut
+#: to it in a few array passes where building it again takes seconds (20 million pairs to Hp 9 on a 9-deg field).
+PAIR_CACHE_ANGLE_MARGIN = 0.05
+
+
+class PairCache:
+    """What the rounds of one :func:`identify_iteratively` share and do not change: the catalogue as unit vectors
+    (:func:`_sky`), the own matcher's pair table (:func:`pair_catalogue`, built once a little wider than asked and cut
+    to each round's angle and depth: the same table a fresh build gives) and the engine's pattern database."""
+
+    def __init__(self) -> None:
+        self._skies: dict[int, tuple[Catalogue, _Sky]] = {}
+        self._table: PairCatalogue | None = None
+        self._table_maglim = -math.inf
+        self._databases: dict[tuple, tuple[Catalogue, object]] = {}
+        self._subsets: dict[tuple, tuple[Catalogue, Catalogue]] = {}
+
+    def bright(self, catalogue: Catalogue, maglim: float) -> Catalogue:
+        """The stars of ``catalogue`` at least ``maglim`` bright (one subset per catalogue and limit)."""
+        key = (id(catalogue), maglim)
+        held = self._subsets.get(key)
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, catalogue.subset(np.flatnonzero(catalogue.mag <= maglim)))
+            self._subsets[key] = held
+        return held[1]
+
+    def sky(self, catalogue: Catalogue) -> _Sky:
+        """:func:`_sky` of ``catalogue`` (computed once per catalogue object)."""
+        held = self._skies.get(id(catalogue))
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, _sky(catalogue))
+            self._skies[id(catalogue)] = held
+        return held[1]
+
+    def database(self, catalogue: Catalogue, fov_deg: float, maglim: float | None):
+        """:func:`solver_adapter.pattern_database` (read once)."""
+        key = (id(catalogue), fov_deg, maglim)
+        held = self._databases.get(key)
+        if held is None or held[0] is not catalogue:
+            held = (catalogue, solver_adapter.pattern_database(catalogue, fov_deg, maglim))
+            self._databases[key] = held
+        return held[1]
+
+    def pairs(self, sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
+        """:func:`pair_catalogue` (``sky``, ``max_angle_rad``, ``maglim``), cut from the table held when it covers
+        them (the same sky, as wide and as deep), else built (:data:`PAIR_CACHE_ANGLE_MARGIN` wider) and held."""
+        table = self._table
+        if table is None or table.r is not sky.r or max_angle_rad > table.max_angle_rad or maglim > self._table_maglim:
+            wide = max_angle_rad * (1.0 + PAIR_CACHE_ANGLE_MARGIN)
+            deep = max(maglim, self._table_maglim) if table is not None and table.r is sky.r else maglim
+            table = pair_catalogue(sky, wide, deep)
+            self._table, self._table_maglim = table, deep
+        return _cut(table, sky, max_angle_rad, maglim, self._table_maglim)
+
+
+def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
+    """The pairs of ``table`` (built to ``table_maglim``) within ``max_angle_rad`` of stars brighter than ``maglim``:
+    ``table`` is in (angle, a, b) order, and so is every subset of it."""
+    from scipy.spatial import cKDTree
+
+    n = int(np.searchsorted(table.angle_rad, max_angle_rad, side="right"))
+    a, b, angle = table.a[:n], table.b[:n], table.angle_rad[:n]
+    rows, tree = table.rows, table.tree
+    if maglim < table_maglim:
+        bright = sky.mag <= maglim
+        keep = bright[a] & bright[b]
+        a, b, angle = a[keep], b[keep], angle[keep]
+        rows = np.flatnonzero(bright)
+        tree = cKDTree(sky.r[rows])
+    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
+
+
+#: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
+#: describes: at 60 deg off axis a fisheye's equidistant image (r = f theta) lies 40 % inside the pinhole's
+#: (r = f tan theta), more than the polynomial's few-% corrections can bend, and at 90 deg the pinhole has none.
+MAX_DIAGONAL_FIELD_DEG = 120.0
+
+
+def diagonal_field_deg(camera: CameraParams) -> float:
+    """The detector's diagonal field through the pinhole of ``camera`` [deg]."""
+    width, height = camera.image_size_px
+    return math.degrees(2.0 * math.atan(0.5 * math.hypot(width, height) / camera.focal_length_px))
+
+
+def check_field(camera: CameraParams) -> None:
+    """A one-line :class:`UserError` for a lens too wide for the camera model (:data:`MAX_DIAGONAL_FIELD_DEG`)."""
+    from hostlink.errors import UserError
+
+    field = diagonal_field_deg(camera)
+    if field > MAX_DIAGONAL_FIELD_DEG:
+        raise UserError(
+            f"the nominal camera sees {field:.0f} deg across the diagonal: a lens this wide (a fisheye) is outside "
+            f"the camera model (a pinhole with polynomial distortion, up to {MAX_DIAGONAL_FIELD_DEG:.0f} deg); "
+            "check the nominal focal length"
+        )
+
+
+def _field_sr(camera: CameraParams) -> float:
+    """The detector's field [sr] through the pinhole of ``camera`` (4 asin(sin(a) sin(b)) for a rectangle of half
+    angles a, b about the axis)."""
+    width, height = camera.image_size_px
+    a = math.atan(0.5 * width / camera.focal_length_px)
+    b = math.atan(0.5 * height / camera.focal_length_px)
+    return 4.0 * math.asin(math.sin(a) * math.sin(b))
+
+
+def _with_identities(session: Session, star_id: np.ndarray, catalogue: Catalogue) -> Session:
+    """``session`` with ``star_id``; when the file has ra_deg/dec_deg, the newly identified rows get theirs (the
+    geocentric apparent place at the frame's time, docs/file-formats.md; the J2000 place when the time is unknown)."""
+    out = replace(session, star_id=star_id)
+    if session.ra_deg is None or session.dec_deg is None:
+        return out
+    new = np.flatnonzero((star_id != 0) & (session.star_id == 0))
+    ra, dec = session.ra_deg.copy(), session.dec_deg.copy()
+    if new.size:
+        from hostlink.sky.apparent import hip_lookup
+
+        ra[new], dec[new] = catalogue_radec_deg(session, catalogue, hip_lookup(catalogue, star_id[new]), new)
+    return replace(out, ra_deg=ra, dec_deg=dec)
+
+
+def catalogue_radec_deg(
+    session: Session, catalogue: Catalogue, cat_rows: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(ra, dec) [deg] of the catalogue stars ``cat_rows`` as the session's rows ``rows`` see them: the geocentric
+    apparent place at the row's frame time (docs/file-formats.md), the J2000 place when the time is unknown."""
+    from hostlink.sky.apparent import apparent_radec_deg, stars_at_j2000
+
+    if session.time_known:
+        jd1, jd2 = session.frame_times_jd()
+        frame_of_row = np.repeat(np.arange(jd1.size), np.diff(session.frame_starts))[rows]
+        return apparent_radec_deg(catalogue, cat_rows, jd1[frame_of_row], jd2[frame_of_row])
+    stars = stars_at_j2000(catalogue, cat_rows)
+    return np.degrees(stars.ra_rad), np.degrees(stars.dec_rad)

@@ -1,0 +1,109 @@
+"""What the rounds of hostlink.images.identify.identify_iteratively share (PairCache) gives the same answers as
+building everything again: the own matcher's pair table cut from a wider and deeper one is the table a fresh build
+gives (pair for pair, in the same order), pairs of exactly equal angle are ordered by their stars, and the guided
+admission reuses the rounds' last calibration only where it is the calibration it would run."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hostlink.images.identify import PairCache, _sky, _ties_by_stars, pair_catalogue
+from hostlink.sky.catalogue import load_catalogue
+
+#: A 10-deg table to Hp 6.5: ~10^5 pairs, built in well under a second.
+ANGLE_RAD = math.radians(10.0)
+DEPTH_MAG = 6.5
+
+
+@pytest.fixture(scope="module")
+def sky():
+    return _sky(load_catalogue())
+
+
+def _assert_same_table(got, want):
+    # pairs within rounding of the edge angle may fall either side of it (chord test against arccos): no window of
+    # the matcher reaches them (hostlink.images.identify._pairs_of_angle stops 1e-9 rad short of the edge)
+    inner = want.angle_rad < want.max_angle_rad - 1e-12
+    n = int(np.count_nonzero(inner))
+    assert got.max_angle_rad == want.max_angle_rad
+    np.testing.assert_array_equal(got.a[:n], want.a[:n])
+    np.testing.assert_array_equal(got.b[:n], want.b[:n])
+    np.testing.assert_array_equal(got.angle_rad[:n], want.angle_rad[:n])
+    assert abs(got.a.size - want.a.size) <= 1
+    np.testing.assert_array_equal(got.rows, want.rows)
+    np.testing.assert_array_equal(got.tree.data, want.tree.data)
+    if want.rank16 is None:
+        assert got.rank16 is None
+    else:
+        np.testing.assert_array_equal(got.rank16, want.rank16)
+
+
+@pytest.mark.parametrize(("angle_factor", "depth_delta"), [(1.0, 0.0), (0.97, 0.0), (1.0, -0.4), (0.95, -0.3)], ids=str)
+def test_a_table_cut_from_the_cached_one_is_the_fresh_table(sky, angle_factor, depth_delta):
+    cache = PairCache()
+    first = cache.pairs(sky, ANGLE_RAD, DEPTH_MAG)  # built wider than asked, cut to it
+    _assert_same_table(first, pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG))
+    held = cache._table
+    angle, depth = ANGLE_RAD * angle_factor, DEPTH_MAG + depth_delta
+    _assert_same_table(cache.pairs(sky, angle, depth), pair_catalogue(sky, angle, depth))
+    assert cache._table is held  # cut, not built again
+
+
+def test_a_wider_or_deeper_request_builds_the_table_again(sky):
+    cache = PairCache()
+    cache.pairs(sky, ANGLE_RAD, DEPTH_MAG)
+    held = cache._table
+    got = cache.pairs(sky, ANGLE_RAD, DEPTH_MAG + 0.3)
+    assert cache._table is not held
+    _assert_same_table(got, pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG + 0.3))
+
+
+def test_pairs_of_equal_angle_are_ordered_by_their_stars():
+    angle = np.array([0.3, 0.1, 0.2, 0.1, 0.2, 0.1])
+    a = np.array([0, 7, 5, 2, 1, 2])
+    b = np.array([1, 9, 6, 8, 3, 4])
+    order = _ties_by_stars(np.argsort(angle, kind="stable"), angle, a, b)
+    assert [(int(a[i]), int(b[i])) for i in order] == [(2, 4), (2, 8), (7, 9), (1, 3), (5, 6), (0, 1)]
+
+
+def test_the_catalogue_and_database_are_read_once_per_catalogue():
+    catalogue = load_catalogue()
+    cache = PairCache()
+    assert cache.sky(catalogue) is cache.sky(catalogue)
+    bright = cache.bright(catalogue, 5.0)
+    assert bright is cache.bright(catalogue, 5.0)
+    assert np.all(bright.mag <= 5.0)
+    assert len(bright) == int(np.count_nonzero(catalogue.mag <= 5.0))
+
+
+def test_the_rounds_last_calibration_is_the_one_the_admission_would_run(monkeypatch):
+    """identify_iteratively hands on the calibration of its final session from its final camera (the round after it
+    added nothing); calibrating that session again from that camera gives the same camera, and the guided admission
+    then runs no calibration of its own."""
+    from dataclasses import replace
+
+    from hostlink.calibration.run import calibrate_session
+    from hostlink.images import guided
+    from hostlink.images.identify import identify_iteratively
+    from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
+    from onboard.params import Distortion
+
+    camera = replace(seed004_camera(), distortion=Distortion(k1=-2e-9))
+    sim = simulate(SimConfig(camera=camera, frames=4, noise_px=0.1, min_stars=8, max_stars=60, maglim=6.5, seed=7))
+    blind = replace(sim.session, star_id=np.zeros_like(sim.session.star_id), ra_deg=None, dec_deg=None)
+    nominal = replace(camera, distortion=Distortion(), focal_length_mm=camera.focal_length_mm * 1.03)
+    result = identify_iteratively(blind, nominal, maglim=7.5)
+    assert result.n_frames_identified == 4
+    assert result.calibration is not None  # the last round added nothing: its calibration was run and kept
+    again, _ = calibrate_session(result.session, result.camera, keep_failed=True)
+    np.testing.assert_array_equal(
+        again.params.model_vector(np.float64), result.calibration.params.model_vector(np.float64)
+    )
+
+    def no_second_calibration(*args, **kwargs):
+        raise AssertionError("calibrated again")
+
+    monkeypatch.setattr("hostlink.calibration.run.calibrate_session", no_second_calibration)
+    got = guided._calibrated(result.session, result.camera, result.calibration)
+    np.testing.assert_array_equal(got.model_vector(np.float64), again.params.model_vector(np.float64))
