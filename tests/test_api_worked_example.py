@@ -1,5 +1,6 @@
 """docs/api.md cannot rot: its worked session is run here, block by block in one namespace as in a notebook, and
-each block's printed output is compared with the output the page shows under it.
+each block's printed output is compared with the output the page shows under it; and the page cannot fall behind the
+API: every name ``hostlink.api`` exports must appear in its code.
 
 The page is the one copy of the example code. After a deliberate change, rewrite the page's outputs with
 ``python tests/test_api_worked_example.py --write`` and review the diff.
@@ -78,6 +79,40 @@ def test_the_output_comparison_allows_the_last_digit_and_nothing_more():
     assert not outputs_agree("f = 70.2270 mm\n", "f = 70.2272 mm\n")
     assert not outputs_agree("f = 70.2272 um\n", "f = 70.2272 mm\n")
     assert outputs_agree("generation 2\n", "generation 2\n") and not outputs_agree("generation 3\n", "generation 2\n")
+
+
+#: Inline code of the page (may wrap a line).
+_INLINE_CODE = re.compile(r"`([^`]+)`")
+
+
+def code_text(text: str) -> str:
+    """The page's code: its fenced blocks and its inline code spans, one per line."""
+    fenced = [m.group(2) for m in _FENCE.finditer(text)]
+    inline = _INLINE_CODE.findall(_FENCE.sub("", text))
+    return "\n".join(fenced + inline)
+
+
+def documented(name: str, code: str) -> bool:
+    """``name`` is in the page's code as a name of ``hostlink.api``: ``api.NAME``, or ``NAME`` on its own (not the
+    attribute of another module, as in ``hostlink.calibration.chunked.NAME``, nor part of a longer name)."""
+    return re.search(rf"(?:\bapi\.|(?<![\w.])){re.escape(name)}(?!\w)", code) is not None
+
+
+def test_every_name_hostlink_api_exports_is_on_the_page():
+    import hostlink.api as api
+
+    exported = set(api.__all__) | set(api._lazy_table())  # __all__, and every name the module resolves lazily
+    code = code_text(DOC.read_text(encoding="utf-8"))
+    missing = sorted(name for name in exported if not documented(name, code))
+    assert missing == [], f"docs/api.md does not document these names of hostlink.api: {', '.join(missing)}"
+
+
+def test_a_name_counts_only_in_code_and_as_a_name_of_the_api():
+    code = code_text("prose read_truth\n`hostlink.files.truth.read_truth(path)`, `api.read_truthy`\n")
+    assert not documented("read_truth", code)  # prose, another module's attribute, a longer name
+    assert documented("read_truth", code_text("`api.read_truth(path)`"))
+    assert documented("Session", code_text("```python\nparts: list[Session] = []\n```\n"))
+    assert documented("json_text", code_text("`api.json_text(data, *,\n  indent=2)`"))  # a span wrapped over lines
 
 
 def _write_outputs() -> None:
