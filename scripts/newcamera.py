@@ -107,28 +107,37 @@ def _write_tiff(path: Path, pixels: np.ndarray) -> None:
 def _write_png(path: Path, pixels: np.ndarray) -> None:
     from PIL import Image
 
-    Image.fromarray(pixels.astype(np.uint8)).save(path)
+    Image.fromarray(np.ascontiguousarray(pixels).astype(np.uint8)).save(path)
+
+
+#: Counts per ADU of the 16-bit forms: 255 x 257 = 65535, the 16-bit clip level at the 8-bit one; the 8-bit file's
+#: grey (a colour file's mean of three channels, a multiple of 1/3) is kept to 0.5 / 257 ADU.
+SCALE_16 = 257.0
+#: Counts per ADU of the binned FITS: the sum of four pixels (at most 1020) x 64 fits 16 bits (SATURATE 65280).
+SCALE_BIN = 64.0
 
 
 def form_writer(form: str):
-    """(suffix, write(path, grey 8-bit pixels), to_original(x, y, width, height)) of one image form."""
+    """(suffix, write(path, grey [ADU], the file's own pixel array), to_original(x, y, width, height)) of one image
+    form. Every form is lossless (to the rounding stated at its scale): a flip or rotation moves the file's own pixels,
+    RGB keeps a colour file's channels (a grey file's level in all three)."""
     same = lambda x, y, w, h: (x, y)  # noqa: E731
     if form == "fits16":
-        return ".fits", lambda p, a: _write_fits(p, a * 257.0), same
+        return ".fits", lambda p, g, raw: _write_fits(p, np.rint(g * SCALE_16)), same
     if form == "tiff16":
-        return ".tif", lambda p, a: _write_tiff(p, a * 257.0), same
+        return ".tif", lambda p, g, raw: _write_tiff(p, np.rint(g * SCALE_16)), same
     if form == "rgb":
-        return ".png", lambda p, a: _write_png(p, np.repeat(a[:, :, None], 3, axis=2)), same
+        return ".png", lambda p, g, raw: _write_png(p, raw if raw.ndim == 3 else np.repeat(raw[:, :, None], 3, 2)), same
     if form == "flip":
-        return ".png", lambda p, a: _write_png(p, a[:, ::-1]), lambda x, y, w, h: (w - 1 - x, y)
+        return ".png", lambda p, g, raw: _write_png(p, raw[:, ::-1]), lambda x, y, w, h: (w - 1 - x, y)
     if form == "rot180":
-        return ".png", lambda p, a: _write_png(p, a[::-1, ::-1]), lambda x, y, w, h: (w - 1 - x, h - 1 - y)
+        return ".png", lambda p, g, raw: _write_png(p, raw[::-1, ::-1]), lambda x, y, w, h: (w - 1 - x, h - 1 - y)
     if form == "bin2":
 
-        def write(p, a):
-            h, w = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
-            b = a[:h, :w].reshape(h // 2, 2, w // 2, 2).sum(axis=(1, 3))
-            _write_fits(p, b, saturate=4 * 255.0)
+        def write(p, g, raw):
+            h, w = (g.shape[0] // 2) * 2, (g.shape[1] // 2) * 2
+            b = g[:h, :w].reshape(h // 2, 2, w // 2, 2).sum(axis=(1, 3))
+            _write_fits(p, np.rint(b * SCALE_BIN), saturate=4 * 255.0 * SCALE_BIN)
 
         # binned pixel centre i covers original pixels 2i and 2i + 1: x = 2 x_bin + 0.5
         return ".fits", write, lambda x, y, w, h: (2 * x + 0.5, 2 * y + 0.5)
@@ -154,6 +163,8 @@ def form_nominal(form: str, nominal: dict) -> dict:
 
 
 def write_form(images: list[Path], form: str, out: Path) -> list[Path]:
+    from PIL import Image
+
     from hostlink.images.read import read_image
 
     suffix, write, _ = form_writer(form)
@@ -161,7 +172,8 @@ def write_form(images: list[Path], form: str, out: Path) -> list[Path]:
     paths = []
     for image in images:
         target = out / (image.stem + suffix)
-        write(target, np.clip(np.rint(read_image(image).pixels), 0, 255))
+        with Image.open(image) as raw:
+            write(target, read_image(image).pixels, np.asarray(raw))
         paths.append(target)
     return paths
 
@@ -213,8 +225,14 @@ def run_chain(case: str, paths: list[Path], nominal: dict, centroid_args, work: 
         ),
         ("calibrate", [str(ident), "--nominal", str(nominal_path), "--quiet", "--out", str(cal)]),
     ]
+    note = ""
     for name, args in steps:
         p = hostlink([name, *args])
+        if p.returncode and name == "calibrate" and "mirrored" in p.stderr:
+            # what the error says to do: flip x in the session (and the nominal's principal point with it)
+            note = "calibrate: 'the image is mirrored ... flip x'; after the flip: "
+            args = _flipped_for_calibrate(ident, nominal, work)
+            p = hostlink([name, *args])
         if p.returncode:
             return Run(case, False, f"{name}: exit {p.returncode}: {p.stderr.strip().splitlines()[-1:]}")
     report = json.loads((work / "r.json").read_text())
@@ -224,6 +242,7 @@ def run_chain(case: str, paths: list[Path], nominal: dict, centroid_args, work: 
     return Run(
         case,
         True,
+        note,
         frames=report["frames"],
         frames_identified=report["frames_identified"],
         stars=report["stars_identified"],
@@ -234,6 +253,28 @@ def run_chain(case: str, paths: list[Path], nominal: dict, centroid_args, work: 
         calibrated_stars=result["residuals"]["after"]["n_stars"],
         rows=rows,
     )
+
+
+def _flipped_for_calibrate(ident: Path, nominal: dict, work: Path) -> list[str]:
+    """``calibrate``'s arguments for the identified session with x -> width - 1 - x and the nominal to match."""
+    from dataclasses import replace
+
+    from hostlink.files.session import read_session, write_session
+    from hostlink.images.identify import flipped_x_camera
+    from onboard.params import params_from_dict, params_to_dict
+
+    width = nominal["image_size_px"][0]
+    s = read_session(ident)
+    write_session(work / "i_flipped.csv", replace(s, x_px=(width - 1) - s.x_px))
+    (work / "nominal_flipped.json").write_text(json.dumps(params_to_dict(flipped_x_camera(params_from_dict(nominal)))))
+    return [
+        str(work / "i_flipped.csv"),
+        "--nominal",
+        str(work / "nominal_flipped.json"),
+        "--quiet",
+        "--out",
+        str(work / "cal.json"),
+    ]
 
 
 def compare(run: Run, base: Run, radius_px: float = MATCH_PX) -> tuple[int, int]:
@@ -287,7 +328,6 @@ def bad_input_cases(images: list[Path], image_set: ImageSet, work: Path) -> list
         "empty file": ["centroid", str(empty), "--time-unknown"],
         "image of zeros": ["centroid", str(zeros), "--time-unknown"],
         "no time known": ["centroid", str(images[0])],
-        "fisheye nominal, calibrate": ["calibrate", str(good), "--nominal", str(work / "fisheye.json")],
     }
     results = []
     for name, args in cases.items():
@@ -356,8 +396,9 @@ def main() -> None:
                 continue
             both, differ = compare(r, base) if r is not base and base.ok else (0, 0)
             scale = r.focal_mm / base.focal_mm if base.ok else float("nan")
+            case = f"{r.case} ({r.message})" if r.message else r.case
             print(
-                f"| {r.case} | {r.frames_identified} of {r.frames} | {r.stars} (+ {r.faint}) | {r.parity} | "
+                f"| {case} | {r.frames_identified} of {r.frames} | {r.stars} (+ {r.faint}) | {r.parity} | "
                 f"{both} | {differ} | {scale:.5f} | {r.residual_px:.3f} ({r.calibrated_stars}) |"
             )
         if "bad" in cases:

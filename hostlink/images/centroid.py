@@ -32,10 +32,11 @@ Per image:
    the Gaussian's r50 = sigma sqrt(2 ln 2)): the matched filter, maximum likelihood where background and read noise
    dominate, but (4/3)^2 x the Cramer-Rao variance where the star's own shot noise does. It starts the default
    ``psf-fit``: a weighted least-squares fit of the pixel-integrated Gaussian PSF (:func:`psf_model`; position, flux
-   and local background free, sigma fixed at the frame's) with the weights of shot + read noise when the gain is
-   known, every star of the frame at once (:func:`_levenberg_marquardt_batch`, in numpy): maximum likelihood at
-   every signal-to-noise ratio (measured at 0.99-1.03 x the bound from peak SNR 15 to 250, :func:`centroid_crb_px`,
-   tests/test_images_centroid.py);
+   and local background free, sigma fixed at the frame's: the width of that model fitted to the same stars,
+   :func:`_psf_model_sigma_px`, as r50's is the pixel-convolved star's, 17 % wide at 0.77 px) with the weights of
+   shot + read noise when the gain is known, every star of the frame at once (:func:`_levenberg_marquardt_batch`,
+   in numpy): maximum likelihood at every signal-to-noise ratio (measured at 0.99-1.03 x the bound from peak SNR
+   15 to 250, :func:`centroid_crb_px`, tests/test_images_centroid.py);
 5. noise: each star's 1-sigma centroid noise per axis ``sigma_px``, the Cramer-Rao bound of its centroid
    (:func:`centroid_sigma_px`, :func:`centroid_crb_px`) from its flux, the local noise and the PSF: the fit reaches
    it (step 4), so it is each star's weight in the calibration;
@@ -534,6 +535,8 @@ def _centroid_screened(sub, rms, good, clipped, truncated, options: CentroidOpti
         x, y = _windowed_centroids(sub, good, sigma)
     else:
         x, y = x[~unresolved], y[~unresolved]
+    if options.psf_sigma_px is None:  # the PSF model's own width (pixel-integrated): the fit, flux and sigma_px
+        sigma = _psf_model_sigma_px(sub, good[~clipped] if np.any(~clipped) else good, sigma)
     report.psf_sigma_px = float(sigma)
     if options.method == "psf-fit":  # a clipped core does not follow the PSF: saturated stars keep the window
         fit = np.flatnonzero(~clipped)
@@ -875,10 +878,7 @@ def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
     measured within 4 sigma of the previous estimate (three rounds from 1 px)."""
     import sep
 
-    # the most significant peaks (by the filtered peak over the threshold): on a noisy frame the largest isophotal
-    # fluxes are noise blobs, the highest peaks are stars
-    isolated = good[good["flag"] == 0]
-    bright = isolated[np.argsort(-(isolated["cpeak"] / isolated["thresh"]))[:_PSF_STARS]]
+    bright = _psf_stars(good)
     if bright.size == 0:
         return _DEFAULT_PSF_SIGMA_PX
     sigma = _DEFAULT_PSF_SIGMA_PX
@@ -889,11 +889,26 @@ def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
         if not np.any(ok):
             return _DEFAULT_PSF_SIGMA_PX
         sigma = float(max(np.median(r50[ok]) / _R50_PER_SIGMA, _MIN_PSF_SIGMA_PX))
-    # r50 is that of the PSF convolved with the pixel (and SEP's sub-pixel sampling of it): 0.90 px for a Gaussian
-    # of 0.77 px, whose pixel-integrated model then fits 1.1-1.3 x the bound (docs/realsky.md, "A new camera");
-    # the width that the PSF fit's own model has is fitted on the same stars, started from r50's
-    fitted = _psf_width_fit_px(sub, bright["x"], bright["y"], sigma)
-    return float(max(fitted, _MIN_PSF_SIGMA_PX)) if np.isfinite(fitted) else sigma
+    return sigma
+
+
+def _psf_stars(good: np.ndarray) -> np.ndarray:
+    """The frame's most significant isolated detections (by the filtered peak over the threshold: on a noisy frame
+    the largest isophotal fluxes are noise blobs, the highest peaks are stars), at most :data:`_PSF_STARS`."""
+    isolated = good[good["flag"] == 0]
+    return isolated[np.argsort(-(isolated["cpeak"] / isolated["thresh"]))[:_PSF_STARS]]
+
+
+def _psf_model_sigma_px(sub: np.ndarray, good: np.ndarray, window_sigma_px: float) -> float:
+    """The width of the PSF fit's own model, the pixel-integrated Gaussian (:func:`_psf_width_fit_px` on
+    :func:`_psf_stars`, started at the window's sigma); the window's sigma when no fit converges. The window's sigma
+    (:func:`_frame_psf_sigma_px`, from r50) is that of the star convolved with the pixel and SEP's sub-pixel sampling
+    of it: 0.88-0.91 px for a rendered Gaussian of 0.77 px, whose pixel-integrated model then gave bright stars a
+    pixel-phase S-curve (docs/realsky.md, "A new camera: what was tried"); it stays the window of the moments (the
+    windowed centroid, the blend test), for which a wider window is the stable one."""
+    bright = _psf_stars(good)
+    fitted = _psf_width_fit_px(sub, bright["x"], bright["y"], window_sigma_px) if bright.size else math.nan
+    return float(max(fitted, _MIN_PSF_SIGMA_PX)) if np.isfinite(fitted) else window_sigma_px
 
 
 #: The PSF width fit (:func:`_psf_width_fit_px`): Gauss-Newton steps, and the largest relative change of the width
