@@ -230,7 +230,7 @@ def run_chain(case: str, paths: list[Path], nominal: dict, centroid_args, work: 
         p = hostlink([name, *args])
         if p.returncode and name == "calibrate" and "mirrored" in p.stderr:
             # what the error says to do: flip x in the session (and the nominal's principal point with it)
-            note = "calibrate: 'the image is mirrored ... flip x'; after the flip: "
+            note = "calibrated after x flipped, as calibrate's error on the mirrored session asks"
             args = _flipped_for_calibrate(ident, nominal, work)
             p = hostlink([name, *args])
         if p.returncode:
