@@ -169,7 +169,8 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
     record = {
         "round": "guided",
         "camera": "calibrated on the identified stars",
-        "focal_length_px": math.nan,
+        # the identification's camera until the calibration succeeds (a report holds no NaN: strict JSON)
+        "focal_length_px": None if result.camera is None else float(result.camera.focal_length_px),
         "frames_identified": result.n_frames_identified,
         "stars_identified": result.n_identified,
         "added": 0,
@@ -179,7 +180,9 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
     }
     camera = _calibrated(result.session, result.camera, getattr(result, "calibration", None))
     if camera is None:
-        record.update(status="calibration failed: no candidate admitted")
+        record.update(
+            camera="the identification's (calibration failed)", status="calibration failed: no candidate admitted"
+        )
         frames = ()
     else:
         star_id, frames = admit(session, star_id, held, camera, catalogue)
@@ -191,7 +194,8 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
             frames_declined=int(sum(f.status.startswith("not admitted") for f in frames)),
             max_false_fraction=MAX_FALSE_FRACTION,
             searched=int(sum(f.searched for f in frames)),
-            per_frame=[vars(f) for f in frames],
+            # a frame that admits nothing has no prediction sigma or zero point: null, not NaN (strict JSON)
+            per_frame=[{k: None if v != v else v for k, v in vars(f).items()} for f in frames],
         )
         record["stars_identified"] = result.n_identified + record["added"]
     from hostlink.images.skyindex import _with_identities  # the identified rows' places, as identify fills them

@@ -357,6 +357,56 @@ def identify_iteratively(
     max_rounds: int = MAX_ROUNDS,
     progress=None,
 ) -> Identification:
+    """:func:`_identify_iteratively`; a session found mirrored (odd parity, which the calibration refuses: its
+    rounds and the guided admission would end at the first calibration) is identified again with x flipped,
+    x -> width - 1 - x, and the nominal with it (:func:`flipped_x_camera`), then written back in its own columns.
+    Its frames keep the parity ``mirrored`` and the attitude of the mirrored-back columns (as a mirrored frame's
+    always was: x mirrored about the principal point); ``camera`` is that of the flipped detector, the one
+    ``calibrate`` needs (the session's x flipped first, as its error on a mirrored session says)."""
+    if catalogue is None:
+        from hostlink.sky.catalogue import load_catalogue
+
+        catalogue = load_catalogue()
+    args = (catalogue, maglim, use_engine, max_rounds, progress)
+    result = _identify_iteratively(session, nominal, *args)
+    if not result.mirrored:
+        return result
+    width = nominal.image_size_px[0]
+    flipped = _identify_iteratively(_flipped_x_session(session, width), flipped_x_camera(nominal), *args)
+    if flipped.mirrored is not False or flipped.n_identified < result.n_identified:
+        return result
+    frames = tuple(f if f.mirrored is None else replace(f, mirrored=not f.mirrored) for f in flipped.frames)
+    return replace(flipped, session=_flipped_x_session(flipped.session, width), frames=frames)
+
+
+def _flipped_x_session(session: Session, width_px: int) -> Session:
+    """``session`` with every column mirrored, x -> width - 1 - x (docs/camera-model.md: x = 0 is the first
+    column's centre)."""
+    return replace(session, x_px=(width_px - 1) - session.x_px)
+
+
+def flipped_x_camera(camera: CameraParams) -> CameraParams:
+    """The camera of the same detector read with x -> width - 1 - x: the principal point's column mirrored, and the
+    distortion terms odd in x (docs/camera-model.md: with u -> -u, dx -> -dx and dy unchanged when g1 = s1 + p1 and
+    g3 = 2 p1 change sign, so p1 and s1 do) negated."""
+    x0, y0 = camera.principal_point_px
+    d = camera.distortion
+    return replace(
+        camera,
+        principal_point_px=((camera.image_size_px[0] - 1) - x0, y0),
+        distortion=replace(d, p1=-d.p1, s1=-d.s1),
+    )
+
+
+def _identify_iteratively(
+    session: Session,
+    nominal: CameraParams,
+    catalogue: Catalogue | None = None,
+    maglim: float | None = None,
+    use_engine: bool = True,
+    max_rounds: int = MAX_ROUNDS,
+    progress=None,
+) -> Identification:
     """Identify, calibrate, identify again with the calibrated camera, until a round adds nothing (at most
     ``max_rounds``; 1: :func:`identify_session` alone). Every round identifies the session's originally
     unidentified rows afresh (lost in space: the module docstring's checks apply in every round) with the camera
@@ -377,7 +427,7 @@ def identify_iteratively(
         catalogue = load_catalogue()
     if np.any(guided.candidate_rows(session)):  # faint candidates: held back, admitted after the rounds (guided.py)
         return guided.identify_then_admit(
-            session, lambda s: identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress)
+            session, lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress)
         )
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)

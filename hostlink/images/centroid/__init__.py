@@ -36,10 +36,11 @@ Per image:
    the Gaussian's r50 = sigma sqrt(2 ln 2)): the matched filter, maximum likelihood where background and read noise
    dominate, but (4/3)^2 x the Cramer-Rao variance where the star's own shot noise does. It starts the default
    ``psf-fit``: a weighted least-squares fit of the pixel-integrated Gaussian PSF (:func:`psf_model`; position, flux
-   and local background free, sigma fixed at the frame's) with the weights of shot + read noise when the gain is
-   known, every star of the frame at once (:func:`_levenberg_marquardt_batch`, in numpy): maximum likelihood at
-   every signal-to-noise ratio (measured at 0.99-1.03 x the bound from peak SNR 15 to 250, :func:`centroid_crb_px`,
-   tests/test_images_centroid.py);
+   and local background free, sigma fixed at the frame's: the width of that model fitted to the same stars,
+   :func:`_psf_model_sigma_px`, as r50's is the pixel-convolved star's, 17 % wide at 0.77 px) with the weights of
+   shot + read noise when the gain is known, every star of the frame at once (:func:`_levenberg_marquardt_batch`,
+   in numpy): maximum likelihood at every signal-to-noise ratio (measured at 0.99-1.03 x the bound from peak SNR
+   15 to 250, :func:`centroid_crb_px`, tests/test_images_centroid.py);
 5. noise: each star's 1-sigma centroid noise per axis ``sigma_px``, the Cramer-Rao bound of its centroid
    (:func:`centroid_sigma_px`, :func:`centroid_crb_px`) from its flux, the local noise and the PSF: the fit reaches
    it (step 4), so it is each star's weight in the calibration;

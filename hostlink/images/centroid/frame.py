@@ -26,7 +26,12 @@ from hostlink.images.centroid.shapes import (
     _unresolved_pairs,
     _windowed_ellipticity,
 )
-from hostlink.images.centroid.windows import _border_windows, _frame_psf_sigma_px, _windowed_centroids
+from hostlink.images.centroid.windows import (
+    _border_windows,
+    _frame_psf_sigma_px,
+    _psf_model_sigma_px,
+    _windowed_centroids,
+)
 
 
 def centroid_pixels(
@@ -116,7 +121,8 @@ def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report
     """Package docstring, step 4, on the screened ``stars``: the frame's PSF sigma, windowed centroids (a star cut by
     the border: :func:`_border_windows`), the blend test (:func:`_unresolved_pairs`: a star more elongated than the
     PSF of its part of the field is kept, flagged, while the bound on its bias is at most :data:`_BLEND_MAX_BIAS_PX`,
-    else rejected as blended), then the PSF fit. Returns the stars kept and the PSF sigma [px]."""
+    else rejected as blended), then the PSF model's width (:func:`_psf_model_sigma_px`: the moments keep r50's wider
+    window) and the PSF fit. Returns the stars kept and the PSF model's sigma [px]."""
     clipped = stars.clipped
     sigma = options.psf_sigma_px or _frame_psf_sigma_px(sub, stars.good[~clipped] if np.any(~clipped) else stars.good)
     stars = _windowed(sub, stars, sigma, report)
@@ -146,6 +152,9 @@ def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report
         if again != sigma:  # each star's window is its own: with the same sigma, the same centroids
             sigma = again
             stars = _windowed(sub, replace(stars, x=stars.good["x"], y=stars.good["y"]), sigma, report)
+    if options.psf_sigma_px is None:  # the PSF model's own width (pixel-integrated) for the fit, flux and sigma_px,
+        shaped = ~np.isfinite(stars.blend_px) & ~stars.clipped  # measured on stars of the PSF's shape (no blend)
+        sigma = _psf_model_sigma_px(sub, stars.good[shaped] if np.any(shaped) else stars.good, sigma)
     report.psf_sigma_px = float(sigma)
     if options.method == "psf-fit" and stars.x.size:  # a clipped core does not follow the PSF: saturated stars keep
         fit = np.flatnonzero(~stars.clipped)  # the window

@@ -1,5 +1,6 @@
-"""The pixel-integrated Gaussian PSF: its model, the batched maximum-likelihood fit of every star of a frame, the PSF
-flux, and the Cramer-Rao bound of a centroid (:mod:`hostlink.images.centroid`, steps 4-6)."""
+"""The pixel-integrated Gaussian PSF: its model, the batched maximum-likelihood fit of every star of a frame, the
+model's own width, the PSF flux, and the Cramer-Rao bound of a centroid (:mod:`hostlink.images.centroid`, steps
+4-6)."""
 
 from __future__ import annotations
 
@@ -220,6 +221,59 @@ def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None
     )
     out_x[ok], out_y[ok] = params[ok, 0], params[ok, 1]
     return out_x, out_y, ok
+
+
+#: The PSF width fit (:func:`_psf_width_fit_px`): Gauss-Newton steps, and the largest relative change of the width
+#: per step (a star on a faint neighbour's wing must not run off).
+_WIDTH_FIT_ITERATIONS = 12
+_WIDTH_FIT_MAX_STEP = 0.3
+
+
+def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start_px: float) -> float:
+    """The median over the stars at ``(x, y)`` of the least-squares width of the pixel-integrated Gaussian
+    mu = B + N Py(y; s) Px(x; s) (:func:`psf_model`, every parameter free, s too) over the pixels within
+    3 ``sigma_start_px`` + 1 of each: d P / d s = -[phi(u) u - phi(l) l] / s with u, l = (c +- 1/2 - x) / s (the
+    derivative of Phi((c +- 1/2 - x) / s) in s). NaN when no star's fit converges to a positive width."""
+    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_start_px)) + 1
+    cols, rows, data, inside = _stamps(sub, np.asarray(x, float), np.asarray(y, float), half)
+    widths = []
+    for k in range(cols.shape[0]):
+        if not inside[k].all():
+            continue
+        c, r, d = cols[k], rows[k], data[k].ravel()
+        p = np.array([x[k], y[k], 0.0, float(np.median(data[k])), sigma_start_px])
+        p[2] = max(float(d.sum() - p[3] * d.size), 1.0)
+        for _ in range(_WIDTH_FIT_ITERATIONS):
+            s = p[4]
+            px, py = pixel_integrated_gaussian(c, p[0], s), pixel_integrated_gaussian(r, p[1], s)
+            dpx, dpy = pixel_integrated_gaussian_dsource(c, p[0], s), pixel_integrated_gaussian_dsource(r, p[1], s)
+            spx, spy = _pixel_gaussian_dwidth(c, p[0], s), _pixel_gaussian_dwidth(r, p[1], s)
+            shape = np.outer(py, px)
+            jac = np.stack(
+                [
+                    p[2] * np.outer(py, dpx).ravel(),
+                    p[2] * np.outer(dpy, px).ravel(),
+                    shape.ravel(),
+                    np.ones(d.size),
+                    p[2] * (np.outer(spy, px) + np.outer(py, spx)).ravel(),
+                ],
+                axis=1,
+            )
+            step = np.linalg.lstsq(jac, d - p[3] - p[2] * shape.ravel(), rcond=None)[0]
+            step *= min(1.0, _WIDTH_FIT_MAX_STEP * s / max(abs(step[4]), 1e-300))
+            p = p + step
+            if not (p[4] > 0 and p[2] > 0 and abs(p[0] - x[k]) < half and abs(p[1] - y[k]) < half):
+                break
+        else:
+            widths.append(p[4])
+    return float(np.median(widths)) if widths else float("nan")
+
+
+def _pixel_gaussian_dwidth(centres_px: np.ndarray, source_px: float, sigma_px: float) -> np.ndarray:
+    """d/ds of :func:`hostlink.sky.render.pixel_integrated_gaussian`: -[phi(u) u - phi(l) l] / s."""
+    u = (centres_px + 0.5 - source_px) / sigma_px
+    lo = (centres_px - 0.5 - source_px) / sigma_px
+    return -(np.exp(-0.5 * u**2) * u - np.exp(-0.5 * lo**2) * lo) / (math.sqrt(2.0 * math.pi) * sigma_px)
 
 
 def centroid_crb_px(

@@ -44,8 +44,10 @@ def centroid_images(
     background = _background_frame(paths, options)
 
     frames: list[tuple[str, Detections, str]] = []
+    blank = 0  # images whose every pixel has one value (a lens cap, no exposure, a failed readout)
     for path in paths:
         image = read_image(path)
+        blank += int(image.pixels.size == 0 or float(np.ptp(image.pixels)) == 0.0)
         time_utc, source = image_time(image, times, listed)
         det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
         det.report.path = str(path)
@@ -54,6 +56,8 @@ def centroid_images(
     if options.median_of_inputs:
         _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
     if all(det.report.kept == 0 for _, det, _ in frames):
+        if blank == len(paths):
+            raise UserError(f"no star found: every pixel of each of the {len(paths)} image(s) has one value (blank)")
         raise UserError(f"no star found in any of the {len(paths)} image(s); lower --threshold-sigma")
     if times.time_unknown:
         order = list(range(len(frames)))

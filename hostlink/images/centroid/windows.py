@@ -1,6 +1,6 @@
 """Windowed centroids (Source Extractor's XWIN_IMAGE): SEP's, the batched one of the faint candidates, the one over
-the point-symmetric part of a star the border cuts; and the frame's PSF width (:mod:`hostlink.images.centroid`,
-step 4)."""
+the point-symmetric part of a star the border cuts; and the frame's PSF width, the window's (from r50) and the PSF
+model's (:mod:`hostlink.images.centroid`, step 4)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from hostlink.images.centroid.psf import _psf_width_fit_px
 from hostlink.images.centroid.stamps import _stamps
 
 #: r50 / sigma of a circular Gaussian: sqrt(2 ln 2).
@@ -137,10 +138,7 @@ def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
     measured within 4 sigma of the previous estimate (three rounds from 1 px)."""
     import sep
 
-    # the most significant peaks (by the filtered peak over the threshold): on a noisy frame the largest isophotal
-    # fluxes are noise blobs, the highest peaks are stars
-    isolated = good[good["flag"] == 0]
-    bright = isolated[np.argsort(-(isolated["cpeak"] / isolated["thresh"]))[:_PSF_STARS]]
+    bright = _psf_stars(good)
     if bright.size == 0:
         return _DEFAULT_PSF_SIGMA_PX
     sigma = _DEFAULT_PSF_SIGMA_PX
@@ -152,3 +150,23 @@ def _frame_psf_sigma_px(sub: np.ndarray, good: np.ndarray) -> float:
             return _DEFAULT_PSF_SIGMA_PX
         sigma = float(max(np.median(r50[ok]) / _R50_PER_SIGMA, _MIN_PSF_SIGMA_PX))
     return sigma
+
+
+def _psf_stars(good: np.ndarray) -> np.ndarray:
+    """The frame's most significant isolated detections (by the filtered peak over the threshold: on a noisy frame
+    the largest isophotal fluxes are noise blobs, the highest peaks are stars), at most :data:`_PSF_STARS`."""
+    isolated = good[good["flag"] == 0]
+    return isolated[np.argsort(-(isolated["cpeak"] / isolated["thresh"]))[:_PSF_STARS]]
+
+
+def _psf_model_sigma_px(sub: np.ndarray, good: np.ndarray, window_sigma_px: float) -> float:
+    """The width of the PSF fit's own model, the pixel-integrated Gaussian
+    (:func:`hostlink.images.centroid.psf._psf_width_fit_px` on :func:`_psf_stars`, started at the window's sigma); the
+    window's sigma when no fit converges. The window's sigma (:func:`_frame_psf_sigma_px`, from r50) is that of the
+    star convolved with the pixel and SEP's sub-pixel sampling of it: 0.88-0.91 px for a rendered Gaussian of
+    0.77 px, whose pixel-integrated model then gave bright stars a pixel-phase S-curve (docs/realsky.md, "A new
+    camera: what was tried"); it stays the window of the moments (the windowed centroid, the blend test), for which a
+    wider window is the stable one."""
+    bright = _psf_stars(good)
+    fitted = _psf_width_fit_px(sub, bright["x"], bright["y"], window_sigma_px) if bright.size else math.nan
+    return float(max(fitted, _MIN_PSF_SIGMA_PX)) if np.isfinite(fitted) else window_sigma_px
