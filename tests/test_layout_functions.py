@@ -1,18 +1,24 @@
 """Functions stay short enough to read as named steps (STYLE.md: the algorithm visible in one function a reader can
-follow): no function over 80 lines in the C firmware core and the Python model it mirrors (``onboard``). The calibration
-package holds the same bound in test_calibration_layout.py."""
+follow): no function over 80 lines in the C firmware core, the Python model it mirrors (``onboard``), the links, the
+port kit and the commands. The calibration package holds the same bound in test_calibration_layout.py."""
 
 import ast
 from importlib import resources
 from pathlib import Path
 
+import hostlink
 import onboard
 
 #: Lines from a function's signature to its closing brace or last statement, the bound the calibration package
 #: already holds: a longer function is split into named steps, each mirrored by name between C and Python.
 MAX_FUNCTION_LINES = 80
 
-PYTHON_FOLDERS = (Path(onboard.__file__).parent,)
+PYTHON_FOLDERS = (
+    Path(onboard.__file__).parent,
+    Path(hostlink.__file__).parent / "links",
+    Path(hostlink.__file__).parent / "portkit",
+    Path(hostlink.__file__).parent / "commands",
+)
 
 
 def _c_function_lengths(text: str) -> dict[str, int]:
