@@ -11,7 +11,8 @@ Link strings:
 (default 200 ms, plus the answer's line time on a serial line). A command is one write of the argument registers
 and ``command`` (function code 16), then one read of the ``result_*`` registers; a NAK becomes
 :class:`CommandRefused` with the sensor's code and text. The stream is polled: read the window, release it with
-``stream_ack_seq``; lost messages are counted from gaps in ``window_seq``.
+``stream_ack_seq``; lost messages are counted from gaps in ``window_seq``. Each poll reads the window's fixed
+registers and their check first, and the rest only when they hold a message.
 
 Integrity and recovery: every block read as a snapshot (result, status, tables, estimate, stream window) carries a
 CRC-32 check register (``checked_blocks`` in the map); a block whose check fails is read again, never decoded. An
