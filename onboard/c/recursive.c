@@ -467,39 +467,59 @@ static void detect_drift(recursive_state_t *st)
     }
 }
 
+/* How many of the n flags are set. */
+static size_t count_set(const uint8_t *flags, size_t n)
+{
+    size_t i, count = 0u;
+    for (i = 0u; i < n; ++i) {
+        count += flags[i];
+    }
+    return count;
+}
+
+/* The selected stars still kept, in pair order (live[order_for_pairs(xs[live], ys[live])]); returns how many. */
+static size_t ordered_live_stars(const recursive_work_t *w, const uint8_t *keep, int32_t *order)
+{
+    float xl[RECURSIVE_MAX_STARS], yl[RECURSIVE_MAX_STARS];
+    int32_t live[RECURSIVE_MAX_STARS], perm[RECURSIVE_MAX_STARS];
+    size_t n_live = 0u, i;
+    for (i = 0u; i < (size_t)w->n_sel; ++i) {
+        if (keep[i]) {
+            live[n_live++] = (int32_t)i;
+        }
+    }
+    if (n_live < 3u) {
+        return n_live;
+    }
+    for (i = 0u; i < n_live; ++i) {
+        xl[i] = w->xs[live[i]];
+        yl[i] = w->ys[live[i]];
+    }
+    interstar_order_for_pairs(xl, yl, n_live, perm);
+    for (i = 0u; i < n_live; ++i) {
+        order[i] = live[perm[i]];
+    }
+    return n_live;
+}
+
 /* Gate at the prior, removing misidentified stars from keep (at most two passes); leaves the order in order[]
- * (n_order stars), the linearisation in work.lin and the failing pairs in fail[]. */
+ * (n_order stars), the linearisation in work.lin and the failing pairs in fail[] (onboard.recursive._gate). */
 static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *order, size_t *n_order, uint8_t *fail,
                                recursive_skip_t *skip)
 {
     recursive_work_t *w = &st->work;
-    const double gate2 = st->config.pair_gate_sigma * st->config.pair_gate_sigma;
-    const float gate2_32 = (float)gate2;
-    float chi2[RECURSIVE_MAX_PAIRS], xl[RECURSIVE_MAX_STARS], yl[RECURSIVE_MAX_STARS];
-    int32_t live[RECURSIVE_MAX_STARS], perm[RECURSIVE_MAX_STARS];
+    const float gate2_32 = (float)(st->config.pair_gate_sigma * st->config.pair_gate_sigma);
+    float chi2[RECURSIVE_MAX_PAIRS];
     uint8_t bad[RECURSIVE_MAX_STARS];
-    size_t n_live, i, p, n_bad, n_fail;
+    size_t n_live, i, p, n_bad;
     int pass;
     recursive_status_t status;
     *skip = RECURSIVE_SKIP_NONE;
     for (pass = 0; pass < 3; ++pass) {
-        n_live = 0u;
-        for (i = 0u; i < (size_t)w->n_sel; ++i) {
-            if (keep[i]) {
-                live[n_live++] = (int32_t)i;
-            }
-        }
+        n_live = ordered_live_stars(w, keep, order);
         if (n_live < 3u) {
             *skip = RECURSIVE_SKIP_FEW_CONSISTENT;
             return RECURSIVE_OK;
-        }
-        for (i = 0u; i < n_live; ++i) {
-            xl[i] = w->xs[live[i]];
-            yl[i] = w->ys[live[i]];
-        }
-        interstar_order_for_pairs(xl, yl, n_live, perm);
-        for (i = 0u; i < n_live; ++i) {
-            order[i] = live[perm[i]];
         }
         *n_order = n_live;
         status = linearise(st, order, n_live, st->x_hi, st->x_lo);
@@ -511,10 +531,7 @@ static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *or
             fail[p] = (uint8_t)(chi2[p] > gate2_32);
         }
         misidentified(fail, n_live, bad);
-        n_bad = 0u;
-        for (i = 0u; i < n_live; ++i) {
-            n_bad += bad[i];
-        }
+        n_bad = count_set(bad, n_live);
         if (n_bad == 0u || pass == 2 || n_bad > n_live / 2u) {
             break;
         }
@@ -524,11 +541,7 @@ static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *or
             }
         }
     }
-    n_fail = 0u;
-    for (p = 0u; p < w->lin.n_pairs; ++p) {
-        n_fail += fail[p];
-    }
-    if ((double)n_fail / (double)w->lin.n_pairs > 0.5) {
+    if ((double)count_set(fail, w->lin.n_pairs) / (double)w->lin.n_pairs > 0.5) {
         *skip = RECURSIVE_SKIP_MOST_INCONSISTENT;
     }
     return RECURSIVE_OK;
@@ -698,15 +711,13 @@ static void post_fit_bad(const recursive_state_t *st, const int32_t *order, size
     const float gate2_32 = (float)(st->config.pair_gate_sigma * st->config.pair_gate_sigma);
     const float r_norm32 = (float)lin->r_norm;
     uint8_t fail_post[RECURSIVE_MAX_PAIRS], bad[RECURSIVE_MAX_STARS];
-    size_t p, i, n_bad = 0u;
+    size_t p, i, n_bad;
     for (p = 0u; p < lin->n_pairs; ++p) {
         const float post = lin->e[p] - row_dot(&lin->h[p * k], step_state, k);
         fail_post[p] = (uint8_t)(post * post > gate2_32 * lin->r[p * lin->n_pairs + p] * r_norm32);
     }
     misidentified(fail_post, n_order, bad);
-    for (i = 0u; i < n_order; ++i) {
-        n_bad += bad[i];
-    }
+    n_bad = count_set(bad, n_order);
     if (n_bad > 0u && n_bad <= n_order / 2u) {
         for (i = 0u; i < n_order; ++i) {
             if (bad[i]) {
