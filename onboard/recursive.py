@@ -398,14 +398,13 @@ def update(
     passes); iterated U-D update; post-fit editing (a star whose pairs the updated state still cannot explain is
     removed and the frame redone from the prior, once): the prior gate is wide during a cold start."""
     dt = state.dtype
-    cfg = state.config
     x_px = np.asarray(x_px)
     y_px = np.asarray(y_px)
     r_ref = np.asarray(r_ref)
     ok = np.isfinite(x_px) & np.isfinite(y_px) & np.all(np.isfinite(r_ref), axis=1)
     if identified is not None:
         ok &= np.asarray(identified, dtype=bool)
-    sel = _distinct_stars(np.flatnonzero(ok), x_px, y_px, dt)[: cfg.max_stars]
+    sel = _distinct_stars(np.flatnonzero(ok), x_px, y_px, dt)[: state.config.max_stars]
     result = FrameResult(n_stars=int(x_px.shape[0]))
     state.frames += 1
     time_update(state)
@@ -425,6 +424,19 @@ def update(
 
     state.u0[:] = state.u
     state.d0[:] = state.d
+    status = _process_with_editing(state, xs_all, ys_all, rs_all, keep, result, front)
+    result.rejected_stars = tuple(int(sel[k]) for k in np.flatnonzero(~keep))
+    if status:
+        _skip_frame(state, result, status)
+    else:
+        _accept_frame(state, result)
+    return result
+
+
+def _process_with_editing(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray, result, front) -> str:
+    """The frame from the prior with post-fit editing: a star the updated state still cannot explain is removed from
+    ``keep`` and the frame redone from the prior (state.u0, state.d0, x_hi + x_lo on entry), once. Returns the
+    status ("" when the frame updated the state)."""
     prior_hi = state.x_hi.copy()
     prior_lo = state.x_lo.copy()
     status = ""
@@ -436,28 +448,33 @@ def update(
         if status or not np.any(post_bad):
             break
         keep[post_bad] = False
-    result.rejected_stars = tuple(int(sel[k]) for k in np.flatnonzero(~keep))
-    if status:
-        state.u[:] = state.u0
-        state.d[:] = state.d0
-        result.skipped = status
-        if status.startswith("most pairs"):
-            state.inconsistent_run += 1
-            if state.inconsistent_run >= cfg.reopen_after_frames:
-                state.u[:] = np.eye(state.idx.size, dtype=dt)
-                state.d[:] = state.d_prior
-                state.inconsistent_run = 0
-                result.skipped += " (covariance reopened)"
-        _record_history(state)
-        return result
+    return status
+
+
+def _skip_frame(state: RecursiveState, result: FrameResult, status: str) -> None:
+    """A skipped frame: the prior's factors back; a run of inconsistent frames reopens the covariance."""
+    state.u[:] = state.u0
+    state.d[:] = state.d0
+    result.skipped = status
+    if status.startswith("most pairs"):
+        state.inconsistent_run += 1
+        if state.inconsistent_run >= state.config.reopen_after_frames:
+            state.u[:] = np.eye(state.idx.size, dtype=state.dtype)
+            state.d[:] = state.d_prior
+            state.inconsistent_run = 0
+            result.skipped += " (covariance reopened)"
+    _record_history(state)
+
+
+def _accept_frame(state: RecursiveState, result: FrameResult) -> None:
+    """An updated frame: the counters, the NIS of single-iteration frames and the drift detector."""
     state.inconsistent_run = 0
     state.updates += 1
-    if state.frames > cfg.drift_start_frames and result.iterations == 1:
+    if state.frames > state.config.drift_start_frames and result.iterations == 1:
         state.nis_sum += result.nis * result.n_pairs
         state.nis_count += result.n_pairs
     _record_history(state, result)
     _detect_drift(state)
-    return result
 
 
 def _distinct_stars(rows: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, dt: np.dtype) -> np.ndarray:
@@ -492,10 +509,9 @@ def _gate(state: RecursiveState, xs_all, ys_all, rs_all, keep: np.ndarray, front
 
 
 def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, result, front=None):
-    """One attempt at a frame from the prior (state.u0, state.d0, prior_hi + prior_lo). Returns (status, post_bad):
-    post_bad flags (as a mask over the frame's selected stars) stars the post-fit residuals reject."""
-    cfg = state.config
-    dt = state.dtype
+    """One attempt at a frame from the prior (state.u0, state.d0, prior_hi + prior_lo): gate, iterated update,
+    post-fit editing. Returns (status, post_bad): post_bad flags (as a mask over the frame's selected stars) stars the
+    post-fit residuals reject."""
     post_bad = np.zeros(keep.size, dtype=bool)
     state.x_hi[:] = prior_hi
     state.x_lo[:] = prior_lo
@@ -506,7 +522,17 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
     result.n_used = int(order.size)
     result.n_pairs = int(np.count_nonzero(used))
     result.n_pairs_rejected = int(np.count_nonzero(fail))
-    xs, ys, rs = xs_all[order], ys_all[order], rs_all[order]
+    stars = (xs_all[order], ys_all[order], rs_all[order])
+    lin, step_state = _iterated_update(state, stars, order, lin, used, prior_hi, prior_lo, result, front)
+    post_bad[order[_post_fit_bad(state, lin, step_state, order.size)]] = True
+    return "", post_bad
+
+
+def _iterated_update(state, stars, order, lin, used, prior_hi, prior_lo, result, front):
+    """The iterated update of the gated frame (pairs ``used`` of the ordered ``stars``): relinearise from the
+    prior's factors, whiten, Bierman, step, until the step is within iteration_tol or max_iterations. Leaves the
+    estimate in x_hi + x_lo; returns the last linearisation and the last step (state units)."""
+    cfg = state.config
     lin_hi, lin_lo = prior_hi.copy(), prior_lo.copy()
     step_state = np.zeros_like(prior_hi)
     nis = 0.0
@@ -515,25 +541,13 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
         if it > 0:
             state.u[:] = state.u0
             state.d[:] = state.d0
-            lin = _linearise(state, xs, ys, rs, lin_hi, lin_lo, front, order)
-        e = lin.e[used]
-        h = lin.h[used]
-        r = lin.r[np.ix_(used, used)]
-        # pseudo-measurement of xi = x - x_prior: y = e(x_lin) + H (x_lin - x_prior)
-        dx = (lin_hi - prior_hi) + (lin_lo - prior_lo)
-        y = e + matvec(h, dx)
-        chol = cholesky_lower(r)
-        scale = dt.type(1.0 / np.sqrt(lin.r_norm))
-        white = forward_solve(chol, np.column_stack([y * scale, h * scale]))
+            lin = _linearise(state, *stars, lin_hi, lin_lo, front, order)
+        white = _whiten(state, lin, used, (lin_hi - prior_hi) + (lin_lo - prior_lo))
         if it == 0:
             score, score_var = _focal_score(state, white)
-        state.xi[:] = 0
-        nis = 0.0
+        nis = _bierman_pass(state, white)
         n_rows = white.shape[0]
-        for p in range(n_rows):
-            innov, s = bierman_update(state.u, state.d, state.xi, white[p, 1:], white[p, 0], state.work)
-            nis += float(innov * innov / s)
-        new_hi, new_lo = _two_sum(prior_hi, state.xi + prior_lo)
+        new_hi, new_lo = _two_sum(prior_hi, state.xi + prior_lo)  # the new estimate, compensated
         step_state = (new_hi - lin_hi) + (new_lo - lin_lo)
         step = float(np.max(np.abs(step_state)))
         lin_hi, lin_lo = new_hi, new_lo
@@ -543,14 +557,42 @@ def _process_frame(state, xs_all, ys_all, rs_all, keep, prior_hi, prior_lo, resu
     state.x_hi[:] = lin_hi
     state.x_lo[:] = lin_lo
     result.nis = nis / max(1, n_rows)
-    # post-fit residuals of every pair (used or not) at the updated state, linear prediction from the last point
-    post = lin.e - matvec(lin.h, step_state)
-    fail_post = post * post > cfg.pair_gate_sigma**2 * np.diag(lin.r) * dt.type(lin.r_norm)
-    bad = _misidentified(fail_post, order.size)
-    if np.any(bad) and np.count_nonzero(bad) <= order.size // 2:
-        post_bad[order[bad]] = True
     result.focal_score, result.focal_score_var = score, score_var
-    return "", post_bad
+    return lin, step_state
+
+
+def _whiten(state: RecursiveState, lin: _Linearised, used: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """The pseudo-measurement of xi = x - x_prior over the used pairs, y = e(x_lin) + H dx (dx = x_lin - x_prior),
+    whitened: L^-1 [y s, H s] with R_used = L L^T and s = 1 / sqrt(r_norm), one row per pair."""
+    h = lin.h[used]
+    y = lin.e[used] + matvec(h, dx)
+    chol = cholesky_lower(lin.r[np.ix_(used, used)])
+    scale = state.dtype.type(1.0 / np.sqrt(lin.r_norm))
+    return forward_solve(chol, np.column_stack([y * scale, h * scale]))
+
+
+def _bierman_pass(state: RecursiveState, white: np.ndarray) -> float:
+    """The whitened rows into the U-D factors by Bierman's update, state.xi from zero; returns the summed squared
+    normalised innovations."""
+    state.xi[:] = 0
+    nis = 0.0
+    for p in range(white.shape[0]):
+        innov, s = bierman_update(state.u, state.d, state.xi, white[p, 1:], white[p, 0], state.work)
+        nis += float(innov * innov / s)
+    return nis
+
+
+def _post_fit_bad(state: RecursiveState, lin: _Linearised, step_state: np.ndarray, n: int) -> np.ndarray:
+    """Post-fit editing: every pair's residual (used or not) at the updated state, the linear prediction e - H step
+    from the last point, gated again; the misidentified stars (mask over the n ordered stars) when they are at most
+    half the frame, else none."""
+    dt = state.dtype
+    post = lin.e - matvec(lin.h, step_state)
+    fail_post = post * post > state.config.pair_gate_sigma**2 * np.diag(lin.r) * dt.type(lin.r_norm)
+    bad = _misidentified(fail_post, n)
+    if np.count_nonzero(bad) > n // 2:
+        bad[:] = False
+    return bad
 
 
 def _focal_score(state: RecursiveState, white: np.ndarray) -> tuple[float, float]:

@@ -239,12 +239,26 @@ def test_an_output_path_that_names_no_file_is_one_line(argv, path, files, capsys
 
 
 def test_a_library_warning_is_one_line_naming_the_command(files, tmp_path, capsys):
-    """A session dated 2900 is read (UTC is defined then), but ERFA warns that no leap-second table reaches it: the
-    warning is one line like the command's errors, not Python's two lines with a source path."""
+    """A session dated 2040 is read (within the span of hostlink.files.times.YEARS), but ERFA warns that no
+    leap-second table reaches it: the warning is one line like the command's errors, not Python's two lines with a
+    source path."""
     late = tmp_path / "late.csv"
-    late.write_text(Path(files["S"]).read_text().replace("2026-", "2900-"))
+    late.write_text(Path(files["S"]).read_text().replace("2026-", "2040-"))
     code = main(["replay", "--nominal", files["N"], "--out", str(tmp_path / "r.json"), str(late)])
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 0
     assert len(lines) == 1 and lines[0].startswith("hostlink replay: warning: ErfaWarning: ")
     assert "dubious year" in lines[0]
+
+
+@pytest.mark.parametrize("year", ["1959", "2101", "2900", "9999"])
+def test_a_session_dated_outside_the_years_erfa_serves_is_refused_in_one_line(files, tmp_path, capsys, year):
+    """UTC starts in 1960 and ERFA's Earth ephemeris holds its accuracy to 2100: a session dated outside is refused
+    in one line naming the year, before any ERFA call could warn "dubious year" and compute anyway."""
+    far = tmp_path / "far.csv"
+    far.write_text(Path(files["S"]).read_text().replace("2026-", f"{year}-"))
+    code = main(["replay", "--nominal", files["N"], "--out", str(tmp_path / "r.json"), str(far)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(lines) == 1 and lines[0].startswith("hostlink replay: error: ")
+    assert f"year {year} is outside 1960..2100" in lines[0] and "Warning" not in lines[0]
+    assert not (tmp_path / "r.json").exists()

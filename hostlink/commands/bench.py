@@ -35,6 +35,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("serial", "can", "modbus"),
         help="link to the emulated sensor (default serial, on a pty)",
     )
+    _add_drift_arguments(parser)
+    _add_sky_arguments(parser)
+    _add_firmware_arguments(parser)
+    add_site_arguments(parser)
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _add_drift_arguments(parser: argparse.ArgumentParser) -> None:
+    """The run: calibration frames, then the drift phase (frames, amplitude, period)."""
     parser.add_argument(
         "--frames",
         type=_positive_int,
@@ -63,6 +72,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FRAMES",
         help="period of the drift [frames] (default: the drift phase's length)",
     )
+
+
+def _add_sky_arguments(parser: argparse.ArgumentParser) -> None:
+    """The simulated sky and camera: noise, misidentified stars, camera or nominal set, seed, magnitudes, stars."""
     parser.add_argument(
         "--noise-px", type=float, default=0.05, metavar="S", help="centroid noise, 1-sigma per axis [px] (default 0.05)"
     )
@@ -102,6 +115,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="K",
         help="most stars per frame, brightest kept (default 30)",
     )
+
+
+def _add_firmware_arguments(parser: argparse.ArgumentParser) -> None:
+    """The sensor inside: the estimator precision and the firmware (Python or C)."""
     parser.add_argument(
         "--precision",
         choices=("float32", "fixed"),
@@ -116,8 +133,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the emulated sensor's firmware: python (the reference model, the default) or c (the C core of onboard/c, "
         "built once with this machine's C compiler)",
     )
-    add_site_arguments(parser)
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -37,6 +37,24 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_input_arguments(parser)
+    _add_fit_and_report_arguments(parser)
+    _add_chunked_arguments(parser)
+    parser.add_argument(
+        "--hold-out",
+        type=int,
+        metavar="K",
+        help="also judge the calibration on stars it did not see: K more fits, each without one K-th of the frames, "
+        "each judged on the stars of the frames it left out (attitude from the frame's other stars); reports their "
+        "RMS [px] beside the fit's own residual, the figure to compare calibrations of the same images by "
+        "(K >= 2; one CSV read whole)",
+    )
+    add_json_argument(parser, "the result (RESULT.json's object; also for a failure kept with --keep-failed)")
+    add_site_arguments(parser)
+
+
+def _add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """The session, the nominal set, the result file, the method and the parameters it estimates."""
     from hostlink.api import ESTIMATE_NAMES
 
     parser.add_argument(
@@ -66,6 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"comma-separated parameters to estimate, as given (default: the method's own set; for bundle every "
         f"parameter the data determine; all = {','.join(ESTIMATE_NAMES)})",
     )
+
+
+def _add_fit_and_report_arguments(parser: argparse.ArgumentParser) -> None:
+    """What the fit reports and keeps: rejected stars, a failed result, the noise for sigma, iterations, plots."""
     parser.add_argument(
         "--rejected",
         metavar="FILE.csv",
@@ -90,6 +112,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "convergence.png (residual RMS and step per iteration, its stages shaded)",
     )
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def _add_chunked_arguments(parser: argparse.ArgumentParser) -> None:
+    """The chunked path: frames per chunk, a Dask cluster and its workers, the spool directory."""
     parser.add_argument(
         "--chunk-frames",
         type=int,
@@ -113,17 +139,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="directory for the chunked path's temporary arrays (default: the system's temporary directory)",
     )
-    parser.add_argument(
-        "--hold-out",
-        type=int,
-        metavar="K",
-        help="also judge the calibration on stars it did not see: K more fits, each without one K-th of the frames, "
-        "each judged on the stars of the frames it left out (attitude from the frame's other stars); reports their "
-        "RMS [px] beside the fit's own residual, the figure to compare calibrations of the same images by "
-        "(K >= 2; one CSV read whole)",
-    )
-    add_json_argument(parser, "the result (RESULT.json's object; also for a failure kept with --keep-failed)")
-    add_site_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:

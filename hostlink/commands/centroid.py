@@ -36,6 +36,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "images", nargs="+", metavar="IMAGE", help="image files (.fits/.fit, .tif/.tiff, .png, .jpg/.jpeg)"
     )
     parser.add_argument("--out", required=True, metavar="SESSION.csv", help="session file to write")
+    _add_background_arguments(parser)
+    _add_time_arguments(parser)
+    _add_detection_arguments(parser)
+    _add_candidate_arguments(parser)
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def _add_background_arguments(parser: argparse.ArgumentParser) -> None:
+    """The background subtracted: a dark frame, a median of frames, or the median of the inputs."""
     background = parser.add_mutually_exclusive_group()
     background.add_argument("--dark", metavar="FILE", help="dark frame to subtract from every image first")
     background.add_argument("--median", metavar="FILE", help="median (sky) frame to subtract from every image first")
@@ -44,6 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="subtract the per-pixel median of the IMAGEs themselves (>= 3 images at different pointings)",
     )
+
+
+def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
+    """When each image was taken: one time, a file of times, a pattern in the names, a date, or unknown."""
     when = parser.add_mutually_exclusive_group()
     when.add_argument("--time", metavar="ISO", help="exposure mid-time of every image, ISO 8601 UTC")
     when.add_argument(
@@ -62,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     when.add_argument(
         "--time-unknown", action="store_true", help="no time: t_utc empty (calibrate then uses J2000 directions)"
     )
+
+
+def _add_detection_arguments(parser: argparse.ArgumentParser) -> None:
+    """How stars are found and measured: threshold, area, saturation, PSF width, gain, centroid method, count."""
     parser.add_argument(
         "--threshold-sigma",
         type=float,
@@ -108,6 +125,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "centroid only",
     )
     parser.add_argument("--max-stars", type=int, metavar="N", help="keep only the N brightest stars of each image")
+
+
+def _add_candidate_arguments(parser: argparse.ArgumentParser) -> None:
+    """The faint candidates kept beside the stars, or none."""
     candidates = parser.add_mutually_exclusive_group()
     candidates.add_argument(
         "--candidate-sigma",
@@ -119,7 +140,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "star",
     )
     candidates.add_argument("--no-candidates", action="store_true", help="write the detected stars only")
-    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
 
 
 def run(args: argparse.Namespace) -> int:

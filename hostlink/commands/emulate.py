@@ -16,6 +16,14 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--transport", required=True, choices=("serial", "can", "modbus"), help="link to emulate")
+    _add_session_arguments(parser)
+    _add_link_arguments(parser)
+    _add_firmware_arguments(parser)
+    _add_timing_and_fault_arguments(parser)
+
+
+def _add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """What the sensor serves: a replayed session or one simulated from a nominal set or a camera."""
     parser.add_argument(
         "--replay", metavar="SESSION.csv", help="stream this session's frames (once) instead of the simulator"
     )
@@ -44,10 +52,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="simulated centroid noise [px], also the estimator's noise model (default 0.05)",
     )
     parser.add_argument("--seed", type=int, default=0, help="simulator seed")
+
+
+def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    """The link: serial baud rate, CAN bit rate, the port and the Modbus unit."""
     parser.add_argument("--baud", type=int, default=921_600, help="serial / Modbus RTU baud rate (default 921600)")
     parser.add_argument("--bitrate", type=int, default=1_000_000, help="CAN bit rate (default 1000000)")
     parser.add_argument("--port", type=int, default=0, help="TCP port for CAN hub / Modbus TCP (default: a free one)")
     parser.add_argument("--unit", type=int, default=1, help="Modbus unit (slave) id (default 1)")
+
+
+def _add_firmware_arguments(parser: argparse.ArgumentParser) -> None:
+    """The sensor inside: the estimator, its precision, the firmware (Python or C), the flash and its budget."""
     parser.add_argument(
         "--estimate",
         metavar="NAMES",
@@ -92,6 +108,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "estimator processes an exposure when its declared worst-case cost has finished before the exposure's time, "
         "whatever the speed of this machine (frames it has no time for are skipped and counted)",
     )
+
+
+def _add_timing_and_fault_arguments(parser: argparse.ArgumentParser) -> None:
+    """The replay's phase starts, messages lost on purpose (testing) and transport-specific settings."""
     parser.add_argument(
         "--phase-start",
         type=int,

@@ -22,6 +22,13 @@ import numpy as np
 
 _ISO = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2}):(\d{2})(?:\.(\d+))?(Z|[+-]00:?00)?$")
 _US_PER_S = 1_000_000
+#: The years a time stamp may fall in. From 1960: UTC is defined from then on (before it ERFA's dtf2d and dat call the
+#: year "dubious" and have no TAI - UTC). Through 2100: ERFA's Earth ephemeris (epv00, which apci13 uses for the
+#: aberration of every reference direction) is fitted to 1900-2100 and holds its stated accuracy only there. A date
+#: outside is a one-line refusal, not ERFA's "dubious year" warning and a result computed anyway (a fuzzed session
+#: dated 9999 was read that way). Within the span, a date past ERFA's leap-second table still warns "dubious year":
+#: leap seconds not yet announced are unknown, which moves TT by seconds (under 1e-5 arcsec in a reference direction).
+YEARS = (1960, 2100)
 
 
 def _iso_match(text: str) -> re.Match:
@@ -33,10 +40,20 @@ def _iso_match(text: str) -> re.Match:
 
 def parse_iso_utc(text: str) -> tuple[int, int, int, int, int, float]:
     """Parse ``YYYY-MM-DDThh:mm:ss[.fff][Z]`` (UTC) into (year, month, day, hour, minute, seconds); raises
-    ValueError with the offending text."""
+    ValueError with the offending text (a year outside :data:`YEARS` too)."""
     m = _iso_match(text)
     y, mo, d, h, mi = (int(m.group(k)) for k in range(1, 6))
+    _check_year(y, text)
     return y, mo, d, h, mi, float(f"{m.group(6)}.{m.group(7) or '0'}")
+
+
+def _check_year(year: int, text: str) -> None:
+    """ValueError naming ``text`` when ``year`` is outside :data:`YEARS`."""
+    if not YEARS[0] <= year <= YEARS[1]:
+        raise ValueError(
+            f"{text!r}: year {year} is outside {YEARS[0]}..{YEARS[1]} (UTC is defined from {YEARS[0]}; ERFA's Earth "
+            f"ephemeris holds its accuracy to {YEARS[1]})"
+        )
 
 
 #: From this many time stamps on, :func:`parse_iso_utc_many` parses them in one pass of pyarrow's RE2 (the same
@@ -47,12 +64,16 @@ VECTOR_PARSE_FROM = 64
 
 def parse_iso_utc_many(texts: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
     """ISO strings -> UTC quasi Julian dates (jd1, jd2) as ERFA expects them (dtf2d, scale "UTC"). The same fields
-    as :func:`parse_iso_utc` of each (a text it refuses is its ValueError)."""
+    as :func:`parse_iso_utc` of each (a text it refuses, a year outside :data:`YEARS` too, is its ValueError)."""
     texts = list(texts)
     if not texts:
         return np.zeros(0), np.zeros(0)
     if len(texts) >= VECTOR_PARSE_FROM:
         arr = _iso_fields_vectorised(texts)
+        outside = (arr[:, 0] < YEARS[0]) | (arr[:, 0] > YEARS[1])
+        if outside.any():
+            k = int(np.argmax(outside))
+            _check_year(int(arr[k, 0]), texts[k])
     else:
         arr = np.array([parse_iso_utc(t) for t in texts], dtype=np.float64)
     try:

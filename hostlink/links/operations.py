@@ -130,32 +130,10 @@ def stream_frames(
         raise ValueError("poll intervals must be >= 0")
     timed = poll_every_s > 0
     next_poll_t = clock() + poll_every_s
-
-    n_polls = len(result.polls)
-    missed_in_a_row = 0
-
-    def poll() -> None:
-        nonlocal n_polls, missed_in_a_row
-        try:
-            p = poll_estimate(link, result.frames_received)
-            missed_in_a_row = 0
-        except LinkError as exc:
-            missed_in_a_row += 1
-            if missed_in_a_row > missed_polls_allowed:
-                raise
-            p = EstimatePoll(result.frames_received, None, str(exc), answered=False)
-        n_polls += 1
-        if keep_polls:
-            result.polls.append(p)
-        if on_poll is not None:
-            on_poll(p)
-
-    def polls_done() -> bool:
-        return max_polls is not None and n_polls >= max_polls
-
+    poller = _Poller(link, result, on_poll, keep_polls, missed_polls_allowed, max_polls, n_polls=len(result.polls))
     link.set_streaming(True)
     try:
-        while not polls_done() and (n_frames is None or result.frames_received < n_frames):
+        while not poller.done() and (n_frames is None or result.frames_received < n_frames):
             if result.ended:
                 if not timed:
                     break
@@ -165,28 +143,72 @@ def stream_frames(
                 if frame is None:
                     result.ended = True
                     continue
-                result.frames_received += 1
-                result.stars_received += frame.n_stars
-                if keep_frames:
-                    result.frames.append(frame)
-                if on_frame is not None:
-                    on_frame(frame)
-                if progress is not None:
-                    progress(result.frames_received)
+                _take_frame(result, frame, keep_frames, on_frame, progress)
                 if poll_every_frames and result.frames_received % poll_every_frames == 0:
-                    poll()
+                    poller.poll()
                     continue
             if timed and clock() >= next_poll_t:
-                poll()
+                poller.poll()
                 next_poll_t = max(next_poll_t + poll_every_s, clock())
     finally:
-        result.lost_messages = link.stats.lost_messages
-        result.corrupt_frames = link.stats.corrupt_frames
-        try:
-            link.set_streaming(False)
-        except (LinkError, UserError):
-            pass  # best effort: the frames are in hand; a dropped link was already reported by recv_frame
+        _stop_stream(link, result)
     return result
+
+
+@dataclass
+class _Poller:
+    """The estimate polls of one stream loop: counted, kept and handed on; up to ``missed_allowed`` in a row may go
+    unanswered (reported with ``answered`` False), one more raises the LinkError."""
+
+    link: Link
+    result: StreamResult
+    on_poll: Callable[[EstimatePoll], None] | None
+    keep: bool
+    missed_allowed: int
+    max_polls: int | None
+    n_polls: int = 0
+    missed_in_a_row: int = 0
+
+    def poll(self) -> None:
+        try:
+            p = poll_estimate(self.link, self.result.frames_received)
+            self.missed_in_a_row = 0
+        except LinkError as exc:
+            self.missed_in_a_row += 1
+            if self.missed_in_a_row > self.missed_allowed:
+                raise
+            p = EstimatePoll(self.result.frames_received, None, str(exc), answered=False)
+        self.n_polls += 1
+        if self.keep:
+            self.result.polls.append(p)
+        if self.on_poll is not None:
+            self.on_poll(p)
+
+    def done(self) -> bool:
+        return self.max_polls is not None and self.n_polls >= self.max_polls
+
+
+def _take_frame(result: StreamResult, frame: CentroidFrame, keep_frames: bool, on_frame, progress) -> None:
+    """Count a received frame into ``result``, keep it if asked, and hand it to ``on_frame`` and ``progress``."""
+    result.frames_received += 1
+    result.stars_received += frame.n_stars
+    if keep_frames:
+        result.frames.append(frame)
+    if on_frame is not None:
+        on_frame(frame)
+    if progress is not None:
+        progress(result.frames_received)
+
+
+def _stop_stream(link: Link, result: StreamResult) -> None:
+    """The link's loss counters into ``result``, then stop the stream, best effort: the frames are in hand, and a
+    dropped link was already reported by recv_frame."""
+    result.lost_messages = link.stats.lost_messages
+    result.corrupt_frames = link.stats.corrupt_frames
+    try:
+        link.set_streaming(False)
+    except (LinkError, UserError):
+        pass
 
 
 #: How received centroids are written to a session file: they arrive on the wire's 2**-10 px grid, and every value

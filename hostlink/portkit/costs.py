@@ -500,94 +500,116 @@ class CostRow:
     extra: dict = field(default_factory=dict)
 
 
+#: Bytes of the words the memory column counts: float32, int64 (the Q formats' accumulators) and int32 (Q10
+#: centroids).
+_F32, _I64, _I32 = 4, 8, 4
+
+
 def cost_table(n_stars: int = 32, n_states: int = 10, config: RecursiveConfig | None = None) -> list[CostRow]:
-    """The cost table at ``n_stars`` stars and ``n_states`` estimated parameters (docs/port-kit.md)."""
+    """The cost table at ``n_stars`` stars and ``n_states`` estimated parameters (docs/port-kit.md): the camera
+    model, the estimator, the reference directions, then the bank check and the attitude."""
     n, k = int(n_stars), int(n_states)
     if n < 3:
         raise ValueError(f"the cost table needs at least 3 stars, got {n}")
-    p = 2 * n - 3
-    cfg = config or RecursiveConfig()
-    n_est = min(n, cfg.max_stars)  # the estimator uses at most max_stars stars of a frame
-    p_est, linearisations = 2 * n_est - 3, cfg.max_iterations + 2
-    f32, i64, i32 = 4, 8, 4
-    rows = [
+    return [*_camera_rows(n), *_estimator_rows(n, k, config or RecursiveConfig()), *_reference_rows(n), *_other_rows(n)]
+
+
+def _camera_rows(n: int) -> list[CostRow]:
+    """Pixels to directions (float32 and the fixed-point front end) and the directions' Jacobians, for n stars."""
+    return [
         CostRow(
             "pixel_to_direction",
             "float32",
             pixel_to_direction_ops(n),
-            f32 * (2 * n + 10 + 3 * n),
+            _F32 * (2 * n + 10 + 3 * n),
             "x, y, theta in; b (N, 3) out",
         ),
         CostRow(
             "pixel_to_direction",
             "fixed",
             pixel_to_direction_fixed_ops(n),
-            i32 * 2 * n + i64 * (3 * n + 2 * n + 20),
+            _I32 * 2 * n + _I64 * (3 * n + 2 * n + 20),
             "Q10 centroids in; Q30 u', v' and b (N, 3) out; camera in block floating point",
         ),
         CostRow(
             "unit_vector_jacobians",
             "float32",
             unit_vector_jacobian_ops(n),
-            f32 * (3 * n + 30 * n + 6 * n + 9 * n + 30 * n + 20 * n),
+            _F32 * (3 * n + 30 * n + 6 * n + 9 * n + 30 * n + 20 * n),
             "b, db/dtheta (N, 3, 10), db/dxy (N, 3, 2) and the (N, 3, 3) projector; fixed-point sensors run this "
             "in float32 (soft float)",
         ),
-        CostRow("interstar_residual", "float32", interstar_residual_ops(p), f32 * (6 * n + p), "P = 2N - 3 pairs"),
+    ]
+
+
+def _estimator_rows(n: int, k: int, cfg: RecursiveConfig) -> list[CostRow]:
+    """The interstar residuals and Jacobian, one Bierman update and the whole estimator frame, for n stars and k
+    estimated parameters."""
+    p = 2 * n - 3
+    n_est = min(n, cfg.max_stars)  # the estimator uses at most max_stars stars of a frame
+    p_est, linearisations = 2 * n_est - 3, cfg.max_iterations + 2
+    return [
+        CostRow("interstar_residual", "float32", interstar_residual_ops(p), _F32 * (6 * n + p), "P = 2N - 3 pairs"),
         CostRow(
-            "interstar_residual", "fixed", interstar_residual_ops(p, fixed=True), i64 * (6 * n + p), "Q30 in, Q61 out"
+            "interstar_residual", "fixed", interstar_residual_ops(p, fixed=True), _I64 * (6 * n + p), "Q30 in, Q61 out"
         ),
         CostRow(
             "interstar_jacobian",
             "float32",
             interstar_jacobian_ops(p, k),
-            f32 * (3 * n + 3 * n * k + p * k),
+            _F32 * (3 * n + 3 * n * k + p * k),
             "H (P, K)",
         ),
         CostRow(
             "bierman_update",
             "float32",
             bierman_update_ops(k),
-            f32 * (k * k + 2 * k + 4 * k + k * k),
+            _F32 * (k * k + 2 * k + 4 * k + k * k),
             "one whitened pair; P of them per linearisation; fixed-point sensors: float32 soft float",
         ),
         CostRow(
             "estimator_frame",
             "float32",
             Ops(),
-            f32 * (5 * n + 30 * n + 6 * n + p + p * k + p * p + p * (k + 1) + k * k + 6 * k),
+            _F32 * (5 * n + 30 * n + 6 * n + p + p * k + p * p + p * (k + 1) + k * k + 6 * k),
             "worst case of onboard.recursive.update (update_cost_flops): (max_iterations + 2) linearisations of "
             "P^3/3 + P^2 (K + 1) + 6 P K^2 + 40 N K flops",
-            {"flops": update_cost_flops(n, k, config)},
+            {"flops": update_cost_flops(n, k, cfg)},
         ),
         CostRow(
             "estimator_frame_front_end",
             "fixed",
             (pixel_to_direction_fixed_ops(n_est) + interstar_residual_ops(p_est, fixed=True)).scaled(linearisations),
-            i32 * 2 * n_est + i64 * (3 * n_est + 3 * n_est + 2 * n_est + p_est),
+            _I32 * 2 * n_est + _I64 * (3 * n_est + 3 * n_est + 2 * n_est + p_est),
             "a sensor without an FPU: the integer front end once per linearisation (max_iterations + 2), on top "
             "of the estimator_frame flops in float32 soft float (the front end replaces no float work: the "
             "Jacobians still need b)",
         ),
+    ]
+
+
+def _reference_rows(n: int) -> list[CostRow]:
+    """Reference directions for n stars: refraction by addition, the apparent place and its per-instant part."""
+    return [
         CostRow(
             "refraction_by_addition",
             "float32",
             refraction_ops(n),
-            f32 * (3 * n * 3 + 3 * n),
+            _F32 * (3 * n * 3 + 3 * n),
             "directions in and out, tangential vectors, cos/sin z",
         ),
         CostRow(
             "refraction_by_addition",
             "fixed",
             refraction_fixed_ops(n),
-            i64 * (4 * 3 * n + 6 * n + 8),
+            _I64 * (4 * 3 * n + 6 * n + 8),
             "topocentric_observed_q30: diurnal aberration then refraction by addition, Q30 directions in and out",
         ),
         CostRow(
             "apparent_place",
             "float32",
             apparent_place_ops(n),
-            f32 * (3 * n * 4 + n + 9 + 9),
+            _F32 * (3 * n * 4 + n + 9 + 9),
             "catalogue vector, proper motion, parallax in; change accumulator, TOD direction out; includes the "
             "once-per-instant Earth state and precession-nutation matrix",
         ),
@@ -595,16 +617,22 @@ def cost_table(n_stars: int = 32, n_states: int = 10, config: RecursiveConfig | 
             "apparent_place",
             "fixed",
             apparent_place_fixed_ops(n),
-            i64 * (5 * 3 * n + n + 4 * n + 20),
+            _I64 * (5 * 3 * n + n + 4 * n + 20),
             "apparent_place_vectors_q30 per star; the instant's quantities are the apparent_place_instant row",
         ),
         CostRow(
             "apparent_place_instant",
             "float64",
             apparent_instant_ops(),
-            8 * (3 * 3 + 9) + i64 * 20,
+            8 * (3 * 3 + 9) + _I64 * 20,
             "fixed_instant: once per frame, independent of N, soft float64 on a sensor without an FPU",
         ),
+    ]
+
+
+def _other_rows(n: int) -> list[CostRow]:
+    """Not per star pair: a bank record's check, and the attitude from n stars."""
+    return [
         CostRow(
             "bank_record_verify",
             "bytes",
@@ -617,11 +645,10 @@ def cost_table(n_stars: int = 32, n_states: int = 10, config: RecursiveConfig | 
             "attitude",
             "float32",
             attitude_ops(n),
-            f32 * (3 * n * 3 + n + 9 * 4),
+            _F32 * (3 * n * 3 + n + 9 * 4),
             "b, r, weights; + one 3 x 3 SVD and two 3 x 3 solves (LAPACK, not counted)",
         ),
     ]
-    return rows
 
 
 def format_table(rows: list[CostRow], n_stars: int, n_states: int) -> str:

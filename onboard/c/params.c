@@ -146,15 +146,15 @@ static void min_radial_slope(const float *t, double s_max_px2, float *p_min, flo
     *r_at = sqrtf(s[best]);
 }
 
-static int validate_params(const camera_t *cam, pyformat_text_t *why)
+/* The scalar checks of onboard.params.validate_params, in its order: every value finite; f > 0, p > 0; the image
+ * size in 1..2^24; F = 1000 f / p finite; the principal point on the detector [-0.5, n - 0.5]. */
+static int refuse_scalars(const camera_t *cam, pyformat_text_t *why)
 {
     static const char *const names[4] = {"focal_length_mm", "pixel_pitch_um", "principal_point_px[0]",
                                          "principal_point_px[1]"};
     const double scalars[4] = {cam->f_mm, cam->pitch_um, cam->pp[0], cam->pp[1]};
-    float xs[PARAMS_GRID], ys[PARAMS_GRID];
-    double focal_px, du, dv, a, b, s_max;
-    float p_min, r_at, det_min = 0.0f;
-    int i, ix, iy, best_x = 0, best_y = 0;
+    double focal_px;
+    int i;
     for (i = 0; i < 4; ++i) {
         if (!isfinite(scalars[i])) {
             refuse(why, names[i], "must be finite, got ");
@@ -205,26 +205,28 @@ static int validate_params(const camera_t *cam, pyformat_text_t *why)
             return 1;
         }
     }
-    /* farthest_corner_radius2_px2 (float64) */
+    return 0;
+}
+
+/* onboard.params.farthest_corner_radius2_px2 (float64) */
+static double farthest_corner_radius2_px2(const camera_t *cam)
+{
+    double a, b, du, dv;
     a = fabs(-0.5 - cam->pp[0]);
     b = fabs(cam->size[0] - 0.5 - cam->pp[0]);
     du = b > a ? b : a;
     a = fabs(-0.5 - cam->pp[1]);
     b = fabs(cam->size[1] - 0.5 - cam->pp[1]);
     dv = b > a ? b : a;
-    s_max = du * du + dv * dv;
-    min_radial_slope(cam->theta, s_max, &p_min, &r_at);
-    if (!(p_min > 0.0f)) {
-        refuse(why, "distortion", "radial mapping is not one-to-one: d r'/d r = ");
-        pyformat_g(why, (double)p_min, 3u);
-        pyformat_str(why, " at radius ");
-        pyformat_g(why, (double)r_at, 3u);
-        pyformat_str(why, " px (the farthest corner is at ");
-        pyformat_f0(why, sqrt(s_max));
-        pyformat_str(why, " px)");
-        return 1;
-    }
-    /* min_mapping_determinant: NaN counts as -inf; np.argmin's first smallest, row by row */
+    return du * du + dv * dv;
+}
+
+/* onboard.params.min_mapping_determinant in float32: the smallest determinant over the 17 x 17 grid (NaN counts as
+ * -inf) and the grid coordinates where it occurs (np.argmin's first smallest, row by row). */
+static float min_mapping_determinant(const camera_t *cam, float *x_at, float *y_at)
+{
+    float xs[PARAMS_GRID], ys[PARAMS_GRID], det_min = 0.0f;
+    int ix, iy, best_x = 0, best_y = 0;
     grid(cam->size[0], xs);
     grid(cam->size[1], ys);
     for (iy = 0; iy < PARAMS_GRID; ++iy) {
@@ -242,13 +244,40 @@ static int validate_params(const camera_t *cam, pyformat_text_t *why)
             }
         }
     }
+    *x_at = xs[best_x];
+    *y_at = ys[best_y];
+    return det_min;
+}
+
+/* onboard.params.validate_params in float32: the scalars, then the distortion's mapping one-to-one over the
+ * detector (the radial slope from 0 to the farthest corner, the Jacobian determinant on the grid). */
+static int validate_params(const camera_t *cam, pyformat_text_t *why)
+{
+    double s_max;
+    float p_min, r_at, det_min, x_at, y_at;
+    if (refuse_scalars(cam, why)) {
+        return 1;
+    }
+    s_max = farthest_corner_radius2_px2(cam);
+    min_radial_slope(cam->theta, s_max, &p_min, &r_at);
+    if (!(p_min > 0.0f)) {
+        refuse(why, "distortion", "radial mapping is not one-to-one: d r'/d r = ");
+        pyformat_g(why, (double)p_min, 3u);
+        pyformat_str(why, " at radius ");
+        pyformat_g(why, (double)r_at, 3u);
+        pyformat_str(why, " px (the farthest corner is at ");
+        pyformat_f0(why, sqrt(s_max));
+        pyformat_str(why, " px)");
+        return 1;
+    }
+    det_min = min_mapping_determinant(cam, &x_at, &y_at);
     if (!(det_min > 0.0f)) {
         refuse(why, "distortion", "mapping is not monotonic over the detector (Jacobian determinant ");
         pyformat_g(why, (double)det_min, 3u);
         pyformat_str(why, " at pixel (");
-        pyformat_f0(why, (double)xs[best_x]);
+        pyformat_f0(why, (double)x_at);
         pyformat_str(why, ", ");
-        pyformat_f0(why, (double)ys[best_y]);
+        pyformat_f0(why, (double)y_at);
         pyformat_str(why, "))");
         return 1;
     }

@@ -97,7 +97,7 @@ static void mul_small(uint8_t *w, int32_t *len, uint64_t factor)
 /* the exact decimal of m 2^e2 (m > 0) */
 static void expand(uint64_t m, int32_t e2, dec_t *out)
 {
-    uint8_t w[DEC_MAX_DIGITS];
+    uint8_t *w = out->d; /* the digits least significant first, reversed at the end: no second buffer */
     int32_t len = 0;
     int32_t i;
     int32_t k;
@@ -129,8 +129,10 @@ static void expand(uint64_t m, int32_t e2, dec_t *out)
         out->dp = len + e2; /* divided by 10^-e2 */
     }
     out->n = len;
-    for (i = 0; i < len; ++i) {
-        out->d[i] = w[len - 1 - i];
+    for (i = 0; i < len / 2; ++i) {
+        const uint8_t low = w[i];
+        w[i] = w[len - 1 - i];
+        w[len - 1 - i] = low;
     }
     while (out->n > 0 && out->d[out->n - 1] == 0u) {
         out->n -= 1;
@@ -386,12 +388,13 @@ void pyformat_repr(pyformat_text_t *t, double x)
     dec_t exact;
     dec_t lower;
     dec_t upper;
-    dec_t down;
-    dec_t up;
+    dec_t cand; /* one candidate at a time (the shorter ones cut down or up), then the chosen one: 0.8 kB of stack */
     const dec_t *best = &exact;
     uint64_t m;
     int32_t e2;
     int32_t p;
+    int32_t keep = 0;
+    int up = 0;
     int even;
     if (put_special(t, x)) {
         return;
@@ -415,18 +418,19 @@ void pyformat_repr(pyformat_text_t *t, double x)
     for (p = 1; p <= 17 && p < exact.n; ++p) {
         int in_down;
         int in_up;
-        dec_cut(&exact, p, 0, &down);
-        dec_cut(&exact, p, 1, &up);
-        in_down = reads_back(&down, &lower, &upper, even);
-        in_up = reads_back(&up, &lower, &upper, even);
-        if (in_down && in_up) {
-            best = round_up(&exact, p) ? &up : &down;
+        dec_cut(&exact, p, 0, &cand);
+        in_down = reads_back(&cand, &lower, &upper, even);
+        dec_cut(&exact, p, 1, &cand);
+        in_up = reads_back(&cand, &lower, &upper, even);
+        if (in_down || in_up) { /* both read back: the nearer, as rounding the exact digits chooses */
+            keep = p;
+            up = in_down && in_up ? round_up(&exact, p) : in_up;
             break;
         }
-        if (in_down || in_up) {
-            best = in_down ? &down : &up;
-            break;
-        }
+    }
+    if (keep > 0) {
+        dec_cut(&exact, keep, up, &cand);
+        best = &cand;
     }
     if (best->dp <= -4 || best->dp > 16) {
         put_sci(t, best);

@@ -182,6 +182,103 @@ static void linearisation_point(recursive_state_t *st, const float *x_hi, const 
     }
 }
 
+/* h_row . x over the k state columns, summed in order (the rows of onboard.linalg32.matvec). */
+static float row_dot(const float *h_row, const float *x, size_t k)
+{
+    float acc = h_row[0] * x[0];
+    size_t col;
+    for (col = 1u; col < k; ++col) {
+        acc += h_row[col] * x[col];
+    }
+    return acc;
+}
+
+/* The ordered stars' centroids and reference vectors (xs_all[order], ys_all[order], rs_all[order]). */
+static void ordered_stars(const recursive_work_t *w, const int32_t *order, size_t n, float *xs, float *ys,
+                          float (*rs)[3])
+{
+    size_t i, c;
+    for (i = 0u; i < n; ++i) {
+        xs[i] = w->xs[order[i]];
+        ys[i] = w->ys[order[i]];
+        for (c = 0u; c < 3u; ++c) {
+            rs[i][c] = w->rs[order[i]][c];
+        }
+    }
+}
+
+/* jb = d b / d state: the estimated columns of d b / d theta times the state scale (jb_theta[:, :, idx] * scale). */
+static void state_jacobians(recursive_state_t *st, size_t n)
+{
+    recursive_work_t *w = &st->work;
+    const size_t k = (size_t)st->k;
+    size_t i, c, col;
+    for (i = 0u; i < n; ++i) {
+        for (c = 0u; c < 3u; ++c) {
+            for (col = 0u; col < k; ++col) {
+                const int32_t slot = st->idx[col];
+                w->jb[(i * 3u + c) * k + col] = w->jb_theta[i][c][slot] * st->scale[slot];
+            }
+        }
+    }
+}
+
+/* The fixed-point front end's residuals (the `front` of onboard.recursive._linearise): evaluated at theta_r on its
+ * grids (theta_q), whose rounding joins delta. */
+static recursive_status_t front_end_residuals(recursive_state_t *st, const int32_t *order, size_t n, float *delta)
+{
+    recursive_work_t *w = &st->work;
+    recursive_linearised_t *lin = &w->lin;
+    fixedpoint_camera_t cam;
+    int64_t b_q30[RECURSIVE_MAX_STARS][3], r_q30[RECURSIVE_MAX_STARS][3], e_q61[RECURSIVE_MAX_PAIRS];
+    size_t i, c, col;
+    if (fixedpoint_camera(w->theta_r, st->nominal.image_size_px[0], st->nominal.image_size_px[1], &cam) !=
+        FIXEDPOINT_OK) {
+        return RECURSIVE_ERR_FIXED_RANGE;
+    }
+    for (i = 0u; i < n; ++i) {
+        if (fixedpoint_pixels_to_unit_q30(w->x_q10[order[i]], w->y_q10[order[i]], &cam, b_q30[i]) != FIXEDPOINT_OK) {
+            return RECURSIVE_ERR_FIXED_RANGE;
+        }
+        for (c = 0u; c < 3u; ++c) {
+            r_q30[i][c] = w->r_q30[order[i]][c];
+        }
+    }
+    fixedpoint_difference_residuals_q61((const int64_t (*)[3])b_q30, (const int64_t (*)[3])r_q30, lin->pi, lin->pj,
+                                        lin->n_pairs, e_q61);
+    fixedpoint_residuals_to_float(e_q61, lin->n_pairs, lin->e);
+    for (col = 0u; col < (size_t)st->k; ++col) {
+        const int32_t slot = st->idx[col];
+        const double rounding = ((double)w->theta_r[slot] - cam.theta_q[slot]) / (double)st->scale[slot];
+        delta[col] = delta[col] + (float)rounding;
+    }
+    return RECURSIVE_OK;
+}
+
+/* R jittered and divided by its mean diagonal r_norm (summed in order). A star nearly on the line through the base
+ * pair makes R nearly singular: the jitter bounds its condition (onboard.recursive._R_JITTER). */
+static void normalise_pair_covariance(recursive_linearised_t *lin)
+{
+    const size_t m = lin->n_pairs;
+    float sum = lin->r[0], r_norm32;
+    double mean_diag;
+    size_t p, q;
+    for (p = 1u; p < m; ++p) {
+        sum += lin->r[p * m + p];
+    }
+    mean_diag = (double)(sum / (float)m);
+    lin->r_norm = mean_diag > 0.0 ? mean_diag : 1.0;
+    for (p = 0u; p < m; ++p) {
+        lin->r[p * m + p] *= (float)(1.0 + RECURSIVE_R_JITTER);
+    }
+    r_norm32 = (float)lin->r_norm;
+    for (p = 0u; p < m; ++p) {
+        for (q = 0u; q < m; ++q) {
+            lin->r[p * m + q] /= r_norm32;
+        }
+    }
+}
+
 /* Residuals, Jacobian (state units) and pair covariance of the n ordered stars order[] (indices of the selected
  * stars), at the state x_hi + x_lo (onboard.recursive._linearise). */
 static recursive_status_t linearise(recursive_state_t *st, const int32_t *order, size_t n, const float *x_hi,
@@ -191,84 +288,29 @@ static recursive_status_t linearise(recursive_state_t *st, const int32_t *order,
     recursive_linearised_t *lin = &w->lin;
     const size_t k = (size_t)st->k;
     float xs[RECURSIVE_MAX_STARS] = {0.0f}, ys[RECURSIVE_MAX_STARS] = {0.0f}, rs[RECURSIVE_MAX_STARS][3] = {{0.0f}};
-    float delta[RECURSIVE_MAX_STATES], hd, r_norm32;
-    size_t i, p, q, c, col;
-    double mean_diag;
+    float delta[RECURSIVE_MAX_STATES];
+    size_t p;
     linearisation_point(st, x_hi, x_lo, delta);
-    for (i = 0u; i < n; ++i) {
-        xs[i] = w->xs[order[i]];
-        ys[i] = w->ys[order[i]];
-        for (c = 0u; c < 3u; ++c) {
-            rs[i][c] = w->rs[order[i]][c];
-        }
-    }
+    ordered_stars(w, order, n, xs, ys, rs);
     camera_unit_vector_jacobians(xs, ys, n, w->theta_r, w->b, w->jb_theta, w->jb_centroid);
-    for (i = 0u; i < n; ++i) {
-        for (c = 0u; c < 3u; ++c) {
-            for (col = 0u; col < k; ++col) {
-                const int32_t slot = st->idx[col];
-                w->jb[(i * 3u + c) * k + col] = w->jb_theta[i][c][slot] * st->scale[slot];
-            }
-        }
-    }
+    state_jacobians(st, n);
     lin->n_pairs = interstar_independent_pairs(n, lin->pi, lin->pj);
     if (!w->fixed) {
         interstar_difference_residuals((const float (*)[3])w->b, (const float (*)[3])rs, lin->pi, lin->pj,
                                        lin->n_pairs, lin->e);
     } else {
-        /* the fixed-point front end at theta_r on its grids (theta_q): that rounding joins delta */
-        fixedpoint_camera_t cam;
-        int64_t b_q30[RECURSIVE_MAX_STARS][3], r_q30[RECURSIVE_MAX_STARS][3], e_q61[RECURSIVE_MAX_PAIRS];
-        if (fixedpoint_camera(w->theta_r, st->nominal.image_size_px[0], st->nominal.image_size_px[1], &cam) !=
-            FIXEDPOINT_OK) {
-            return RECURSIVE_ERR_FIXED_RANGE;
-        }
-        for (i = 0u; i < n; ++i) {
-            if (fixedpoint_pixels_to_unit_q30(w->x_q10[order[i]], w->y_q10[order[i]], &cam, b_q30[i]) !=
-                FIXEDPOINT_OK) {
-                return RECURSIVE_ERR_FIXED_RANGE;
-            }
-            for (c = 0u; c < 3u; ++c) {
-                r_q30[i][c] = w->r_q30[order[i]][c];
-            }
-        }
-        fixedpoint_difference_residuals_q61((const int64_t (*)[3])b_q30, (const int64_t (*)[3])r_q30, lin->pi,
-                                            lin->pj, lin->n_pairs, e_q61);
-        fixedpoint_residuals_to_float(e_q61, lin->n_pairs, lin->e);
-        for (col = 0u; col < k; ++col) {
-            const int32_t slot = st->idx[col];
-            const double rounding = ((double)w->theta_r[slot] - cam.theta_q[slot]) / (double)st->scale[slot];
-            delta[col] = delta[col] + (float)rounding;
+        const recursive_status_t status = front_end_residuals(st, order, n, delta);
+        if (status != RECURSIVE_OK) {
+            return status;
         }
     }
     interstar_difference_jacobian((const float (*)[3])w->b, w->jb, k, lin->pi, lin->pj, lin->n_pairs, lin->h);
     for (p = 0u; p < lin->n_pairs; ++p) { /* e - H delta */
-        hd = lin->h[p * k] * delta[0];
-        for (col = 1u; col < k; ++col) {
-            hd += lin->h[p * k + col] * delta[col];
-        }
-        lin->e[p] = lin->e[p] - hd;
+        lin->e[p] = lin->e[p] - row_dot(&lin->h[p * k], delta, k);
     }
     interstar_pair_covariance((const float (*)[3])w->b, (const float (*)[3][2])w->jb_centroid, lin->pi, lin->pj,
                               lin->n_pairs, st->config.centroid_noise_px, lin->r);
-    {
-        float sum = lin->r[0];
-        for (p = 1u; p < lin->n_pairs; ++p) {
-            sum += lin->r[p * lin->n_pairs + p];
-        }
-        mean_diag = (double)(sum / (float)lin->n_pairs);
-    }
-    lin->r_norm = mean_diag > 0.0 ? mean_diag : 1.0;
-    /* a star nearly on the line through the base pair makes R nearly singular: the jitter bounds its condition */
-    for (p = 0u; p < lin->n_pairs; ++p) {
-        lin->r[p * lin->n_pairs + p] *= (float)(1.0 + RECURSIVE_R_JITTER);
-    }
-    r_norm32 = (float)lin->r_norm;
-    for (p = 0u; p < lin->n_pairs; ++p) {
-        for (q = 0u; q < lin->n_pairs; ++q) {
-            lin->r[p * lin->n_pairs + q] /= r_norm32;
-        }
-    }
+    normalise_pair_covariance(lin);
     return RECURSIVE_OK;
 }
 
@@ -425,39 +467,59 @@ static void detect_drift(recursive_state_t *st)
     }
 }
 
+/* How many of the n flags are set. */
+static size_t count_set(const uint8_t *flags, size_t n)
+{
+    size_t i, count = 0u;
+    for (i = 0u; i < n; ++i) {
+        count += flags[i];
+    }
+    return count;
+}
+
+/* The selected stars still kept, in pair order (live[order_for_pairs(xs[live], ys[live])]); returns how many. */
+static size_t ordered_live_stars(const recursive_work_t *w, const uint8_t *keep, int32_t *order)
+{
+    float xl[RECURSIVE_MAX_STARS], yl[RECURSIVE_MAX_STARS];
+    int32_t live[RECURSIVE_MAX_STARS], perm[RECURSIVE_MAX_STARS];
+    size_t n_live = 0u, i;
+    for (i = 0u; i < (size_t)w->n_sel; ++i) {
+        if (keep[i]) {
+            live[n_live++] = (int32_t)i;
+        }
+    }
+    if (n_live < 3u) {
+        return n_live;
+    }
+    for (i = 0u; i < n_live; ++i) {
+        xl[i] = w->xs[live[i]];
+        yl[i] = w->ys[live[i]];
+    }
+    interstar_order_for_pairs(xl, yl, n_live, perm);
+    for (i = 0u; i < n_live; ++i) {
+        order[i] = live[perm[i]];
+    }
+    return n_live;
+}
+
 /* Gate at the prior, removing misidentified stars from keep (at most two passes); leaves the order in order[]
- * (n_order stars), the linearisation in work.lin and the failing pairs in fail[]. */
+ * (n_order stars), the linearisation in work.lin and the failing pairs in fail[] (onboard.recursive._gate). */
 static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *order, size_t *n_order, uint8_t *fail,
                                recursive_skip_t *skip)
 {
     recursive_work_t *w = &st->work;
-    const double gate2 = st->config.pair_gate_sigma * st->config.pair_gate_sigma;
-    const float gate2_32 = (float)gate2;
-    float chi2[RECURSIVE_MAX_PAIRS], xl[RECURSIVE_MAX_STARS], yl[RECURSIVE_MAX_STARS];
-    int32_t live[RECURSIVE_MAX_STARS], perm[RECURSIVE_MAX_STARS];
+    const float gate2_32 = (float)(st->config.pair_gate_sigma * st->config.pair_gate_sigma);
+    float chi2[RECURSIVE_MAX_PAIRS];
     uint8_t bad[RECURSIVE_MAX_STARS];
-    size_t n_live, i, p, n_bad, n_fail;
+    size_t n_live, i, p, n_bad;
     int pass;
     recursive_status_t status;
     *skip = RECURSIVE_SKIP_NONE;
     for (pass = 0; pass < 3; ++pass) {
-        n_live = 0u;
-        for (i = 0u; i < (size_t)w->n_sel; ++i) {
-            if (keep[i]) {
-                live[n_live++] = (int32_t)i;
-            }
-        }
+        n_live = ordered_live_stars(w, keep, order);
         if (n_live < 3u) {
             *skip = RECURSIVE_SKIP_FEW_CONSISTENT;
             return RECURSIVE_OK;
-        }
-        for (i = 0u; i < n_live; ++i) {
-            xl[i] = w->xs[live[i]];
-            yl[i] = w->ys[live[i]];
-        }
-        interstar_order_for_pairs(xl, yl, n_live, perm);
-        for (i = 0u; i < n_live; ++i) {
-            order[i] = live[perm[i]];
         }
         *n_order = n_live;
         status = linearise(st, order, n_live, st->x_hi, st->x_lo);
@@ -469,10 +531,7 @@ static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *or
             fail[p] = (uint8_t)(chi2[p] > gate2_32);
         }
         misidentified(fail, n_live, bad);
-        n_bad = 0u;
-        for (i = 0u; i < n_live; ++i) {
-            n_bad += bad[i];
-        }
+        n_bad = count_set(bad, n_live);
         if (n_bad == 0u || pass == 2 || n_bad > n_live / 2u) {
             break;
         }
@@ -482,11 +541,7 @@ static recursive_status_t gate(recursive_state_t *st, uint8_t *keep, int32_t *or
             }
         }
     }
-    n_fail = 0u;
-    for (p = 0u; p < w->lin.n_pairs; ++p) {
-        n_fail += fail[p];
-    }
-    if ((double)n_fail / (double)w->lin.n_pairs > 0.5) {
+    if ((double)count_set(fail, w->lin.n_pairs) / (double)w->lin.n_pairs > 0.5) {
         *skip = RECURSIVE_SKIP_MOST_INCONSISTENT;
     }
     return RECURSIVE_OK;
@@ -519,22 +574,172 @@ static int cholesky(const float *a, size_t m, float *l)
     return 1;
 }
 
-/* One attempt at a frame from the prior (work.u0, work.d0, prior_hi + prior_lo); flags in post_bad (over the
- * selected stars) the stars the post-fit residuals reject (onboard.recursive._process_frame). */
+/* The pseudo-measurement of xi = x - x_prior over the used pairs, y = e(x_lin) + H dx with dx = x_lin - x_prior,
+ * whitened: work.white = L^-1 [y s, H s], R_used = L L^T, s = 1 / sqrt(r_norm) (onboard.recursive._whiten). */
+static recursive_status_t whiten(recursive_state_t *st, const int32_t *used_idx, size_t n_used, const float *dx)
+{
+    recursive_work_t *w = &st->work;
+    const recursive_linearised_t *lin = &w->lin;
+    const size_t k = (size_t)st->k, cols = k + 1u;
+    float y[RECURSIVE_MAX_PAIRS], scale;
+    size_t p, q, j;
+    for (p = 0u; p < n_used; ++p) {
+        const size_t row = (size_t)used_idx[p];
+        y[p] = lin->e[row] + row_dot(&lin->h[row * k], dx, k);
+        for (q = 0u; q < n_used; ++q) {
+            w->r_used[p * n_used + q] = lin->r[row * lin->n_pairs + (size_t)used_idx[q]];
+        }
+    }
+    if (!cholesky(w->r_used, n_used, w->chol)) {
+        return RECURSIVE_ERR_NOT_POSITIVE;
+    }
+    scale = (float)(1.0 / sqrt(lin->r_norm));
+    for (p = 0u; p < n_used; ++p) { /* forward substitution */
+        const size_t row = (size_t)used_idx[p];
+        for (j = 0u; j < cols; ++j) {
+            float v = j == 0u ? y[p] * scale : lin->h[row * k + j - 1u] * scale;
+            for (q = 0u; q < p; ++q) {
+                v -= w->chol[p * n_used + q] * w->white[q * cols + j];
+            }
+            w->white[p * cols + j] = v / w->chol[p * n_used + p];
+        }
+    }
+    return RECURSIVE_OK;
+}
+
+/* The whitened rows into the U-D factors by Bierman's update, xi from zero; returns the summed squared normalised
+ * innovations (onboard.recursive._bierman_pass). */
+static double bierman_pass(recursive_state_t *st, size_t n_rows)
+{
+    recursive_work_t *w = &st->work;
+    const size_t k = (size_t)st->k, cols = k + 1u;
+    double nis = 0.0;
+    size_t j, p;
+    for (j = 0u; j < k; ++j) {
+        w->xi[j] = 0.0f;
+    }
+    for (p = 0u; p < n_rows; ++p) {
+        float s;
+        const float innov = ud_bierman_update(st->u, st->d, w->xi, &w->white[p * cols + 1u], w->white[p * cols], k, &s);
+        nis += (double)(innov * innov / s);
+    }
+    return nis;
+}
+
+/* The new estimate prior + xi, compensated (TwoSum), into lin_hi + lin_lo; its change from the last linearisation
+ * point into step_state; returns the largest |change|. */
+static float take_step(const recursive_state_t *st, const float *prior_hi, const float *prior_lo, float *lin_hi,
+                       float *lin_lo, float *step_state)
+{
+    float step = 0.0f;
+    size_t j;
+    for (j = 0u; j < (size_t)st->k; ++j) {
+        float new_hi, new_lo;
+        two_sum(prior_hi[j], st->work.xi[j] + prior_lo[j], &new_hi, &new_lo);
+        step_state[j] = (new_hi - lin_hi[j]) + (new_lo - lin_lo[j]);
+        if (fabsf(step_state[j]) > step) {
+            step = fabsf(step_state[j]);
+        }
+        lin_hi[j] = new_hi;
+        lin_lo[j] = new_lo;
+    }
+    return step;
+}
+
+/* The iterated update of the gated frame (the n_used pairs used_idx[] of the n_order stars order[]): relinearise
+ * from the prior's factors, whiten, Bierman, step, until the step is within iteration_tol or max_iterations. Leaves
+ * the estimate in x_hi + x_lo and the last step in step_state (onboard.recursive._iterated_update). */
+static recursive_status_t iterated_update(recursive_state_t *st, const int32_t *order, size_t n_order,
+                                          const int32_t *used_idx, size_t n_used, const float *prior_hi,
+                                          const float *prior_lo, recursive_frame_result_t *result, float *step_state)
+{
+    recursive_work_t *w = &st->work;
+    const size_t k = (size_t)st->k;
+    const size_t max_it = st->config.max_iterations > 1 ? (size_t)st->config.max_iterations : 1u;
+    float lin_hi[RECURSIVE_MAX_STATES], lin_lo[RECURSIVE_MAX_STATES], dx[RECURSIVE_MAX_STATES];
+    double nis = 0.0, score = 0.0, score_var = 0.0;
+    size_t j, it;
+    recursive_status_t status;
+    for (j = 0u; j < k; ++j) {
+        lin_hi[j] = prior_hi[j];
+        lin_lo[j] = prior_lo[j];
+        step_state[j] = 0.0f;
+    }
+    for (it = 0u; it < max_it; ++it) {
+        if (it > 0u) {
+            memcpy(st->u, w->u0, sizeof(float) * k * k);
+            memcpy(st->d, w->d0, sizeof(float) * k);
+            status = linearise(st, order, n_order, lin_hi, lin_lo);
+            if (status != RECURSIVE_OK) {
+                return status;
+            }
+        }
+        for (j = 0u; j < k; ++j) {
+            dx[j] = (lin_hi[j] - prior_hi[j]) + (lin_lo[j] - prior_lo[j]);
+        }
+        status = whiten(st, used_idx, n_used, dx);
+        if (status != RECURSIVE_OK) {
+            return status;
+        }
+        if (it == 0u) {
+            focal_score(st, n_used, &score, &score_var);
+        }
+        nis = bierman_pass(st, n_used);
+        result->iterations = (int32_t)(it + 1u);
+        if ((double)take_step(st, prior_hi, prior_lo, lin_hi, lin_lo, step_state) <= st->config.iteration_tol) {
+            break;
+        }
+    }
+    for (j = 0u; j < k; ++j) {
+        st->x_hi[j] = lin_hi[j];
+        st->x_lo[j] = lin_lo[j];
+    }
+    result->nis = nis / (double)(n_used > 1u ? n_used : 1u);
+    result->focal_score = score;
+    result->focal_score_var = score_var;
+    return RECURSIVE_OK;
+}
+
+/* Post-fit editing: every pair's residual at the updated state (the linear prediction e - H step from the last
+ * point) gated again; flags in post_bad the misidentified stars when they are at most half the frame
+ * (onboard.recursive._post_fit_bad). */
+static void post_fit_bad(const recursive_state_t *st, const int32_t *order, size_t n_order, const float *step_state,
+                         uint8_t *post_bad)
+{
+    const recursive_linearised_t *lin = &st->work.lin;
+    const size_t k = (size_t)st->k;
+    const float gate2_32 = (float)(st->config.pair_gate_sigma * st->config.pair_gate_sigma);
+    const float r_norm32 = (float)lin->r_norm;
+    uint8_t fail_post[RECURSIVE_MAX_PAIRS], bad[RECURSIVE_MAX_STARS];
+    size_t p, i, n_bad;
+    for (p = 0u; p < lin->n_pairs; ++p) {
+        const float post = lin->e[p] - row_dot(&lin->h[p * k], step_state, k);
+        fail_post[p] = (uint8_t)(post * post > gate2_32 * lin->r[p * lin->n_pairs + p] * r_norm32);
+    }
+    misidentified(fail_post, n_order, bad);
+    n_bad = count_set(bad, n_order);
+    if (n_bad > 0u && n_bad <= n_order / 2u) {
+        for (i = 0u; i < n_order; ++i) {
+            if (bad[i]) {
+                post_bad[order[i]] = 1u;
+            }
+        }
+    }
+}
+
+/* One attempt at a frame from the prior (work.u0, work.d0, prior_hi + prior_lo): gate, iterated update, post-fit
+ * editing; flags in post_bad (over the selected stars) the stars the post-fit residuals reject
+ * (onboard.recursive._process_frame). */
 static recursive_status_t process_frame(recursive_state_t *st, uint8_t *keep, const float *prior_hi,
                                         const float *prior_lo, recursive_frame_result_t *result, uint8_t *post_bad,
                                         recursive_skip_t *skip)
 {
     recursive_work_t *w = &st->work;
-    recursive_linearised_t *lin = &w->lin;
-    const recursive_config_t *cfg = &st->config;
-    const size_t k = (size_t)st->k, cols = k + 1u;
+    const size_t k = (size_t)st->k;
     int32_t order[RECURSIVE_MAX_STARS], used_idx[RECURSIVE_MAX_PAIRS];
-    uint8_t fail[RECURSIVE_MAX_PAIRS], fail_post[RECURSIVE_MAX_PAIRS], bad[RECURSIVE_MAX_STARS];
-    float lin_hi[RECURSIVE_MAX_STATES], lin_lo[RECURSIVE_MAX_STATES], step_state[RECURSIVE_MAX_STATES];
-    float dx[RECURSIVE_MAX_STATES], y[RECURSIVE_MAX_PAIRS], *r_used = w->r_used;
-    size_t n_order = 0u, n_used = 0u, i, j, p, q, it, max_it, n_bad;
-    double nis = 0.0, score = 0.0, score_var = 0.0;
+    uint8_t fail[RECURSIVE_MAX_PAIRS];
+    float step_state[RECURSIVE_MAX_STATES];
+    size_t n_order = 0u, n_used = 0u, i, j, p;
     recursive_status_t status;
     for (i = 0u; i < (size_t)w->n_sel; ++i) {
         post_bad[i] = 0u;
@@ -547,122 +752,102 @@ static recursive_status_t process_frame(recursive_state_t *st, uint8_t *keep, co
     if (status != RECURSIVE_OK || *skip != RECURSIVE_SKIP_NONE) {
         return status;
     }
-    for (p = 0u; p < lin->n_pairs; ++p) {
+    for (p = 0u; p < w->lin.n_pairs; ++p) {
         if (!fail[p]) {
             used_idx[n_used++] = (int32_t)p;
         }
     }
     result->n_used = (int32_t)n_order;
     result->n_pairs = (int32_t)n_used;
-    result->n_pairs_rejected = (int32_t)(lin->n_pairs - n_used);
-    for (j = 0u; j < k; ++j) {
-        lin_hi[j] = prior_hi[j];
-        lin_lo[j] = prior_lo[j];
-        step_state[j] = 0.0f;
+    result->n_pairs_rejected = (int32_t)(w->lin.n_pairs - n_used);
+    status = iterated_update(st, order, n_order, used_idx, n_used, prior_hi, prior_lo, result, step_state);
+    if (status != RECURSIVE_OK) {
+        return status;
     }
-    max_it = cfg->max_iterations > 1 ? (size_t)cfg->max_iterations : 1u;
-    for (it = 0u; it < max_it; ++it) {
-        float scale, step;
-        if (it > 0u) {
+    post_fit_bad(st, order, n_order, step_state, post_bad);
+    return RECURSIVE_OK;
+}
+
+/* Restore a factor pair to the identity and the prior's D (the covariance reopened). */
+static void reopen_covariance(recursive_state_t *st)
+{
+    const size_t k = (size_t)st->k;
+    size_t j;
+    memset(st->u, 0, sizeof(float) * k * k);
+    for (j = 0u; j < k; ++j) {
+        st->u[j * k + j] = 1.0f;
+        st->d[j] = st->d_prior[j];
+    }
+}
+
+/* Frames from the prior with post-fit editing: a star the updated state still cannot explain is removed from keep
+ * and the frame redone from the prior, once (onboard.recursive._process_with_editing). */
+static recursive_status_t process_with_editing(recursive_state_t *st, uint8_t *keep, const float *prior_hi,
+                                               const float *prior_lo, recursive_frame_result_t *result,
+                                               recursive_skip_t *skip)
+{
+    recursive_work_t *w = &st->work;
+    const size_t k = (size_t)st->k, n_sel = (size_t)w->n_sel;
+    uint8_t post_bad[RECURSIVE_MAX_STARS];
+    size_t i;
+    int attempt;
+    for (attempt = 0; attempt < 2; ++attempt) {
+        int any_bad = 0;
+        recursive_status_t status;
+        if (attempt) {
             memcpy(st->u, w->u0, sizeof(float) * k * k);
             memcpy(st->d, w->d0, sizeof(float) * k);
-            status = linearise(st, order, n_order, lin_hi, lin_lo);
-            if (status != RECURSIVE_OK) {
-                return status;
-            }
         }
-        /* pseudo-measurement of xi = x - x_prior: y = e(x_lin) + H (x_lin - x_prior) */
-        for (j = 0u; j < k; ++j) {
-            dx[j] = (lin_hi[j] - prior_hi[j]) + (lin_lo[j] - prior_lo[j]);
+        status = process_frame(st, keep, prior_hi, prior_lo, result, post_bad, skip);
+        if (status != RECURSIVE_OK) {
+            return status;
         }
-        for (p = 0u; p < n_used; ++p) {
-            const size_t row = (size_t)used_idx[p];
-            float hdx = lin->h[row * k] * dx[0];
-            for (j = 1u; j < k; ++j) {
-                hdx += lin->h[row * k + j] * dx[j];
-            }
-            y[p] = lin->e[row] + hdx;
-            for (q = 0u; q < n_used; ++q) {
-                r_used[p * n_used + q] = lin->r[row * lin->n_pairs + (size_t)used_idx[q]];
-            }
+        for (i = 0u; i < n_sel; ++i) {
+            any_bad |= post_bad[i];
         }
-        if (!cholesky(r_used, n_used, w->chol)) {
-            return RECURSIVE_ERR_NOT_POSITIVE;
-        }
-        scale = (float)(1.0 / sqrt(lin->r_norm));
-        /* white = L^-1 [y s, H s] by forward substitution */
-        for (p = 0u; p < n_used; ++p) {
-            const size_t row = (size_t)used_idx[p];
-            for (j = 0u; j < cols; ++j) {
-                float v = j == 0u ? y[p] * scale : lin->h[row * k + j - 1u] * scale;
-                for (q = 0u; q < p; ++q) {
-                    v -= w->chol[p * n_used + q] * w->white[q * cols + j];
-                }
-                w->white[p * cols + j] = v / w->chol[p * n_used + p];
-            }
-        }
-        if (it == 0u) {
-            focal_score(st, n_used, &score, &score_var);
-        }
-        for (j = 0u; j < k; ++j) {
-            w->xi[j] = 0.0f;
-        }
-        nis = 0.0;
-        for (p = 0u; p < n_used; ++p) {
-            float s;
-            const float innov = ud_bierman_update(st->u, st->d, w->xi, &w->white[p * cols + 1u], w->white[p * cols],
-                                                  k, &s);
-            nis += (double)(innov * innov / s);
-        }
-        step = 0.0f;
-        for (j = 0u; j < k; ++j) {
-            float new_hi, new_lo;
-            two_sum(prior_hi[j], w->xi[j] + prior_lo[j], &new_hi, &new_lo);
-            step_state[j] = (new_hi - lin_hi[j]) + (new_lo - lin_lo[j]);
-            if (fabsf(step_state[j]) > step) {
-                step = fabsf(step_state[j]);
-            }
-            lin_hi[j] = new_hi;
-            lin_lo[j] = new_lo;
-        }
-        result->iterations = (int32_t)(it + 1u);
-        if ((double)step <= cfg->iteration_tol) {
+        if (*skip != RECURSIVE_SKIP_NONE || !any_bad) {
             break;
         }
-    }
-    for (j = 0u; j < k; ++j) {
-        st->x_hi[j] = lin_hi[j];
-        st->x_lo[j] = lin_lo[j];
-    }
-    result->nis = nis / (double)(n_used > 1u ? n_used : 1u);
-    /* post-fit residuals of every pair at the updated state, linear prediction from the last point */
-    {
-        const float gate2_32 = (float)(cfg->pair_gate_sigma * cfg->pair_gate_sigma);
-        const float r_norm32 = (float)lin->r_norm;
-        for (p = 0u; p < lin->n_pairs; ++p) {
-            float hs = lin->h[p * k] * step_state[0], post;
-            for (j = 1u; j < k; ++j) {
-                hs += lin->h[p * k + j] * step_state[j];
-            }
-            post = lin->e[p] - hs;
-            fail_post[p] = (uint8_t)(post * post > gate2_32 * lin->r[p * lin->n_pairs + p] * r_norm32);
-        }
-    }
-    misidentified(fail_post, n_order, bad);
-    n_bad = 0u;
-    for (i = 0u; i < n_order; ++i) {
-        n_bad += bad[i];
-    }
-    if (n_bad > 0u && n_bad <= n_order / 2u) {
-        for (i = 0u; i < n_order; ++i) {
-            if (bad[i]) {
-                post_bad[order[i]] = 1u;
+        for (i = 0u; i < n_sel; ++i) {
+            if (post_bad[i]) {
+                keep[i] = 0u;
             }
         }
     }
-    result->focal_score = score;
-    result->focal_score_var = score_var;
     return RECURSIVE_OK;
+}
+
+/* A skipped frame: the prior's factors back; a run of inconsistent frames reopens the covariance
+ * (onboard.recursive._skip_frame). */
+static void skip_frame(recursive_state_t *st, recursive_skip_t skip, recursive_frame_result_t *result)
+{
+    const size_t k = (size_t)st->k;
+    memcpy(st->u, st->work.u0, sizeof(float) * k * k);
+    memcpy(st->d, st->work.d0, sizeof(float) * k);
+    result->skipped = (int32_t)skip;
+    if (skip == RECURSIVE_SKIP_MOST_INCONSISTENT) {
+        st->inconsistent_run += 1;
+        if (st->inconsistent_run >= st->config.reopen_after_frames) {
+            reopen_covariance(st);
+            st->inconsistent_run = 0;
+            result->reopened = 1;
+        }
+    }
+    record_history(st, NULL);
+}
+
+/* An updated frame: the counters, the NIS of single-iteration frames and the drift detector
+ * (onboard.recursive._accept_frame). */
+static void accept_frame(recursive_state_t *st, const recursive_frame_result_t *result)
+{
+    st->inconsistent_run = 0;
+    st->updates += 1;
+    if (st->frames > st->config.drift_start_frames && result->iterations == 1) {
+        st->nis_sum += result->nis * (double)result->n_pairs;
+        st->nis_count += result->n_pairs;
+    }
+    record_history(st, result);
+    detect_drift(st);
 }
 
 /* The frame once its stars are selected into work (xs, ys, rs and, fixed, the integers): onboard.recursive.update
@@ -671,13 +856,11 @@ static recursive_status_t update_selected(recursive_state_t *st, recursive_frame
 {
     recursive_work_t *w = &st->work;
     const size_t k = (size_t)st->k, n_sel = (size_t)w->n_sel;
-    const recursive_config_t *cfg = &st->config;
     float prior_hi[RECURSIVE_MAX_STATES], prior_lo[RECURSIVE_MAX_STATES];
-    uint8_t keep[RECURSIVE_MAX_STARS], post_bad[RECURSIVE_MAX_STARS];
+    uint8_t keep[RECURSIVE_MAX_STARS];
     recursive_skip_t skip = RECURSIVE_SKIP_NONE;
-    recursive_status_t status = RECURSIVE_OK;
+    recursive_status_t status;
     size_t i, j;
-    int attempt;
     st->frames += 1;
     time_update(st);
     if (n_sel < 3u) {
@@ -694,27 +877,9 @@ static recursive_status_t update_selected(recursive_state_t *st, recursive_frame
         prior_hi[j] = st->x_hi[j];
         prior_lo[j] = st->x_lo[j];
     }
-    for (attempt = 0; attempt < 2; ++attempt) {
-        int any_bad = 0;
-        if (attempt) {
-            memcpy(st->u, w->u0, sizeof(float) * k * k);
-            memcpy(st->d, w->d0, sizeof(float) * k);
-        }
-        status = process_frame(st, keep, prior_hi, prior_lo, result, post_bad, &skip);
-        if (status != RECURSIVE_OK) {
-            return status;
-        }
-        for (i = 0u; i < n_sel; ++i) {
-            any_bad |= post_bad[i];
-        }
-        if (skip != RECURSIVE_SKIP_NONE || !any_bad) {
-            break;
-        }
-        for (i = 0u; i < n_sel; ++i) {
-            if (post_bad[i]) {
-                keep[i] = 0u;
-            }
-        }
+    status = process_with_editing(st, keep, prior_hi, prior_lo, result, &skip);
+    if (status != RECURSIVE_OK) {
+        return status;
     }
     result->n_rejected_stars = 0;
     for (i = 0u; i < n_sel; ++i) {
@@ -723,32 +888,10 @@ static recursive_status_t update_selected(recursive_state_t *st, recursive_frame
         }
     }
     if (skip != RECURSIVE_SKIP_NONE) {
-        memcpy(st->u, w->u0, sizeof(float) * k * k);
-        memcpy(st->d, w->d0, sizeof(float) * k);
-        result->skipped = (int32_t)skip;
-        if (skip == RECURSIVE_SKIP_MOST_INCONSISTENT) {
-            st->inconsistent_run += 1;
-            if (st->inconsistent_run >= cfg->reopen_after_frames) {
-                memset(st->u, 0, sizeof(float) * k * k);
-                for (j = 0u; j < k; ++j) {
-                    st->u[j * k + j] = 1.0f;
-                    st->d[j] = st->d_prior[j];
-                }
-                st->inconsistent_run = 0;
-                result->reopened = 1;
-            }
-        }
-        record_history(st, NULL);
-        return RECURSIVE_OK;
+        skip_frame(st, skip, result);
+    } else {
+        accept_frame(st, result);
     }
-    st->inconsistent_run = 0;
-    st->updates += 1;
-    if (st->frames > cfg->drift_start_frames && result->iterations == 1) {
-        st->nis_sum += result->nis * (double)result->n_pairs;
-        st->nis_count += result->n_pairs;
-    }
-    record_history(st, result);
-    detect_drift(st);
     return RECURSIVE_OK;
 }
 
