@@ -1,6 +1,6 @@
-"""Functions stay short enough to read as named steps (STYLE.md: the algorithm visible in one function a reader can
-follow): no function over 80 lines in the C firmware core, the Python model it mirrors (``onboard``), the links, the
-port kit and the commands. The calibration package holds the same bound in test_calibration_layout.py."""
+"""Functions stay short enough to read as named steps (the project's style: the algorithm visible in one function a
+reader can follow): no function over 80 lines in the C firmware core, the Python model it mirrors (``onboard``), the
+links, the port kit and the commands. The calibration package holds the same bound in test_calibration_layout.py."""
 
 import ast
 from importlib import resources

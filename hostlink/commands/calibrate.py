@@ -32,7 +32,8 @@ DESCRIPTION = (
     "memory to rounding; the other methods, --rejected, --plot and --hold-out read one CSV whole; --dask maps the "
     "passes over a Dask cluster. A session with the optional sigma_px column (each star's 1-sigma centroid noise "
     "per axis, px) is weighted by it (bundle method; the seed methods do not use it), and the report gives the noise "
-    "the fit finds relative to it."
+    "the fit finds relative to it and the noise floor it adds in quadrature (constant, or growing with field radius "
+    "when the data choose it: --noise-model)."
 )
 
 
@@ -103,6 +104,14 @@ def _add_fit_and_report_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         metavar="S",
         help="centroid noise per axis [px] for the reported sigma (default: from the residuals)",
+    )
+    parser.add_argument(
+        "--noise-model",
+        default="auto",
+        choices=("auto", "constant"),
+        help="with sigma_px: the noise floor added in quadrature, constant over the field or growing with field "
+        "radius as the data choose (auto, the default: radial only when its likelihood ratio says so), or held "
+        "constant (constant)",
     )
     parser.add_argument("--max-iter", type=int, default=100, metavar="N", help="most iterations (default 100)")
     parser.add_argument(
@@ -181,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         if unknown.size:
             lines = ", ".join(str(int(k) + 2) for k in unknown[:10]) + (", ..." if unknown.size > 10 else "")
             print(f"skipped {unknown.size} star_id(s) not in the Hipparcos catalogue on line(s) {lines}")
-        _print_report(outcome, args.out, outcome.time_note)
+        _print_report(outcome, args.out, outcome.time_note, args.noise_model)
         if held_out is not None:
             print(
                 f"held out: {held_out.n_stars} stars of {held_out.n_frames} frames, each judged by a fit without its "
@@ -231,6 +240,7 @@ def _calibrate_whole(args: argparse.Namespace, nominal, estimate, site, weather)
         args.dut1,
         progress,
         keep_failed=True,  # decided here: the --rejected list is written either way
+        noise_model=args.noise_model,
     )
 
 
@@ -249,6 +259,7 @@ def _held_out(args: argparse.Namespace, nominal, estimate, site, weather):
         estimate=estimate,
         noise_px=args.noise_px,
         max_iter=args.max_iter,
+        noise_model=args.noise_model,
     )
 
 
@@ -313,20 +324,33 @@ def _calibrate_chunks(args: argparse.Namespace, nominal, estimate, site, weather
             dask_workers=args.dask_workers,
             spool_dir=args.spool_dir,
             on_rows=advance,
+            noise_model=args.noise_model,
         )
 
 
-def _noise_line(outcome) -> str:
+def _noise_line(outcome, noise_model: str = "auto") -> str:
     """The noise the fit found: in pixels, or relative to the session's per-star sigma_px when it weighted by it."""
+    from hostlink.api import noise_model_text
+
     if outcome.noise_scale is not None:
+        line = f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right) and "
+        model = outcome.noise_model
+        floor = (
+            "a floor" if model and model["model"] == "radial" else f"a floor of {outcome.noise_floor_px or 0.0:.4f} px"
+        )
+        line += f"{floor} in quadrature, stars weighted by both"
+        if model is None:
+            return line
+        held = noise_model == "constant"  # the radial model not tried: no likelihood ratio to print
         return (
-            f"noise: {outcome.noise_scale:.3f} x the session's sigma_px (fitted; 1 when sigma_px is right) and a "
-            f"floor of {outcome.noise_floor_px or 0.0:.4f} px in quadrature, stars weighted by both"
+            f"{line}; noise floor held constant over the field (--noise-model constant)"
+            if held
+            else (f"{line}; {noise_model_text(model)}")
         )
     return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
 
 
-def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
+def _print_report(outcome, out_path: str, time_note: str | None = None, noise_model: str = "auto") -> None:
     import math
 
     from hostlink.api import DISTORTION_NAMES, DISTORTION_UNITS, iterations_text
@@ -351,7 +375,8 @@ def _print_report(outcome, out_path: str, time_note: str | None = None) -> None:
     lines_after = [
         f"rejected stars: {rej['total_stars']} ({rej['voting']} by interstar voting, {rej['gating']} by residual "
         f"gating; {rej['frames_dropped']} frames dropped)",
-        _noise_line(outcome) + f"; {iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
+        _noise_line(outcome, noise_model)
+        + f"; {iterations_text(outcome.history)}{'' if outcome.converged else ' (NOT converged)'}",
     ]
     pre = outcome.prepass
     if pre and abs(pre["focal_scale"] - 1.0) > 0.01:

@@ -30,8 +30,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("cortex-m4f", "cortex-m0plus", "all"),
         help="measure the C core on this emulated Cortex-M instead (repeatable; all = both)",
     )
+    from hostlink.api import TARGET_COST_FRAMES
+
     parser.add_argument(
-        "--frames", type=int, default=4, metavar="N", help="--target: updates per star count (default 4)"
+        "--frames",
+        type=int,
+        default=TARGET_COST_FRAMES,
+        metavar="N",
+        help=f"--target: updates per star count (default {TARGET_COST_FRAMES})",
     )
     parser.add_argument("--json", action="store_true", help="--target: print the measurements as one JSON object")
     parser.add_argument(

@@ -29,7 +29,9 @@ DESCRIPTION = (
     "second catalogue star that could be it (round 'guided': stars searched, added and expected by chance). "
     "Works from under 10 to about 50 deg fields. Writes the "
     "session with the identified star_id (and ra_deg/dec_deg when the file has "
-    "those columns); frames that fail keep star_id 0 and are reported. Exit 2 when no frame is identified."
+    "those columns, or when a star is an unresolved pair: then the blend's expected centroid for it and every "
+    "identified row's catalogue place, its sigma_px grown by that reference's uncertainty); frames that fail keep "
+    "star_id 0 and are reported. Exit 2 when no frame is identified."
 )
 
 
