@@ -164,7 +164,7 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
 
 #: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
 #: the 4 edge neighbours of the brightest pixel below this fraction of it (a pixel-integrated Gaussian of sigma s has
-#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.60 at s = 1 px).
+#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.63 at s = 1 px).
 _SPIKE_SCREEN_RATIO = 0.2
 
 
