@@ -573,3 +573,28 @@ def test_the_bound_without_shot_noise_from_row_and_column_sums_is_the_pixel_sums
             pixel_sums = _crb_max_block(x, y, flux, sigma, noise, False, half, shape)
             separable = _crb_max_separable(x, y, flux, sigma, noise, False, half, shape)
             np.testing.assert_allclose(separable, pixel_sums, rtol=1e-12)
+
+
+def test_hot_pixels_at_the_clip_level_are_counted_as_hot_when_saturated_stars_are_rejected():
+    """The frame of the test above with ``keep_saturated=False`` (``--reject-saturated``): each detection is counted
+    once, by its cause. The clipped hot pixels are counted as hot, as when saturated stars are kept (they were counted
+    as saturated stars: 30 hot pixels as 0 hot and 93 saturated), and the saturated count is the saturated stars that
+    the default keeps."""
+    config = RenderConfig(psf_sigma_px=0.77, hot_pixels=30, bits=8)
+    rng = np.random.default_rng(41)
+    x, y = _grid_stars(rng)
+    rendered = render_stars(x, y, np.geomspace(1500.0, 3.0e5, x.size), IMAGE_SIZE, config, seed=12)
+    on_star = np.min(np.hypot(*(rendered.hot_pixels_xy[:, None, :] - np.c_[x, y][None]).transpose(2, 0, 1)), 1)
+    reports = [
+        centroid_pixels(
+            rendered.image_adu,
+            CentroidOptions(gain_e_per_adu=config.gain_e_per_adu, keep_saturated=keep),
+            saturation_adu=config.saturation_adu,
+        ).report
+        for keep in (True, False)
+    ]
+    kept, rejecting = reports
+    assert rejecting.rejected_hot == kept.rejected_hot == int(np.sum(on_star > 4 * config.psf_sigma_px))
+    assert rejecting.rejected_saturated == kept.saturated_kept and rejecting.saturated_kept == 0
+    causes = ("rejected_hot", "rejected_saturated", "rejected_blended", "rejected_edge", "rejected_no_flux")
+    assert rejecting.kept + sum(getattr(rejecting, c) for c in causes) == rejecting.detected

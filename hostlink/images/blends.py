@@ -126,7 +126,9 @@ def photocentre(
     direction = (r_star + w @ r_companions) / total
     direction = direction / np.linalg.norm(direction)
     u = w @ d / total  # the reference's offset from the star [px]
-    sigma_dm = math.sqrt(2.0) * max(scatter_mag if math.isfinite(scatter_mag) else 0.0, window_mag(scatter_mag) / 3.0)
+    sigma_dm = math.sqrt(2.0) * max(
+        scatter_mag if math.isfinite(scatter_mag) else 0.0, window_mag(scatter_mag) / PHOTOMETRIC_SIGMAS
+    )
     # d u / d q_k = (g_k d_k - g_k u) / total, d q_k = q_k 0.4 ln10 d(dm_k), g_k the middle response
     g = 0.5 * (1.0 + g_min)
     ratio_px = float(np.sqrt(np.sum((np.linalg.norm(d - u, axis=1) * g / total * q * _FLUX_PER_MAG * sigma_dm) ** 2)))

@@ -65,7 +65,7 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     if objects.size == 0:
         return _no_stars(report)
     screen = _screen(sub, rms, raw, objects, segmap, options, level)
-    report.rejected_saturated = 0 if options.keep_saturated else int(screen.saturated.sum())
+    report.rejected_saturated = 0 if options.keep_saturated else int(np.count_nonzero(screen.saturated & ~screen.hot))
     report.rejected_hot = int(screen.hot.sum())
     report.rejected_blended = int(screen.blended.sum())
     if not np.any(screen.keep):

@@ -112,7 +112,7 @@ def _sep_extract(sep, sub: np.ndarray, rms: np.ndarray, ignored: np.ndarray, opt
 @dataclass(frozen=True)
 class _Screen:
     """The rejections before centroiding (package docstring, step 3), (N,) over SEP's objects: ``keep``, and each
-    rejection counted once, in order (saturated only when not kept, hot, blended); ``saturated``: a raw pixel of the
+    rejection counted once, in order (hot, saturated only when not kept, blended); ``saturated``: a raw pixel of the
     footprint at the clip level (kept or not); ``truncated``: cut by the border (centroided on the pixels it has,
     :func:`_border_windows`); ``blend_px``: the bias bound [px] of a deblended star kept beside a neighbour
     (:func:`_neighbour_bias_px`), NaN for the others."""
@@ -156,7 +156,7 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
     blend_px = np.where(near & ~blended, bias, np.nan)
     keep = np.ones(objects.size, bool)
     rejected_saturated = saturated.copy() if not options.keep_saturated else np.zeros(objects.size, bool)
-    for mask in (rejected_saturated, hot, blended):
+    for mask in (hot, rejected_saturated, blended):  # a clipped hot pixel is hot, not a saturated star
         mask &= keep
         keep &= ~mask
     return _Screen(keep, saturated, hot, blended, truncated, blend_px)
@@ -164,7 +164,7 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
 
 #: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
 #: the 4 edge neighbours of the brightest pixel below this fraction of it (a pixel-integrated Gaussian of sigma s has
-#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.60 at s = 1 px).
+#: at least [Phi(1.5/s) - Phi(0.5/s)] / [2 Phi(0.5/s) - 1]: 0.23 at s = 0.5 px, 0.63 at s = 1 px).
 _SPIKE_SCREEN_RATIO = 0.2
 
 
