@@ -13,7 +13,6 @@ import numpy as np
 from hostlink.files.session import Session
 from hostlink.images import solver_adapter
 from hostlink.sky.catalogue import Catalogue
-from onboard.camera import radec_to_unit
 from onboard.params import CameraParams
 
 
@@ -27,10 +26,9 @@ class _Sky:
 
 
 def _sky(catalogue: Catalogue) -> _Sky:
-    from hostlink.sky.apparent import stars_at_j2000
+    from hostlink.images.blends import catalogue_directions
 
-    stars = stars_at_j2000(catalogue)
-    return _Sky(catalogue.hip, radec_to_unit(stars.ra_rad, stars.dec_rad), catalogue.mag)
+    return _Sky(catalogue.hip, catalogue_directions(catalogue), catalogue.mag)
 
 
 def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray:
