@@ -88,13 +88,25 @@ class _DocsAction(argparse.Action):
         parser.exit(0)
 
 
+class _VersionAction(argparse.Action):
+    """``hostlink --version``: print the version, then exit 0. Looked up only when asked: ``importlib.metadata``
+    takes about 20 ms, which every command paid at its start when the parser was built with the version in it."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None) -> None:  # noqa: A002
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, _namespace, _values, _option_string=None) -> None:
+        print(f"{parser.prog} {package_version()}", flush=True)
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hostlink",
         description="Star-sensor companion: simulate, calibrate, replay the onboard estimator, and talk to "
         "sensors (real or emulated) over serial, CAN or Modbus.",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    parser.add_argument("--version", action=_VersionAction, help="show program's version number and exit")
     parser.add_argument("--docs", action=_DocsAction, help=f"print where the documentation is ({DOCS_NOTE})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:

@@ -59,6 +59,19 @@ def test_a_wider_or_deeper_request_builds_the_table_again(sky):
     _assert_same_table(got, pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG + 0.3))
 
 
+def test_a_slightly_deeper_request_is_cut_from_the_held_table(sky):
+    # the next round asks as deep as its identified stars go: 0.004 mag deeper on openstartracker's round 2
+    from hostlink.images.skyindex import PAIR_CACHE_MAG_MARGIN
+
+    cache = PairCache()
+    cache.pairs(sky, ANGLE_RAD, DEPTH_MAG)
+    held = cache._table
+    depth = DEPTH_MAG + 0.8 * PAIR_CACHE_MAG_MARGIN
+    got = cache.pairs(sky, ANGLE_RAD, depth)
+    assert cache._table is held
+    _assert_same_table(got, pair_catalogue(sky, ANGLE_RAD, depth))
+
+
 def test_pairs_of_equal_angle_are_ordered_by_their_stars():
     angle = np.array([0.3, 0.1, 0.2, 0.1, 0.2, 0.1])
     a = np.array([0, 7, 5, 2, 1, 2])

@@ -145,6 +145,7 @@ def calibrate_chunks(
     run_pass: PassRunner = serial_pass,
     keep_data: CalibrationData | None = None,
     noise_model: str = "auto",
+    mirror_fit: bool = True,
 ) -> CalibrationOutcome:
     """The bundle calibration of :func:`hostlink.calibration.run.calibrate` over the chunks of ``source`` (whole
     frames, each with its source rows), in memory O(K^2 + one chunk): the pre-pass on the evenly spaced frames
@@ -154,8 +155,8 @@ def calibrate_chunks(
     the outcome's ``noise_scale`` is then the noise the residuals show relative to the given one (1 when it is
     right), and the covariance is scaled by its square. The in-memory calibration is this on its data as one chunk
     (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
-    ``noise_model``: "auto" (the floor constant or radial as the data choose) or "constant".
-    Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
+    ``noise_model``: "auto" (the floor constant or radial as the data choose) or "constant"; ``mirror_fit``: as
+    :func:`with_mirror`'s ``fit``. Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
     radial = radial_allowed(noise_model)  # an unknown model refused before any pass, with sigma_px or not
     theta0 = nominal.model_vector(np.float64)
     sample, warm = warm_levels(source, source.n_frames())
@@ -200,7 +201,7 @@ def calibrate_chunks(
             "frames_dropped": int(screened.n_frames - res.n_frames),
             "total_stars": int(screened.n_stars - res.n_obs),
         },
-        degeneracies=with_mirror(source, nominal, res, options, voted, run_pass),
+        degeneracies=with_mirror(source, nominal, res, options, voted, run_pass, mirror_fit),
         history=res.history,
         converged=res.converged,
         prepass=prepass_report(prepass, nominal, start),

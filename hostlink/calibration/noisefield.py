@@ -129,22 +129,34 @@ def boundary_tail(x: float, phi_rad: float) -> float:
     P(LR > x) = mean over theta of exp(-x / (2 g(theta))) (Self and Liang 1987, sec. 3: the projections onto the
     cones). g: sin^2 theta (1 past 90 deg) inside the wedge; that less sin^2(theta - phi) within 90 deg beyond the c
     ray; 0 elsewhere (both projections the same)."""
+    return _tail(x, *_polar_gap(phi_rad))
+
+
+def _polar_gap(phi_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where g of :func:`boundary_tail` is positive on its polar grid, and 2 g there (x-independent: computed once
+    for the whole bisection of :func:`_boundary_critical`)."""
     theta = (np.arange(_ANGLES, dtype=np.float64) + 0.5) * (2.0 * math.pi / _ANGLES)
     to_null = np.where(theta <= 0.5 * math.pi, np.sin(theta) ** 2, 1.0)
     g = np.where(theta <= phi_rad, to_null, 0.0)
     beyond = (theta > phi_rad) & (theta <= phi_rad + 0.5 * math.pi)
     g = np.where(beyond, to_null - np.sin(theta - phi_rad) ** 2, g)
+    return g > 0.0, 2.0 * np.maximum(g, 1e-300)
+
+
+def _tail(x: float, positive: np.ndarray, two_g: np.ndarray) -> float:
+    """:func:`boundary_tail` at ``x`` from :func:`_polar_gap`."""
     with np.errstate(divide="ignore"):
-        tail = np.where(g > 0.0, np.exp(-x / (2.0 * np.maximum(g, 1e-300))), 0.0)
+        tail = np.where(positive, np.exp(-x / two_g), 0.0)
     return float(np.mean(tail))
 
 
 def _boundary_critical(phi_rad: float) -> float:
     """The x where :func:`boundary_tail` is :data:`FALSE_ALARM` (bisection to 1e-6; the tail falls with x)."""
+    gap = _polar_gap(phi_rad)
     lo, hi = 0.0, 50.0
     while hi - lo > 1e-6:
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if boundary_tail(mid, phi_rad) > FALSE_ALARM else (lo, mid)
+        lo, hi = (mid, hi) if _tail(mid, *gap) > FALSE_ALARM else (lo, mid)
     return 0.5 * (lo + hi)
 
 

@@ -227,7 +227,8 @@ def _regated(sub: CalibrationData, part: PassSums, frame_sums: np.ndarray, req: 
     hit = gated[np.minimum(np.searchsorted(gated, rows), gated.size - 1)] == rows
     affected = np.unique(sub.frame_index()[hit])
     frames = take_frames(sub, affected)
-    before = _checked_sums(frames, req)
+    # every frame holds a gated star (as often): the frames summed again are the sub-chunk's, their sums ``part``
+    before = part if affected.size == sub.n_frames else _checked_sums(frames, req)
     left = without_rows(frames, gated)
     after = _checked_sums(left, req) if left.n_frames else empty_pass(k, True, False)
     if before is None or after is None:

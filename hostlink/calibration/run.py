@@ -109,6 +109,7 @@ def calibrate(
     max_iter: int = 100,
     progress: Callable[[dict], None] | None = None,
     noise_model: str = "auto",
+    mirror_fit: bool = True,
 ) -> CalibrationOutcome:
     """Calibrate with one of :data:`METHODS`. Raises ValueError on a problem the data cannot support (among them
     a mirrored image, :func:`mirrored_message`).
@@ -121,14 +122,13 @@ def calibrate(
        ``held`` lists with the reason); all ten for the improved methods, (f, x0, y0) for ``cosine``/``sine``
        (their papers' scope), (f, x0, y0, k1, k2) for ``seed004``. An explicit ``estimate`` is used as given.
        ``noise_model`` (stars of given sigma_px, bundle): "auto", the noise floor constant or growing with the field
-       radius as the data choose (:mod:`hostlink.calibration.noisefield`); "constant", the constant one only."""
+       radius as the data choose (:mod:`hostlink.calibration.noisefield`); "constant", the constant one only.
+       ``mirror_fit`` (bundle): as in :func:`hostlink.calibration.chunked.calibrate_chunks`."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     if method == "bundle":
-        source = in_memory_source(data)
-        return calibrate_chunks(
-            source, nominal, estimate, noise_px, max_iter, progress, keep_data=data, noise_model=noise_model
-        )
+        options = {"keep_data": data, "noise_model": noise_model, "mirror_fit": mirror_fit}
+        return calibrate_chunks(in_memory_source(data), nominal, estimate, noise_px, max_iter, progress, **options)
     theta0 = nominal.model_vector(np.float64)
     start, prepass = prepass_start(data, nominal, estimate is None or "f" in estimate)
     consistent = vote_consistent_stars(data, pixels_to_unit(data.x_px, data.y_px, start.model_vector(np.float64)))
@@ -190,13 +190,15 @@ def calibrate_session(
     progress: Callable[[dict], None] | None = None,
     keep_failed: bool = False,
     noise_model: str = "auto",
+    mirror_fit: bool = True,
 ) -> tuple[CalibrationOutcome, SessionReferences]:
     """Batch ground calibration of a session from the ``nominal`` camera: its identified stars against their
     reference directions (:func:`hostlink.calibration.data.calibration_data_from_session`: file or Hipparcos; with
     ``site`` observed there, with ``weather`` refracted; ``dut1_s`` = UT1 - UTC [s]; with the time unknown J2000
     directions, :func:`time_unknown_note`), by ``method`` (:data:`METHODS`; ``estimate`` as in :func:`calibrate`),
     ``noise_px`` the centroid noise per axis [px] for the reported sigma (None: from the residuals), at most
-    ``max_iter`` iterations; ``progress`` gets each iteration's record; ``noise_model`` as in :func:`calibrate`.
+    ``max_iter`` iterations; ``progress`` gets each iteration's record; ``noise_model`` and ``mirror_fit`` as in
+    :func:`calibrate`.
 
     Returns the outcome (with its ``rejected_stars`` and ``time_note``) and the references' report. A result that
     did not converge or rejected most stars (:meth:`CalibrationOutcome.failure`) raises :class:`UserError`, unless
@@ -211,7 +213,7 @@ def calibrate_session(
     check_on_detector(session, nominal.image_size_px, "the session", "the nominal parameters")
     data, references = calibration_data_from_session(session, site, weather, dut1_s)
     try:
-        outcome = calibrate(data, nominal, method, estimate, noise_px, max_iter, progress, noise_model)
+        outcome = calibrate(data, nominal, method, estimate, noise_px, max_iter, progress, noise_model, mirror_fit)
     except ValueError as exc:
         raise UserError(f"calibration failed: {exc}") from None
     check_result(outcome, keep_failed)

@@ -172,20 +172,33 @@ def blend_references(
     return _with_photocentres(session, catalogue, blends, focal_px)
 
 
-#: The last catalogue :func:`catalogue_tree` was asked about, with its J2000 unit vectors and k-d tree.
+#: The last catalogue :func:`catalogue_directions` was asked about, with its J2000 unit vectors; and the last one
+#: :func:`catalogue_tree` was asked about, with its k-d tree.
+_DIRECTIONS: list = []
 _TREE: list = []
 
 
-def catalogue_tree(catalogue: Catalogue):
-    """(J2000 unit vectors (S, 3), ``scipy.spatial.cKDTree`` of them) of ``catalogue``, kept for the last catalogue
-    asked (the rounds of one identification ask about the same one)."""
-    if not _TREE or _TREE[0] is not catalogue:
-        from scipy.spatial import cKDTree
-
+def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
+    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only), kept for the last
+    catalogue asked: identification's rounds, its admission and its blends ask about the same one (each propagation
+    of the whole catalogue is ~35 ms of ``erfa.pmsafe``)."""
+    if not _DIRECTIONS or _DIRECTIONS[0] is not catalogue:
         from hostlink.sky.apparent import stars_at_j2000
 
         stars = stars_at_j2000(catalogue)
         r_all = radec_to_unit(stars.ra_rad, stars.dec_rad)
+        r_all.setflags(write=False)
+        _DIRECTIONS[:] = [catalogue, r_all]
+    return _DIRECTIONS[1]
+
+
+def catalogue_tree(catalogue: Catalogue):
+    """(J2000 unit vectors (S, 3) (:func:`catalogue_directions`), ``scipy.spatial.cKDTree`` of them) of
+    ``catalogue``, kept for the last catalogue asked (the rounds of one identification ask about the same one)."""
+    if not _TREE or _TREE[0] is not catalogue:
+        from scipy.spatial import cKDTree
+
+        r_all = catalogue_directions(catalogue)
         _TREE[:] = [catalogue, r_all, cKDTree(r_all)]
     return _TREE[1], _TREE[2]
 

@@ -60,7 +60,7 @@ from hostlink.images.blends import (
 )
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
-from onboard.camera import pixels_to_unit, radec_to_unit, unit_to_pixels
+from onboard.camera import pixels_to_unit, unit_to_pixels
 from onboard.params import CameraParams
 
 #: The session column that marks a candidate (its significance; empty on detected stars).
@@ -219,7 +219,7 @@ def _calibrated(session: Session, camera: CameraParams | None, outcome=None) -> 
         return None
     if outcome is None:
         try:
-            outcome, _ = calibrate_session(session, camera, keep_failed=True)
+            outcome, _ = calibrate_session(session, camera, keep_failed=True, mirror_fit=False)
         except UserError:
             return None
     return None if outcome.failure() else outcome.params
@@ -230,10 +230,9 @@ def admit(
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
     frame's :class:`FrameAdmission`."""
-    from hostlink.sky.apparent import stars_at_j2000
+    from hostlink.images.blends import catalogue_directions
 
-    sky = stars_at_j2000(catalogue)
-    directions = radec_to_unit(sky.ra_rad, sky.dec_rad)
+    directions = catalogue_directions(catalogue)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
     frames = []
@@ -286,36 +285,89 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     # every row left unidentified: the candidates, and the detected stars identification could not name (with the
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
     cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
-    # per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
-    # candidate i could be catalogue star j: near enough and as bright as predicted
-    d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
-    agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
-    within = d2 <= radius**2
-    # ... and every catalogue star that could be this row by itself: unresolved from it, bright enough to explain its
-    # flux (a fainter one is a companion whose light is in the row: hostlink.images.blends)
-    blended = d2 <= np.maximum(radius, UNRESOLVED_PX) ** 2
-    rivals = blended & could_be(predicted_mag[None, :], mag[cand, None], window)
-    match = within & agree
+    rows, stars = _admissions((x, y, mag, sigma_px), cand, (xp, yp, predicted_mag, sigma_ref), sigma_pred, window)
     names = star_id.copy()
-    # the row nearest to each prediction, of all the frame's rows (an identified star nearer to it is that star's)
-    nearest_row = np.argmin((x[:, None] - xp[None, :]) ** 2 + (y[:, None] - yp[None, :]) ** 2, axis=0)
-    admitted = 0
-    for i in np.flatnonzero(np.count_nonzero(match, axis=1) == 1):
-        j = int(np.flatnonzero(match[i])[0])
-        if np.count_nonzero(rivals[i]) != 1 or np.count_nonzero(match[:, j]) != 1:
-            continue  # two catalogue stars could be this row, or two rows this star
-        if nearest_row[j] != cand[i]:
-            continue  # another row is nearer to the prediction
-        names[cand[i]] = catalogue.hip[near[j]]
-        admitted += 1
+    names[rows] = catalogue.hip[near[stars]]
+    admitted = int(rows.size)
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
+    # (per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined)
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
+    agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
     width, height = image_size_px
     expected = float(np.sum(agree * (math.pi * radius**2)) / (width * height))
     record = FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
     if expected > MAX_FALSE_FRACTION * admitted:
         return star_id, replace(record, admitted=0, status="not admitted: chance too high")
     return names, record
+
+
+def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates admitted in one frame (module docstring) and the predicted stars they are: (frame rows, indices
+    into the predictions). ``rows`` = (x, y, mag, sigma_px) of every row of the frame, ``cand`` the rows that may be
+    named, ``predictions`` = (xp, yp, predicted instrumental mag, sigma_ref) of the searched catalogue stars.
+
+    Candidate i could be star j when near enough (within r = :data:`CONTAINMENT_SIGMAS` x the prediction's, the
+    row's and the blend reference's 1-sigma combined) and as bright as predicted (within ``window``); every star
+    that could be the row by itself (within r or :data:`UNRESOLVED_PX`, bright enough to explain its flux: a fainter
+    one is a companion whose light is in the row, hostlink.images.blends) is its rival. A row is admitted when it
+    could be one star only, has no other rival, no other row could be that star, and it is the frame's row nearest
+    to that star's prediction (an identified star nearer to it is that star's). Only the pairs within the largest
+    of these radii are formed (:func:`_near_pairs`): the others are neither near nor rivals."""
+    x, y, mag, sigma_px = rows
+    xp, yp, predicted_mag, sigma_ref = predictions
+    none = np.zeros(0, dtype=np.int64)
+    if cand.size == 0 or xp.size == 0:
+        return none, none
+    # the largest r (the same operations as each pair's, on the largest terms: rounding is monotonic)
+    reach_px = max(
+        float(CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + np.max(sigma_px[cand] ** 2) + np.max(sigma_ref**2))),
+        UNRESOLVED_PX,
+    )
+    row, star, d2 = _near_pairs(x, y, xp, yp, reach_px)
+    nearest = _nearest_rows(row, star, d2, xp.size)
+    of_cand = np.full(x.size, -1, dtype=np.int64)
+    of_cand[cand] = np.arange(cand.size)
+    pair = of_cand[row] >= 0
+    i, j, d2 = of_cand[row[pair]], star[pair], d2[pair]
+    r = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand[i]] ** 2 + sigma_ref[j] ** 2)
+    agree = np.abs(mag[cand[i]] - predicted_mag[j]) <= window
+    rival = (d2 <= np.maximum(r, UNRESOLVED_PX) ** 2) & could_be(predicted_mag[j], mag[cand[i]], window)
+    match = (d2 <= r**2) & agree
+    rivals_of_row = np.bincount(i[rival], minlength=cand.size)
+    i, j = i[match], j[match]
+    matches_of_row = np.bincount(i, minlength=cand.size)
+    matches_of_star = np.bincount(j, minlength=xp.size)
+    ok = (matches_of_row[i] == 1) & (rivals_of_row[i] == 1) & (matches_of_star[j] == 1) & (nearest[j] == cand[i])
+    return cand[i[ok]], j[ok]
+
+
+def _near_pairs(x, y, xp, yp, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (row, prediction) pair at most ``reach_px`` apart, with its squared distance (x - xp)^2 + (y - yp)^2
+    [px^2], the same numbers the full (rows x predictions) matrix holds: the predictions sorted by column, each row's
+    run of predictions within a band of columns found by bisection, then each pair's distance tested. The band is
+    wider than ``reach_px`` by a relative 1e-9 (and 1e-9 px), so that rounding cannot drop a pair within reach."""
+    order = np.argsort(xp, kind="stable")
+    sorted_xp = xp[order]
+    band_px = reach_px * (1.0 + 1e-9) + 1e-9
+    lo = np.searchsorted(sorted_xp, x - band_px, side="left")
+    counts = np.searchsorted(sorted_xp, x + band_px, side="right") - lo
+    row = np.repeat(np.arange(x.size), counts)
+    # the k-th pair of a row's run is its prediction lo + (k - the run's first pair)
+    star = order[np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(row.size)]
+    d2 = (x[row] - xp[star]) ** 2 + (y[row] - yp[star]) ** 2
+    keep = d2 <= reach_px**2
+    return row[keep], star[keep], d2[keep]
+
+
+def _nearest_rows(row: np.ndarray, star: np.ndarray, d2: np.ndarray, n_stars: int) -> np.ndarray:
+    """Per prediction, the row nearest to it among the pairs of :func:`_near_pairs` (-1 when none is within reach),
+    the lower row on a tie: the frame's nearest row wherever one is within reach, as ``argmin`` over every row."""
+    nearest = np.full(n_stars, -1, dtype=np.int64)
+    order = np.lexsort((row, d2, star))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = star[order][1:] != star[order][:-1]
+    nearest[star[order][first]] = row[order][first]
+    return nearest
 
 
 def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):

@@ -121,7 +121,8 @@ class Identification:
     #: the camera the final round identified with (the nominal, or the calibration of the round before)
     camera: CameraParams | None = None
     #: the calibration (:class:`hostlink.calibration.run.CalibrationOutcome`) of ``session`` from ``camera`` when the
-    #: rounds ran it (a round after it added nothing), so that what follows need not run it again (None otherwise)
+    #: rounds ran it (a round after it added nothing), so that what follows need not run it again (None otherwise);
+    #: for its camera: its degeneracies leave out the report's fit from the mirrored principal point (``mirror_fit``)
     calibration: object | None = None
 
     @property
@@ -448,7 +449,7 @@ def _identify_iteratively(
             break
         outcome = None
         try:
-            outcome, _ = calibrate_session(result.session, camera, keep_failed=True)
+            outcome, _ = calibrate_session(result.session, camera, keep_failed=True, mirror_fit=False)
         except UserError as exc:
             rounds[-1]["calibration"] = f"failed: {exc}"
             break
