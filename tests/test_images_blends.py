@@ -310,7 +310,7 @@ def test_the_reviewers_pair_is_weighed_by_the_reference_alone():
     bound b = q d = 1 px from the brighter star (the shape bound's first order, docs/realsky.md) put b / sqrt(2) =
     0.71 px per axis in ``sigma_px``, and the reference's sigma was added on top; now a Cramer-Rao part of 0.02 px
     gives the reference's sigma and that part only, several times less than the bound counted twice."""
-    from hostlink.images.blends import _without_pair_bound
+    from hostlink.images.blends import without_pair_bound
 
     focal_px = 1000.0
     r_companion = np.array([2.0 / focal_px, 0.0, 1.0])
@@ -320,13 +320,13 @@ def test_the_reviewers_pair_is_weighed_by_the_reference_alone():
     )
     crb_px, bound_px = 0.02, 1.0
     stated = np.array([float(f"{math.hypot(crb_px, bound_px / math.sqrt(2.0)):.4g}")])
-    recovered = _without_pair_bound(stated, np.array([bound_px]))[0]
+    recovered = without_pair_bound(stated, np.array([bound_px]))[0]
     assert recovered == pytest.approx(crb_px, abs=2e-3)  # both columns rounded to 4 digits: 0.7074 +- 5e-5
     once, twice = math.hypot(recovered, ref.sigma_px), math.hypot(stated[0], ref.sigma_px)
     assert once == pytest.approx(math.hypot(crb_px, ref.sigma_px), rel=0.01)
     assert twice / once > 2.0
     # a row without a bound (NaN: not elongated, or a session without the column) keeps its sigma_px
-    assert _without_pair_bound(np.array([0.3]), np.array([np.nan]))[0] == 0.3
+    assert without_pair_bound(np.array([0.3]), np.array([np.nan]))[0] == 0.3
 
 
 #: The photometric term's simulation: blends of one companion, its catalogue magnitude difference uniform in 0-2.5
@@ -361,3 +361,33 @@ def test_the_flux_ratio_term_covers_a_gaussian_magnitude_error_to_3_sigma():
     z = np.abs(np.array(z))
     assert np.count_nonzero(z > 3.0) <= 6
     assert np.max(np.abs(z_exact)) <= 1.0
+
+
+def test_the_admission_counts_an_elongated_blends_bound_once(rendered):
+    """The guided admission searches for a star at its blend's reference within 3.03 x sqrt(sigma_pred^2 +
+    sigma_px^2 + reference sigma^2): there the row's ``sigma_px`` is taken less its ``blend_px`` bound too (the
+    reference models that shift). With the largest bound ``centroid`` keeps (2 px) stated, the row is admitted as
+    before, and the chance of a false admission (pi r^2 over the frame's area, summed) shrinks by exactly pi 3.03^2
+    (sigma_px^2 - sigma_crb^2) / area for each blend place the row agrees with photometrically (here one or more)."""
+    from hostlink.images.guided import CONTAINMENT_SIGMAS, admit
+
+    session, row, cat, _ = rendered
+    named = identify_session(session, CAMERA).session.star_id.copy()
+    named[row] = 0
+    crb_px, bound_px = float(session.extra["sigma_px"][row]), 2.0
+    sigma_col = session.extra["sigma_px"].copy()  # 1.414 (4 digits): its square below b^2 / 2, sigma_crb then 0
+    sigma_col[row] = f"{math.hypot(crb_px, bound_px / math.sqrt(2.0)):.4g}"
+    blend_col = np.full(len(session), "", dtype=object)
+    blend_col[row] = f"{bound_px:.4g}"
+    held = np.zeros(len(session), dtype=bool)
+    records = []
+    for extra in ({"sigma_px": sigma_col}, {"sigma_px": sigma_col, "blend_px": blend_col}):
+        star_id, (record,) = admit(replace(session, extra={**session.extra, **extra}), named, held, CAMERA, cat)
+        assert star_id[row] == BRIGHT and record.status == "admitted"
+        records.append(record)
+    width, height = CAMERA.image_size_px
+    stated_px = float(sigma_col[row])
+    own_px = math.sqrt(max(stated_px**2 - bound_px**2 / 2.0, 0.0))
+    per_place = math.pi * CONTAINMENT_SIGMAS**2 * (stated_px**2 - own_px**2) / (width * height)
+    places = (records[0].expected_false - records[1].expected_false) / per_place
+    assert places >= 1.0 - 1e-6 and places == pytest.approx(round(places), abs=1e-6)

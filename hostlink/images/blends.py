@@ -231,7 +231,7 @@ def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, l
     from hostlink.images.skyindex import catalogue_radec_deg
 
     ra, dec = _reference_columns(session, catalogue)
-    sigma = _without_pair_bound(session_number(session, "sigma_px"), session_number(session, "blend_px"))
+    sigma = without_pair_bound(session_number(session, "sigma_px"), session_number(session, "blend_px"))
     mag = session.mag if session.mag is not None else np.full(len(session), np.nan)
     # the members' places as the reference service sees them (apparent at the frame's time, or J2000), in one call
     members = [np.concatenate([[own], near]) for _, own, near, _ in blends]
@@ -277,7 +277,7 @@ def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, l
     return replace(session, ra_deg=ra, dec_deg=dec, extra=extra), records
 
 
-def _without_pair_bound(sigma_px: np.ndarray, blend_px: np.ndarray) -> np.ndarray:
+def without_pair_bound(sigma_px: np.ndarray, blend_px: np.ndarray) -> np.ndarray:
     """The rows' ``sigma_px`` without the bias bound b = ``blend_px`` of an unresolved companion that ``centroid``
     added to it as sqrt(sigma^2 + b^2 / 2) (:func:`hostlink.images.centroid.frame._measured`): the blend reference
     models that shift, and its own sigma replaces the bound. Rows without the column (an older session) or without

@@ -15,8 +15,8 @@ vote for none). Then, with the camera calibrated on the identified stars
 3. every catalogue star the attitude puts on the detector that the frame has not identified is searched for within
    r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (its blend's reference,
    with that reference's sigma added, when unresolved companions add their light: :func:`_blend_places`; sigma_px
-   the row's own centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows
-   left
+   the row's own centroid noise, there less an elongated blend's bound ``blend_px`` the reference models: 99 % of
+   the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows left
    unidentified: the candidates, and the detected stars identification did not name (its radius, before the
    camera was calibrated, was several pixels where this one is about one); a row there is admitted when its
    instrumental magnitude agrees with the star's predicted one within
@@ -56,6 +56,7 @@ from hostlink.images.blends import (
     session_flag,
     session_number,
     window_mag,
+    without_pair_bound,
     zero_point,
 )
 from hostlink.sky.catalogue import Catalogue
@@ -239,6 +240,7 @@ def admit(
     frames = []
     saturated = session_flag(session, "saturated")
     sigma_px = session_number(session, "sigma_px")
+    own_px = without_pair_bound(sigma_px, session_number(session, "blend_px"))  # at a blend's reference
     starts = session.frame_starts
     for k in range(session.n_frames):
         rows = np.arange(int(starts[k]), int(starts[k + 1]))
@@ -249,7 +251,7 @@ def admit(
             out[rows],
             held[rows],
             saturated[rows],
-            sigma_px[rows],
+            (sigma_px[rows], own_px[rows]),
             theta,
             camera.image_size_px,
             directions,
@@ -261,7 +263,10 @@ def admit(
 
 
 def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_size_px, directions, catalogue):
-    """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`)."""
+    """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`).
+    ``sigma_px``: the rows' ``sigma_px`` and that without an elongated blend's bound (``blend_px``, which a blend's
+    reference replaces: :func:`hostlink.images.blends.without_pair_bound`)."""
+    sigma_px, own_px = sigma_px
     named = (star_id != 0) & ~held
     if np.count_nonzero(named) < MIN_FRAME_STARS:
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} identified stars")
@@ -287,7 +292,8 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
     cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
     # per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
+    row_px = np.where(sigma_ref[None, :] > 0, own_px[cand, None], sigma_px[cand, None])  # the bound counted once
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[None, :] ** 2)
     # candidate i could be catalogue star j: near enough and as bright as predicted
     d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
