@@ -10,10 +10,12 @@ from hostlink.images.guided import CONTAINMENT_SIGMAS, UNRESOLVED_PX, _admission
 
 
 def _dense(rows, cand, predictions, sigma_pred, window):
-    """The admission over full (candidates x predictions) matrices and an argmin over every row (the former code)."""
-    x, y, mag, sigma_px = rows
+    """The admission over full (candidates x predictions) matrices and an argmin over every row (the former code; a
+    row's sigma without its elongated blend's bound where the prediction is a blend's reference)."""
+    x, y, mag, sigma_px, own_px = rows
     xp, yp, predicted_mag, sigma_ref = predictions
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
+    row_px = np.where(sigma_ref[None, :] > 0, own_px[cand, None], sigma_px[cand, None])
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[None, :] ** 2)
     d2 = (x[cand, None] - xp[None, :]) ** 2 + (y[cand, None] - yp[None, :]) ** 2
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
     rivals = (d2 <= np.maximum(radius, UNRESOLVED_PX) ** 2) & could_be(predicted_mag[None, :], mag[cand, None], window)
@@ -39,6 +41,8 @@ def test_pair_search_admits_what_the_full_matrices_admit(seed):
     x[::7], y[::7] = np.round(4 * x[::7]) / 4, np.round(4 * y[::7]) / 4
     mag = rng.uniform(-4.0, 0.0, n_rows)
     sigma_px = rng.uniform(0.05, 1.5, n_rows)
+    # some rows are elongated blends: their sigma without the bound is smaller
+    own_px = np.where(rng.random(n_rows) < 0.3, sigma_px * rng.uniform(0.2, 1.0, n_rows), sigma_px)
     xp, yp = size * rng.random(n_stars), size * rng.random(n_stars)
     xp[::5], yp[::5] = np.round(4 * xp[::5]) / 4, np.round(4 * yp[::5]) / 4
     # some predictions placed on rows (admissions), some near them
@@ -47,7 +51,7 @@ def test_pair_search_admits_what_the_full_matrices_admit(seed):
     predicted_mag = np.concatenate([mag[:k] + rng.normal(0.0, 0.2, k), rng.uniform(-4.0, 0.0, n_stars - k)])
     sigma_ref = np.where(rng.random(n_stars) < 0.2, rng.uniform(0.0, 2.0, n_stars), 0.0)
     cand = np.flatnonzero(rng.random(n_rows) < 0.7)
-    args = ((x, y, mag, sigma_px), cand, (xp, yp, predicted_mag, sigma_ref), 0.2, 0.5)
+    args = ((x, y, mag, sigma_px, own_px), cand, (xp, yp, predicted_mag, sigma_ref), 0.2, 0.5)
     rows, stars = _admissions(*args)
     want_rows, want_stars = _dense(*args)
     assert want_rows.size > 0  # the case exercises admissions
@@ -58,7 +62,7 @@ def test_pair_search_admits_what_the_full_matrices_admit(seed):
 
 def test_no_candidate_or_no_prediction_admits_nothing():
     x = np.array([1.0, 2.0])
-    rows = (x, x, np.zeros(2), np.ones(2))
+    rows = (x, x, np.zeros(2), np.ones(2), np.ones(2))
     predictions = (x, x, np.zeros(2), np.zeros(2))
     for cand, pred in ((np.zeros(0, np.int64), predictions), (np.arange(2), tuple(p[:0] for p in predictions))):
         got_rows, got_stars = _admissions(rows, cand, pred, 0.2, 0.5)

@@ -18,10 +18,13 @@ x s, :data:`MIN_PHOTOMETRIC_WINDOW_MAG`) (:func:`window_mag`).
    centroid fitted with the PSF's width moves toward a companion at separation d by q d exp(-d^2 / (4 sigma_psf^2))
    (to first order in the flux ratio q: the least-squares centre of one Gaussian fitted to two), the photocentre's
    q d / (1 + q) when d is well inside the PSF; with sigma_psf from :data:`SHARPEST_PSF_SIGMA_PX` up, the factor
-   lies between exp(-d^2 / (4 x 0.77^2)) and 1, and the reference takes the middle. Its ``sigma_px`` grows in
-   quadrature by that interval's spread (its length over sqrt(12)) and by the flux ratio's uncertainty (each
-   companion's magnitude difference uncertain by sqrt(2) x max(s, w / :data:`PHOTOMETRIC_SIGMAS`): the two stars'
-   colour terms against the camera's band, independent). Checked against a least-squares PSF fit of rendered pairs
+   lies between exp(-d^2 / (4 x 0.77^2)) and 1, and the reference takes the middle. Its ``sigma_px`` is the
+   centroid's own (Cramer-Rao) part, without the bias bound ``centroid`` added for an elongated star (its
+   ``blend_px`` column: the shift the reference models), grown in quadrature by that interval's spread (its length
+   over sqrt(12)) and by the flux ratio's uncertainty (each companion's magnitude difference uncertain by
+   sigma_dm = sqrt(2) x max(s, w / :data:`PHOTOMETRIC_SIGMAS`): the two stars' colour terms against the camera's
+   band, independent; the reference's shift at -+ :data:`FLUX_RATIO_SIGMAS` sigma_dm over that many, not its
+   derivative: :func:`_flux_ratio_px`). Checked against a least-squares PSF fit of rendered pairs
    (tests/test_images_blends.py): the fitted centre lies within sqrt(3) sigmas of the reference for PSF sigmas of
    0.77-3 px, separations to 3 px and flux ratios to 1.
 
@@ -57,8 +60,12 @@ MAD_TO_SIGMA = 1.4826
 #: The sharpest PSF a star camera of the real sets has [px, Gaussian sigma] (a 35 mm lens on 6.9 um pixels; granasat
 #: 0.8-1.2 px): the lower bound of the centroid's response to an unresolved companion (module docstring).
 SHARPEST_PSF_SIGMA_PX = 0.77
-#: 0.4 ln 10: d(flux ratio) / (flux ratio) per magnitude.
-_FLUX_PER_MAG = 0.4 * math.log(10.0)
+#: How many sigmas of a companion's magnitude difference the flux ratio's term of a blend's sigma is taken at (the
+#: excursion of the reference there, over this): the reference moves with the flux ratio 10^(-0.4 dm), skewed in a
+#: magnitude error that is Gaussian, so that its excursion at 3 sigmas is up to 4.3 times the one at 1 sigma (a faint
+#: companion, sigma_dm 0.35 mag) and a sigma from 1 sigma's excursion leaves too many errors beyond 3 sigmas
+#: (docs/realsky.md, "Unresolved pairs").
+FLUX_RATIO_SIGMAS = 3.0
 
 
 def zero_point(catalogue_mag: np.ndarray, instrumental_mag: np.ndarray) -> tuple[float, float]:
@@ -114,10 +121,10 @@ def photocentre(
     moves toward companion k by q_k g_k d_k / (1 + sum q g) (q_k its flux ratio to the star, d_k its offset [px],
     g_k = exp(-d_k^2 / (4 sigma_psf^2)) the response of a centroid fitted with the PSF's width, 1 for the
     photocentre): g_k lies between its value at :data:`SHARPEST_PSF_SIGMA_PX` and 1, and the reference takes the
-    middle, g_k = (1 + g_min) / 2, with that interval's spread (its length over sqrt(12)) and the flux ratio's in
-    quadrature as its 1-sigma. For separations well inside the PSF (g_min near 1) it is the photocentre. Offsets on
-    the tangent plane: d_k = (r_k - r_star) focal_px (a few px, where the tangent plane and the sphere differ by
-    parts in 10^7)."""
+    middle, g_k = (1 + g_min) / 2, with that interval's spread (its length over sqrt(12)) and the flux ratio's
+    (:func:`_flux_ratio_px`) in quadrature as its 1-sigma. For separations well inside the PSF (g_min near 1) it is
+    the photocentre. Offsets on the tangent plane: d_k = (r_k - r_star) focal_px (a few px, where the tangent plane
+    and the sphere differ by parts in 10^7)."""
     q = 10.0 ** (-0.4 * (np.asarray(mag_companions, dtype=np.float64) - mag_star))  # flux ratios to the star
     d = (r_companions - r_star) * focal_px  # (K, 3) px, nearly in the tangent plane
     g_min = np.exp(-np.sum(d**2, axis=1) / (4.0 * SHARPEST_PSF_SIGMA_PX**2))
@@ -129,14 +136,34 @@ def photocentre(
     sigma_dm = math.sqrt(2.0) * max(
         scatter_mag if math.isfinite(scatter_mag) else 0.0, window_mag(scatter_mag) / PHOTOMETRIC_SIGMAS
     )
-    # d u / d q_k = (g_k d_k - g_k u) / total, d q_k = q_k 0.4 ln10 d(dm_k), g_k the middle response
-    g = 0.5 * (1.0 + g_min)
-    ratio_px = float(np.sqrt(np.sum((np.linalg.norm(d - u, axis=1) * g / total * q * _FLUX_PER_MAG * sigma_dm) ** 2)))
+    ratio_px = _flux_ratio_px(q, 0.5 * (1.0 + g_min), d, sigma_dm)
     spread_px = float(np.linalg.norm((q * (1.0 - g_min)) @ d)) / total / math.sqrt(12.0)
     photo_px = float(np.linalg.norm(q @ d)) / (1.0 + float(np.sum(q)))
     return Photocentre(
         direction, math.hypot(ratio_px, spread_px), float(np.linalg.norm(u)), photo_px, tuple(hip_companions)
     )
+
+
+def _flux_ratio_px(q: np.ndarray, g: np.ndarray, d_px: np.ndarray, sigma_dm: float) -> float:
+    """The flux ratios' term of a blend reference's 1-sigma [px]: for each companion (flux ratio ``q`` (K,), response
+    ``g`` (K,), offset ``d_px`` (K, 3)) the larger shift of the reference offset sum_k q_k g_k d_k / (1 + sum q g)
+    when its magnitude difference moves by -+ :data:`FLUX_RATIO_SIGMAS` x ``sigma_dm``, over
+    :data:`FLUX_RATIO_SIGMAS`; the companions (independent) in quadrature. The shift itself, not its derivative: the
+    flux ratio is skewed where its magnitude error is Gaussian (module docstring)."""
+
+    def offset(w: np.ndarray) -> np.ndarray:
+        return w @ d_px / (1.0 + float(np.sum(w)))
+
+    u = offset(q * g)
+    total = 0.0
+    for k in range(q.size):
+        shifts = []
+        for sign in (-1.0, 1.0):
+            w = q * g
+            w[k] *= 10.0 ** (0.4 * sign * FLUX_RATIO_SIGMAS * sigma_dm)
+            shifts.append(float(np.linalg.norm(offset(w) - u)))
+        total += max(shifts) ** 2
+    return math.sqrt(total) / FLUX_RATIO_SIGMAS
 
 
 def blend_references(
@@ -217,7 +244,7 @@ def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, l
     from hostlink.images.skyindex import catalogue_radec_deg
 
     ra, dec = _reference_columns(session, catalogue)
-    sigma = session_number(session, "sigma_px")
+    sigma = without_pair_bound(session_number(session, "sigma_px"), session_number(session, "blend_px"))
     mag = session.mag if session.mag is not None else np.full(len(session), np.nan)
     # the members' places as the reference service sees them (apparent at the frame's time, or J2000), in one call
     members = [np.concatenate([[own], near]) for _, own, near, _ in blends]
@@ -254,7 +281,22 @@ def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, l
             value = sigma[rec["row"]]
             column[rec["row"]] = f"{value:.4g}" if np.isfinite(value) else column[rec["row"]]
         extra["sigma_px"] = column
+    if "blend_px" in extra:  # the bound a reference replaced is no longer in sigma_px: the column says what is
+        column = extra["blend_px"].copy()
+        for rec in records:
+            if np.isfinite(sigma[rec["row"]]):
+                column[rec["row"]] = ""
+        extra["blend_px"] = column
     return replace(session, ra_deg=ra, dec_deg=dec, extra=extra), records
+
+
+def without_pair_bound(sigma_px: np.ndarray, blend_px: np.ndarray) -> np.ndarray:
+    """The rows' ``sigma_px`` without the bias bound b = ``blend_px`` of an unresolved companion that ``centroid``
+    added to it as sqrt(sigma^2 + b^2 / 2) (:func:`hostlink.images.centroid.frame._measured`): the blend reference
+    models that shift, and its own sigma replaces the bound. Rows without the column (an older session) or without
+    a bound (NaN) keep theirs; a difference below 0 (both columns rounded to 4 digits) is 0."""
+    b = np.where(np.isfinite(blend_px), blend_px, 0.0)
+    return np.sqrt(np.maximum(sigma_px**2 - 0.5 * b**2, 0.0))
 
 
 def _lookup(catalogue: Catalogue, hip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

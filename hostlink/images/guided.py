@@ -15,8 +15,8 @@ vote for none). Then, with the camera calibrated on the identified stars
 3. every catalogue star the attitude puts on the detector that the frame has not identified is searched for within
    r = :data:`CONTAINMENT_SIGMAS` x sqrt(sigma_pred^2 + sigma_px^2) of its predicted place (its blend's reference,
    with that reference's sigma added, when unresolved companions add their light: :func:`_blend_places`; sigma_px
-   the row's own centroid noise: 99 % of the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows
-   left
+   the row's own centroid noise, there less an elongated blend's bound ``blend_px`` the reference models: 99 % of
+   the true positions fall inside, a 2-D Gaussian's 3.03 sigma) among the rows left
    unidentified: the candidates, and the detected stars identification did not name (its radius, before the
    camera was calibrated, was several pixels where this one is about one); a row there is admitted when its
    instrumental magnitude agrees with the star's predicted one within
@@ -56,6 +56,7 @@ from hostlink.images.blends import (
     session_flag,
     session_number,
     window_mag,
+    without_pair_bound,
     zero_point,
 )
 from hostlink.sky.catalogue import Catalogue
@@ -238,6 +239,7 @@ def admit(
     frames = []
     saturated = session_flag(session, "saturated")
     sigma_px = session_number(session, "sigma_px")
+    own_px = without_pair_bound(sigma_px, session_number(session, "blend_px"))  # at a blend's reference
     starts = session.frame_starts
     for k in range(session.n_frames):
         rows = np.arange(int(starts[k]), int(starts[k + 1]))
@@ -248,7 +250,7 @@ def admit(
             out[rows],
             held[rows],
             saturated[rows],
-            sigma_px[rows],
+            (sigma_px[rows], own_px[rows]),
             theta,
             camera.image_size_px,
             directions,
@@ -260,7 +262,10 @@ def admit(
 
 
 def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_size_px, directions, catalogue):
-    """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`)."""
+    """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`).
+    ``sigma_px``: the rows' ``sigma_px`` and that without an elongated blend's bound (``blend_px``, which a blend's
+    reference replaces: :func:`hostlink.images.blends.without_pair_bound`)."""
+    sigma_px, own_px = sigma_px
     named = (star_id != 0) & ~held
     if np.count_nonzero(named) < MIN_FRAME_STARS:
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} identified stars")
@@ -285,13 +290,16 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     # every row left unidentified: the candidates, and the detected stars identification could not name (with the
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
     cand = np.flatnonzero((star_id == 0) & np.isfinite(mag) & np.isfinite(sigma_px) & (sigma_px > 0))
-    rows, stars = _admissions((x, y, mag, sigma_px), cand, (xp, yp, predicted_mag, sigma_ref), sigma_pred, window)
+    rows, stars = _admissions(
+        (x, y, mag, sigma_px, own_px), cand, (xp, yp, predicted_mag, sigma_ref), sigma_pred, window
+    )
     names = star_id.copy()
     names[rows] = catalogue.hip[near[stars]]
     admitted = int(rows.size)
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     # (per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined)
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand, None] ** 2 + sigma_ref[None, :] ** 2)
+    row_px = _row_sigma_px(sigma_px[cand, None], own_px[cand, None], sigma_ref[None, :])
+    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[None, :] ** 2)
     agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
     width, height = image_size_px
     expected = float(np.sum(agree * (math.pi * radius**2)) / (width * height))
@@ -304,7 +312,8 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
 def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tuple[np.ndarray, np.ndarray]:
     """The candidates admitted in one frame (module docstring) and the predicted stars they are: (frame rows, indices
     into the predictions). ``rows`` = (x, y, mag, sigma_px) of every row of the frame, ``cand`` the rows that may be
-    named, ``predictions`` = (xp, yp, predicted instrumental mag, sigma_ref) of the searched catalogue stars.
+    named (``own_px``: sigma_px without an elongated blend's bound), ``predictions`` = (xp, yp, predicted
+    instrumental mag, sigma_ref) of the searched catalogue stars.
 
     Candidate i could be star j when near enough (within r = :data:`CONTAINMENT_SIGMAS` x the prediction's, the
     row's and the blend reference's 1-sigma combined) and as bright as predicted (within ``window``); every star
@@ -313,7 +322,7 @@ def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tu
     could be one star only, has no other rival, no other row could be that star, and it is the frame's row nearest
     to that star's prediction (an identified star nearer to it is that star's). Only the pairs within the largest
     of these radii are formed (:func:`_near_pairs`): the others are neither near nor rivals."""
-    x, y, mag, sigma_px = rows
+    x, y, mag, sigma_px, own_px = rows
     xp, yp, predicted_mag, sigma_ref = predictions
     none = np.zeros(0, dtype=np.int64)
     if cand.size == 0 or xp.size == 0:
@@ -329,7 +338,8 @@ def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tu
     of_cand[cand] = np.arange(cand.size)
     pair = of_cand[row] >= 0
     i, j, d2 = of_cand[row[pair]], star[pair], d2[pair]
-    r = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + sigma_px[cand[i]] ** 2 + sigma_ref[j] ** 2)
+    row_px = _row_sigma_px(sigma_px[cand[i]], own_px[cand[i]], sigma_ref[j])
+    r = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[j] ** 2)
     agree = np.abs(mag[cand[i]] - predicted_mag[j]) <= window
     rival = (d2 <= np.maximum(r, UNRESOLVED_PX) ** 2) & could_be(predicted_mag[j], mag[cand[i]], window)
     match = (d2 <= r**2) & agree
@@ -339,6 +349,12 @@ def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tu
     matches_of_star = np.bincount(j, minlength=xp.size)
     ok = (matches_of_row[i] == 1) & (rivals_of_row[i] == 1) & (matches_of_star[j] == 1) & (nearest[j] == cand[i])
     return cand[i[ok]], j[ok]
+
+
+def _row_sigma_px(sigma_px: np.ndarray, own_px: np.ndarray, sigma_ref: np.ndarray) -> np.ndarray:
+    """A row's 1-sigma against a prediction: without an elongated blend's bound where the prediction is a blend's
+    reference (``sigma_ref`` > 0: the reference models that shift, so the bound is counted once), else as written."""
+    return np.where(sigma_ref > 0, own_px, sigma_px)
 
 
 def _near_pairs(x, y, xp, yp, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -24,7 +24,8 @@ Per image:
    :data:`_BLEND_CLEAR_SIGMAS` PSF sigmas, :func:`_neighbour_bias_px`; or Gaussian-windowed second moments more
    elongated than the PSF of the star's own part of the field, :func:`_unresolved_pairs`,
    :func:`_psf_ellipticity_field`, :func:`_shape_bias_px`: two stars closer than the deblender can split) with the
-   bound on its centroid's bias in its ``sigma_px``, rejected as
+   bound on its centroid's bias in its ``sigma_px`` (an elongated one's also in ``blend_px``, which identification
+   takes out where its blend reference models the companion: :mod:`hostlink.images.blends`), rejected as
    *blended* only when that bound exceeds :data:`_BLEND_MAX_BIAS_PX`; a star *cut by the border* (``OBJ_TRUNC``) is
    centroided on the part of its image point-symmetric about it (:func:`_border_windows`) and fitted on the pixels
    it has, rejected at the *edge* only when that window fails; a *saturated* star (a pixel of the footprint at the

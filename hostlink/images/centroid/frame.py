@@ -79,6 +79,7 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
         screen.truncated[k],
         screen.blend_px[k],
         np.ones(int(k.sum())),
+        np.full(int(k.sum()), np.nan),
     )
     stars, sigma = _centroid_screened(sub, rms, screened, options, report)
     if stars.x.size == 0:
@@ -94,7 +95,8 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
 def _no_stars(report: FrameReport) -> Detections:
     """The :class:`Detections` of a frame that keeps no star."""
     none = np.zeros(0, bool)
-    return Detections(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), report, np.zeros(0), none, blended=none)
+    empty = np.zeros(0)
+    return Detections(empty, empty, empty, empty, report, empty, none, blended=none, blend_px=empty)
 
 
 @dataclass(frozen=True)
@@ -102,7 +104,8 @@ class _Stars:
     """The stars of one frame between the stages, (N,) each: centroid [px], SEP's object, ``clipped`` (saturated),
     ``truncated`` (cut by the border), ``blend_px`` (the bound on a kept blend's centroid bias [px], NaN for a star
     not flagged as one), ``window_fraction`` (the share of its window's weight a border-cut star's windowed centroid
-    used, 1 elsewhere)."""
+    used, 1 elsewhere), ``pair_px`` (the part of ``blend_px`` from the star's elongation, an unresolved companion's
+    pull: the part identification's blend reference models, NaN for a star not elongated)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -111,6 +114,7 @@ class _Stars:
     truncated: np.ndarray
     blend_px: np.ndarray
     window_fraction: np.ndarray
+    pair_px: np.ndarray
 
     def select(self, rows: np.ndarray) -> _Stars:
         """The stars ``rows`` (a boolean mask or indices)."""
@@ -145,7 +149,9 @@ def _centroid_screened(sub, rms, stars: _Stars, options: CentroidOptions, report
     flagged = elongated & ~unresolved
     blend_px = stars.blend_px.copy()
     blend_px[flagged] = np.hypot(np.nan_to_num(blend_px[flagged]), bias[flagged])
-    stars = replace(stars, blend_px=blend_px).select(~unresolved)
+    pair_px = stars.pair_px.copy()
+    pair_px[flagged] = bias[flagged]
+    stars = replace(stars, blend_px=blend_px, pair_px=pair_px).select(~unresolved)
     single = ~elongated[~unresolved] & ~stars.clipped
     if options.psf_sigma_px is None and np.any(elongated) and np.any(single):  # the elongated ones widened the
         again = _frame_psf_sigma_px(sub, stars.good[single])  # first estimate
@@ -186,7 +192,8 @@ def _measured(sub, rms, stars: _Stars, sigma: float, options: CentroidOptions, r
     instrumental magnitude, brightest first (the brightest ``max_stars``). A kept blend's ``sigma_px`` adds its bias
     bound b in quadrature, per axis b / sqrt(2) (a shift of b in an unknown direction); a border-cut star centroided
     by its window (saturated, or its fit not taken) divides it by the square root of the share of the window's
-    weight it used (the information of the pixels it has)."""
+    weight it used (the information of the pixels it has). ``blend_px`` of the result: the part of b from the star's
+    elongation (``pair_px``), which identification takes out again where its blend reference models that pull."""
     x, y, good, clipped = stars.x, stars.y, stars.good, stars.clipped
     flux = _psf_fluxes(sub, x, y, sigma)
     # the PSF amplitude of a clipped star is too low; its isophotal sum is a lower bound that keeps it first
@@ -222,4 +229,5 @@ def _measured(sub, rms, stars: _Stars, sigma: float, options: CentroidOptions, r
         sigma_px[order],
         stars.clipped[order],
         blended=blend[order],
+        blend_px=stars.pair_px[order],
     )

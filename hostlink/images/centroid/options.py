@@ -110,7 +110,9 @@ class FrameReport:
 class Detections:
     """The stars kept in one image, brightest first: centroid [px] (camera convention), flux [ADU], instrumental
     magnitude; ``report`` the counts; ``sigma_px`` each centroid's 1-sigma noise per axis [px]
-    (:func:`centroid_sigma_px`); ``saturated`` True for a kept saturated star."""
+    (:func:`centroid_sigma_px`); ``saturated`` True for a kept saturated star; ``blended`` True for a kept blend;
+    ``blend_px`` the bias bound [px] from an elongated star's unresolved companion, in ``sigma_px`` as b / sqrt(2)
+    per axis (NaN for a star not elongated; None: not stated)."""
 
     x_px: np.ndarray
     y_px: np.ndarray
@@ -121,6 +123,7 @@ class Detections:
     saturated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     candidates: Candidates | None = None
     blended: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    blend_px: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

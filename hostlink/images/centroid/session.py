@@ -102,6 +102,7 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
         "sigma_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("sigma_px")], dtype=object),
         "saturated": np.array([str(int(v)) for v in cat("saturated")], dtype=object),
         "blended": np.array([str(int(v)) for v in cat("blended")], dtype=object),
+        "blend_px": np.array([f"{v:.4g}" if np.isfinite(v) else "" for v in cat("blend_px")], dtype=object),
     }
     if any(det.candidates is not None for _, det, _ in frames):
         extra["snr"] = np.array([f"{v:.2f}" if np.isfinite(v) else "" for v in snr], dtype=object)
@@ -132,6 +133,7 @@ def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
         "sigma_px": np.concatenate([det.sigma_px, c.sigma_px]),
         "saturated": np.concatenate([det.saturated.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
         "blended": np.concatenate([det.blended.astype(np.int64), np.zeros(c.x_px.size, np.int64)]),
+        "blend_px": np.concatenate([_blend_px(det), np.full(c.x_px.size, np.nan)]),
         "snr": np.concatenate([np.full(det.x_px.size, np.nan), c.snr]),
     }
 
@@ -169,3 +171,10 @@ def _median_frame(stack: np.ndarray) -> np.ndarray:
     n = stack.shape[0]
     middle = ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2
     return middle.astype(np.float64)
+
+
+def _blend_px(det: Detections) -> np.ndarray:
+    """The stars' ``blend_px`` [px] (NaN where not elongated, or where the detections state none)."""
+    if det.blend_px is None:
+        return np.full(det.x_px.size, np.nan)
+    return np.asarray(det.blend_px, dtype=np.float64)
