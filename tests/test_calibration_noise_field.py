@@ -432,23 +432,3 @@ def test_an_unknown_noise_model_is_refused_with_or_without_sigma_px():
     ):
         check_run_options(None, 100, "Constant")
     check_run_options(None, 100, "constant")
-
-
-def test_the_command_reports_the_model_it_used(radial_runs):
-    """`hostlink calibrate` prints the radial floor's line (centre and corner) when the data chose it, the constant
-    floor's value when held constant with --noise-model constant, and passes the option to the fit."""
-    from hostlink.cli import build_parser
-    from hostlink.commands.calibrate import _noise_line
-
-    auto, const = radial_runs[0][:2]
-    line = _noise_line(auto)
-    assert noise_model_text(result_extras(auto)["noise_model"]) in line
-    held = _noise_line(const, "constant")
-    assert f"a floor of {const.noise_floor_px:.4f} px" in held and "held constant" in held
-    assert "likelihood ratio" not in held  # the radial model was not tried: no ratio to report
-    args = build_parser().parse_args(["calibrate", "s.csv", "--nominal", "n.json", "--out", "r.json"])
-    assert args.noise_model == "auto"
-    with pytest.raises(SystemExit):
-        build_parser().parse_args(
-            ["calibrate", "s.csv", "--nominal", "n.json", "--out", "r.json", "--noise-model", "x"]
-        )

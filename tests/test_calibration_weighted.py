@@ -144,6 +144,26 @@ def test_cli_weights_by_the_sigma_px_column_and_reports_the_noise_scale(session_
     assert 0.8 < result["noise_scale"] < 1.25 and result["noise_px"] is None
 
 
+@pytest.mark.parametrize("model", ["auto", "constant"])
+def test_cli_reports_the_noise_model_it_used(session_with_sigma, tmp_path, capsys, model):
+    """The noise line names the model the result file records (auto: the data's choice, with its likelihood ratio,
+    `noise_model_text`), or the floor held constant with its value when --noise-model constant tried no other."""
+    from hostlink.api import noise_model_text
+
+    out = tmp_path / "r.json"
+    nominal = str(data_file("seed004_nominal.json"))
+    argv = ["calibrate", str(session_with_sigma), "--nominal", nominal, "--out", str(out), "--noise-model", model]
+    assert main(argv) == 0
+    printed = " ".join(capsys.readouterr().out.split())  # the report wraps its lines
+    result = json.loads(out.read_text())
+    if model == "auto":
+        assert " ".join(noise_model_text(result["noise_model"]).split()) in printed
+    else:
+        assert result["noise_model"]["model"] == "constant" and "to choose the radial one" not in printed
+        assert f"a floor of {result['noise_floor_px'] or 0.0:.4f} px in quadrature" in printed
+        assert "noise floor held constant over the field (--noise-model constant)" in printed
+
+
 @pytest.mark.parametrize("value", ["-0.1", "0", "abc", ""])
 def test_a_bad_sigma_px_is_a_one_line_error_naming_its_line(session_with_sigma, tmp_path, capsys, value):
     session = read_session(session_with_sigma)
