@@ -79,7 +79,12 @@ GRANASAT = Path(
 def test_real_jpeg_frames_of_a_27_deg_camera_are_identified():
     """The granasat set (nine 1280 x 960 JPEG frames, ~27 deg, no time): centroided and identified with the
     repository's nominal (2657.33 px, principal point at the centre): every frame identified (all nine were
-    'no match' when saturated stars were rejected: the brightest stars are every pattern's anchors)."""
+    'no match' when saturated stars were rejected: the brightest stars are every pattern's anchors). Most detected
+    stars are identified: 3 in 5 or more (4903 of 7697 measured). The share follows the detection's depth against
+    the catalogue's: 87 % while the noise map read the dense frames' star light as noise (polar_30sec's at 3 times
+    its noise), 64 % with the map right, whose extra detections on the 8 s, 30 s and Milky Way frames are sources the
+    catalogue does not reach (their median about 1 mag fainter than the identified stars'), not noise (the test
+    below: the same frames turned negative make none)."""
     from hostlink.images.identify import identify_session
     from onboard.params import CameraParams
 
@@ -93,7 +98,27 @@ def test_real_jpeg_frames_of_a_27_deg_camera_are_identified():
     )
     ident = identify_session(result.session, nominal)
     assert ident.n_frames_identified == len(paths)
-    assert ident.n_identified >= 0.8 * np.count_nonzero(~candidate_rows(result.session))
+    assert ident.n_identified >= 0.6 * np.count_nonzero(~candidate_rows(result.session))
+
+
+#: The granasat frames whose sky is not clipped at the 8-bit floor (< 1 % of the pixels at 0) and that hold no dark
+#: foreground object (pleyades_8sec does: turned negative, it is bright).
+UNCLIPPED_FRAMES = ("cisne_02sec.jpg", "polar_30sec.jpg", "sagitario_2seg_gain_max.jpg")
+
+
+@pytest.mark.skipif(not GRANASAT.is_dir(), reason="the shared granasat JPEG frames are not on this machine")
+@pytest.mark.parametrize("name", UNCLIPPED_FRAMES)
+def test_real_jpeg_noise_turned_negative_gives_no_detection(name):
+    """A real frame turned negative (the clip level less each pixel) keeps its noise, JPEG blocks and gradients and
+    loses its stars: the local noise map (hostlink.images.background) must make no detection of them at the default
+    5 sigma (a Gaussian filtered image reaches it once in ~3.5 million pixels, 0.35 per frame). Measured: none on
+    each, where the same frames, as they are, give 1374, 2763 and 915 detections."""
+    from hostlink.images.centroid import centroid_pixels
+    from hostlink.images.read import read_image
+
+    raw = read_image(GRANASAT / name)
+    negative = raw.saturation_adu - raw.pixels
+    assert centroid_pixels(negative, CentroidOptions(), saturation_adu=raw.saturation_adu).x_px.size <= 1
 
 
 def test_a_fisheye_nominal_is_reported_in_one_line(tmp_path, capsys):

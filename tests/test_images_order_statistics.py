@@ -19,6 +19,23 @@ def test_box_percentiles_are_numpys(n):
         np.testing.assert_array_equal(_row_percentiles(rows, percents), expected)
 
 
+@pytest.mark.parametrize("n", [7, 256, 4096])
+def test_box_percentiles_of_rows_with_masked_pixels_are_numpys_of_the_rest(n):
+    rng = np.random.default_rng(n)
+    rows = np.round(rng.normal(size=(300, n)) * 6).astype(np.float32)
+    masked = rng.uniform(size=rows.shape) < rng.uniform(0.0, 0.8, (300, 1))  # a mask, a box cut by the border
+    masked[:, -1] = False  # every row keeps a value (_box_percentiles asks no percentile of none)
+    rows[masked] = np.nan
+    rows[0] = np.nan
+    rows[0, 3] = 2.0  # one value left
+    counts = np.isfinite(rows).sum(axis=1)
+    for percents in [(50.0,), (50.0, 97.725), (0.0, 99.9, 100.0)]:
+        out = _row_percentiles(rows, percents, counts)
+        for k in range(rows.shape[0]):
+            expected = np.percentile(rows[k][np.isfinite(rows[k])], percents).astype(np.float64)
+            np.testing.assert_array_equal(out[k], expected)
+
+
 def test_ring_medians_are_numpys_and_a_partial_ring_counts_its_pixels_alone():
     rng = np.random.default_rng(5)
     for p in (119, 120):

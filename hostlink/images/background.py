@@ -10,7 +10,9 @@
 2. *Local noise and offset* (:func:`local_noise_map`): SEP's noise map assumes independent Gaussian pixel noise; an
    8-bit camera clips it at zero, a JPEG correlates neighbouring pixels. What the detection filter actually sees is
    measured on the filtered image in each mesh box, as (P97.725 - P50) / 2 (half the distance from the median to the
-   upper 2-sigma point of a Gaussian: blind to the clipped lower half), converted to the per-pixel noise of
+   upper 2-sigma point of a Gaussian: blind to the clipped lower half, and counting the heavier upper tail of clipped
+   or JPEG noise that decides the false detections), the stars' light left out (:func:`_clipped_box_noise`: once
+   stars fill 2.3 % of a box their light is its upper 2-sigma point), converted to the per-pixel noise of
    independent pixels that gives it (divided by sqrt(sum k^2) of the normalised kernel); what SEP's mesh leaves of
    the background, as the median of the filtered image in boxes 4 x finer. Each is the median over 5 x 5 of its
    boxes (a box a bright star or the step of a horizon fills is outvoted), interpolated bilinearly between the box
@@ -60,6 +62,17 @@ _STEP_MIN_LENGTH_BOXES = 8
 _ROUNDING_NOISE_EPS = 100.0
 #: The upper 2-sigma point of a Gaussian [percent]: (P97.725 - P50) / 2 is its sigma.
 _UPPER_2SIGMA_PERCENT = 97.725
+#: A connected region of the filtered image above this many noise sigmas over the local offset is a star's light when
+#: it holds a pixel above :data:`_STAR_PEAK_SIGMAS` (the default detection threshold: Gaussian noise reaches it once
+#: in 3.5 million pixels); the region reaches down to 1 sigma, so that what a star leaves outside it needs the noise
+#: to add more than 1 sigma to reach the upper 2-sigma point the noise is measured at.
+_STAR_ISOPHOTE_SIGMAS = 1.0
+_STAR_PEAK_SIGMAS = 5.0
+#: The noise is measured again without the stars' light until no smoothed box changes by more than this fraction
+#: (the percentiles' own scatter is ~1 %), at most :data:`_MAX_NOISE_PASSES` times (4 passes on a frame with a star
+#: every 30 px: docs/realsky.md, "Glow and horizon").
+_NOISE_CONVERGED_FRACTION = 0.01
+_MAX_NOISE_PASSES = 6
 
 
 def saturated_regions(raw: np.ndarray, saturation_adu: float | None) -> np.ndarray:
@@ -121,22 +134,21 @@ def local_noise_map(
     that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
 
     The offset is measured in boxes :data:`_FINE_BOXES_PER_BOX` times finer than the mesh (the median of each), the
-    noise in the mesh's boxes (P50 and P97.725); each is then the median over 5 x 5 of its boxes (a star, or the line
-    of boxes a horizon's step crosses, fills fewer than half of them, and the median of a smooth gradient is its
-    centre value; SEP's own noise map, the clipped standard deviation
-    of each mesh box's pixels, counts a gradient or a step within the box as noise, and its spline swings negative
-    next to a masked box); the step's offset (:func:`_step_offset`) is added."""
+    noise in the mesh's boxes (P50 and P97.725, the stars' light left out: :func:`_clipped_box_noise`); each is then
+    the median over 5 x 5 of its boxes (a bright star, or the line of boxes a horizon's step crosses, fills fewer than
+    half of them, and the median of a smooth gradient is its centre value; SEP's own noise map, the clipped standard
+    deviation of each mesh box's pixels, counts a gradient or a step within the box as noise, and its spline swings
+    negative next to a masked box); the step's offset (:func:`_step_offset`) is added."""
     h, w = filtered.shape
     fine = max(_MIN_FINE_BOX_PX, box_px // _FINE_BOXES_PER_BOX)
     stats, row_centres, col_centres = _box_percentiles(filtered, mask, fine, (50.0,))
     # the noise from the mesh's boxes: the upper percentile of a fine box's few independent pixels (the JPEG and the
     # filter correlate ~9 neighbours) is biased low (-7 % on the clean frame of tests/test_images_glow.py; half the
     # mesh: 8 false detections instead of 5 on the clipped 8-bit noise of tests/test_images_centroid.py)
-    spread, noise_rows, noise_cols = _box_percentiles(filtered, mask, box_px, (50.0, _UPPER_2SIGMA_PERCENT))
-    noise = 0.5 * (spread[..., 1] - spread[..., 0]) / kernel_norm
+    noise, noise_rows, noise_cols = _clipped_box_noise(filtered, mask, stats[..., 0], fine, box_px)
     if not np.isfinite(noise).any():  # nothing measurable: SEP's map as it is, no offset
         return np.zeros_like(filtered), _positive(sep_rms), np.zeros(filtered.shape, dtype=bool)
-    medians, noise = _filled(stats[..., 0]), _median(_filled(noise), _SMOOTH_BOXES)
+    medians, noise = _filled(stats[..., 0]), _median(_filled(noise), _SMOOTH_BOXES) / kernel_norm
     noise_map = _positive(_bilinear(noise, noise_rows, noise_cols, h, w))
     smooth = _median(medians, _SMOOTH_BOXES)
     filtered_noise = (
@@ -146,6 +158,54 @@ def local_noise_map(
     offset_map = _bilinear(smooth + step_offset, row_centres, col_centres, h, w)
     edge = np.repeat(np.repeat(step, fine, axis=0), fine, axis=1)[:h, :w]  # the boxes start at pixel 0
     return offset_map, noise_map, edge
+
+
+def _clipped_box_noise(
+    filtered: np.ndarray, mask: np.ndarray, fine_medians: np.ndarray, fine_px: int, box_px: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The noise of the filtered image in each mesh box, (P97.725 - P50) / 2 of its pixels outside ``mask`` and
+    outside the stars' light (NaN where too few are left: :func:`_box_percentiles`), and the boxes' centres. An
+    iterative clipping of whole stars (as SEP clips single pixels at 3 sigma for its own map, Bertin & Arnouts 1996,
+    sec. 3.1, but of the upper side only: the lower half is the 8-bit floor's): the stars are the regions
+    :func:`_star_light` finds with the noise of the pass before (the first pass counts every pixel: its noise is too
+    high where stars are dense, so its clipping keeps their faint wings, and each pass clips deeper), until the noise
+    smoothed over 5 x 5 boxes settles (:data:`_NOISE_CONVERGED_FRACTION`). Noise alone loses nearly nothing: a region
+    needs a peak at 5 sigma (the heavier tail of clipped 8-bit noise reaches it about as often as it makes a false
+    detection). ``fine_medians``: the medians of the fine boxes of ``fine_px`` (the offset the stars stand above)."""
+    stars = np.zeros(filtered.shape, dtype=bool)
+    previous = None
+    for k in range(_MAX_NOISE_PASSES):
+        spread, rows, cols = _box_percentiles(filtered, mask | stars, box_px, (50.0, _UPPER_2SIGMA_PERCENT))
+        noise = 0.5 * (spread[..., 1] - spread[..., 0])
+        if not np.isfinite(noise).any():  # nothing measurable (or, after the first pass, nothing left: keep it)
+            return (noise, rows, cols) if previous is None else previous[:3]
+        smooth = _median(_filled(noise), _SMOOTH_BOXES)
+        if k + 1 == _MAX_NOISE_PASSES or (
+            previous is not None and np.all(np.abs(smooth - previous[3]) <= _NOISE_CONVERGED_FRACTION * previous[3])
+        ):
+            break
+        previous = (noise, rows, cols, smooth)
+        stars = _star_light(filtered, mask, _filled(fine_medians), fine_px, smooth, box_px)
+    return noise, rows, cols
+
+
+def _star_light(
+    filtered: np.ndarray, mask: np.ndarray, level: np.ndarray, level_px: int, noise: np.ndarray, noise_px: int
+) -> np.ndarray:
+    """(h, w) bool: the pixels of ``filtered`` outside ``mask`` in a connected region (8-connected) above
+    :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` over ``level`` that holds a pixel above :data:`_STAR_PEAK_SIGMAS` x
+    ``noise`` (a star, down to its 1-sigma isophote); ``level`` and ``noise``, per box of ``level_px`` and
+    ``noise_px`` from pixel 0, are taken as constant over each box."""
+    from scipy import ndimage
+
+    h, w = filtered.shape
+    above = filtered - np.repeat(np.repeat(level, level_px, axis=0), level_px, axis=1)[:h, :w]
+    sigma = np.repeat(np.repeat(noise, noise_px, axis=0), noise_px, axis=1)[:h, :w]
+    labels, n = ndimage.label((above > _STAR_ISOPHOTE_SIGMAS * sigma) & ~mask, structure=np.ones((3, 3), dtype=int))
+    star = np.zeros(n + 1, dtype=bool)
+    star[labels[above > _STAR_PEAK_SIGMAS * sigma]] = True
+    star[0] = False
+    return star[labels]
 
 
 def _step_offset(residual: np.ndarray, filtered_noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -204,26 +264,29 @@ def _box_percentiles(
     whole = counted == box_px * box_px
     if whole.any():  # the common case, in one call
         out[whole] = _row_percentiles(blocks[whole], percents)
-    for k in np.flatnonzero(~whole & (counted >= _MIN_BOX_FRACTION * inside.ravel()) & (counted > 0)):
-        out[k] = np.percentile(blocks[k][np.isfinite(blocks[k])], percents)
+    part = ~whole & (counted >= _MIN_BOX_FRACTION * inside.ravel()) & (counted > 0)
+    if part.any():  # boxes cut by the border, a mask or the stars' light (_clipped_box_noise), in one call
+        out[part] = _row_percentiles(blocks[part], percents, counted[part])
     row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
     col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
     return out.reshape(ny, nx, len(percents)), row_centres, col_centres
 
 
-def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
+def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None) -> np.ndarray:
     """``np.percentile(rows, percents, axis=1).T`` (method "linear") as float64, the same numbers, from each row
     sorted: numpy partitions along the first axis of the transposed rows, a strided pass per order statistic (~15 ms
     for a frame's 4800 boxes of 256 pixels), where sorting each contiguous row takes ~1 ms. The interpolation is
     numpy's own: v = (n - 1) q / 100 between the neighbouring order statistics a, b with gamma = v - floor(v):
-    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5."""
+    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5. ``counts``: each row's number of finite values,
+    the rest NaN (sorted last), for ``np.percentile`` of each row's finite values (one call to it per row took
+    ~40 ms a frame once the stars' light is masked)."""
     ordered = np.sort(rows, axis=1)
-    n = rows.shape[1]
+    n = np.full((rows.shape[0], 1), rows.shape[1]) if counts is None else np.asarray(counts)[:, None]
     virtual = (n - 1) * (np.asarray(percents, dtype=np.float64) / 100.0)
     below = np.floor(virtual)
     gamma = virtual - below
-    a = ordered[:, np.minimum(below, n - 1).astype(np.intp)]
-    b = ordered[:, np.minimum(below + 1, n - 1).astype(np.intp)]
+    a = np.take_along_axis(ordered, np.minimum(below, n - 1).astype(np.intp), axis=1)
+    b = np.take_along_axis(ordered, np.minimum(below + 1, n - 1).astype(np.intp), axis=1)
     diff = b - a
     out = a + diff * gamma
     upper = np.broadcast_to(gamma >= 0.5, out.shape)
