@@ -79,12 +79,11 @@ GRANASAT = Path(
 def test_real_jpeg_frames_of_a_27_deg_camera_are_identified():
     """The granasat set (nine 1280 x 960 JPEG frames, ~27 deg, no time): centroided and identified with the
     repository's nominal (2657.33 px, principal point at the centre): every frame identified (all nine were
-    'no match' when saturated stars were rejected: the brightest stars are every pattern's anchors). Most detected
-    stars are identified: 3 in 5 or more (4903 of 7697 measured). The share follows the detection's depth against
-    the catalogue's: 87 % while the noise map read the dense frames' star light as noise (polar_30sec's at 3 times
-    its noise), 64 % with the map right, whose extra detections on the 8 s, 30 s and Milky Way frames are sources the
-    catalogue does not reach (their median about 1 mag fainter than the identified stars'), not noise (the test
-    below: the same frames turned negative make none)."""
+    'no match' when saturated stars were rejected: the brightest stars are every pattern's anchors). How many of the
+    detections are identified is not asserted: it follows the detection's depth against the catalogue's (87 % while
+    the noise map read the dense frames' star light as noise, 64 % with it right, the extra detections being sources
+    about 1 mag fainter than the identified stars); that the detections are not noise is tested directly below (the
+    same frames turned negative make none)."""
     from hostlink.images.identify import identify_session
     from onboard.params import CameraParams
 
@@ -98,7 +97,6 @@ def test_real_jpeg_frames_of_a_27_deg_camera_are_identified():
     )
     ident = identify_session(result.session, nominal)
     assert ident.n_frames_identified == len(paths)
-    assert ident.n_identified >= 0.6 * np.count_nonzero(~candidate_rows(result.session))
 
 
 #: The granasat frames whose sky is not clipped at the 8-bit floor (< 1 % of the pixels at 0) and that hold no dark
