@@ -10,7 +10,9 @@ pymodbus 3.16 facts this relies on (checked against its source): ``ModbusTcpClie
 ``framer=FramerType.RTU`` (RTU over TCP); request methods take ``device_id=``; the sync clients read their answer
 timeout from ``comm_params.timeout_connect`` at every exchange (so :meth:`RegisterClient.set_answer_timeout` can
 change it between exchanges) and call their own ``recv`` for every read from the line (wrapped here to learn whether
-any byte of an answer came); ``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
+any byte of an answer came, and to shorten the wait for the rest of a Modbus TCP answer begun, ``_ANSWER_REST_S``:
+pymodbus frames by the MBAP length and would wait for a byte lost on the way until the whole answer wait ended);
+``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
 the connection by itself (default 3: "No response received ... CLOSING CONNECTION"), which this client turns off
 because the link decides when to reconnect (the limit is ``transaction.max_until_disconnect``, the running count
 ``transaction.count_until_disconnect``, reset to the limit only by an answer: both are set).
