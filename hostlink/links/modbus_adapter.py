@@ -144,10 +144,8 @@ class RegisterClient:
             data = receive(size)
             self._rx += data
             if self._mbap:  # pymodbus reads the line's timeout at every recv: the rest of a begun answer waits less
-                rest = answer_cut_short(bytes(self._rx))
-                self._client.comm_params.timeout_connect = (
-                    min(self._timeout_s, _ANSWER_REST_S) if rest else (self._timeout_s)
-                )
+                wait_s = min(self._timeout_s, _ANSWER_REST_S) if answer_cut_short(bytes(self._rx)) else self._timeout_s
+                self._client.comm_params.timeout_connect = wait_s
             return data
 
         self._client.recv = counted_recv
@@ -157,10 +155,6 @@ class RegisterClient:
             raise ModbusAdapterError(f"cannot connect to {self.where}: {one_line(exc)}") from None
         if not ok:
             raise ModbusAdapterError(f"cannot connect to {self.where}")
-
-    @property
-    def _rx_bytes(self) -> int:
-        return len(self._rx)
 
     def set_answer_timeout(self, timeout_s: float) -> None:
         """How long the next exchanges wait for their answer [s]."""
@@ -193,7 +187,7 @@ class RegisterClient:
             rr = self._check(fn(address, count=count, device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(
-                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=len(self._rx) > 0
             ) from None
         finally:
             self._client.comm_params.timeout_connect = self._timeout_s  # (also the reconnect's timeout)
@@ -210,7 +204,7 @@ class RegisterClient:
             rr = self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(
-                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=len(self._rx) > 0
             ) from None
         finally:
             self._client.comm_params.timeout_connect = self._timeout_s
