@@ -131,6 +131,9 @@ def test_modbus_connection_reset_mid_exchange_is_an_adapter_error_not_an_interna
     from hostlink.links.modbus_adapter import RegisterClient
 
     class _ResetClient:
+        class comm_params:  # noqa: N801 - pymodbus's attribute: the answer wait, set at every exchange
+            timeout_connect = 2.0
+
         def read_input_registers(self, *a, **k):
             raise ConnectionResetError(104, "Connection reset by peer")
 
@@ -138,6 +141,7 @@ def test_modbus_connection_reset_mid_exchange_is_an_adapter_error_not_an_interna
 
     client = object.__new__(RegisterClient)  # no socket: the pymodbus client is replaced by one whose peer died
     client.unit, client.where, client._client = 1, "127.0.0.1:1", _ResetClient()
+    client._timeout_s = 2.0
     with pytest.raises(ModbusAdapterError, match="reset by peer"):
         client.read("input", 0, 4)
     with pytest.raises(ModbusAdapterError, match="reset by peer"):

@@ -10,7 +10,9 @@ pymodbus 3.16 facts this relies on (checked against its source): ``ModbusTcpClie
 ``framer=FramerType.RTU`` (RTU over TCP); request methods take ``device_id=``; the sync clients read their answer
 timeout from ``comm_params.timeout_connect`` at every exchange (so :meth:`RegisterClient.set_answer_timeout` can
 change it between exchanges) and call their own ``recv`` for every read from the line (wrapped here to learn whether
-any byte of an answer came); ``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
+any byte of an answer came, and to shorten the wait for the rest of a Modbus TCP answer begun, ``_ANSWER_REST_S``:
+pymodbus frames by the MBAP length and would wait for a byte lost on the way until the whole answer wait ended);
+``set_max_no_responses`` sets how many unanswered requests in a row make pymodbus close
 the connection by itself (default 3: "No response received ... CLOSING CONNECTION"), which this client turns off
 because the link decides when to reconnect (the limit is ``transaction.max_until_disconnect``, the running count
 ``transaction.count_until_disconnect``, reset to the limit only by an answer: both are set).
@@ -44,6 +46,15 @@ FRAMINGS = ("tcp", "rtu")
 #: Unanswered requests in a row after which pymodbus would close the connection by itself: never (the link resets
 #: the connection after every failed exchange itself, and a noisy line must not end the link).
 _NEVER_CLOSE = 1 << 30
+#: Longest wait for the rest of a Modbus TCP answer whose MBAP header has arrived and promises more bytes [s]: a device
+#: writes its answer at once (one TCP segment on a LAN), so the rest follows within a few scheduler ticks of the host
+#: (Linux: 1-4 ms) or never (a byte dropped on the way: the length field then promises a byte that will not come).
+#: Without it pymodbus waits for that byte until the whole answer wait has passed, and on a noisy line (where failed
+#: tries back the wait off to the device's longest response time) every damaged answer cost the longest wait.
+_ANSWER_REST_S = 0.02
+#: MBAP header bytes up to and including the length field (transaction id, protocol id, length: Modbus messaging on
+#: TCP/IP implementation guide v1.0b, 3.1.3); the length counts the bytes after it.
+_MBAP_LENGTH_END = 6
 
 # pymodbus logs connection failures itself; the link reports them once, in one line (CLI contract).
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -57,6 +68,22 @@ class ModbusAdapterError(Exception):
         super().__init__(message)
         self.exception_code = exception_code
         self.answered = answered
+
+
+def answer_cut_short(received: bytes) -> bool:
+    """Whether Modbus TCP bytes received in one exchange end inside a frame: whole MBAP frames (a late answer to an
+    earlier request, which pymodbus skips by its transaction id) followed by a header whose length field promises more
+    bytes than came, or by bytes pymodbus cannot frame at all (a protocol id other than 0: it never skips them, so
+    nothing after them is taken in this exchange). Modbus messaging on TCP/IP implementation guide v1.0b, 3.1.3."""
+    at = 0
+    while len(received) - at >= _MBAP_LENGTH_END:
+        if received[at + 2 : at + 4] != b"\x00\x00":
+            return True
+        end = at + _MBAP_LENGTH_END + int.from_bytes(received[at + 4 : at + 6], "big")
+        if end > len(received):
+            return True
+        at = end
+    return at < len(received)
 
 
 # ---------------------------------------------------------------------------------------------- client
@@ -108,12 +135,17 @@ class RegisterClient:
         transaction = getattr(self._client, "transaction", None)
         if transaction is not None and hasattr(transaction, "count_until_disconnect"):
             transaction.count_until_disconnect = _NEVER_CLOSE
-        self._rx_bytes = 0  # bytes received in the current exchange (the sync client's recv, wrapped)
+        self._timeout_s = float(timeout_s)  # the answer wait of the next exchanges
+        self._mbap = serial_port is None and framing == "tcp"
+        self._rx = bytearray()  # bytes received in the current exchange (the sync client's recv, wrapped)
         receive = self._client.recv
 
         def counted_recv(size: int | None) -> bytes:
             data = receive(size)
-            self._rx_bytes += len(data)
+            self._rx += data
+            if self._mbap:  # pymodbus reads the line's timeout at every recv: the rest of a begun answer waits less
+                wait_s = min(self._timeout_s, _ANSWER_REST_S) if answer_cut_short(bytes(self._rx)) else self._timeout_s
+                self._client.comm_params.timeout_connect = wait_s
             return data
 
         self._client.recv = counted_recv
@@ -126,7 +158,13 @@ class RegisterClient:
 
     def set_answer_timeout(self, timeout_s: float) -> None:
         """How long the next exchanges wait for their answer [s]."""
-        self._client.comm_params.timeout_connect = float(timeout_s)
+        self._timeout_s = float(timeout_s)
+        self._client.comm_params.timeout_connect = self._timeout_s
+
+    def _begin(self) -> None:
+        """A new exchange: nothing received yet, the whole answer wait ahead."""
+        self._rx = bytearray()
+        self._client.comm_params.timeout_connect = self._timeout_s
 
     def _check(self, response: object, what: str) -> object:
         if response.isError():  # type: ignore[attr-defined]
@@ -144,13 +182,15 @@ class RegisterClient:
         """``count`` (<= 125) registers of ``table`` (``holding`` or ``input``) from ``address``."""
         fn = self._client.read_input_registers if table == "input" else self._client.read_holding_registers
         what = f"read of {count} {table} registers at {address}"
-        self._rx_bytes = 0
+        self._begin()
         try:
             rr = self._check(fn(address, count=count, device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(
-                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=len(self._rx) > 0
             ) from None
+        finally:
+            self._client.comm_params.timeout_connect = self._timeout_s  # (also the reconnect's timeout)
         regs = list(rr.registers)  # type: ignore[attr-defined]
         if len(regs) != count:  # a late answer to another read (RTU has no transaction id) or a garbled one
             raise ModbusAdapterError(f"{self.where}: {what} returned {len(regs)} registers", answered=True)
@@ -159,13 +199,15 @@ class RegisterClient:
     def write(self, address: int, values: list[int]) -> None:
         """Write holding registers from ``address`` (function code 16)."""
         what = f"write of {len(values)} holding registers at {address}"
-        self._rx_bytes = 0
+        self._begin()
         try:
             rr = self._check(self._client.write_registers(address, [int(v) for v in values], device_id=self.unit), what)
         except (ModbusException, OSError) as exc:  # OSError: the peer reset the connection mid-exchange
             raise ModbusAdapterError(
-                f"{self.where}: {what} failed ({one_line(exc)})", answered=self._rx_bytes > 0
+                f"{self.where}: {what} failed ({one_line(exc)})", answered=len(self._rx) > 0
             ) from None
+        finally:
+            self._client.comm_params.timeout_connect = self._timeout_s
         echo = (getattr(rr, "address", address), getattr(rr, "count", len(values)))
         if echo != (address, len(values)):  # the answer echoes address and count: a late answer to another write
             raise ModbusAdapterError(f"{self.where}: {what} answered for {echo[1]} registers at {echo[0]}")
