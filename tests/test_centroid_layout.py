@@ -2,16 +2,15 @@
 lines and no function over 80, and what was imported from ``hostlink.images.centroid`` before it became a package
 still is."""
 
-import ast
 import pkgutil
 import re
 from pathlib import Path
 
+from layout_limits import too_long
+
 import hostlink.images.centroid as centroid
 
 PACKAGE = Path(centroid.__file__).parent
-MAX_FILE_LINES = 500
-MAX_FUNCTION_LINES = 80
 
 
 def test_package_docstring_names_exactly_its_modules():
@@ -22,16 +21,7 @@ def test_package_docstring_names_exactly_its_modules():
 
 
 def test_no_file_over_500_lines_and_no_function_over_80():
-    long_files, long_functions = [], []
-    for path in sorted(PACKAGE.glob("*.py")):
-        text = path.read_text()
-        if text.count("\n") > MAX_FILE_LINES:
-            long_files.append(path.name)
-        for node in ast.walk(ast.parse(text)):
-            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                if node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES:
-                    long_functions.append(f"{path.name}:{node.name}")
-    assert not long_files and not long_functions, (long_files, long_functions)
+    assert too_long(list(PACKAGE.glob("*.py")), PACKAGE) == ([], [])
 
 
 def test_the_names_imported_from_the_former_module_are_still_there():

@@ -2,17 +2,16 @@
 500 lines with no function over 80, the identify module's docstring names exactly its stage modules, and the names
 other code imports from hostlink.images.identify stay importable from there."""
 
-import ast
 import re
 from pathlib import Path
+
+from layout_limits import too_long
 
 import hostlink.images.identify as identify
 
 PACKAGE = Path(identify.__file__).parent
 STAGES = ("skyindex", "matcher", "verify", "extend", "confirm", "blends", "guided")
 MODULES = ("identify", "solver_adapter", *STAGES)
-MAX_FILE_LINES = 500
-MAX_FUNCTION_LINES = 80
 #: What tests, the API and other modules import from hostlink.images.identify.
 IMPORTED = (
     "AMBIGUITY_MAG_MARGIN ANCHOR_STARS DEEP_ANCHOR_STARS DEEP_MATCH_STARS ENGINE_MISS_SCANNED_FRAMES FrameIdentity "
@@ -23,16 +22,7 @@ IMPORTED = (
 
 
 def test_no_file_over_500_lines_and_no_function_over_80():
-    long_files, long_functions = [], []
-    for name in MODULES:
-        text = (PACKAGE / f"{name}.py").read_text()
-        if text.count("\n") > MAX_FILE_LINES:
-            long_files.append(name)
-        for node in ast.walk(ast.parse(text)):
-            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                if node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES:
-                    long_functions.append(f"{name}:{node.name}")
-    assert not long_files and not long_functions, (long_files, long_functions)
+    assert too_long([PACKAGE / f"{name}.py" for name in MODULES], PACKAGE) == ([], [])
 
 
 def test_the_docstring_names_the_stage_modules():

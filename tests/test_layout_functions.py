@@ -2,16 +2,16 @@
 reader can follow): no function over 80 lines in the C firmware core, the Python model it mirrors (``onboard``), the
 links, the port kit and the commands. The calibration package holds the same bound in test_calibration_layout.py."""
 
-import ast
 from importlib import resources
 from pathlib import Path
+
+from layout_limits import MAX_FUNCTION_LINES, too_long
 
 import hostlink
 import onboard
 
-#: Lines from a function's signature to its closing brace or last statement, the bound the calibration package
-#: already holds: a longer function is split into named steps, each mirrored by name between C and Python.
-MAX_FUNCTION_LINES = 80
+# MAX_FUNCTION_LINES: lines from a function's signature to its closing brace or last statement; a longer function
+# is split into named steps, each mirrored by name between C and Python.
 
 PYTHON_FOLDERS = (
     Path(onboard.__file__).parent,
@@ -58,11 +58,5 @@ def test_the_c_scanner_measures_a_function_from_signature_to_closing_brace():
 
 
 def test_no_python_function_over_80_lines_in_the_checked_packages():
-    long_functions = []
-    for folder in PYTHON_FOLDERS:
-        for path in sorted(folder.rglob("*.py")):
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                    if node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES:
-                        long_functions.append(f"{path.relative_to(folder.parent)}:{node.name}")
+    long_functions = [f for folder in PYTHON_FOLDERS for f in too_long(list(folder.rglob("*.py")), folder.parent)[1]]
     assert not long_functions, long_functions
