@@ -86,8 +86,13 @@ class Figures:
 
 
 def _hostlink(args: list[str]) -> tuple[int, str]:
-    """Run one ``hostlink`` command in process; (exit code, what it printed)."""
+    """Run one ``hostlink`` command in process; (exit code, what it printed). A ``calibrate`` writes its rejected
+    stars beside its result: ``--rejected`` reads the session whole, the path whose result keeps the clipped RMS
+    (``rms_px_clipped``, every residual needed) that the figures compare with the established solver's."""
     from hostlink.cli import main
+
+    if args[0] == "calibrate" and "--rejected" not in args:
+        args = [*args, "--rejected", args[args.index("--out") + 1] + ".rejected.csv"]
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
