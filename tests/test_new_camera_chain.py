@@ -95,7 +95,14 @@ def test_an_undersampled_camera_is_identified_and_calibrated_from_a_wrong_nomina
     result = json.loads(cal.read_text())
     # the focal length within 4 of its stated sigmas (0.0005 mm: 1e-5 relative) of the truth
     assert abs(result["focal_length_mm"] - TRUE.focal_length_mm) < 4 * result["sigma"]["focal_length_mm"]
-    # the principal point, estimated or held, within 25 px of the truth (14 deg field: its sigma is ~10 px)
-    assert np.hypot(*(np.array(result["principal_point_px"]) - TRUE.principal_point_px)) < 25.0
+    # the principal point: on this 14 deg field with decentering and prism free its 1-sigma is ~8 px, at the limit
+    # above which calibrate holds it at the nominal (docs/calibration.md); estimated, it lies within 25 px of the
+    # truth (3 sigma); held, the result says so with that reason (the nominal here is 42 px off: a user is told)
+    held = {h["parameter"]: h for h in result["held"]}
+    if {"x0", "y0"} & held.keys():
+        assert all(held[p]["sigma_effect_px"] > held[p]["limit_px"] for p in ("x0", "y0") if p in held)
+        assert result["principal_point_px"] == list(nominal.principal_point_px)
+    else:
+        assert np.hypot(*(np.array(result["principal_point_px"]) - TRUE.principal_point_px)) < 25.0
     # residual: the centroid noise of these stars (median sigma_px ~0.05 px), not a model error of a px
     assert result["residuals"]["after"]["rms_px"] < 0.1
