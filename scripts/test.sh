@@ -10,10 +10,6 @@ fi
 .venv/bin/ruff check --quiet .
 .venv/bin/ruff format --check --quiet .
 .venv/bin/lint-imports
-# Known defect (2026-11-28, open): tests/test_simulate_streaming.py's byte equality of streamed and in-memory
-# simulations depends on Python's string-hash seed on the oldest versions (fails for some seeds, passes for 0 and 1
-# every time); the hash seed is fixed so the suite is deterministic until the order-dependent sum is found.
-export PYTHONHASHSEED=0
 .venv/bin/python -m pytest -q -p no:cacheprovider "$@"
 # The link, emulator and bench suites once more against the C firmware core (issue 27: hostlink emulate reads its
 # default --firmware from HOSTLINK_FIRMWARE), in this newest-versions pass only, when a C compiler is present and

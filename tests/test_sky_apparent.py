@@ -157,3 +157,27 @@ def test_apparent_place_per_epoch_matches_erfa_atci13_star_by_star():
     # a row's place does not depend on the rows that come with it (a session read in chunks gets the same places)
     part = slice(1234, 1300)
     assert np.array_equal(apparent_directions(cat, rows[part], jd1[part], jd2[part]), got[part])
+
+
+def test_the_session_columns_angles_do_not_depend_on_where_a_direction_sits_in_the_array():
+    """radec_deg_of_units gives each direction the same ra/dec whatever the rows around it (a session simulated in
+    chunks equals the one written whole, byte for byte): shifted and misaligned copies agree bit for bit (numpy 1.26's
+    vectorised arctan2 did not), and the angles are onboard's unit_to_radec to rounding (1e-12 deg, ~1e4 ulp of 360)."""
+    from hostlink.sky.apparent import radec_deg_of_units
+    from onboard.camera import unit_to_radec
+
+    rng = np.random.default_rng(7)
+    r = rng.normal(size=(4099, 3))
+    r /= np.linalg.norm(r, axis=1)[:, None]
+    ra, dec = radec_deg_of_units(r)
+    for offset in range(1, 9):
+        buffer = np.empty(r[offset:].size + 1)
+        misaligned = buffer[1:].reshape(-1, 3)
+        misaligned[:] = r[offset:]
+        ra_k, dec_k = radec_deg_of_units(misaligned)
+        np.testing.assert_array_equal(ra_k, ra[offset:])
+        np.testing.assert_array_equal(dec_k, dec[offset:])
+    ra_ref, dec_ref = unit_to_radec(r)
+    np.testing.assert_allclose(ra, np.degrees(ra_ref), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dec, np.degrees(dec_ref), rtol=0, atol=1e-12)
+    assert np.all((ra >= 0) & (ra < 360))

@@ -38,7 +38,7 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.files.times import utc_to_tt
 from hostlink.sky.catalogue import HIPPARCOS_EPOCH_JD_TT, Catalogue
-from onboard.camera import radec_to_unit, unit_to_radec
+from onboard.camera import radec_to_unit
 
 _MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
 _J2000_JD_TT = 2451545.0
@@ -160,8 +160,16 @@ def apparent_radec_deg(
     cat: Catalogue, rows: np.ndarray, jd_utc1: float | np.ndarray, jd_utc2: float | np.ndarray, dut1_s: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """As :func:`apparent_directions`, as (ra in [0, 360), dec) [deg]: the session file's ra_deg/dec_deg."""
-    ra, dec = unit_to_radec(apparent_directions(cat, rows, jd_utc1, jd_utc2, dut1_s))
-    return np.degrees(ra), np.degrees(dec)
+    return radec_deg_of_units(apparent_directions(cat, rows, jd_utc1, jd_utc2, dut1_s))
+
+
+def radec_deg_of_units(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ra in [0, 360), dec) [deg] of unit vectors ``r`` (N, 3), as the session file's ra_deg/dec_deg are written:
+    ERFA's c2s, one element at a time, so that a direction's angles do not depend on where it sits in the array
+    (numpy 1.26's vectorised arctan2 rounds the same input differently in its vector and remainder loops, by an ulp
+    that the file's 10 decimals show now and then: a session simulated in chunks must equal the one written whole)."""
+    theta, phi = erfa.c2s(np.ascontiguousarray(r, dtype=np.float64))
+    return np.degrees(np.mod(theta, 2.0 * np.pi)), np.degrees(phi)
 
 
 def hip_find(cat: Catalogue, hip_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

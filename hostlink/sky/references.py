@@ -33,7 +33,7 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.files.session import Session
 from hostlink.sky.catalogue import Catalogue
-from onboard.camera import radec_to_unit, unit_to_radec
+from onboard.camera import radec_to_unit
 from onboard.site import Site, Weather
 
 #: ``SessionReferences.source`` values: the session's own columns, or Hipparcos apparent place through ERFA; and,
@@ -203,7 +203,9 @@ def session_references(
 def session_with_references(session: Session, references: SessionReferences) -> Session:
     """A copy of ``session`` whose ra_deg/dec_deg [deg] are ``references`` (empty, NaN, where not usable): for
     instance the replay file of a ground sensor, which turns its catalogue directions into observed ones itself."""
-    ra_rad, dec_rad = unit_to_radec(np.where(references.usable[:, None], references.r, np.array([1.0, 0.0, 0.0])))
-    ra_deg = np.where(references.usable, np.degrees(ra_rad), np.nan)
-    dec_deg = np.where(references.usable, np.degrees(dec_rad), np.nan)
+    from hostlink.sky.apparent import radec_deg_of_units
+
+    ra_deg, dec_deg = radec_deg_of_units(np.where(references.usable[:, None], references.r, np.array([1.0, 0.0, 0.0])))
+    ra_deg = np.where(references.usable, ra_deg, np.nan)
+    dec_deg = np.where(references.usable, dec_deg, np.nan)
     return replace(session.select(np.arange(len(session))), ra_deg=ra_deg, dec_deg=dec_deg)

@@ -49,7 +49,13 @@ from hostlink.files.params import BUILTIN_PREFIX, load_params
 from hostlink.files.session import Session, SessionWriter, concatenate_sessions
 from hostlink.files.times import frame_times_range, parse_iso_utc, parse_iso_utc_many
 from hostlink.files.truth import TRUTH_FORMAT, TRUTH_PER_FRAME_KEYS, TRUTH_VERSION, TruthWriter
-from hostlink.sky.apparent import StarsJ2000, apparent_from_astrometry, frame_astrometry, stars_at_j2000
+from hostlink.sky.apparent import (
+    StarsJ2000,
+    apparent_from_astrometry,
+    frame_astrometry,
+    radec_deg_of_units,
+    stars_at_j2000,
+)
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.site import (
     MAX_ZENITH_DISTANCE_DEG,
@@ -61,7 +67,7 @@ from hostlink.sky.site import (
     zenith_distance_rad,
     zenith_true_of_date,
 )
-from onboard.camera import distortion_px, pixels_to_unit, unit_to_pixels, unit_to_radec
+from onboard.camera import distortion_px, pixels_to_unit, unit_to_pixels
 from onboard.params import CameraParams, params_to_dict
 from onboard.site import Site, Weather
 
@@ -548,8 +554,7 @@ def _chunk_rows(
     dec_deg = np.full(frame.size, np.nan)
     known = ~is_false
     if np.any(known):
-        ra, dec = unit_to_radec(r_ref[known])
-        ra_deg[known], dec_deg[known] = np.degrees(ra), np.degrees(dec)
+        ra_deg[known], dec_deg[known] = radec_deg_of_units(r_ref[known])
     session = Session(
         frame=frame.astype(np.int64),
         t_utc=sky.t_text[frame - sky.first],
