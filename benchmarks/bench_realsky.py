@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-SHARED = Path(os.environ.get("STARTRACKER_REALSKY_ROOT", "/work/shared/realsky"))
+#: The directory holding the image sets (docs/realsky.md): not in the repository, named by the environment.
+SHARED = Path(os.environ["STARTRACKER_REALSKY_ROOT"]) if "STARTRACKER_REALSKY_ROOT" in os.environ else None
 #: A centroid of ours and one of the solver's are the same star when this close [px] (the two extractors differ by
 #: ~0.1-0.3 px on clean stars, more on trailed ones).
 SAME_STAR_PX = 2.0
@@ -311,6 +312,8 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     from hostlink.images.identify import identify_session
     from hostlink.sky.catalogue import load_catalogue
 
+    if SHARED is None:
+        raise SystemExit("the real frames are not in the repository: set STARTRACKER_REALSKY_ROOT (docs/realsky.md)")
     paths = sorted((SHARED / image_set.name).glob(image_set.pattern))
     if not paths:
         raise SystemExit(f"{SHARED / image_set.name}: no {image_set.pattern}")

@@ -37,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(os.environ.get("STARTRACKER_REALSKY_ROOT", "/work/shared/realsky"))
+#: The directory holding the image sets (docs/realsky.md): not in the repository, named by the environment or --root.
+ROOT = Path(os.environ["STARTRACKER_REALSKY_ROOT"]) if "STARTRACKER_REALSKY_ROOT" in os.environ else None
 
 
 @dataclass(frozen=True)
@@ -356,6 +357,10 @@ def main() -> None:
     parser.add_argument("--cases", default="base,f0.92,f1.08,pp30,dated,fits16,tiff16,rgb,flip,rot180,bin2,bad")
     parser.add_argument("--work", type=Path, default=None, help="keep the files here (default: a temporary folder)")
     a = parser.parse_args()
+    if a.root is None:
+        raise SystemExit(
+            "the real frames are not in the repository: set STARTRACKER_REALSKY_ROOT or --root (docs/realsky.md)"
+        )
     image_set = SETS[a.set]
     images = sorted((a.root / a.set).glob(image_set.pattern))
     if not images:

@@ -262,44 +262,45 @@ def calibrate_on_engine_stars(identified: Path, matched, work: Path) -> dict | N
     return json.loads(out.read_text()) if code == 0 else None
 
 
-def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True) -> Figures:
-    """identify + calibrate for each nominal of :data:`FOCAL_FACTORS` (``identify_each`` False: identify with the
-    good nominal only, and calibrate those identifications with every nominal), then the best achievable."""
-    cameras: dict[float, dict] = {}
-    reports: dict[float, dict] = {}
-    for factor in FOCAL_FACTORS:
-        nominal = _nominal_file(work, factor)
-        identified = work / f"identified_{factor:g}.csv"
-        report = work / f"identify_{factor:g}.json"
-        if identify_each or factor == 1.0:
-            code, text = _hostlink(
-                [
-                    "identify",
-                    str(centroids),
-                    "--nominal",
-                    str(nominal),
-                    "--out",
-                    str(identified),
-                    "--report",
-                    str(report),
-                ]
-            )
-            log(f"--- hostlink identify, nominal f {NOMINAL['focal_length_mm'] * factor:.2f} mm\n{text.rstrip()}")
-            if code:
-                raise SystemExit(f"identification failed with nominal factor {factor}: {text.strip()}")
-            reports[factor] = json.loads(report.read_text())
-        else:
-            identified = work / "identified_1.csv"
-        result = work / f"camera_{factor:g}.json"
-        code, text = _hostlink(["calibrate", str(identified), "--nominal", str(nominal), "--out", str(result)])
-        log(f"--- hostlink calibrate, nominal f {NOMINAL['focal_length_mm'] * factor:.2f} mm: exit {code}")
-        if code:
-            log(text.rstrip())
-            raise SystemExit(f"calibration failed with nominal factor {factor}")
-        cameras[factor] = json.loads(result.read_text())
-    good = cameras[1.0]
-    best_path = work / "camera_best.json"
+def _identify(centroids: Path, nominal: Path, work: Path, factor: float, log=print) -> dict:
+    """``hostlink identify`` with ``nominal`` (focal factor ``factor``): writes identified_<factor>.csv; its report."""
+    identified = work / f"identified_{factor:g}.csv"
+    report = work / f"identify_{factor:g}.json"
     code, text = _hostlink(
+        [
+            "identify",
+            str(centroids),
+            "--nominal",
+            str(nominal),
+            "--out",
+            str(identified),
+            "--report",
+            str(report),
+        ]
+    )
+    log(f"--- hostlink identify, nominal f {NOMINAL['focal_length_mm'] * factor:.2f} mm\n{text.rstrip()}")
+    if code:
+        raise SystemExit(f"identification failed with nominal factor {factor}: {text.strip()}")
+    return json.loads(report.read_text())
+
+
+def _calibrate(identified: Path, nominal: Path, work: Path, factor: float, log=print) -> dict:
+    """``hostlink calibrate`` of ``identified`` from ``nominal`` (focal factor ``factor``): the camera_<factor>.json
+    it writes."""
+    result = work / f"camera_{factor:g}.json"
+    code, text = _hostlink(["calibrate", str(identified), "--nominal", str(nominal), "--out", str(result)])
+    log(f"--- hostlink calibrate, nominal f {NOMINAL['focal_length_mm'] * factor:.2f} mm: exit {code}")
+    if code:
+        log(text.rstrip())
+        raise SystemExit(f"calibration failed with nominal factor {factor}")
+    return json.loads(result.read_text())
+
+
+def _best_achievable(work: Path) -> dict | None:
+    """The bundle adjustment estimating every parameter, started from the good nominal's calibrated camera, on its
+    identified stars (``--keep-failed``: its result even when a check fails); None when it wrote nothing."""
+    best_path = work / "camera_best.json"
+    _hostlink(
         [
             "calibrate",
             str(work / "identified_1.csv"),
@@ -312,15 +313,38 @@ def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True
             str(best_path),
         ]
     )
-    best = json.loads(best_path.read_text()) if best_path.is_file() else None
-    estimated = [n for n in good["estimated"]]
+    return json.loads(best_path.read_text()) if best_path.is_file() else None
+
+
+def _largest_sigma_difference(cameras: dict[float, dict]) -> float:
+    """The largest difference of an estimated parameter between the other nominals' cameras and the good one's
+    (factor 1.0), in units of the good camera's sigma of it."""
+    good = cameras[1.0]
     values, sigmas = _parameter_vector(good), _sigma_vector(good)
     difference = 0.0
     for factor in FOCAL_FACTORS[1:]:
         other = _parameter_vector(cameras[factor])
-        for name in estimated:
+        for name in good["estimated"]:
             if sigmas[name] > 0:
                 difference = max(difference, abs(other[name] - values[name]) / sigmas[name])
+    return difference
+
+
+def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True) -> Figures:
+    """identify + calibrate for each nominal of :data:`FOCAL_FACTORS` (``identify_each`` False: identify with the
+    good nominal only, and calibrate those identifications with every nominal), then the best achievable."""
+    cameras: dict[float, dict] = {}
+    reports: dict[float, dict] = {}
+    for factor in FOCAL_FACTORS:
+        nominal = _nominal_file(work, factor)
+        if identify_each or factor == 1.0:
+            reports[factor] = _identify(centroids, nominal, work, factor, log)
+            identified = work / f"identified_{factor:g}.csv"
+        else:
+            identified = work / "identified_1.csv"
+        cameras[factor] = _calibrate(identified, nominal, work, factor, log)
+    good = cameras[1.0]
+    best = _best_achievable(work)
     rms = good["residuals"]["after"]["rms_px"]
     best_rms = best["residuals"]["after"]["rms_px"] if best else float("nan")
     n_good = good["residuals"]["after"]["n_stars"]
@@ -339,7 +363,7 @@ def run_chain(centroids: Path, work: Path, log=print, identify_each: bool = True
         identified_by_nominal={f: (r["frames_identified"], r["stars_identified"]) for f, r in reports.items()},
         cameras=cameras,
         best=best,
-        sigma_difference=difference,
+        sigma_difference=_largest_sigma_difference(cameras),
         residual_ratio=rms / best_rms if best_rms > 0 else float("inf"),
         star_fraction=n_good / n_best if n_best else 0.0,
         engine=engine,

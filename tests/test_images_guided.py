@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from sky_frames import CAMERA, attitude_toward
 
 from hostlink.files.session import Session
 from hostlink.images.centroid import CentroidOptions, centroid_pixels
@@ -16,11 +17,7 @@ from hostlink.sky.apparent import stars_at_j2000
 from hostlink.sky.catalogue import load_catalogue
 from hostlink.sky.render import RenderConfig, render_stars
 from onboard.camera import radec_to_unit, unit_to_pixels
-from onboard.params import CameraParams
 
-CAMERA = CameraParams(
-    focal_length_mm=25.0, pixel_pitch_um=6.9, principal_point_px=(511.5, 383.5), image_size_px=(1024, 768)
-)  # ~16 x 12 deg
 #: PSF sigma 1 px, 40 e- of sky, 8 e- read noise, gain 2: 10.2 e- of noise per pixel; a star's PSF-fit flux then
 #: has a noise of 10.2 e- / sqrt(sum P^2) = 36 e-, so a star of Hp 7.7 (the zero point below: 146 e-) is at 4 sigma
 CONFIG = RenderConfig(psf_sigma_px=1.0, zero_point_e=146.0 * 10 ** (0.4 * 7.7), hot_pixels=0, seed=3)
@@ -33,20 +30,12 @@ ANCHOR_MAG = 6.5
 MATCH_PX = 1.5
 
 
-def _attitude(ra_deg: float, dec_deg: float) -> np.ndarray:
-    """Rows: the camera's x, y, z axes in J2000 (z the boresight, roll 0)."""
-    z = radec_to_unit(np.radians([ra_deg]), np.radians([dec_deg]))[0]
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z])
-
-
 def _frame(ra_deg: float, dec_deg: float, faint_rendered: bool, seed: int):
     """(session of one frame: detected stars named from the truth, candidates unnamed; truth HIP of each row (0:
     none); the rendered stars' HIP numbers, true snr and whether SEP detected them; the catalogue)."""
     cat = load_catalogue()
     stars = stars_at_j2000(cat)
-    b = radec_to_unit(stars.ra_rad, stars.dec_rad) @ _attitude(ra_deg, dec_deg).T
+    b = radec_to_unit(stars.ra_rad, stars.dec_rad) @ attitude_toward(ra_deg, dec_deg).T
     front = np.flatnonzero(b[:, 2] > math.cos(math.radians(15.0)))
     xp, yp = unit_to_pixels(b[front], CAMERA.model_vector(np.float64))
     width, height = CAMERA.image_size_px

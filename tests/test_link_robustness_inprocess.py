@@ -3,6 +3,7 @@ warnings, reply tags of a fresh link."""
 
 import numpy as np
 import pytest
+from register_fakes import ImageRegisterClient
 
 from hostlink.emulator.loopback import LoopbackLink
 from hostlink.emulator.modbus_endpoint import RegisterSensor
@@ -39,17 +40,14 @@ def _sensor(n_frames: int = 10) -> EmulatedSensor:
     return EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), _source(n_frames))
 
 
-class _FlakyRegisterClient:
+class _FlakyRegisterClient(ImageRegisterClient):
     """A RegisterClient talking straight to the emulator's register image; ``fail_writes_at`` makes the write to
     that address fail once (the request reached the sensor or not: ``applied``)."""
 
     def __init__(self, image: RegisterSensor) -> None:
-        self.image = image
+        super().__init__(image)
         self.fail_writes_at: int | None = None
         self.applied = False
-
-    def read(self, table: str, address: int, count: int) -> list[int]:
-        return self.image.on_read(table, address, count)
 
     def write(self, address: int, values: list[int]) -> None:
         if address == self.fail_writes_at:
@@ -58,15 +56,6 @@ class _FlakyRegisterClient:
                 self.image.on_write(address, values)
             raise ModbusAdapterError("127.0.0.1:1: write timed out")
         self.image.on_write(address, values)
-
-    def reset(self) -> None:
-        pass
-
-    def set_answer_timeout(self, timeout_s: float) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 @pytest.mark.parametrize("applied", [False, True])

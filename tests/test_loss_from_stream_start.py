@@ -6,6 +6,7 @@ import os
 import shutil
 
 import pytest
+from register_fakes import ImageRegisterClient
 from stream_frames import NOMINAL, one_star_frame
 
 from hostlink.emulator.modbus_endpoint import RegisterSensor
@@ -93,32 +94,10 @@ def test_the_start_is_acknowledged_with_its_first_frame_counter_and_a_repeated_s
     assert sensor.handle(m.StreamControl(tag=3, enable=True)).value == 42 and sensor.streams_started == 2
 
 
-class _RegisterClient:
-    """A RegisterClient talking straight to the emulator's register image."""
-
-    def __init__(self, image: RegisterSensor) -> None:
-        self.image = image
-
-    def read(self, table: str, address: int, count: int) -> list[int]:
-        return self.image.on_read(table, address, count)
-
-    def write(self, address: int, values: list[int]) -> None:
-        self.image.on_write(address, values)
-
-    def set_answer_timeout(self, timeout_s: float) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def test_modbus_numbers_a_new_stream_from_its_start_and_counts_a_first_message_lost():
     sensor = _sensor(first=0)
     image = RegisterSensor(sensor, drop_every=2)  # test hook: every 2nd message numbered and not shown
-    link = ModbusLink(_RegisterClient(image), "modbus-tcp:fake:1", timeout_s=0.5)
+    link = ModbusLink(ImageRegisterClient(image), "modbus-tcp:fake:1", timeout_s=0.5)
     link.set_streaming(True)
     assert (link.recv_frame().frame, link.stats.lost_messages) == (0, 0)  # window_seq 1
     assert (link.recv_frame().frame, link.stats.lost_messages) == (2, 1)  # seq 2 (frame 1) dropped

@@ -12,6 +12,7 @@ from __future__ import annotations
 import pytest
 from emulator_fixtures import running_emulator
 from pymodbus.client import ModbusTcpClient
+from register_fakes import DropOneByte
 
 from hostlink.emulator.fault_relay import FaultModel, relay_link
 from hostlink.links import open_link
@@ -38,23 +39,6 @@ def test_answer_cut_short(received, cut_short):
     assert answer_cut_short(received) is cut_short
 
 
-class _DropAnswerByte(FaultModel):
-    """A line that drops the byte ``at`` of the answer stream (counted from its first byte) and nothing else."""
-
-    def __init__(self, at: int) -> None:
-        super().__init__()
-        self.at = at
-
-    def apply(self, data: bytes) -> bytes:
-        start = self.bytes_in
-        self.bytes_in += len(data)
-        k = self.at - start
-        if 0 <= k < len(data):
-            self.bytes_dropped += 1
-            return data[:k] + data[k + 1 :]
-        return data
-
-
 def test_a_cut_short_answer_waits_briefly_for_its_rest(monkeypatch):
     timeouts: list[tuple[float, int]] = []  # (the timeout of each recv, the bytes it returned)
     real_recv = ModbusTcpClient.recv
@@ -67,7 +51,9 @@ def test_a_cut_short_answer_waits_briefly_for_its_rest(monkeypatch):
 
     monkeypatch.setattr(ModbusTcpClient, "recv", recorded_recv)
     with running_emulator("modbus", "--sim-frames", "5", "--no-estimator") as info:
-        down = _DropAnswerByte(at=20)  # in the first answer's registers: its header arrives whole
+        down = DropOneByte(
+            at=20
+        )  # the answer stream's byte 20, in the first answer's registers: its header arrives whole
         relayed, relay = relay_link(info["link"], down, FaultModel())
         try:
             with open_link(relayed, timeout_s=10.0) as link:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import pytest
 from emulator_fixtures import running_emulator
+from register_fakes import ImageRegisterClient
 from stream_frames import NOMINAL
 
 from hostlink.emulator.modbus_endpoint import RegisterSensor
@@ -44,14 +45,14 @@ class _Clock:
         self.t += seconds
 
 
-class _SlowLine:
+class _SlowLine(ImageRegisterClient):
     """A RegisterClient straight on the emulator's register image (a sensor with nothing to stream: its window is
     empty, or once streaming holds the end of the stream), each exchange taking LINE_S on ``clock``; ``reads`` lists
     (start time, address, count). ``damage_state`` reads of the window's first register come back with the state
     flipped to 0 ("no message"), as a bit error on a line without a checksum would give."""
 
     def __init__(self, clock: _Clock) -> None:
-        self.image = RegisterSensor(EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), iter(())))
+        super().__init__(RegisterSensor(EmulatedSensor(Firmware(banks.factory_store(NOMINAL), None), iter(()))))
         self.clock = clock
         self.reads: list[tuple[float, int, int]] = []
         self.damage_state = 0
@@ -68,15 +69,6 @@ class _SlowLine:
     def write(self, address: int, values: list[int]) -> None:
         self.clock.t += LINE_S
         self.image.on_write(address, values)
-
-    def reset(self) -> None:
-        pass
-
-    def set_answer_timeout(self, timeout_s: float) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def _scripted_link(monkeypatch) -> tuple[ModbusLink, _SlowLine]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 from emulator_fixtures import running_emulator
+from register_fakes import DropOneByte, ImageRegisterClient
 from stream_frames import NOMINAL
 
 from hostlink.emulator.fault_relay import FaultModel, relay_link
@@ -23,24 +24,7 @@ from onboard import banks
 from onboard.firmware import Firmware
 
 
-class _DropOneByte(FaultModel):
-    """A line that drops the byte at ``at`` (counted from the first byte it carries) and nothing else."""
-
-    def __init__(self, at: int) -> None:
-        super().__init__()
-        self.at = at
-
-    def apply(self, data: bytes) -> bytes:
-        start = self.bytes_in
-        self.bytes_in += len(data)
-        k = self.at - start
-        if 0 <= k < len(data):
-            self.bytes_dropped += 1
-            return data[:k] + data[k + 1 :]
-        return data
-
-
-class _FramerClient:
+class _FramerClient(ImageRegisterClient):
     """A RegisterClient straight on the emulator's register image, with a device framer: ``drop_next`` makes the next
     request lose a byte (no answer, and the framer waits for the byte); every request on that connection then fails
     the same way until :meth:`reset` opens a fresh one. ``damage_next`` answers the next n requests with damaged bytes
@@ -48,7 +32,7 @@ class _FramerClient:
 
     def __init__(self) -> None:
         firmware = Firmware(banks.factory_store(NOMINAL), None)
-        self.image = RegisterSensor(EmulatedSensor(firmware, iter(())))
+        super().__init__(RegisterSensor(EmulatedSensor(firmware, iter(()))))
         self.drop_next = False
         self.damage_next = 0
         self.framer_waiting = False
@@ -75,12 +59,6 @@ class _FramerClient:
     def reset(self) -> None:
         self.resets += 1
         self.framer_waiting = False
-
-    def set_answer_timeout(self, timeout_s: float) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def test_a_request_that_lost_a_byte_costs_one_try_on_a_fresh_connection():
@@ -111,7 +89,7 @@ def test_a_request_that_lost_a_byte_on_a_real_line_is_recovered(rtu):
     """The real client and the emulator's framer: the request that lost its byte fails, the link goes on. How many
     tries it cost is pinned above; here a loaded machine's late answer may add a failed try of its own."""
     with running_emulator("modbus", "--sim-frames", "5", "--no-estimator") as info:
-        up = _DropOneByte(at=5)  # in the first request: the low byte of its MBAP length (RTU: its count)
+        up = DropOneByte(at=5)  # in the first request: the low byte of its MBAP length (RTU: its count)
         relayed, relay = relay_link(info["link_rtu"] if rtu else info["link"], FaultModel(), up)
         try:
             with open_link(relayed, timeout_s=10.0) as link:

@@ -52,6 +52,8 @@ def test_a_mirrored_session_is_named_as_the_same_session_unmirrored(sessions, id
     assert all(f.mirrored for f in mirrored.frames if f.status == "identified")
     np.testing.assert_array_equal(mirrored.session.star_id, normal.session.star_id)
     named = mirrored.session.star_id != 0
+    # not an equality of two empty identifications: measured 117 of the 122 detected stars named (no reason is
+    # known for 0.95: it leaves a margin of one star)
     assert np.count_nonzero(named & ~candidate) >= 0.95 * np.count_nonzero(~candidate)
     assert np.count_nonzero(named & (mirrored.session.star_id != truth)) == 0
     # the rows are written back in their own columns

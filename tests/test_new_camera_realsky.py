@@ -18,7 +18,8 @@ from hostlink.images.identify import identify_iteratively
 from hostlink.images.read import read_image
 from onboard.params import params_from_dict
 
-GRANASAT = Path(os.environ.get("STARTRACKER_REALSKY_ROOT", "/work/shared/realsky")) / "granasat"
+#: granasat/ under STARTRACKER_REALSKY_ROOT (docs/realsky.md); unset: skipped.
+GRANASAT = Path(os.environ.get("STARTRACKER_REALSKY_ROOT") or Path(__file__).parent / "no-realsky-root") / "granasat"
 FRAMES = ("andromeda_05seg.jpg", "vega_05sec.jpg")
 WIDTH, HEIGHT = 1280, 960
 #: the source repository's own nominal (docs/realsky.md), its focal length 8 % short
