@@ -33,7 +33,7 @@ import numpy as np
 
 from hostlink.calibration.data import SIGMA_PX_CEILING, SIGMA_PX_FLOOR, CalibrationData
 from hostlink.calibration.frames import inverse_3x3
-from hostlink.calibration.model import attitude_terms, camera_terms
+from hostlink.calibration.model import attitude_terms, camera_terms, half_diagonal_px
 from hostlink.calibration.noisefield import LR_CRITICAL, fisher_errors, lr_critical, minus_two_log_l, radial_components
 from hostlink.calibration.normal import attitude_normal
 from hostlink.calibration.passes import frame_attitudes
@@ -75,8 +75,7 @@ class NoiseModel:
 def field_geometry(params) -> NoiseModel:
     """A model without floor whose field radius is taken from the principal point of ``params`` (the nominal: the
     same for every fit) relative to the half-diagonal of its image."""
-    w, h = params.image_size_px
-    return NoiseModel(0.0, 0.0, tuple(float(c) for c in params.principal_point_px), 0.5 * math.hypot(w, h))
+    return NoiseModel(0.0, 0.0, tuple(float(c) for c in params.principal_point_px), half_diagonal_px(params))
 
 
 def field_q(data: CalibrationData, noise: NoiseModel) -> np.ndarray:
