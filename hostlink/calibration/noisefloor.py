@@ -137,13 +137,11 @@ class NoiseComponents:
         return replace(geometry, t_px2=self.t_px2, t_edge_px2=self.edge_px2 / self.scale**2)
 
 
-def with_floor(data: CalibrationData, noise: NoiseModel | float) -> CalibrationData:
+def with_floor(data: CalibrationData, noise: NoiseModel) -> CalibrationData:
     """``data`` with each star's noise sqrt(sigma_px^2 + t + t_edge q) (the floor relative to the scale, t = floor^2 /
-    s^2; a number: a constant t): the noise the weights and the gate use, up to the fitted scale s. ``data`` itself
-    when there is no floor or no sigma_px."""
-    if not isinstance(noise, NoiseModel):
-        noise = NoiseModel(float(noise))
-    if data.sigma_px is None or (noise.t_px2 <= 0.0 and noise.t_edge_px2 <= 0.0):
+    s^2): the noise the weights and the gate use, up to the fitted scale s. ``data`` itself when there is no floor
+    or no sigma_px."""
+    if data.sigma_px is None or not _has_floor(noise):
         return data
     added = noise.t_px2 + (noise.t_edge_px2 * field_q(data, noise) if noise.t_edge_px2 > 0.0 else 0.0)
     return replace(data, sigma_px=np.sqrt(data.sigma_px * data.sigma_px + added))
@@ -153,13 +151,11 @@ def _load_with_floor(load, noise: NoiseModel, handle) -> CalibrationData:
     return with_floor(handle if load is None else load(handle), noise)
 
 
-def _has_floor(noise: NoiseModel | float) -> bool:
-    if isinstance(noise, NoiseModel):
-        return noise.t_px2 > 0.0 or noise.t_edge_px2 > 0.0
-    return noise > 0.0
+def _has_floor(noise: NoiseModel) -> bool:
+    return noise.t_px2 > 0.0 or noise.t_edge_px2 > 0.0
 
 
-def floored_source(source: ChunkSource, noise: NoiseModel | float) -> ChunkSource:
+def floored_source(source: ChunkSource, noise: NoiseModel) -> ChunkSource:
     """``source`` whose chunks read :func:`with_floor` (spooled chunks on load, where a worker reads them)."""
     if not _has_floor(noise):
         return source
