@@ -177,3 +177,18 @@ def test_a_bad_sigma_px_is_a_one_line_error_naming_its_line(session_with_sigma, 
     err = capsys.readouterr().err
     assert code == 2 and f"sigma_px on line {row + 2}" in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_cli_noise_model_choices_are_the_library_s():
+    """calibrate's --noise-model lists its choices literally (the parser is built for every command, and
+    hostlink.calibration.floorfit imports numpy and the calibration), so they are held here to NOISE_MODELS, the
+    library's list, which refuses any other."""
+    from hostlink.api import NOISE_MODELS
+    from hostlink.cli import build_parser
+
+    parser = build_parser()
+    base = ["calibrate", "s.csv", "--nominal", "n.json", "--out", "r.json"]
+    assert parser.parse_args(base).noise_model == NOISE_MODELS[0]
+    sub = next(a for a in parser._subparsers._group_actions if a.choices).choices["calibrate"]
+    (action,) = (a for a in sub._actions if a.dest == "noise_model")
+    assert tuple(action.choices) == NOISE_MODELS

@@ -131,8 +131,12 @@ def noise_model_record(noise: NoiseModel, comps: NoiseComponents | None) -> dict
     }
 
 
-def noise_model_text(record: dict) -> str:
-    """One line on the noise model of ``record`` (:func:`noise_model_record`) for the command's report."""
+def noise_model_text(record: dict, radial_tried: bool = True) -> str:
+    """One line on the noise model of ``record`` (:func:`noise_model_record`) for the command's report;
+    ``radial_tried`` False (``noise_model="constant"``, ``--noise-model constant``): the floor held constant, no
+    likelihood ratio to give."""
+    if not radial_tried:
+        return "noise floor held constant over the field (--noise-model constant)"
     lr = f"likelihood ratio {record.get('lr', 0.0):.1f} against {record['lr_critical']:.2f} to choose the radial one"
     if record["model"] != "radial":
         return f"noise floor constant over the field ({lr})"

@@ -47,11 +47,17 @@ def parameter_columns(estimate: tuple[str, ...]) -> np.ndarray:
     return np.array([ESTIMATE_NAMES.index(n) for n in ESTIMATE_NAMES if n in estimate], dtype=np.int64)
 
 
+def half_diagonal_px(params: CameraParams) -> float:
+    """The detector's half-diagonal [px], 0.5 hypot(width, height): the radius the model's scales and limits and the
+    noise floor's field radius are measured in."""
+    return 0.5 * float(np.hypot(*params.image_size_px))
+
+
 def parameter_scales(params: CameraParams) -> np.ndarray:
     """Characteristic size of a unit change of each model-vector entry: 1 px for F, x0, y0 and 1 px of distortion
     at the detector half-diagonal R for the rest (k1 ~ R^-3, k2 ~ R^-5, k3 ~ R^-7, p and s ~ R^-2). Steps are
     solved in these units so the normal matrix is well scaled."""
-    half_diag = 0.5 * float(np.hypot(*params.image_size_px))
+    half_diag = half_diagonal_px(params)
     return np.array([1.0, 1.0, 1.0, half_diag**-3, half_diag**-5, half_diag**-7] + [half_diag**-2] * 4)
 
 

@@ -57,7 +57,7 @@ def _scoring_step(r: np.ndarray, e2: np.ndarray, t: np.ndarray, theta: np.ndarra
     """theta after one Fisher-scoring step over the ``free`` components (the others held at 0)."""
     v = t @ theta
     tf = t[:, free]
-    info = (tf * (r / v**2)[:, None]).T @ tf
+    info = 2.0 * fisher_information(r, tf, v)  # F and h both without their factor 1/2 (exact: a power of two)
     h = tf.T @ (e2 / v**2)
     out = np.zeros(3)
     out[free] = np.linalg.lstsq(info, h, rcond=None)[0]
@@ -166,13 +166,19 @@ def lr_critical(r: np.ndarray, t: np.ndarray, theta: np.ndarray) -> float:
     :func:`boundary_tail` (b = 0) at the angle between b and c in the Fisher information profiled over a (its Schur
     complement). :data:`LR_CRITICAL` when a and b cannot be told apart (every star of one sigma_px: a sigma_px^2 + b
     is then one component inside its range, the case of the equal mixture)."""
-    v = t @ theta
-    fisher = 0.5 * (t * (r / v**2)[:, None]).T @ t
+    fisher = fisher_information(r, t, t @ theta)
     if not _separable(fisher):
         return LR_CRITICAL
     m = fisher[1:, 1:] - np.outer(fisher[1:, 0], fisher[0, 1:]) / fisher[0, 0]
     phi = math.acos(max(-1.0, min(1.0, m[0, 1] / math.sqrt(m[0, 0] * m[1, 1]))))
     return max(LR_CRITICAL, _boundary_critical(phi))
+
+
+def fisher_information(r: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The Fisher information of the components whose regressors are the columns of ``t`` (n, k), over bins of
+    redundancy ``r`` and variance ``v``: F_kl = 1/2 sum r_i T_ki T_li / v_i^2 (|e_i|^2 / v_i chi-square with r_i
+    degrees of freedom; Koch 1999, sec. 3.6.3)."""
+    return 0.5 * (t * (r / v**2)[:, None]).T @ t
 
 
 def _separable(fisher: np.ndarray) -> bool:
@@ -188,15 +194,13 @@ def fisher_errors(r: np.ndarray, t: np.ndarray, theta: np.ndarray, free: np.ndar
     sigma_px: :func:`_separable`) theirs are inf, as for the constant floor, and
     c's is that of the two separable components (a sigma_px^2 + b, c)."""
     v = t @ theta
-    tf = t[:, free]
-    fisher = 0.5 * (tf * (r / v**2)[:, None]).T @ tf
+    fisher = fisher_information(r, t[:, free], v)
     out = np.zeros(3)
     if _separable(fisher):
         out[free] = np.sqrt(np.maximum(np.diag(np.linalg.inv(fisher)), 0.0))
         return out
     out[:2] = math.inf
-    tc = t[:, 1:]
-    fisher_c = 0.5 * (tc * (r / v**2)[:, None]).T @ tc
+    fisher_c = fisher_information(r, t[:, 1:], v)
     if free[2] and _separable(fisher_c):
         out[2] = math.sqrt(max(np.linalg.inv(fisher_c)[1, 1], 0.0))
     elif free[2]:

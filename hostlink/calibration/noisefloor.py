@@ -33,7 +33,7 @@ import numpy as np
 
 from hostlink.calibration.data import SIGMA_PX_CEILING, SIGMA_PX_FLOOR, CalibrationData
 from hostlink.calibration.frames import inverse_3x3
-from hostlink.calibration.model import attitude_terms, camera_terms
+from hostlink.calibration.model import attitude_terms, camera_terms, half_diagonal_px
 from hostlink.calibration.noisefield import LR_CRITICAL, fisher_errors, lr_critical, minus_two_log_l, radial_components
 from hostlink.calibration.normal import attitude_normal
 from hostlink.calibration.passes import frame_attitudes
@@ -75,8 +75,7 @@ class NoiseModel:
 def field_geometry(params) -> NoiseModel:
     """A model without floor whose field radius is taken from the principal point of ``params`` (the nominal: the
     same for every fit) relative to the half-diagonal of its image."""
-    w, h = params.image_size_px
-    return NoiseModel(0.0, 0.0, tuple(float(c) for c in params.principal_point_px), 0.5 * math.hypot(w, h))
+    return NoiseModel(0.0, 0.0, tuple(float(c) for c in params.principal_point_px), half_diagonal_px(params))
 
 
 def field_q(data: CalibrationData, noise: NoiseModel) -> np.ndarray:
@@ -138,13 +137,11 @@ class NoiseComponents:
         return replace(geometry, t_px2=self.t_px2, t_edge_px2=self.edge_px2 / self.scale**2)
 
 
-def with_floor(data: CalibrationData, noise: NoiseModel | float) -> CalibrationData:
+def with_floor(data: CalibrationData, noise: NoiseModel) -> CalibrationData:
     """``data`` with each star's noise sqrt(sigma_px^2 + t + t_edge q) (the floor relative to the scale, t = floor^2 /
-    s^2; a number: a constant t): the noise the weights and the gate use, up to the fitted scale s. ``data`` itself
-    when there is no floor or no sigma_px."""
-    if not isinstance(noise, NoiseModel):
-        noise = NoiseModel(float(noise))
-    if data.sigma_px is None or (noise.t_px2 <= 0.0 and noise.t_edge_px2 <= 0.0):
+    s^2): the noise the weights and the gate use, up to the fitted scale s. ``data`` itself when there is no floor
+    or no sigma_px."""
+    if data.sigma_px is None or not _has_floor(noise):
         return data
     added = noise.t_px2 + (noise.t_edge_px2 * field_q(data, noise) if noise.t_edge_px2 > 0.0 else 0.0)
     return replace(data, sigma_px=np.sqrt(data.sigma_px * data.sigma_px + added))
@@ -154,13 +151,11 @@ def _load_with_floor(load, noise: NoiseModel, handle) -> CalibrationData:
     return with_floor(handle if load is None else load(handle), noise)
 
 
-def _has_floor(noise: NoiseModel | float) -> bool:
-    if isinstance(noise, NoiseModel):
-        return noise.t_px2 > 0.0 or noise.t_edge_px2 > 0.0
-    return noise > 0.0
+def _has_floor(noise: NoiseModel) -> bool:
+    return noise.t_px2 > 0.0 or noise.t_edge_px2 > 0.0
 
 
-def floored_source(source: ChunkSource, noise: NoiseModel | float) -> ChunkSource:
+def floored_source(source: ChunkSource, noise: NoiseModel) -> ChunkSource:
     """``source`` whose chunks read :func:`with_floor` (spooled chunks on load, where a worker reads them)."""
     if not _has_floor(noise):
         return source

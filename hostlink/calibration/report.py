@@ -21,7 +21,14 @@ from hostlink.calibration.data import (
     half_angle_from_dot_rad,
 )
 from hostlink.calibration.frames import wahba_attitudes
-from hostlink.calibration.model import DEFAULT_CHUNK_OBS, angle_arcsec, observation_residuals, residuals, rotate
+from hostlink.calibration.model import (
+    DEFAULT_CHUNK_OBS,
+    angle_arcsec,
+    half_diagonal_px,
+    observation_residuals,
+    residuals,
+    rotate,
+)
 from onboard.camera import pixels_to_unit
 from onboard.params import ESTIMATE_NAMES, CameraParams
 
@@ -281,7 +288,7 @@ RELEASE_LIMIT = {1: 25.0, 2: 28.74}
 
 
 def _hold_limits_px(params: CameraParams) -> dict[str, float]:
-    half_diag = 0.5 * float(np.hypot(*params.image_size_px))
+    half_diag = half_diagonal_px(params)
     limits = {n: HOLD_DISTORTION_PX for n in ESTIMATE_NAMES[3:]}
     limits.update({"f": math.inf, "x0": HOLD_PRINCIPAL_POINT_FRACTION * half_diag})
     limits["y0"] = limits["x0"]

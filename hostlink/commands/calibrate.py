@@ -341,12 +341,7 @@ def _noise_line(outcome, noise_model: str = "auto") -> str:
         line += f"{floor} in quadrature, stars weighted by both"
         if model is None:
             return line
-        held = noise_model == "constant"  # the radial model not tried: no likelihood ratio to print
-        return (
-            f"{line}; noise floor held constant over the field (--noise-model constant)"
-            if held
-            else (f"{line}; {noise_model_text(model)}")
-        )
+        return f"{line}; {noise_model_text(model, radial_tried=noise_model != 'constant')}"
     return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
 
 

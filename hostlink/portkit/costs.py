@@ -500,9 +500,9 @@ class CostRow:
     extra: dict = field(default_factory=dict)
 
 
-#: Bytes of the words the memory column counts: float32, int64 (the Q formats' accumulators) and int32 (Q10
-#: centroids).
-_F32, _I64, _I32 = 4, 8, 4
+#: Bytes of the words the memory column counts: float32, int64 (the Q formats' accumulators), int32 (Q10
+#: centroids) and float64 (the once-per-instant apparent place).
+_F32, _I64, _I32, _F64 = 4, 8, 4, 8
 
 
 def cost_table(n_stars: int = 32, n_states: int = 10, config: RecursiveConfig | None = None) -> list[CostRow]:
@@ -624,7 +624,7 @@ def _reference_rows(n: int) -> list[CostRow]:
             "apparent_place_instant",
             "float64",
             apparent_instant_ops(),
-            8 * (3 * 3 + 9) + _I64 * 20,
+            _F64 * (3 * 3 + 9) + _I64 * 20,
             "fixed_instant: once per frame, independent of N, soft float64 on a sensor without an FPU",
         ),
     ]
