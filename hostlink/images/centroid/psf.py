@@ -245,21 +245,12 @@ def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start
         p[2] = max(float(d.sum() - p[3] * d.size), 1.0)
         for _ in range(_WIDTH_FIT_ITERATIONS):
             s = p[4]
+            _, jac = psf_model(c, r, p[:4], s)  # d mu / d (x, y, N, B): the PSF fit's own model, d / ds added
             px, py = pixel_integrated_gaussian(c, p[0], s), pixel_integrated_gaussian(r, p[1], s)
-            dpx, dpy = pixel_integrated_gaussian_dsource(c, p[0], s), pixel_integrated_gaussian_dsource(r, p[1], s)
             spx, spy = _pixel_gaussian_dwidth(c, p[0], s), _pixel_gaussian_dwidth(r, p[1], s)
-            shape = np.outer(py, px)
-            jac = np.stack(
-                [
-                    p[2] * np.outer(py, dpx).ravel(),
-                    p[2] * np.outer(dpy, px).ravel(),
-                    shape.ravel(),
-                    np.ones(d.size),
-                    p[2] * (np.outer(spy, px) + np.outer(py, spx)).ravel(),
-                ],
-                axis=1,
-            )
-            step = np.linalg.lstsq(jac, d - p[3] - p[2] * shape.ravel(), rcond=None)[0]
+            dwidth = p[2] * (np.outer(spy, px) + np.outer(py, spx))
+            jac = np.concatenate([jac.reshape(d.size, 4), dwidth.reshape(d.size, 1)], axis=1)
+            step = np.linalg.lstsq(jac, d - p[3] - p[2] * jac[:, 2], rcond=None)[0]
             step *= min(1.0, _WIDTH_FIT_MAX_STEP * s / max(abs(step[4]), 1e-300))
             p = p + step
             if not (p[4] > 0 and p[2] > 0 and abs(p[0] - x[k]) < half and abs(p[1] - y[k]) < half):
