@@ -45,12 +45,18 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     ring = ~inner.ravel()
     background = _row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
     background[~np.isfinite(background)] = 0.0
-    p = (
+    p = np.where(inside & inner, _psf_shape_batch(cols, rows, x, y, sigma_px), 0.0)
+    return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
+
+
+def _psf_shape_batch(cols: np.ndarray, rows: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
+    """(N, H, W): each star's pixel-integrated Gaussian of unit flux, Py(y) Px(x) (:func:`psf_model_batch` with
+    N = 1, B = 0, without its Jacobian), over its pixels ``rows`` (N, H) x ``cols`` (N, W), the star at ``x``, ``y``
+    (N,) [px]."""
+    return (
         pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
         * pixel_integrated_gaussian(cols, x[:, None], sigma_px)[:, None, :]
     )
-    p = np.where(inside & inner, p, 0.0)
-    return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
 
 
 def psf_model(cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
