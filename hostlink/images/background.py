@@ -173,7 +173,7 @@ def _clipped_box_noise(
     needs a peak at 5 sigma (the heavier tail of clipped 8-bit noise reaches it about as often as it makes a false
     detection). ``fine_medians``: the medians of the fine boxes of ``fine_px`` (the offset the stars stand above)."""
     stars = np.zeros(filtered.shape, dtype=bool)
-    previous = None
+    previous, above = None, None
     for k in range(_MAX_NOISE_PASSES):
         spread, rows, cols = _box_percentiles(filtered, mask | stars, box_px, (50.0, _UPPER_2SIGMA_PERCENT))
         noise = 0.5 * (spread[..., 1] - spread[..., 0])
@@ -185,22 +185,27 @@ def _clipped_box_noise(
         ):
             break
         previous = (noise, rows, cols, smooth)
-        stars = _star_light(filtered, mask, _filled(fine_medians), fine_px, smooth, box_px)
+        if above is None:  # the filtered image over the fine boxes' offset: the same in every pass
+            above = filtered - _box_constant(_filled(fine_medians), fine_px, filtered.shape)
+        stars = _star_light(above, mask, smooth, box_px)
     return noise, rows, cols
 
 
-def _star_light(
-    filtered: np.ndarray, mask: np.ndarray, level: np.ndarray, level_px: int, noise: np.ndarray, noise_px: int
-) -> np.ndarray:
-    """(h, w) bool: the pixels of ``filtered`` outside ``mask`` in a connected region (8-connected) above
-    :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` over ``level`` that holds a pixel above :data:`_STAR_PEAK_SIGMAS` x
-    ``noise`` (a star, down to its 1-sigma isophote); ``level`` and ``noise``, per box of ``level_px`` and
-    ``noise_px`` from pixel 0, are taken as constant over each box."""
+def _box_constant(grid: np.ndarray, box_px: int, shape: tuple[int, int]) -> np.ndarray:
+    """The box values ``grid`` spread over an image of ``shape``, each constant over its box of ``box_px`` from
+    pixel 0."""
+    h, w = shape
+    return np.repeat(np.repeat(grid, box_px, axis=0), box_px, axis=1)[:h, :w]
+
+
+def _star_light(above: np.ndarray, mask: np.ndarray, noise: np.ndarray, noise_px: int) -> np.ndarray:
+    """(h, w) bool: the pixels of ``above`` (the filtered image less its offset) outside ``mask`` in a connected
+    region (8-connected) above :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` that holds a pixel above
+    :data:`_STAR_PEAK_SIGMAS` x ``noise`` (a star, down to its 1-sigma isophote); ``noise`` per box of ``noise_px``
+    from pixel 0, taken as constant over each box (:func:`_box_constant`)."""
     from scipy import ndimage
 
-    h, w = filtered.shape
-    above = filtered - np.repeat(np.repeat(level, level_px, axis=0), level_px, axis=1)[:h, :w]
-    sigma = np.repeat(np.repeat(noise, noise_px, axis=0), noise_px, axis=1)[:h, :w]
+    sigma = _box_constant(noise, noise_px, above.shape)
     labels, n = ndimage.label((above > _STAR_ISOPHOTE_SIGMAS * sigma) & ~mask, structure=np.ones((3, 3), dtype=int))
     star = np.zeros(n + 1, dtype=bool)
     star[labels[above > _STAR_PEAK_SIGMAS * sigma]] = True
