@@ -52,13 +52,19 @@ _WINDOW_ITERATIONS = 8
 _WINDOW_HALF_SIGMAS = 4
 
 
+def _window_half_px(sigma_px: float) -> int:
+    """The half-width [px] of the windowed centroid's stamps for a window of ``sigma_px``: 4 sigma + 1 px, rounded
+    up (:data:`_WINDOW_HALF_SIGMAS`)."""
+    return int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+
+
 def _window_iterated(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Source Extractor's windowed centroid (XWIN_IMAGE, Bertin's SExtractor manual, "windowed positional
     parameters") of every star at once: x <- x + 2 sum w I (x_i - x) / sum w I with the Gaussian window
     w = exp(-r^2 / (2 sigma^2)) over +-(4 sigma + 1) px, :data:`_WINDOW_ITERATIONS` times (as ``sep.winpos`` does for
     one star at a time); a star whose step leaves the stamp, or whose windowed flux is not positive, keeps its
     start."""
-    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    half = _window_half_px(sigma_px)
     cols, rows, data, _ = _stamps(sub, x, y, half)
     cx, cy = x.copy(), y.copy()
     ok = np.ones(x.size, dtype=bool)
@@ -93,7 +99,7 @@ def _border_windows(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: flo
     sigma; a saturated core's is the only centroid there is). Returns x, y and the share of the window's weight the
     region holds at the end (0 where the centroid failed: no positive windowed flux, or a step leaving the
     stamp)."""
-    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    half = _window_half_px(sigma_px)
     cols, rows, data, inside = _stamps(sub, x, y, half)
     h, w = sub.shape
     cx, cy = x.copy(), y.copy()
