@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from hostlink.images.background import kernel_norm
 from hostlink.images.centroid.options import Candidates, CentroidOptions, Detections
-from hostlink.images.centroid.psf import _PSF_FIT_SIGMAS, _noise_stated, _psf_fluxes, centroid_sigma_px
+from hostlink.images.centroid.psf import (
+    _PSF_FIT_SIGMAS,
+    _noise_stated,
+    _psf_fit_half_px,
+    _psf_fluxes,
+    centroid_sigma_px,
+)
 from hostlink.images.centroid.screen import _FILTER_KERNEL, _HOT_BOX_HALF_PX
 from hostlink.images.centroid.stamps import _in_chunks
 from hostlink.images.centroid.windows import _window_half_px, _window_iterated
@@ -84,7 +88,7 @@ def _snr(sub, rms, x: np.ndarray, y: np.ndarray, sigma_px: float, flux: np.ndarr
 def _psf_sum_squares(x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
     """sum P^2 of the pixel-integrated Gaussian PSF at each (x, y) over +-(3 sigma + 1) px (the flux fit's stamp,
     :func:`_psf_fluxes`): the flux's noise is rms / sqrt(sum P^2) for white noise. Separable: (sum Px^2)(sum Py^2)."""
-    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    half = _psf_fit_half_px(sigma_px)
     offsets = np.arange(-half, half + 1, dtype=np.float64)
     cols = np.rint(x)[:, None] + offsets[None, :]
     rows = np.rint(y)[:, None] + offsets[None, :]
