@@ -188,6 +188,16 @@ def _psf_ellipticity_field(
     return model, spread
 
 
+#: The second moments' stamp: +-this many window sigmas, rounded up (the window's weight there, exp(-8), is 3.4e-4 of
+#: its peak).
+_MOMENT_HALF_SIGMAS = 4
+
+
+def _moment_half_px(sigma_px: float) -> int:
+    """The half-width [px] of the second moments' stamp for a window of ``sigma_px`` (:data:`_MOMENT_HALF_SIGMAS`)."""
+    return int(math.ceil(_MOMENT_HALF_SIGMAS * sigma_px))
+
+
 def _windowed_ellipticity(
     sub: np.ndarray, rms: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float, gain_e_per_adu: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -199,7 +209,7 @@ def _windowed_ellipticity(
     deviation and Mxx + Myy [px^2] (NaN where the moments are not measured)."""
     if x.size == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-    half = int(math.ceil(4 * sigma_px))
+    half = _moment_half_px(sigma_px)
     return _in_chunks(
         half, x.size, lambda k: _windowed_ellipticity_block(sub, rms, x[k], y[k], sigma_px, gain_e_per_adu, half)
     )
@@ -252,7 +262,7 @@ def _border_ellipticity(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float |
     (:func:`hostlink.images.centroid.psf._psf_shape_batch`, at the same position) shows over that region: what is
     left is the star's own elongation, as for a whole star. Returns e, its standard deviation and Mxx + Myy
     over the region."""
-    half = int(math.ceil(4 * sigma_px))
+    half = _moment_half_px(sigma_px)
     cols, rows, data, inside = _stamps(sub, x, y, half)
     var = _pixel_variance(rms, x, y, half, inside, data, gain_e_per_adu)
     h, w = sub.shape
