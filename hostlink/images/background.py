@@ -156,7 +156,7 @@ def local_noise_map(
     )
     step_offset, step = _step_offset(_median(medians, 3) - smooth, filtered_noise)
     offset_map = _bilinear(smooth + step_offset, row_centres, col_centres, h, w)
-    edge = np.repeat(np.repeat(step, fine, axis=0), fine, axis=1)[:h, :w]  # the boxes start at pixel 0
+    edge = _box_constant(step, fine, (h, w))  # the boxes start at pixel 0
     return offset_map, noise_map, edge
 
 
