@@ -145,10 +145,10 @@ def local_noise_map(
     # the noise from the mesh's boxes: the upper percentile of a fine box's few independent pixels (the JPEG and the
     # filter correlate ~9 neighbours) is biased low (-7 % on the clean frame of tests/test_images_glow.py; half the
     # mesh: 8 false detections instead of 5 on the clipped 8-bit noise of tests/test_images_centroid.py)
-    noise, noise_rows, noise_cols = _clipped_box_noise(filtered, mask, stats[..., 0], fine, box_px)
-    if not np.isfinite(noise).any():  # nothing measurable: SEP's map as it is, no offset
+    noise, noise_rows, noise_cols = _clipped_box_noise(filtered, mask, stats[..., 0], fine, box_px)  # smoothed
+    if noise is None:  # nothing measurable: SEP's map as it is, no offset
         return np.zeros_like(filtered), _positive(sep_rms), np.zeros(filtered.shape, dtype=bool)
-    medians, noise = _filled(stats[..., 0]), _median(_filled(noise), _SMOOTH_BOXES) / kernel_norm
+    medians, noise = _filled(stats[..., 0]), noise / kernel_norm
     noise_map = _positive(_bilinear(noise, noise_rows, noise_cols, h, w))
     smooth = _median(medians, _SMOOTH_BOXES)
     filtered_noise = (
@@ -156,51 +156,57 @@ def local_noise_map(
     )
     step_offset, step = _step_offset(_median(medians, 3) - smooth, filtered_noise)
     offset_map = _bilinear(smooth + step_offset, row_centres, col_centres, h, w)
-    edge = np.repeat(np.repeat(step, fine, axis=0), fine, axis=1)[:h, :w]  # the boxes start at pixel 0
+    edge = _box_constant(step, fine, (h, w))  # the boxes start at pixel 0
     return offset_map, noise_map, edge
 
 
 def _clipped_box_noise(
     filtered: np.ndarray, mask: np.ndarray, fine_medians: np.ndarray, fine_px: int, box_px: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """The noise of the filtered image in each mesh box, (P97.725 - P50) / 2 of its pixels outside ``mask`` and
-    outside the stars' light (NaN where too few are left: :func:`_box_percentiles`), and the boxes' centres. An
-    iterative clipping of whole stars (as SEP clips single pixels at 3 sigma for its own map, Bertin & Arnouts 1996,
-    sec. 3.1, but of the upper side only: the lower half is the 8-bit floor's): the stars are the regions
+    outside the stars' light, median-filtered over 5 x 5 boxes (None where no box is measurable:
+    :func:`_box_percentiles`), and the boxes' centres. An iterative clipping of whole stars (as SEP clips single
+    pixels at 3 sigma for its own map, Bertin & Arnouts 1996, sec. 3.1, but of the upper side only: the lower half is
+    the 8-bit floor's): the stars are the regions
     :func:`_star_light` finds with the noise of the pass before (the first pass counts every pixel: its noise is too
     high where stars are dense, so its clipping keeps their faint wings, and each pass clips deeper), until the noise
     smoothed over 5 x 5 boxes settles (:data:`_NOISE_CONVERGED_FRACTION`). Noise alone loses nearly nothing: a region
     needs a peak at 5 sigma (the heavier tail of clipped 8-bit noise reaches it about as often as it makes a false
     detection). ``fine_medians``: the medians of the fine boxes of ``fine_px`` (the offset the stars stand above)."""
     stars = np.zeros(filtered.shape, dtype=bool)
-    previous = None
+    previous, above = None, None
     for k in range(_MAX_NOISE_PASSES):
         spread, rows, cols = _box_percentiles(filtered, mask | stars, box_px, (50.0, _UPPER_2SIGMA_PERCENT))
         noise = 0.5 * (spread[..., 1] - spread[..., 0])
         if not np.isfinite(noise).any():  # nothing measurable (or, after the first pass, nothing left: keep it)
-            return (noise, rows, cols) if previous is None else previous[:3]
+            return (None, rows, cols) if previous is None else previous
         smooth = _median(_filled(noise), _SMOOTH_BOXES)
         if k + 1 == _MAX_NOISE_PASSES or (
-            previous is not None and np.all(np.abs(smooth - previous[3]) <= _NOISE_CONVERGED_FRACTION * previous[3])
+            previous is not None and np.all(np.abs(smooth - previous[0]) <= _NOISE_CONVERGED_FRACTION * previous[0])
         ):
             break
-        previous = (noise, rows, cols, smooth)
-        stars = _star_light(filtered, mask, _filled(fine_medians), fine_px, smooth, box_px)
-    return noise, rows, cols
+        previous = (smooth, rows, cols)
+        if above is None:  # the filtered image over the fine boxes' offset: the same in every pass
+            above = filtered - _box_constant(_filled(fine_medians), fine_px, filtered.shape)
+        stars = _star_light(above, mask, smooth, box_px)
+    return smooth, rows, cols
 
 
-def _star_light(
-    filtered: np.ndarray, mask: np.ndarray, level: np.ndarray, level_px: int, noise: np.ndarray, noise_px: int
-) -> np.ndarray:
-    """(h, w) bool: the pixels of ``filtered`` outside ``mask`` in a connected region (8-connected) above
-    :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` over ``level`` that holds a pixel above :data:`_STAR_PEAK_SIGMAS` x
-    ``noise`` (a star, down to its 1-sigma isophote); ``level`` and ``noise``, per box of ``level_px`` and
-    ``noise_px`` from pixel 0, are taken as constant over each box."""
+def _box_constant(grid: np.ndarray, box_px: int, shape: tuple[int, int]) -> np.ndarray:
+    """The box values ``grid`` spread over an image of ``shape``, each constant over its box of ``box_px`` from
+    pixel 0."""
+    h, w = shape
+    return np.repeat(np.repeat(grid, box_px, axis=0), box_px, axis=1)[:h, :w]
+
+
+def _star_light(above: np.ndarray, mask: np.ndarray, noise: np.ndarray, noise_px: int) -> np.ndarray:
+    """(h, w) bool: the pixels of ``above`` (the filtered image less its offset) outside ``mask`` in a connected
+    region (8-connected) above :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` that holds a pixel above
+    :data:`_STAR_PEAK_SIGMAS` x ``noise`` (a star, down to its 1-sigma isophote); ``noise`` per box of ``noise_px``
+    from pixel 0, taken as constant over each box (:func:`_box_constant`)."""
     from scipy import ndimage
 
-    h, w = filtered.shape
-    above = filtered - np.repeat(np.repeat(level, level_px, axis=0), level_px, axis=1)[:h, :w]
-    sigma = np.repeat(np.repeat(noise, noise_px, axis=0), noise_px, axis=1)[:h, :w]
+    sigma = _box_constant(noise, noise_px, above.shape)
     labels, n = ndimage.label((above > _STAR_ISOPHOTE_SIGMAS * sigma) & ~mask, structure=np.ones((3, 3), dtype=int))
     star = np.zeros(n + 1, dtype=bool)
     star[labels[above > _STAR_PEAK_SIGMAS * sigma]] = True

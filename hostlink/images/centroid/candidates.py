@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from hostlink.images.background import kernel_norm
 from hostlink.images.centroid.options import Candidates, CentroidOptions, Detections
-from hostlink.images.centroid.psf import _PSF_FIT_SIGMAS, _noise_stated, _psf_fluxes, centroid_sigma_px
+from hostlink.images.centroid.psf import (
+    _PSF_FIT_SIGMAS,
+    _noise_stated,
+    _psf_fit_half_px,
+    _psf_fluxes,
+    centroid_sigma_px,
+)
 from hostlink.images.centroid.screen import _FILTER_KERNEL, _HOT_BOX_HALF_PX
 from hostlink.images.centroid.stamps import _in_chunks
-from hostlink.images.centroid.windows import _WINDOW_HALF_SIGMAS, _window_iterated
+from hostlink.images.centroid.windows import _window_half_px, _window_iterated
 from hostlink.sky.render import pixel_integrated_gaussian
 
 #: A candidate's peak lies at least this far [px] from every kept star, in PSF sigmas plus 1 px (the fit's stamp,
@@ -34,7 +39,7 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
 
         near, _ = cKDTree(np.column_stack([kept.x_px, kept.y_px])).query(np.column_stack([x0, y0]))
         x0, y0, rows, cols = x0[near > clear], y0[near > clear], rows[near > clear], cols[near > clear]
-    x, y = _in_chunks(_WINDOW_HALF_SIGMAS * 2, x0.size, lambda k: _window_iterated(sub, x0[k], y0[k], sigma))
+    x, y = _in_chunks(_window_half_px(sigma), x0.size, lambda k: _window_iterated(sub, x0[k], y0[k], sigma))
     flux = _psf_fluxes(sub, x, y, sigma)
     snr = _snr(sub, rms, x, y, sigma, flux)
     keep = np.flatnonzero(snr >= options.candidate_sigma)
@@ -47,7 +52,7 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
 
 
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
-_FILTERED_NOISE_PER_PX = math.sqrt(float(np.sum((_FILTER_KERNEL / _FILTER_KERNEL.sum()) ** 2)))
+_FILTERED_NOISE_PER_PX = kernel_norm(_FILTER_KERNEL)
 
 
 def _local_maxima(significance: np.ndarray, limit: float, segmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +88,7 @@ def _snr(sub, rms, x: np.ndarray, y: np.ndarray, sigma_px: float, flux: np.ndarr
 def _psf_sum_squares(x: np.ndarray, y: np.ndarray, sigma_px: float) -> np.ndarray:
     """sum P^2 of the pixel-integrated Gaussian PSF at each (x, y) over +-(3 sigma + 1) px (the flux fit's stamp,
     :func:`_psf_fluxes`): the flux's noise is rms / sqrt(sum P^2) for white noise. Separable: (sum Px^2)(sum Py^2)."""
-    half = int(math.ceil(_PSF_FIT_SIGMAS * sigma_px)) + 1
+    half = _psf_fit_half_px(sigma_px)
     offsets = np.arange(-half, half + 1, dtype=np.float64)
     cols = np.rint(x)[:, None] + offsets[None, :]
     rows = np.rint(y)[:, None] + offsets[None, :]

@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
+from hostlink.images.centroid.psf import _psf_shape_batch
 from hostlink.images.centroid.stamps import _in_chunks, _stamps
-from hostlink.images.centroid.windows import _symmetric_window
-from hostlink.sky.render import pixel_integrated_gaussian
+from hostlink.images.centroid.windows import _WINPOS_MAX_SHIFT_PX, _symmetric_window
 
 #: An ellipticity is significant beyond this many standard deviations of its noise (a round star exceeds it with
 #: probability exp(-16 / 2) = 3e-4: the ellipticity's two components are Gaussian with that deviation).
@@ -28,7 +28,7 @@ _PSF_SHAPE_MAX_SIGMA = 0.1
 #: flagged, while the bound on its centroid's bias is at most this [px]: the shift beyond which a windowed centroid
 #: has failed (:data:`_WINPOS_MAX_SHIFT_PX`); the bound enters its ``sigma_px`` (:func:`_measured`), so the
 #: calibration's weights and outlier gate judge it, not the extractor.
-_BLEND_MAX_BIAS_PX = 2.0
+_BLEND_MAX_BIAS_PX = _WINPOS_MAX_SHIFT_PX
 
 
 def _neighbour_bias_px(objects: np.ndarray, which: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -188,6 +188,16 @@ def _psf_ellipticity_field(
     return model, spread
 
 
+#: The second moments' stamp: +-this many window sigmas, rounded up (the window's weight there, exp(-8), is 3.4e-4 of
+#: its peak).
+_MOMENT_HALF_SIGMAS = 4
+
+
+def _moment_half_px(sigma_px: float) -> int:
+    """The half-width [px] of the second moments' stamp for a window of ``sigma_px`` (:data:`_MOMENT_HALF_SIGMAS`)."""
+    return int(math.ceil(_MOMENT_HALF_SIGMAS * sigma_px))
+
+
 def _windowed_ellipticity(
     sub: np.ndarray, rms: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float, gain_e_per_adu: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -199,7 +209,7 @@ def _windowed_ellipticity(
     deviation and Mxx + Myy [px^2] (NaN where the moments are not measured)."""
     if x.size == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-    half = int(math.ceil(4 * sigma_px))
+    half = _moment_half_px(sigma_px)
     return _in_chunks(
         half, x.size, lambda k: _windowed_ellipticity_block(sub, rms, x[k], y[k], sigma_px, gain_e_per_adu, half)
     )
@@ -249,9 +259,10 @@ def _moment_ellipticity(weight, data, dx, dy, var):
 def _border_ellipticity(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None):
     """:func:`_windowed_ellipticity` of stars the border cuts, over the region of :func:`_border_windows` (the part
     of the image point-symmetric about the star), less the ellipticity a round star of the frame's PSF sigma
-    (:func:`psf_model`, at the same position) shows over that region: what is left is the star's own elongation, as
-    for a whole star. Returns e, its standard deviation and Mxx + Myy over the region."""
-    half = int(math.ceil(4 * sigma_px))
+    (:func:`hostlink.images.centroid.psf._psf_shape_batch`, at the same position) shows over that region: what is
+    left is the star's own elongation, as for a whole star. Returns e, its standard deviation and Mxx + Myy
+    over the region."""
+    half = _moment_half_px(sigma_px)
     cols, rows, data, inside = _stamps(sub, x, y, half)
     var = _pixel_variance(rms, x, y, half, inside, data, gain_e_per_adu)
     h, w = sub.shape
@@ -260,9 +271,6 @@ def _border_ellipticity(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float |
     dx = (cols - x[:, None])[:, None, :]
     dy = (rows - y[:, None])[:, :, None]
     e, e_sigma, size = _moment_ellipticity(weight, data, dx, dy, var)
-    round_star = (
-        pixel_integrated_gaussian(rows, y[:, None], sigma_px)[:, :, None]
-        * pixel_integrated_gaussian(cols, x[:, None], sigma_px)[:, None, :]
-    )
+    round_star = _psf_shape_batch(cols, rows, x, y, sigma_px)
     e_round, *_ = _moment_ellipticity(weight, round_star, dx, dy, np.zeros_like(var))
     return e - e_round, e_sigma, size

@@ -52,29 +52,42 @@ _WINDOW_ITERATIONS = 8
 _WINDOW_HALF_SIGMAS = 4
 
 
+def _window_half_px(sigma_px: float) -> int:
+    """The half-width [px] of the windowed centroid's stamps for a window of ``sigma_px``: 4 sigma + 1 px, rounded
+    up (:data:`_WINDOW_HALF_SIGMAS`)."""
+    return int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+
+
 def _window_iterated(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Source Extractor's windowed centroid (XWIN_IMAGE, Bertin's SExtractor manual, "windowed positional
     parameters") of every star at once: x <- x + 2 sum w I (x_i - x) / sum w I with the Gaussian window
     w = exp(-r^2 / (2 sigma^2)) over +-(4 sigma + 1) px, :data:`_WINDOW_ITERATIONS` times (as ``sep.winpos`` does for
     one star at a time); a star whose step leaves the stamp, or whose windowed flux is not positive, keeps its
     start."""
-    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    half = _window_half_px(sigma_px)
     cols, rows, data, _ = _stamps(sub, x, y, half)
     cx, cy = x.copy(), y.copy()
     ok = np.ones(x.size, dtype=bool)
     for _ in range(_WINDOW_ITERATIONS):
-        dx = cols - cx[:, None]
-        dy = rows - cy[:, None]
-        wx = np.exp(-0.5 * (dx / sigma_px) ** 2)
-        wy = np.exp(-0.5 * (dy / sigma_px) ** 2)
-        wi = wy[:, :, None] * wx[:, None, :] * data
-        total = np.sum(wi, axis=(1, 2))
-        ok &= total > 0
-        safe = np.where(ok, total, 1.0)
-        cx = cx + np.where(ok, 2.0 * np.sum(wi * dx[:, None, :], axis=(1, 2)) / safe, 0.0)
-        cy = cy + np.where(ok, 2.0 * np.sum(wi * dy[:, :, None], axis=(1, 2)) / safe, 0.0)
-        ok &= (np.abs(cx - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy - y) <= _WINPOS_MAX_SHIFT_PX)
+        wx = np.exp(-0.5 * ((cols - cx[:, None]) / sigma_px) ** 2)
+        wy = np.exp(-0.5 * ((rows - cy[:, None]) / sigma_px) ** 2)
+        cx, cy, ok = _window_step(cols, rows, data, wx, wy, cx, cy, ok, x, y)
     return np.where(ok, cx, x), np.where(ok, cy, y)
+
+
+def _window_step(cols, rows, data, wx, wy, cx, cy, ok, x, y):
+    """One step of the windowed centroid, x <- x + 2 sum w I (x_i - x) / sum w I (:func:`_window_iterated`), with the
+    separable window ``wx`` (N, W) x ``wy`` (N, H) at (``cx``, ``cy``): the new centroids and ``ok`` less the stars
+    whose windowed flux is not positive or whose centroid moved more than :data:`_WINPOS_MAX_SHIFT_PX` from (``x``,
+    ``y``) (a failed star's centroid is left where it was)."""
+    wi = wy[:, :, None] * wx[:, None, :] * data
+    total = np.sum(wi, axis=(1, 2))
+    ok = ok & (total > 0)
+    safe = np.where(ok, total, 1.0)
+    cx_new = cx + np.where(ok, 2.0 * np.sum(wi * (cols - cx[:, None])[:, None, :], axis=(1, 2)) / safe, 0.0)
+    cy_new = cy + np.where(ok, 2.0 * np.sum(wi * (rows - cy[:, None])[:, :, None], axis=(1, 2)) / safe, 0.0)
+    ok &= (np.abs(cx_new - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy_new - y) <= _WINPOS_MAX_SHIFT_PX)
+    return cx_new, cy_new, ok
 
 
 def _border_windows(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: float):
@@ -86,20 +99,14 @@ def _border_windows(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_px: flo
     sigma; a saturated core's is the only centroid there is). Returns x, y and the share of the window's weight the
     region holds at the end (0 where the centroid failed: no positive windowed flux, or a step leaving the
     stamp)."""
-    half = int(math.ceil(_WINDOW_HALF_SIGMAS * sigma_px)) + 1
+    half = _window_half_px(sigma_px)
     cols, rows, data, inside = _stamps(sub, x, y, half)
     h, w = sub.shape
     cx, cy = x.copy(), y.copy()
     ok = np.ones(x.size, dtype=bool)
     for _ in range(_WINDOW_ITERATIONS):
-        wx, wy, share = _symmetric_window(cols, rows, cx, cy, sigma_px, w, h)
-        wi = wy[:, :, None] * wx[:, None, :] * data
-        total = np.sum(wi, axis=(1, 2))
-        ok &= total > 0
-        safe = np.where(ok, total, 1.0)
-        cx = cx + np.where(ok, 2.0 * np.sum(wi * (cols - cx[:, None])[:, None, :], axis=(1, 2)) / safe, 0.0)
-        cy = cy + np.where(ok, 2.0 * np.sum(wi * (rows - cy[:, None])[:, :, None], axis=(1, 2)) / safe, 0.0)
-        ok &= (np.abs(cx - x) <= _WINPOS_MAX_SHIFT_PX) & (np.abs(cy - y) <= _WINPOS_MAX_SHIFT_PX)
+        wx, wy, _ = _symmetric_window(cols, rows, cx, cy, sigma_px, w, h)
+        cx, cy, ok = _window_step(cols, rows, data, wx, wy, cx, cy, ok, x, y)
     *_, share = _symmetric_window(cols, rows, cx, cy, sigma_px, w, h)
     return np.where(ok, cx, x), np.where(ok, cy, y), np.where(ok, share, 0.0)
 
