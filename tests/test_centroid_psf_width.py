@@ -5,8 +5,8 @@ that model it returns the width they were drawn with."""
 import numpy as np
 import pytest
 
-from hostlink.images.centroid.psf import _pixel_gaussian_dwidth, _psf_width_fit_px
-from hostlink.sky.render import pixel_integrated_gaussian
+from hostlink.images.centroid.psf import _psf_width_fit_px
+from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dwidth
 
 
 @pytest.mark.parametrize("sigma_px", [0.45, 0.77, 1.3, 2.5])
@@ -19,7 +19,7 @@ def test_width_derivative_matches_central_differences(sigma_px):
         - pixel_integrated_gaussian(centres, source, sigma_px - h)
     ) / (2 * h)
     # central differences err by h^2 / 6 x the third derivative (< 1e-9 here) plus ~1e-16 / h of rounding (~1e-11)
-    np.testing.assert_allclose(_pixel_gaussian_dwidth(centres, source, sigma_px), numeric, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(pixel_integrated_gaussian_dwidth(centres, source, sigma_px), numeric, rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize("sigma_px", [0.5, 0.77, 1.2])

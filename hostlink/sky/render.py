@@ -124,6 +124,18 @@ def pixel_integrated_gaussian_dsource(
     return -(np.exp(-0.5 * upper**2) - np.exp(-0.5 * lower**2)) / (_SQRT_2PI * sigma_px)
 
 
+def pixel_integrated_gaussian_dwidth(
+    centres_px: np.ndarray, source_px: float | np.ndarray, sigma_px: float
+) -> np.ndarray:
+    """Derivative of :func:`pixel_integrated_gaussian` with respect to the width sigma [1/px]:
+    -[phi(u) u - phi(l) l] / sigma with u, l = (c +- 1/2 - s) / sigma, phi the standard normal density."""
+    c = np.asarray(centres_px, dtype=np.float64)
+    s = np.asarray(source_px, dtype=np.float64)
+    upper = (c + 0.5 - s) / sigma_px
+    lower = (c - 0.5 - s) / sigma_px
+    return -(np.exp(-0.5 * upper**2) * upper - np.exp(-0.5 * lower**2) * lower) / (_SQRT_2PI * sigma_px)
+
+
 def expected_electrons(
     x_px: np.ndarray, y_px: np.ndarray, flux_e: np.ndarray, image_size_px: tuple[int, int], config: RenderConfig
 ) -> np.ndarray:

@@ -9,7 +9,11 @@ import math
 import numpy as np
 
 from hostlink.images.centroid.stamps import _in_chunks, _row_medians, _stamps
-from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dsource
+from hostlink.sky.render import (
+    pixel_integrated_gaussian,
+    pixel_integrated_gaussian_dsource,
+    pixel_integrated_gaussian_dwidth,
+)
 
 #: The PSF flux is fitted over +-this many PSF sigmas (+1 px) around the centroid; the local background is the median
 #: of the ring from there out to 3 px farther.
@@ -270,7 +274,7 @@ def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start
             s = p[4]
             _, jac = psf_model(c, r, p[:4], s)  # d mu / d (x, y, N, B): the PSF fit's own model, d / ds added
             px, py = pixel_integrated_gaussian(c, p[0], s), pixel_integrated_gaussian(r, p[1], s)
-            spx, spy = _pixel_gaussian_dwidth(c, p[0], s), _pixel_gaussian_dwidth(r, p[1], s)
+            spx, spy = pixel_integrated_gaussian_dwidth(c, p[0], s), pixel_integrated_gaussian_dwidth(r, p[1], s)
             dwidth = p[2] * (np.outer(spy, px) + np.outer(py, spx))
             jac = np.concatenate([jac.reshape(d.size, 4), dwidth.reshape(d.size, 1)], axis=1)
             step = np.linalg.lstsq(jac, d - p[3] - p[2] * jac[:, 2], rcond=None)[0]
@@ -281,13 +285,6 @@ def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start
         else:
             widths.append(p[4])
     return float(np.median(widths)) if widths else float("nan")
-
-
-def _pixel_gaussian_dwidth(centres_px: np.ndarray, source_px: float, sigma_px: float) -> np.ndarray:
-    """d/ds of :func:`hostlink.sky.render.pixel_integrated_gaussian`: -[phi(u) u - phi(l) l] / s."""
-    u = (centres_px + 0.5 - source_px) / sigma_px
-    lo = (centres_px - 0.5 - source_px) / sigma_px
-    return -(np.exp(-0.5 * u**2) * u - np.exp(-0.5 * lo**2) * lo) / (math.sqrt(2.0 * math.pi) * sigma_px)
 
 
 def centroid_crb_px(
