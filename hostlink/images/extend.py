@@ -198,12 +198,10 @@ PHOTOMETRIC_TOL_MAG = 2.5
 
 def _zero_point(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky) -> float:
     """The frame's photometric zero point [mag]: the median of catalogue minus instrumental magnitude over the
-    stars ``rows`` named ``stars`` (NaN without magnitudes)."""
-    if mag is None or rows.size == 0:
+    stars ``rows`` named ``stars`` (NaN without magnitudes; :func:`hostlink.images.blends.zero_point`)."""
+    if mag is None:
         return math.nan
-    offset = sky.mag[stars] - mag[rows]
-    offset = offset[np.isfinite(offset)]
-    return float(np.median(offset)) if offset.size else math.nan
+    return blends.zero_point(sky.mag[stars], mag[rows])[0]
 
 
 def _too_faint(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky, zero_point: float) -> np.ndarray:
