@@ -181,6 +181,8 @@ def blend_references(
     new, cat_rows = new[found], cat_rows[found].astype(np.int64)
     if new.size == 0:
         return session, []
+    from hostlink.images.skyindex import catalogue_tree
+
     r_all, tree = catalogue_tree(catalogue)
     found = tree.query_ball_point(r_all[cat_rows], 2.0 * math.sin(0.5 * UNRESOLVED_PX / focal_px))
     frame_of_row = np.repeat(np.arange(session.n_frames), np.diff(session.frame_starts))
@@ -197,37 +199,6 @@ def blend_references(
     if not blends:
         return session, []
     return _with_photocentres(session, catalogue, blends, focal_px)
-
-
-#: The last catalogue :func:`catalogue_directions` was asked about, with its J2000 unit vectors; and the last one
-#: :func:`catalogue_tree` was asked about, with its k-d tree.
-_DIRECTIONS: list = []
-_TREE: list = []
-
-
-def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
-    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only), kept for the last
-    catalogue asked: identification's rounds, its admission and its blends ask about the same one (each propagation
-    of the whole catalogue is ~35 ms of ``erfa.pmsafe``)."""
-    if not _DIRECTIONS or _DIRECTIONS[0] is not catalogue:
-        from hostlink.sky.apparent import stars_at_j2000
-
-        stars = stars_at_j2000(catalogue)
-        r_all = radec_to_unit(stars.ra_rad, stars.dec_rad)
-        r_all.setflags(write=False)
-        _DIRECTIONS[:] = [catalogue, r_all]
-    return _DIRECTIONS[1]
-
-
-def catalogue_tree(catalogue: Catalogue):
-    """(J2000 unit vectors (S, 3) (:func:`catalogue_directions`), ``scipy.spatial.cKDTree`` of them) of
-    ``catalogue``, kept for the last catalogue asked (the rounds of one identification ask about the same one)."""
-    if not _TREE or _TREE[0] is not catalogue:
-        from scipy.spatial import cKDTree
-
-        r_all = catalogue_directions(catalogue)
-        _TREE[:] = [catalogue, r_all, cKDTree(r_all)]
-    return _TREE[1], _TREE[2]
 
 
 def _frame_scatter(session: Session, catalogue: Catalogue, mag: np.ndarray, frame: int) -> float:

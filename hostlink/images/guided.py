@@ -59,7 +59,7 @@ from hostlink.images.blends import (
     without_pair_bound,
     zero_point,
 )
-from hostlink.images.skyindex import _mirror_x
+from hostlink.images.skyindex import _mirror_x, catalogue_directions, catalogue_tree
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
@@ -229,8 +229,6 @@ def admit(
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
     frame's :class:`FrameAdmission`."""
-    from hostlink.images.blends import catalogue_directions
-
     directions = catalogue_directions(catalogue)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
@@ -389,7 +387,7 @@ def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hi
     a star has catalogue companions within :data:`UNRESOLVED_PX` that the frame has not identified as rows of their
     own (``named_hip``), its expected place is its blend's reference (:func:`hostlink.images.blends.photocentre`)
     through the attitude and camera ``view`` = (C, theta, mirrored), with that reference's 1-sigma; 0 elsewhere."""
-    from hostlink.images.blends import catalogue_tree, photocentre
+    from hostlink.images.blends import photocentre
 
     c, theta, mirrored = view
     xp, yp, sigma_ref = xp.copy(), yp.copy(), np.zeros(near.size)
