@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hostlink.calibration.model import ARCSEC_PER_RAD
 from hostlink.images import solver_adapter
 from hostlink.images.extend import (
     EXTEND_MAG_MARGIN,
@@ -185,7 +186,7 @@ def _confirm(
         return replace(ident, status=refused), hip_out
     hip_out[rows[v.keep]] = sky.hip[stars[v.keep]]
     ra, dec, roll = _boresight_and_roll(v.attitude)
-    rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * 206264.80624709636
+    rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * ARCSEC_PER_RAD
     identified = replace(
         ident,
         n_identified=int(np.count_nonzero(v.keep)),
