@@ -89,6 +89,21 @@ class PairCatalogue:
     rank16: np.ndarray | None = None
 
 
+#: The last unit-vector array :func:`_dot_rows` was given, and its three columns, contiguous.
+_COLUMNS: list = []
+
+
+def _dot_rows(r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """r[i] . r[j] row by row, x + y + z summed axis by axis from contiguous columns (no (M, 3) gathers: 15 times
+    faster for 5 million pairs), (x + y) + z as a sum over the 3 components of each row adds them: the same angles
+    for :func:`pair_catalogue`; another summation order would differ in the last bit, which
+    :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its bounds are twice the hit chord from any hit)."""
+    if not _COLUMNS or _COLUMNS[0] is not r:
+        _COLUMNS[:] = [r, *(np.ascontiguousarray(r[:, axis]) for axis in range(3))]
+    x, y, z = _COLUMNS[1:]
+    return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
+
+
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
     """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
     ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2)), in the order (angle, a, b): pairs of
@@ -101,13 +116,8 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     tree = cKDTree(sky.r[rows])
     pairs = tree.query_pairs(chord, output_type="ndarray")
     a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
-    # the dot product axis by axis, summed x + y, then + z, as a sum over the 3 components of each row adds them
-    # (without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs)
-    dot = np.zeros(a.size)
-    for axis in range(3):
-        component = np.ascontiguousarray(sky.r[:, axis])
-        dot += component[a] * component[b]
-    angle = np.arccos(np.clip(dot, -1.0, 1.0))
+    # without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs
+    angle = np.arccos(np.clip(_dot_rows(sky.r, a, b), -1.0, 1.0))
     # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
     order = _ties_by_stars(np.argsort(angle), angle, a, b)
     return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
