@@ -424,7 +424,9 @@ def _identify_iteratively(
         raise UserError(f"rounds must be at least 1, got {max_rounds}")
     if np.any(guided.candidate_rows(session)):  # faint candidates: held back, admitted after the rounds (guided.py)
         return guided.identify_then_admit(
-            session, lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress)
+            session,
+            lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress),
+            catalogue,
         )
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
