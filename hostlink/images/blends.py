@@ -178,7 +178,7 @@ def blend_references(
 
     new = np.flatnonzero((session.star_id != 0) & (before == 0))
     cat_rows, found = hip_find(catalogue, session.star_id[new])
-    new, cat_rows = new[found], cat_rows[found].astype(np.int64)
+    new, cat_rows = new[found], cat_rows[found]
     if new.size == 0:
         return session, []
     from hostlink.images.skyindex import catalogue_tree
@@ -203,10 +203,12 @@ def blend_references(
 
 def _frame_scatter(session: Session, catalogue: Catalogue, mag: np.ndarray, frame: int) -> float:
     """The zero point's scatter [mag] of the session's ``frame``-th frame (its identified unsaturated stars)."""
+    from hostlink.sky.apparent import hip_find
+
     a, b = int(session.frame_starts[frame]), int(session.frame_starts[frame + 1])
     saturated = session_flag(session, "saturated")[a:b] if "saturated" in session.extra else np.zeros(b - a, bool)
     named = a + np.flatnonzero((session.star_id[a:b] != 0) & ~saturated)
-    known, found = _lookup(catalogue, session.star_id[named])
+    known, found = hip_find(catalogue, session.star_id[named])
     return zero_point(catalogue.mag[known[found]], mag[named[found]])[1]
 
 
@@ -270,23 +272,16 @@ def without_pair_bound(sigma_px: np.ndarray, blend_px: np.ndarray) -> np.ndarray
     return np.sqrt(np.maximum(sigma_px**2 - 0.5 * b**2, 0.0))
 
 
-def _lookup(catalogue: Catalogue, hip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(catalogue rows, found) of the Hipparcos numbers ``hip`` (rows meaningless where not found)."""
-    from hostlink.sky.apparent import hip_find
-
-    rows, found = hip_find(catalogue, hip)
-    return rows.astype(np.int64), found
-
-
 def _reference_columns(session: Session, catalogue: Catalogue) -> tuple[np.ndarray, np.ndarray]:
     """Copies of the session's ra_deg/dec_deg, or new ones with every identified row's catalogue place."""
     if session.ra_deg is not None and session.dec_deg is not None:
         return session.ra_deg.copy(), session.dec_deg.copy()
     from hostlink.images.skyindex import catalogue_radec_deg
+    from hostlink.sky.apparent import hip_find
 
     ra, dec = np.full(len(session), np.nan), np.full(len(session), np.nan)
     rows = np.flatnonzero(session.star_id != 0)
-    known, found = _lookup(catalogue, session.star_id[rows])
+    known, found = hip_find(catalogue, session.star_id[rows])
     rows, known = rows[found], known[found]
     if rows.size:
         ra[rows], dec[rows] = catalogue_radec_deg(session, catalogue, known, rows)
