@@ -20,8 +20,7 @@ from onboard.camera import pixels_to_unit, unit_to_pixels
 #: a pixel once calibrated, where a fixed 4 px let false stars meet faint catalogue stars by chance (a 50-deg
 #: field holds ~0.5 Hp <= 7.5 stars per square degree: 4 px of 0.94' is a 7 % chance per false star, 1.5 px 1 %).
 EXTEND_RADIUS_RESIDUALS = 4.0
-
-
+#: ... or this radius [px], whichever is larger (above).
 EXTEND_RADIUS_PX = 1.5
 
 

@@ -311,6 +311,5 @@ def fallback_depth_mag(sky_mag: np.ndarray, field_sr: float) -> float:
 #: session (the extension step adds a few stars fainter than the camera's usual depth; the pair index grows with the
 #: square of the star count, so they should not set it) [mag].
 FALLBACK_MAG_MARGIN = 0.5
-
-
+#: ... the percentile of the identified stars' magnitudes that margin is added to (above) [%].
 FALLBACK_DEPTH_PERCENTILE = 90
