@@ -178,9 +178,11 @@ def blend_references(
 
     new = np.flatnonzero((session.star_id != 0) & (before == 0))
     cat_rows, found = hip_find(catalogue, session.star_id[new])
-    new, cat_rows = new[found], cat_rows[found].astype(np.int64)
+    new, cat_rows = new[found], cat_rows[found]
     if new.size == 0:
         return session, []
+    from hostlink.images.skyindex import catalogue_tree
+
     r_all, tree = catalogue_tree(catalogue)
     found = tree.query_ball_point(r_all[cat_rows], 2.0 * math.sin(0.5 * UNRESOLVED_PX / focal_px))
     frame_of_row = np.repeat(np.arange(session.n_frames), np.diff(session.frame_starts))
@@ -199,43 +201,14 @@ def blend_references(
     return _with_photocentres(session, catalogue, blends, focal_px)
 
 
-#: The last catalogue :func:`catalogue_directions` was asked about, with its J2000 unit vectors; and the last one
-#: :func:`catalogue_tree` was asked about, with its k-d tree.
-_DIRECTIONS: list = []
-_TREE: list = []
-
-
-def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
-    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only), kept for the last
-    catalogue asked: identification's rounds, its admission and its blends ask about the same one (each propagation
-    of the whole catalogue is ~35 ms of ``erfa.pmsafe``)."""
-    if not _DIRECTIONS or _DIRECTIONS[0] is not catalogue:
-        from hostlink.sky.apparent import stars_at_j2000
-
-        stars = stars_at_j2000(catalogue)
-        r_all = radec_to_unit(stars.ra_rad, stars.dec_rad)
-        r_all.setflags(write=False)
-        _DIRECTIONS[:] = [catalogue, r_all]
-    return _DIRECTIONS[1]
-
-
-def catalogue_tree(catalogue: Catalogue):
-    """(J2000 unit vectors (S, 3) (:func:`catalogue_directions`), ``scipy.spatial.cKDTree`` of them) of
-    ``catalogue``, kept for the last catalogue asked (the rounds of one identification ask about the same one)."""
-    if not _TREE or _TREE[0] is not catalogue:
-        from scipy.spatial import cKDTree
-
-        r_all = catalogue_directions(catalogue)
-        _TREE[:] = [catalogue, r_all, cKDTree(r_all)]
-    return _TREE[1], _TREE[2]
-
-
 def _frame_scatter(session: Session, catalogue: Catalogue, mag: np.ndarray, frame: int) -> float:
     """The zero point's scatter [mag] of the session's ``frame``-th frame (its identified unsaturated stars)."""
+    from hostlink.sky.apparent import hip_find
+
     a, b = int(session.frame_starts[frame]), int(session.frame_starts[frame + 1])
     saturated = session_flag(session, "saturated")[a:b] if "saturated" in session.extra else np.zeros(b - a, bool)
     named = a + np.flatnonzero((session.star_id[a:b] != 0) & ~saturated)
-    known, found = _lookup(catalogue, session.star_id[named])
+    known, found = hip_find(catalogue, session.star_id[named])
     return zero_point(catalogue.mag[known[found]], mag[named[found]])[1]
 
 
@@ -299,23 +272,16 @@ def without_pair_bound(sigma_px: np.ndarray, blend_px: np.ndarray) -> np.ndarray
     return np.sqrt(np.maximum(sigma_px**2 - 0.5 * b**2, 0.0))
 
 
-def _lookup(catalogue: Catalogue, hip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(catalogue rows, found) of the Hipparcos numbers ``hip`` (rows meaningless where not found)."""
-    from hostlink.sky.apparent import hip_find
-
-    rows, found = hip_find(catalogue, hip)
-    return rows.astype(np.int64), found
-
-
 def _reference_columns(session: Session, catalogue: Catalogue) -> tuple[np.ndarray, np.ndarray]:
     """Copies of the session's ra_deg/dec_deg, or new ones with every identified row's catalogue place."""
     if session.ra_deg is not None and session.dec_deg is not None:
         return session.ra_deg.copy(), session.dec_deg.copy()
     from hostlink.images.skyindex import catalogue_radec_deg
+    from hostlink.sky.apparent import hip_find
 
     ra, dec = np.full(len(session), np.nan), np.full(len(session), np.nan)
     rows = np.flatnonzero(session.star_id != 0)
-    known, found = _lookup(catalogue, session.star_id[rows])
+    known, found = hip_find(catalogue, session.star_id[rows])
     rows, known = rows[found], known[found]
     if rows.size:
         ra[rows], dec[rows] = catalogue_radec_deg(session, catalogue, known, rows)

@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hostlink.calibration.model import ARCSEC_PER_RAD
 from hostlink.images import solver_adapter
 from hostlink.images.extend import (
     EXTEND_MAG_MARGIN,
@@ -36,9 +37,8 @@ from hostlink.images.verify import PARITY_MIN_AGREEMENT, _absolute_scale, _verif
 from onboard.camera import pixels_to_unit
 from onboard.params import CameraParams
 
-#: Brightest-centroid subsets the engine is tried on after the whole frame (false stars among the brightest
-#: centroids spoil its 4-star patterns; a smaller subset of the brightest avoids them).
-ENGINE_SUBSETS = (30, 20, 15, 10)
+#: Brightest-centroid subsets the engine is tried on after the whole frame (the engine's, for its calibration too).
+ENGINE_SUBSETS = solver_adapter.ENGINE_SUBSETS
 
 
 #: A frame's identification is accepted with at least this many verified stars (4 stars give 5 independent
@@ -66,8 +66,7 @@ SCALE_AGREEMENT = 0.002
 #: depth the verified stars reached plus :data:`EXTEND_MAG_MARGIN`, until one adds nothing, at most
 #: :data:`MAX_EXTEND_ROUNDS` in all.
 EXTEND_ROUNDS = 2
-
-
+#: ... and at most this many extension rounds in all (above).
 MAX_EXTEND_ROUNDS = 6
 
 
@@ -185,7 +184,7 @@ def _confirm(
         return replace(ident, status=refused), hip_out
     hip_out[rows[v.keep]] = sky.hip[stars[v.keep]]
     ra, dec, roll = _boresight_and_roll(v.attitude)
-    rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * 206264.80624709636
+    rms = float(np.sqrt(np.mean(v.residual_rad[v.keep] ** 2))) * ARCSEC_PER_RAD
     identified = replace(
         ident,
         n_identified=int(np.count_nonzero(v.keep)),

@@ -20,8 +20,7 @@ from onboard.camera import pixels_to_unit, unit_to_pixels
 #: a pixel once calibrated, where a fixed 4 px let false stars meet faint catalogue stars by chance (a 50-deg
 #: field holds ~0.5 Hp <= 7.5 stars per square degree: 4 px of 0.94' is a 7 % chance per false star, 1.5 px 1 %).
 EXTEND_RADIUS_RESIDUALS = 4.0
-
-
+#: ... or this radius [px], whichever is larger (above).
 EXTEND_RADIUS_PX = 1.5
 
 
@@ -198,12 +197,10 @@ PHOTOMETRIC_TOL_MAG = 2.5
 
 def _zero_point(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky) -> float:
     """The frame's photometric zero point [mag]: the median of catalogue minus instrumental magnitude over the
-    stars ``rows`` named ``stars`` (NaN without magnitudes)."""
-    if mag is None or rows.size == 0:
+    stars ``rows`` named ``stars`` (NaN without magnitudes; :func:`hostlink.images.blends.zero_point`)."""
+    if mag is None:
         return math.nan
-    offset = sky.mag[stars] - mag[rows]
-    offset = offset[np.isfinite(offset)]
-    return float(np.median(offset)) if offset.size else math.nan
+    return blends.zero_point(sky.mag[stars], mag[rows])[0]
 
 
 def _too_faint(mag: np.ndarray | None, rows: np.ndarray, stars: np.ndarray, sky: _Sky, zero_point: float) -> np.ndarray:

@@ -59,6 +59,7 @@ from hostlink.images.blends import (
     without_pair_bound,
     zero_point,
 )
+from hostlink.images.skyindex import _mirror_x, catalogue_directions, catalogue_tree
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
@@ -68,9 +69,6 @@ from onboard.params import CameraParams
 SNR_COLUMN = "snr"
 #: Radius in units of the combined 1-sigma per axis: a 2-D Gaussian puts 99 % of its mass within sqrt(-2 ln 0.01).
 CONTAINMENT_SIGMAS = math.sqrt(-2.0 * math.log(0.01))
-#: A second catalogue star within UNRESOLVED_PX of a row makes it ambiguous when it could be that row by itself
-#: (hostlink.images.blends: its magnitude within the photometric window PHOTOMETRIC_SIGMAS x the zero point's scatter,
-#: at least MIN_PHOTOMETRIC_WINDOW_MAG, of the row's); a fainter one is a companion whose light is in the row.
 #: A frame's admissions stand only when noise would explain at most this fraction of them (the expected number by
 #: chance over the number admitted): a wrong identity that reaches the fit is worse than none, and the calibration's
 #: outlier rejection is built for a few percent.
@@ -231,8 +229,6 @@ def admit(
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
     frame's :class:`FrameAdmission`."""
-    from hostlink.images.blends import catalogue_directions
-
     directions = catalogue_directions(catalogue)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
@@ -391,7 +387,7 @@ def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hi
     a star has catalogue companions within :data:`UNRESOLVED_PX` that the frame has not identified as rows of their
     own (``named_hip``), its expected place is its blend's reference (:func:`hostlink.images.blends.photocentre`)
     through the attitude and camera ``view`` = (C, theta, mirrored), with that reference's 1-sigma; 0 elsewhere."""
-    from hostlink.images.blends import catalogue_tree, photocentre
+    from hostlink.images.blends import photocentre
 
     c, theta, mirrored = view
     xp, yp, sigma_ref = xp.copy(), yp.copy(), np.zeros(near.size)
@@ -410,7 +406,7 @@ def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hi
             scatter,
         )
         u, v = unit_to_pixels((c @ pc.direction)[None, :], theta)
-        xp[k], yp[k], sigma_ref[k] = (2.0 * theta[1] - u[0]) if mirrored else u[0], v[0], pc.sigma_px
+        xp[k], yp[k], sigma_ref[k] = _mirror_x(u[0], theta, mirrored), v[0], pc.sigma_px
     return xp, yp, sigma_ref
 
 
@@ -419,8 +415,7 @@ def _frame_attitude(x, y, r, theta):
     parity that fits better (None when degenerate)."""
     best = None
     for mirrored in (False, True):
-        xm = 2.0 * theta[1] - x if mirrored else x
-        b = pixels_to_unit(xm, y, theta)
+        b = pixels_to_unit(_mirror_x(x, theta, mirrored), y, theta)
         try:
             c = attitude_from_vectors(b, r)
         except DegenerateGeometry:
@@ -447,7 +442,6 @@ def _predicted(directions, c, theta, mirrored: bool, image_size_px):
         xp, yp = unit_to_pixels(b[front], theta)
     except ValueError:
         return front[:0], np.zeros(0), np.zeros(0)
-    if mirrored:
-        xp = 2.0 * theta[1] - xp
+    xp = _mirror_x(xp, theta, mirrored)
     on = (xp >= -0.5) & (xp <= width - 0.5) & (yp >= -0.5) & (yp <= height - 0.5)
     return front[on], xp[on], yp[on]

@@ -402,7 +402,7 @@ def flipped_x_camera(camera: CameraParams) -> CameraParams:
 def _identify_iteratively(
     session: Session,
     nominal: CameraParams,
-    catalogue: Catalogue | None = None,
+    catalogue: Catalogue,
     maglim: float | None = None,
     use_engine: bool = True,
     max_rounds: int = MAX_ROUNDS,
@@ -416,19 +416,17 @@ def _identify_iteratively(
     where the new stars are. A round is kept only when it identifies more stars than the one before; a calibration
     that fails (:meth:`CalibrationOutcome.failure`) ends the rounds. The result's ``rounds`` hold, per round: the
     camera used (focal length [px], where it came from), frames and stars identified, and the stars it added, lost
-    and renamed against the round before."""
+    and renamed against the round before. ``catalogue``: the one :func:`identify_iteratively` was given or loaded."""
     from hostlink.calibration.run import calibrate_session
     from hostlink.errors import UserError
 
     if max_rounds < 1:
         raise UserError(f"rounds must be at least 1, got {max_rounds}")
-    if catalogue is None:
-        from hostlink.sky.catalogue import load_catalogue
-
-        catalogue = load_catalogue()
     if np.any(guided.candidate_rows(session)):  # faint candidates: held back, admitted after the rounds (guided.py)
         return guided.identify_then_admit(
-            session, lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress)
+            session,
+            lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress),
+            catalogue,
         )
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)

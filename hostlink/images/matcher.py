@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.images.skyindex import PairCatalogue
+from hostlink.images.skyindex import PairCatalogue, _dot_rows
 
 #: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
 MATCH_STARS = 20
@@ -92,20 +92,6 @@ def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) ->
     offset = np.concatenate([[0], np.cumsum(count)])
     key = star if pairs.rank16 is None else pairs.rank16[star]  # the same order: rows ascend with the sky index
     return _PairsOfAngle(angle_rad, slack_rad, offset, other[np.argsort(key, kind="stable")], count > 0)
-
-
-#: The last unit-vector array :func:`_dot_rows` was given, and its three columns, contiguous.
-_COLUMNS: list = []
-
-
-def _dot_rows(r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """r[i] . r[j] row by row, x + y + z summed axis by axis from contiguous columns (no (M, 3) gathers: 15 times
-    faster for 5 million pairs). It may differ from another summation order in the last bit, which
-    :func:`_pyramid_may_hit` can afford: its bounds are twice the hit chord from any hit."""
-    if not _COLUMNS or _COLUMNS[0] is not r:
-        _COLUMNS[:] = [r, *(np.ascontiguousarray(r[:, axis]) for axis in range(3))]
-    x, y, z = _COLUMNS[1:]
-    return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
 
 
 def _pyramid_may_hit(
@@ -325,6 +311,5 @@ def fallback_depth_mag(sky_mag: np.ndarray, field_sr: float) -> float:
 #: session (the extension step adds a few stars fainter than the camera's usual depth; the pair index grows with the
 #: square of the star count, so they should not set it) [mag].
 FALLBACK_MAG_MARGIN = 0.5
-
-
+#: ... the percentile of the identified stars' magnitudes that margin is added to (above) [%].
 FALLBACK_DEPTH_PERCENTILE = 90

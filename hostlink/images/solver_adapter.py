@@ -47,6 +47,10 @@ SOLVE_TIMEOUT_MS = 20_000
 MAX_PATTERNS_CHECKED = 20_000
 #: The engine forms 4-star patterns: a frame with fewer centroids cannot be matched.
 MIN_CENTROIDS = 4
+#: Brightest-centroid subsets the engine is tried on after the whole frame (false stars among the brightest
+#: centroids spoil its 4-star patterns; a smaller subset of the brightest avoids them): by identification and by
+#: :func:`engine_calibration`.
+ENGINE_SUBSETS = (30, 20, 15, 10)
 #: The engine's match radius as a fraction of the field (its default, 0.01: 14 px on a 1392 px detector).
 MATCH_RADIUS = 0.01
 #: The engine's edge-ratio tolerance of a 4-star pattern for a wide field (horizontal at least
@@ -249,12 +253,12 @@ def engine_calibration(
     fov_deg: float,
 ) -> EngineCalibration | None:
     """Solve each frame (offsets u, v from the nominal principal point [px], brightness) with the engine alone, the
-    whole frame first and then its brightest 30, 20, 15, 10 centroids (``frames`` given brightest first), and fit
-    the engine's radial camera model over every solved frame. None when it solves no frame."""
+    whole frame first and then its brightest :data:`ENGINE_SUBSETS` centroids (``frames`` given brightest first), and
+    fit the engine's radial camera model over every solved frame. None when it solves no frame."""
     width, height = (int(s) for s in image_size_px)
     solved, centroids, matched, matched_rows = [], [], [], []
     for index, (u, v, brightness) in enumerate(frames):
-        for size in (u.shape[0], 30, 20, 15, 10):
+        for size in (u.shape[0], *ENGINE_SUBSETS):
             if size > u.shape[0] or size < MIN_CENTROIDS:
                 continue
             columns = [u[:size], v[:size]] + ([] if brightness is None else [brightness[:size]])
