@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.session import Session
+from hostlink.files.session import Session, cell_numbers
 from onboard.params import MAX_IMAGE_SIDE_PX
 from onboard.site import Site, Weather
 
@@ -323,12 +323,7 @@ def session_sigma_px(session: Session, rows: np.ndarray) -> np.ndarray | None:
     raw = typed if typed is not None else session.extra.get("sigma_px")
     if raw is None:
         return None
-    values = np.full(len(raw), np.nan)
-    for k, text in enumerate(raw):
-        try:
-            values[k] = float(text)
-        except (TypeError, ValueError, OverflowError):
-            pass
+    values = cell_numbers(raw)
     bad = np.flatnonzero(~(np.isfinite(values) & (values > 0) & (values <= SIGMA_PX_CEILING)))
     if bad.size:
         k = int(bad[0])

@@ -99,6 +99,42 @@ class Session:
         )
 
 
+def cell_numbers(cells) -> np.ndarray:
+    """(N,) float64: each cell of an optional column (text as the file gives it) as a number, NaN where empty or not
+    a number."""
+    out = np.full(len(cells), np.nan)
+    for i, v in enumerate(cells):
+        try:
+            out[i] = float(v)
+        except (TypeError, ValueError, OverflowError):
+            pass
+    return out
+
+
+def session_number(session: Session, name: str) -> np.ndarray:
+    """(N,) float64: the session's optional column ``name`` (kept in ``extra``) as numbers (NaN where empty or
+    absent)."""
+    values = session.extra.get(name) if session.extra else None
+    return np.full(len(session), np.nan) if values is None else cell_numbers(values)
+
+
+def session_flag(session: Session, name: str) -> np.ndarray:
+    """(N,) bool: the session's optional column ``name`` (kept in ``extra``) is "1" (False where absent)."""
+    values = session.extra.get(name) if session.extra else None
+    if values is None:
+        return np.zeros(len(session), dtype=bool)
+    return np.array([str(v).strip() == "1" for v in values], dtype=bool)
+
+
+def session_filled(session: Session, name: str) -> np.ndarray:
+    """(N,) bool: the session's optional column ``name`` (kept in ``extra``) holds a value (neither empty nor "nan";
+    False where absent)."""
+    values = session.extra.get(name) if session.extra else None
+    if values is None:
+        return np.zeros(len(session), dtype=bool)
+    return np.array([str(v).strip().lower() not in ("", "nan") for v in values], dtype=bool)
+
+
 #: How far a centroid may lie outside the detector extent before a session and a parameter file are declared not to
 #: belong together [px]: an edge star's centroid window can extrapolate a fraction of a pixel past the last pixel.
 DETECTOR_MARGIN_PX = 1.0

@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hostlink.files.session import Session
+from hostlink.files.session import Session, session_flag, session_number
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
 
@@ -206,7 +206,7 @@ def _frame_scatter(session: Session, catalogue: Catalogue, mag: np.ndarray, fram
     from hostlink.sky.apparent import hip_find
 
     a, b = int(session.frame_starts[frame]), int(session.frame_starts[frame + 1])
-    saturated = session_flag(session, "saturated")[a:b] if "saturated" in session.extra else np.zeros(b - a, bool)
+    saturated = session_flag(session, "saturated")[a:b]
     named = a + np.flatnonzero((session.star_id[a:b] != 0) & ~saturated)
     known, found = hip_find(catalogue, session.star_id[named])
     return zero_point(catalogue.mag[known[found]], mag[named[found]])[1]
@@ -286,24 +286,3 @@ def _reference_columns(session: Session, catalogue: Catalogue) -> tuple[np.ndarr
     if rows.size:
         ra[rows], dec[rows] = catalogue_radec_deg(session, catalogue, known, rows)
     return ra, dec
-
-
-def session_number(session: Session, name: str) -> np.ndarray:
-    """(N,) float64: the session's extra column ``name`` as numbers (NaN where empty or absent)."""
-    values = session.extra.get(name) if session.extra else None
-    out = np.full(len(session), np.nan)
-    if values is not None:
-        for i, v in enumerate(values):
-            try:
-                out[i] = float(v)
-            except (TypeError, ValueError):
-                pass
-    return out
-
-
-def session_flag(session: Session, name: str) -> np.ndarray:
-    """(N,) bool: the session's extra column ``name`` is "1" (False where absent)."""
-    values = session.extra.get(name) if session.extra else None
-    if values is None:
-        return np.zeros(len(session), dtype=bool)
-    return np.array([str(v).strip() == "1" for v in values], dtype=bool)

@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hostlink.files.session import Session
+from hostlink.files.session import Session, session_filled, session_flag, session_number
 from hostlink.images.blends import (
     MAD_TO_SIGMA,  # noqa: F401 - importable from here as before
     MIN_PHOTOMETRIC_WINDOW_MAG,  # noqa: F401
@@ -53,8 +53,6 @@ from hostlink.images.blends import (
     UNRESOLVED_PX,
     blend_references,
     could_be,
-    session_flag,
-    session_number,
     window_mag,
     without_pair_bound,
     zero_point,
@@ -101,10 +99,7 @@ class FrameAdmission:
 
 def candidate_rows(session: Session) -> np.ndarray:
     """(N,) bool: the rows that are candidates (an ``snr`` value), none when the session has no such column."""
-    values = session.extra.get(SNR_COLUMN) if session.extra else None
-    if values is None:
-        return np.zeros(len(session), dtype=bool)
-    return np.array([str(v).strip().lower() not in ("", "nan") for v in values], dtype=bool)
+    return session_filled(session, SNR_COLUMN)
 
 
 def identify_without_candidates(session: Session, identify):
