@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -53,11 +54,12 @@ def _figures(outcome, seconds: float, truth) -> dict:
         }
         s_f, (s_x, s_y) = sig["focal_length_mm"], sig["principal_point_px"]
         e = out["error"]
-        out["error_in_sigmas"] = [e["focal_length_mm"] / s_f, e["x0_px"] / s_x, e["y0_px"] / s_y]
+        pairs = ((e["focal_length_mm"], s_f), (e["x0_px"], s_x), (e["y0_px"], s_y))
+        out["error_in_sigmas"] = [err / s if s > 0 else None for err, s in pairs]  # None: held fixed, not estimated
     return out
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("session")
     parser.add_argument("--nominal", required=True)
@@ -65,6 +67,20 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="calibrations per model, the fastest timed")
     parser.add_argument("--json", metavar="OUT")
     args = parser.parse_args()
+    from hostlink.errors import UserError
+
+    try:
+        result = _compare(args)
+    except UserError as exc:  # a missing or unreadable file, a session that cannot be calibrated: one line
+        print(f"bench_noise_model: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1, default=str))
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> dict:
+    """Each noise model's figures (:func:`_figures`) on the session, each printed as it is measured."""
     from hostlink.calibration.run import calibrate_session
     from hostlink.files.params import load_params
     from hostlink.files.session import read_session
@@ -78,9 +94,8 @@ def main() -> None:
         outcome, seconds = _run(session, nominal, model, args.repeat)
         result[model or "before"] = _figures(outcome, seconds, truth)
         print(f"{model or 'before'}: {json.dumps(result[model or 'before'], default=str)}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1, default=str))
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
