@@ -131,6 +131,10 @@ class BundleOptions:
     #: confirm a step of ~0.15 sigma
     remainder_tol: float = 5e-3
     progress: Callable[[dict], None] | None = None
+    #: after a fit whose principal point is left to its decentering and prism, fit again from the mirrored
+    #: principal point and report that second minimum (:func:`hostlink.calibration.mirror.with_mirror`); False for a
+    #: caller that only needs the camera (the report's second fit changes no parameter)
+    mirror_fit: bool = True
 
 
 @dataclass

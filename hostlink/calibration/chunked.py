@@ -156,7 +156,7 @@ def calibrate_chunks(
     right), and the covariance is scaled by its square. The in-memory calibration is this on its data as one chunk
     (``keep_data``: then the outcome also carries the inlier data, their attitudes and the rejection masks).
     ``noise_model``: "auto" (the floor constant or radial as the data choose) or "constant"; ``mirror_fit``: as
-    :func:`with_mirror`'s ``fit``. Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
+    :attr:`BundleOptions.mirror_fit`. Raises ValueError as :func:`hostlink.calibration.run.calibrate` does."""
     radial = radial_allowed(noise_model)  # an unknown model refused before any pass, with sigma_px or not
     theta0 = nominal.model_vector(np.float64)
     sample, warm = warm_levels(source, source.n_frames())
@@ -172,7 +172,11 @@ def calibrate_chunks(
     voted = screened.voted_rows
     check_focal_scale(prepass, start is nominal, voted.size == screened.n_stars)
     options = BundleOptions(
-        estimate=estimate or ESTIMATE_NAMES, noise_px=noise_px, max_iter=max_iter, progress=progress
+        estimate=estimate or ESTIMATE_NAMES,
+        noise_px=noise_px,
+        max_iter=max_iter,
+        progress=progress,
+        mirror_fit=mirror_fit,
     )
     fit = partial(fit_with_floor, _fit, radial=radial) if weighted else _fit
     res, held, *floor = fit(source, nominal, start, options, estimate is None, voted, run_pass, warm)
@@ -201,7 +205,7 @@ def calibrate_chunks(
             "frames_dropped": int(screened.n_frames - res.n_frames),
             "total_stars": int(screened.n_stars - res.n_obs),
         },
-        degeneracies=with_mirror(source, nominal, res, options, voted, run_pass, mirror_fit),
+        degeneracies=with_mirror(source, nominal, res, options, voted, run_pass),
         history=res.history,
         converged=res.converged,
         prepass=prepass_report(prepass, nominal, start),

@@ -93,17 +93,17 @@ def with_mirror(
     options: BundleOptions,
     voted: np.ndarray,
     run_pass: PassRunner,
-    fit: bool = True,
 ) -> dict:
     """The degeneracies of the fit ``res``; when its principal point is left to second-order terms with decentering
     and prism free (:func:`hostlink.calibration.report.principal_point_prism`), the same fit (same parameters, same
     weights: ``source`` is the floored one) started from the mirrored principal point
     (:func:`mirrored_principal_point`) is run and reported beside it, so the user sees
-    the other minimum rather than a 1-sigma that only describes this one (docs/calibration.md). ``fit`` False: the
-    degeneracies alone, without that second fit (a report only: the camera is this fit's either way)."""
+    the other minimum rather than a 1-sigma that only describes this one (docs/calibration.md).
+    ``options.mirror_fit`` False: the degeneracies alone, without that second fit (a report only: the camera is this
+    fit's either way)."""
     deg = degeneracies(res.normal, res.estimate, res.normal_u_diag)
     prism = deg["principal_point_prism"]
-    if not prism or not fit:
+    if not prism or not options.mirror_fit:
         return deg
     sigma = np.sqrt(np.abs(np.diag(full_covariance(res))))
     mirrored = mirrored_principal_point(res.theta, prism)
