@@ -38,9 +38,8 @@ ROW_GROUP_ROWS = 131_072
 READ_BATCH_ROWS = 32_768
 #: Bytes the Parquet reader buffers per column (bounds its memory whatever the row group size).
 READ_BUFFER_BYTES = 1 << 20
-#: Parquet compression of the writer. Measured on a 10^5-frame session (2 x 10^6 rows): snappy 89 MB, read in
-#: 0.12 s; zstd 78 MB, read in 0.44 s; none 99 MB (CSV: 176 MB). Dictionary encoding already packs the repeated
-#: t_utc of a frame; snappy keeps reading near disk speed for 12 % more bytes than zstd.
+#: Parquet compression of the writer: dictionary encoding already packs the repeated t_utc of a frame, and snappy
+#: keeps reading near disk speed for a few more bytes than zstd (sizes and read times in docs/file-formats.md).
 COMPRESSION = "snappy"
 
 

@@ -57,8 +57,8 @@ def _check_year(year: int, text: str) -> None:
 
 
 #: From this many time stamps on, :func:`parse_iso_utc_many` parses them in one pass of pyarrow's RE2 (the same
-#: pattern as :data:`_ISO`) instead of one Python regex match each (measured on a 10^5-frame session: reading it takes
-#: 0.31 s of CPU instead of 0.45 s from Parquet, 0.64 s instead of 0.82 s from CSV).
+#: pattern as :data:`_ISO`) instead of one Python regex match each: a large session is read faster (measured in
+#: docs/file-formats.md, "Large sessions").
 VECTOR_PARSE_FROM = 64
 
 

@@ -46,9 +46,8 @@ from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
 
 #: Two stars nearer than this [px] are one detection: the sum of two equal Gaussians of sigma s has a single peak
-#: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (0.8-1.2 px on the granasat frames but the
-#: trailed 30 s one, 0.77 px on a sharp 35 mm lens). Close doubles: 16 Cyg A and B, 40" apart, are half a pixel at
-#: 78" per pixel.
+#: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (the real sets' PSF widths: docs/realsky.md,
+#: "Unresolved pairs"). Close doubles: 16 Cyg A and B, 40" apart, are half a pixel at 78" per pixel.
 UNRESOLVED_PX = 3.0
 #: Photometric agreement: within this many of the frame's zero-point scatters ...
 PHOTOMETRIC_SIGMAS = 3.0
@@ -57,8 +56,9 @@ PHOTOMETRIC_SIGMAS = 3.0
 MIN_PHOTOMETRIC_WINDOW_MAG = 0.75
 #: The normal distribution's sigma over its median absolute deviation (a robust scatter of the zero point).
 MAD_TO_SIGMA = 1.4826
-#: The sharpest PSF a star camera of the real sets has [px, Gaussian sigma] (a 35 mm lens on 6.9 um pixels; granasat
-#: 0.8-1.2 px): the lower bound of the centroid's response to an unresolved companion (module docstring).
+#: The sharpest PSF a star camera of the real sets has [px, Gaussian sigma] (a 35 mm lens on 6.9 um pixels;
+#: docs/realsky.md, "Unresolved pairs"): the lower bound of the centroid's response to an unresolved companion
+#: (module docstring).
 SHARPEST_PSF_SIGMA_PX = 0.77
 #: How many sigmas of a companion's magnitude difference the flux ratio's term of a blend's sigma is taken at (the
 #: excursion of the reference there, over this): the reference moves with the flux ratio 10^(-0.4 dm), skewed in a

@@ -161,8 +161,8 @@ class Identification:
 
 
 #: Frames the own matcher scans over every focal-length scale when the engine is installed but matched no frame
-#: (about 5 s per frame for the 51 scales): the cost stays bounded, and one identified frame gives every other its
-#: scale.
+#: (each such scan costs seconds: docs/realsky.md, "A frame nothing matches"): the cost stays bounded, and one
+#: identified frame gives every other its scale.
 ENGINE_MISS_SCANNED_FRAMES = 3
 
 
