@@ -361,19 +361,32 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
 
 
 def _print(s: dict, once: int, log) -> None:
-    t = s["time_s"]
+    """The set's summary ``s`` through ``log``: the per-frame table, the stars against the solver's, the residuals,
+    the times and the identification rounds (``once``: our stars after one round)."""
     log(f"== {s['set']}: {s['frames']} frames")
+    _print_frames(s["per_frame"], log)
+    _print_stars(s, once, log)
+    _print_residuals(s, log)
+    _print_time_and_rounds(s["time_s"], s["rounds"], log)
+
+
+def _print_frames(per_frame: list[dict], log) -> None:
+    """One line per frame: stars identified by us (and faint ones admitted) and the solver, and the residuals."""
     log(
         f"{'frame':34s} {'ours':>5s} {'faint':>5s} {'solver':>6s} {'both':>5s} {'differ':>6s} {'ours px':>8s} "
         f"{'+faint px':>9s} {'solver px':>9s} {'by id':>5s}"
     )
-    for r in s["per_frame"]:
+    for r in per_frame:
         log(
             f"{r['frame']:34s} {r['ours_identified']:5d} {r['ours_faint_admitted']:5d} {r['solver_identified']:6d} "
             f"{r['solver_stars_we_identify']:5d} {r['solver_stars_we_name_differently']:6d} "
             f"{r['ours_rms_px']:8.3f} {r['ours_with_faint_rms_px']:9.3f} {r['solver_rms_px']:9.3f} "
             f"{r['solver_stars_we_name_by_identity']:5d}"
         )
+
+
+def _print_stars(s: dict, once: int, log) -> None:
+    """The set's frames and stars, ours against the solver's, by position and by identity."""
     share = s["solver_stars_we_identify"] / s["solver_stars"] if s["solver_stars"] else math.nan
     log(
         f"frames: ours {s['ours_frames_identified']}, solver {s['solver_frames_solved']}; "
@@ -390,6 +403,11 @@ def _print(s: dict, once: int, log) -> None:
         f"({100 * by_id / s['solver_stars'] if s['solver_stars'] else math.nan:.1f} %), of them "
         f"{s['solver_stars_we_name_by_identity_beyond_same_star_px']} with our centroid beyond {SAME_STAR_PX:g} px"
     )
+
+
+def _print_residuals(s: dict, log) -> None:
+    """The calibrated residuals, ours and the solver's, each camera scored on the solver's stars, and the solver run
+    on our centroids."""
     solver_rmse = s["solver_calibrated_rmse_px"]
     log(
         f"calibrated residual: ours {s['ours_calibrated_rms_px']:.3f} px, solver "
@@ -412,12 +430,16 @@ def _print(s: dict, once: int, log) -> None:
             f"  of the {n['stars']} it names we name {n['same']} the same, {n['different']} differently "
             f"({n['different_unresolved_pair']} the other star of an unresolved pair), {n['unnamed']} not at all"
         )
+
+
+def _print_time_and_rounds(t: dict, rounds: list[dict], log) -> None:
+    """The times [s] of our stages and the solver's, then each identification round's stars."""
     log(
         f"time: ours centroid {t['ours_centroid']:.2f} s + identify {t['ours_identify_once']:.2f} s (iterative "
         f"with calibration {t['ours_identify_iterative']:.2f} s); solver extract + solve "
         f"{t['solver_extract_and_solve']:.2f} s"
     )
-    for r in s["rounds"]:
+    for r in rounds:
         chance = (
             f" (expected by chance {r['expected_false']:.1f} of {r['searched']} searched; "
             f"{r['frames_declined']} frames admitted none: chance too high)"
