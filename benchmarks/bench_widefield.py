@@ -111,79 +111,111 @@ def render_set(out_dir: Path, frames: int = FRAMES, log=print) -> list[dict]:
     """Render the set into ``out_dir`` (frame_NN.jpg) and return per frame its truth: rows of (x, y, hip) of the
     stars left visible, and what was added."""
     from PIL import Image
-    from scipy.ndimage import gaussian_filter
 
-    from hostlink.sky.render import bayer_jpeg_rgb, expected_electrons
+    from hostlink.sky.render import bayer_jpeg_rgb
     from hostlink.sky.simulate import SimConfig, simulate
 
-    camera = true_camera()
     config = render_config()
     sim = simulate(
         SimConfig(
-            camera=camera, frames=frames, noise_px=0.0, min_stars=8, max_stars=100_000, maglim=SIM_MAGLIM, seed=SEED
+            camera=true_camera(),
+            frames=frames,
+            noise_px=0.0,
+            min_stars=8,
+            max_stars=100_000,
+            maglim=SIM_MAGLIM,
+            seed=SEED,
         )
     )
-    s = sim.session
-    rng = np.random.default_rng(SEED)
+    rng = np.random.default_rng(SEED)  # one stream for every frame, drawn in frame order
     truths = []
     for k in range(frames):
-        rows = np.flatnonzero((s.frame == k) & (s.star_id != 0))
-        x, y, hip, mag = s.x_px[rows], s.y_px[rows], s.star_id[rows], s.mag[rows]
-        flux = config.zero_point_e * 10.0 ** (-0.4 * mag)
-        extra = _extras(k, rng)
-        # planets: uncatalogued points brighter than any star (Venus to Saturn: Hp -4 to 0.5)
-        px = rng.uniform(50, WIDTH - 50, extra["planets"])
-        py = rng.uniform(50, HEIGHT - 50, extra["planets"])
-        pflux = config.zero_point_e * 10.0 ** (-0.4 * rng.uniform(-4.0, 0.5, extra["planets"]))
-        mu = expected_electrons(
-            np.concatenate([x, px]), np.concatenate([y, py]), np.concatenate([flux, pflux]), (WIDTH, HEIGHT), config
-        )
-        visible = np.ones(x.size, dtype=bool)
-        yy, xx = np.mgrid[0:HEIGHT, 0:WIDTH]
-        if extra["trail"]:  # a satellite: a straight streak across the frame
-            x0, y0, angle = rng.uniform(0, WIDTH), rng.uniform(0, HEIGHT), rng.uniform(0, math.pi)
-            dist = np.abs(-(xx - x0) * math.sin(angle) + (yy - y0) * math.cos(angle))
-            mu += 400.0 * np.exp(-0.5 * (dist / 1.5) ** 2)
-        if extra["clouds"]:  # smooth random transmission 0.05-1 and glow where thick
-            field = gaussian_filter(rng.normal(size=(HEIGHT, WIDTH)), 80.0)
-            field = (field - field.min()) / (field.max() - field.min())
-            transmission = np.clip(1.6 * field - 0.3, 0.05, 1.0)
-            mu = config.background_e + (mu - config.background_e) * transmission + 400.0 * (1.0 - transmission)
-            t_star = transmission[
-                np.clip(np.round(y).astype(int), 0, HEIGHT - 1), np.clip(np.round(x).astype(int), 0, WIDTH - 1)
-            ]
-            visible &= t_star > 0.3
-        horizon_row = int(0.75 * HEIGHT) + (20.0 * np.sin(xx[0] / 150.0)).astype(int)
-        if extra["horizon"]:
-            below = yy >= horizon_row[None, :]
-            level = 1200.0 if extra["horizon"] == "glow" else 0.3 * config.background_e
-            mu[below] = level * (1.0 + 0.3 * (yy[below] - 0.75 * HEIGHT) / HEIGHT)
-            col = np.clip(np.round(x).astype(int), 0, WIDTH - 1)
-            visible &= y < horizon_row[col] - 3
-        electrons = rng.poisson(mu).astype(np.float64)
-        hot = rng.integers(0, [WIDTH, HEIGHT], size=(config.hot_pixels, 2))
-        electrons[hot[:, 1], hot[:, 0]] += config.hot_pixel_e
-        electrons += rng.normal(0.0, config.read_noise_e, electrons.shape)
-        counts = np.clip(np.round(config.bias_adu + electrons / config.gain_e_per_adu), 0, config.saturation_adu)
-        rgb = bayer_jpeg_rgb(counts, config, WHITE_ADU)
+        truth, counts = _render_frame(sim.session, k, config, rng)
         path = out_dir / f"frame_{k:02d}.jpg"
-        Image.fromarray(rgb, "RGB").save(path, quality=JPEG_QUALITY)
-        truths.append(
-            {
-                "image": path.name,
-                "x": x,
-                "y": y,
-                "hip": hip,
-                "visible": visible,
-                "planets_xy": np.stack([px, py], axis=1),
-                **extra,
-            }
-        )
+        Image.fromarray(bayer_jpeg_rgb(counts, config, WHITE_ADU), "RGB").save(path, quality=JPEG_QUALITY)
+        truths.append({"image": path.name, **truth})
         log(
-            f"{path.name}: {int(np.count_nonzero(visible))} stars visible of {x.size}, planets {extra['planets']}, "
-            f"trail {extra['trail']}, horizon {extra['horizon']}, clouds {extra['clouds']}"
+            f"{path.name}: {int(np.count_nonzero(truth['visible']))} stars visible of {truth['x'].size}, planets "
+            f"{truth['planets']}, trail {truth['trail']}, horizon {truth['horizon']}, clouds {truth['clouds']}"
         )
     return truths
+
+
+def _render_frame(s, k: int, config, rng: np.random.Generator) -> tuple[dict, np.ndarray]:
+    """Frame ``k`` of the simulated session ``s``: its truth (the stars, which of them stay visible, the planets and
+    the additions of :func:`_extras`) and its detector counts [ADU]."""
+    from hostlink.sky.render import expected_electrons
+
+    rows = np.flatnonzero((s.frame == k) & (s.star_id != 0))
+    x, y, hip, mag = s.x_px[rows], s.y_px[rows], s.star_id[rows], s.mag[rows]
+    flux = config.zero_point_e * 10.0 ** (-0.4 * mag)
+    extra = _extras(k, rng)
+    px, py, pflux = _planets(extra["planets"], config, rng)
+    mu = expected_electrons(
+        np.concatenate([x, px]), np.concatenate([y, py]), np.concatenate([flux, pflux]), (WIDTH, HEIGHT), config
+    )
+    visible = np.ones(x.size, dtype=bool)
+    yy, xx = np.mgrid[0:HEIGHT, 0:WIDTH]
+    if extra["trail"]:
+        mu += _trail_e(xx, yy, rng)
+    if extra["clouds"]:
+        mu, seen = _through_clouds(mu, x, y, config, rng)
+        visible &= seen
+    if extra["horizon"]:
+        visible &= _below_horizon(mu, x, y, extra["horizon"], config, xx, yy)
+    truth = {"x": x, "y": y, "hip": hip, "visible": visible, "planets_xy": np.stack([px, py], axis=1), **extra}
+    return truth, _exposed_counts(mu, config, rng)
+
+
+def _planets(n: int, config, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` uncatalogued points brighter than any star (Venus to Saturn: Hp -4 to 0.5): x, y [px] and flux [e-]."""
+    px = rng.uniform(50, WIDTH - 50, n)
+    py = rng.uniform(50, HEIGHT - 50, n)
+    pflux = config.zero_point_e * 10.0 ** (-0.4 * rng.uniform(-4.0, 0.5, n))
+    return px, py, pflux
+
+
+def _trail_e(xx: np.ndarray, yy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A satellite: a straight streak across the frame [e- per pixel]."""
+    x0, y0, angle = rng.uniform(0, WIDTH), rng.uniform(0, HEIGHT), rng.uniform(0, math.pi)
+    dist = np.abs(-(xx - x0) * math.sin(angle) + (yy - y0) * math.cos(angle))
+    return 400.0 * np.exp(-0.5 * (dist / 1.5) ** 2)
+
+
+def _through_clouds(mu, x, y, config, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``mu`` [e-] through a smooth random transmission 0.05-1, with glow where thick, and which stars stay seen
+    (transmission above 0.3 at their pixel)."""
+    from scipy.ndimage import gaussian_filter
+
+    field = gaussian_filter(rng.normal(size=(HEIGHT, WIDTH)), 80.0)
+    field = (field - field.min()) / (field.max() - field.min())
+    transmission = np.clip(1.6 * field - 0.3, 0.05, 1.0)
+    mu = config.background_e + (mu - config.background_e) * transmission + 400.0 * (1.0 - transmission)
+    t_star = transmission[
+        np.clip(np.round(y).astype(int), 0, HEIGHT - 1), np.clip(np.round(x).astype(int), 0, WIDTH - 1)
+    ]
+    return mu, t_star > 0.3
+
+
+def _below_horizon(mu, x, y, kind: str, config, xx, yy) -> np.ndarray:
+    """Fill ``mu`` [e-] below a wavy horizon with a glow (``kind`` "glow") or dark trees, in place; which stars stay
+    above it (by 3 px)."""
+    horizon_row = int(0.75 * HEIGHT) + (20.0 * np.sin(xx[0] / 150.0)).astype(int)
+    below = yy >= horizon_row[None, :]
+    level = 1200.0 if kind == "glow" else 0.3 * config.background_e
+    mu[below] = level * (1.0 + 0.3 * (yy[below] - 0.75 * HEIGHT) / HEIGHT)
+    col = np.clip(np.round(x).astype(int), 0, WIDTH - 1)
+    return y < horizon_row[col] - 3
+
+
+def _exposed_counts(mu: np.ndarray, config, rng: np.random.Generator) -> np.ndarray:
+    """The detector's counts [ADU] for the expected electrons ``mu``: shot noise, hot pixels, read noise, bias,
+    gain and saturation."""
+    electrons = rng.poisson(mu).astype(np.float64)
+    hot = rng.integers(0, [WIDTH, HEIGHT], size=(config.hot_pixels, 2))
+    electrons[hot[:, 1], hot[:, 0]] += config.hot_pixel_e
+    electrons += rng.normal(0.0, config.read_noise_e, electrons.shape)
+    return np.clip(np.round(config.bias_adu + electrons / config.gain_e_per_adu), 0, config.saturation_adu)
 
 
 def _hostlink(*args: str) -> subprocess.CompletedProcess:
