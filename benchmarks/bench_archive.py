@@ -262,11 +262,7 @@ def main() -> int:
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        kind, *rest = args.child
-        if kind == "read":
-            print(json.dumps(child_read(rest[0], rest[1] == "whole")))
-        else:
-            print(json.dumps(child_replay(rest[0], rest[1], rest[2] == "memory")))
+        _child(*args.child)
         return 0
 
     base = Path(args.dir)
@@ -276,56 +272,79 @@ def main() -> int:
     print(f"python {sys.version.split()[0]}, numpy {np.__version__}, pid {os.getpid()}, sessions in {base}")
     results: list[dict] = []
     for n in sizes:
-        files = {}
-        for fmt in formats if args.no_read else ("csv", "parquet"):
-            path = base / f"session_{n}.{fmt}"
-            if not path.exists():
-                seconds = write_synthetic_session(path, n)
-                print(f"[{n} frames] wrote {path} in {seconds:.1f} s")
-            files[fmt] = path
+        files = _session_files(base, n, formats if args.no_read else ("csv", "parquet"))
         print(f"\n== {n} frames ==")
-        for fmt, path in files.items() if not args.no_read else ():
-            size_mb = path.stat().st_size / 1e6
-            r = run_child("read", str(path), "chunks")
-            print(
-                f"read {fmt:7s} in chunks: {r['seconds']:7.2f} s ({r['cpu_seconds']:6.2f} s CPU)  "
-                f"{r['rows'] / r['seconds'] / 1e6:5.2f} M rows/s ({r['rows'] / r['cpu_seconds'] / 1e6:5.2f} of CPU)  "
-                f"{size_mb / r['seconds']:6.1f} MB/s of {size_mb:7.1f} MB  peak {r['maxrss_mb']:6.0f} MB"
-            )
-            if n <= args.in_memory_max:
-                w = run_child("read", str(path), "whole")
-                print(
-                    f"read {fmt:7s} whole:     {w['seconds']:7.2f} s ({w['cpu_seconds']:6.2f} s CPU)  "
-                    f"peak {w['maxrss_mb']:6.0f} MB"
-                )
+        if not args.no_read:
+            _print_reads(files, n <= args.in_memory_max)
         if args.no_replay:
             continue
         for fmt in formats:
-            out = base / f"replay_{n}_{fmt}"
-            out.mkdir(exist_ok=True)
-            streamed = run_child("replay", str(files[fmt]), str(out), "stream", time_limit_s=args.replay_time_limit)
-            runs = [("streamed", streamed)]
-            if n <= args.in_memory_max:
-                runs.append(("in memory", run_child("replay", str(files[fmt]), str(out), "memory")))
-            for label, r in runs:
-                print(f"replay {fmt:7s} {label:9s}: " + _replay_line(r))
-            if len(runs) == 2:
-                s, m = streamed, runs[1][1]
-                print(
-                    f"replay {fmt:7s} streamed / in memory: time x{s['seconds'] / m['seconds']:.3f} (CPU "
-                    f"x{s['cpu_seconds'] / m['cpu_seconds']:.3f}), peak x{s['maxrss_mb'] / m['maxrss_mb']:.3f}"
-                    f" ({s['maxrss_mb']:.0f} / {m['maxrss_mb']:.0f} MB), same estimate: "
-                    f"{s['focal_length_mm'] == m['focal_length_mm']}"
-                )
-            results.append(
-                {"frames": n, "format": fmt, "streamed": streamed}
-                | ({"in_memory": runs[1][1]} if len(runs) == 2 else {})
-            )
+            results.append(_replays(base, n, fmt, files[fmt], n <= args.in_memory_max, args.replay_time_limit))
     if results:
         _acceptance(results[-1])
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
+
+
+def _child(kind: str, *rest: str) -> None:
+    """The child process's job (``--child``): one read or one replay, its figures printed as JSON."""
+    if kind == "read":
+        print(json.dumps(child_read(rest[0], rest[1] == "whole")))
+    else:
+        print(json.dumps(child_replay(rest[0], rest[1], rest[2] == "memory")))
+
+
+def _session_files(base: Path, n: int, formats) -> dict[str, Path]:
+    """The synthetic session of ``n`` frames in each format, written into ``base`` unless there already."""
+    files = {}
+    for fmt in formats:
+        path = base / f"session_{n}.{fmt}"
+        if not path.exists():
+            seconds = write_synthetic_session(path, n)
+            print(f"[{n} frames] wrote {path} in {seconds:.1f} s")
+        files[fmt] = path
+    return files
+
+
+def _print_reads(files: dict[str, Path], whole: bool) -> None:
+    """Each file read in chunks (and, with ``whole``, at once) in a child process: time, rate and peak memory."""
+    for fmt, path in files.items():
+        size_mb = path.stat().st_size / 1e6
+        r = run_child("read", str(path), "chunks")
+        print(
+            f"read {fmt:7s} in chunks: {r['seconds']:7.2f} s ({r['cpu_seconds']:6.2f} s CPU)  "
+            f"{r['rows'] / r['seconds'] / 1e6:5.2f} M rows/s ({r['rows'] / r['cpu_seconds'] / 1e6:5.2f} of CPU)  "
+            f"{size_mb / r['seconds']:6.1f} MB/s of {size_mb:7.1f} MB  peak {r['maxrss_mb']:6.0f} MB"
+        )
+        if whole:
+            w = run_child("read", str(path), "whole")
+            print(
+                f"read {fmt:7s} whole:     {w['seconds']:7.2f} s ({w['cpu_seconds']:6.2f} s CPU)  "
+                f"peak {w['maxrss_mb']:6.0f} MB"
+            )
+
+
+def _replays(base: Path, n: int, fmt: str, path: Path, in_memory: bool, time_limit_s: float | None) -> dict:
+    """The session ``path`` replayed streamed (and, with ``in_memory``, in memory, side by side) in child
+    processes, each printed; the figures as one result record."""
+    out = base / f"replay_{n}_{fmt}"
+    out.mkdir(exist_ok=True)
+    streamed = run_child("replay", str(path), str(out), "stream", time_limit_s=time_limit_s)
+    runs = [("streamed", streamed)]
+    if in_memory:
+        runs.append(("in memory", run_child("replay", str(path), str(out), "memory")))
+    for label, r in runs:
+        print(f"replay {fmt:7s} {label:9s}: " + _replay_line(r))
+    if len(runs) == 2:
+        s, m = streamed, runs[1][1]
+        print(
+            f"replay {fmt:7s} streamed / in memory: time x{s['seconds'] / m['seconds']:.3f} (CPU "
+            f"x{s['cpu_seconds'] / m['cpu_seconds']:.3f}), peak x{s['maxrss_mb'] / m['maxrss_mb']:.3f}"
+            f" ({s['maxrss_mb']:.0f} / {m['maxrss_mb']:.0f} MB), same estimate: "
+            f"{s['focal_length_mm'] == m['focal_length_mm']}"
+        )
+    return {"frames": n, "format": fmt, "streamed": streamed} | ({"in_memory": runs[1][1]} if len(runs) == 2 else {})
 
 
 if __name__ == "__main__":
