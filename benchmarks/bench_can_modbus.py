@@ -122,15 +122,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--modbus-frames", type=int, default=500)
     parser.add_argument("--out")
     args = parser.parse_args(argv)
-    results: dict = {"can": [], "modbus": []}
-    sample = None
-    for bitrate in [int(b) for b in args.bitrates.split(",") if b]:
+    can, can_frames = _can_runs([int(b) for b in args.bitrates.split(",") if b], args.frames)
+    modbus, modbus_frames = _modbus_runs(args.modbus_frames)
+    results = {"can": can, "modbus": modbus, "host_decode": _host_decode(can_frames or modbus_frames)}
+    _print_results(results)
+    if args.out:
+        write_text(args.out, json.dumps(results, indent=2))
+    return 0
+
+
+def _can_runs(bitrates: list[int], n_frames: int) -> tuple[list[dict], list | None]:
+    """``n_frames`` streamed from an emulated CAN sensor at each bit rate: the rate against the line's limit; and
+    the first run's frames (None without a bit rate)."""
+    runs, sample = [], None
+    for bitrate in bitrates:
         with EmulatorProcess("can", ["--bitrate", str(bitrate)]) as emulator:
             info = emulator.info
-            frames, elapsed, lost = stream(info["link"], args.frames)
+            frames, elapsed, lost = stream(info["link"], n_frames)
         stars = sum(f.n_stars for f in frames)
         limit = physical_limit_stars_per_s(frames, info)
-        results["can"].append(
+        runs.append(
             {
                 "bitrate": bitrate,
                 "frames": len(frames),
@@ -143,12 +154,18 @@ def main(argv: list[str] | None = None) -> int:
             }
         )
         sample = sample or frames
+    return runs, sample
+
+
+def _modbus_runs(n_frames: int) -> tuple[list[dict], list]:
+    """``n_frames`` streamed from an emulated Modbus sensor over TCP and over RTU; and the first run's frames."""
+    runs, sample = [], None
     for key in ("link", "link_rtu"):
         with EmulatorProcess("modbus") as emulator:
             info = emulator.info
-            frames, elapsed, lost = stream(info[key], args.modbus_frames)
+            frames, elapsed, lost = stream(info[key], n_frames)
             stars = sum(f.n_stars for f in frames)
-            results["modbus"].append(
+            runs.append(
                 {
                     "link": key,
                     "frames": len(frames),
@@ -160,17 +177,24 @@ def main(argv: list[str] | None = None) -> int:
                 }
             )
             sample = sample or frames
+    return runs, sample
+
+
+def _host_decode(sample) -> dict:
+    """The host's decoding rates of the frames ``sample`` (its own CAN decoder, python-can's SLCAN over a socket
+    and a buffered socket), against the fastest CAN line's star rate."""
     fastest = physical_limit_stars_per_s(sample, {"bitrate": FASTEST_CAN_BITRATE})
     decode = host_decode_stars_per_s(sample)
-    slcan = slcan_parse_stars_per_s(sample)
-    slcan_buf = slcan_parse_stars_per_s(sample, "bufsocket")
-    results["host_decode"] = {
+    return {
         "stars_per_s": decode,
         "fastest_line_stars_per_s": fastest,
         "ratio": decode / fastest,
-        "slcan_socket_stars_per_s": slcan,
-        "slcan_bufsocket_stars_per_s": slcan_buf,
+        "slcan_socket_stars_per_s": slcan_parse_stars_per_s(sample),
+        "slcan_bufsocket_stars_per_s": slcan_parse_stars_per_s(sample, "bufsocket"),
     }
+
+
+def _print_results(results: dict) -> None:
     print(f"{'CAN bit rate':>12s} {'stars/s':>9s} {'limit':>9s} {'fraction':>9s} {'lost':>5s}")
     for r in results["can"]:
         print(
@@ -182,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
             f"modbus {r['link']:8s}: {r['stars_per_s']:.0f} stars/s, {r['frames_per_s']:.0f} frames/s "
             f"(>= 2 register transactions each), lost {r['lost']}"
         )
+    h = results["host_decode"]
+    decode, fastest = h["stars_per_s"], h["fastest_line_stars_per_s"]
+    slcan, slcan_buf = h["slcan_socket_stars_per_s"], h["slcan_bufsocket_stars_per_s"]
     print(
         f"host CAN stream decoding: {decode:.0f} stars/s = {decode / fastest:.1f} x the fastest line "
         f"(CAN @ 1 Mbit/s: {fastest:.0f} stars/s)"
@@ -190,9 +217,6 @@ def main(argv: list[str] | None = None) -> int:
         f"python-can slcan reading the same frames as SLCAN text: socket:// {slcan:.0f} stars/s "
         f"({slcan / fastest:.2f} x), bufsocket:// {slcan_buf:.0f} stars/s ({slcan_buf / fastest:.2f} x)"
     )
-    if args.out:
-        write_text(args.out, json.dumps(results, indent=2))
-    return 0
 
 
 if __name__ == "__main__":
