@@ -345,6 +345,50 @@ def byte_compile_project() -> None:
         compileall.compile_dir(root / package, quiet=1)
 
 
+def _prepare(frames: int, folder: Path, session: int) -> tuple[float, np.ndarray]:
+    """The session of ``frames`` frames generated into ``folder`` (unless there already), and from its Fisher
+    information the Cramer-Rao bound of the validation residual [px] and each parameter's CRB sigma (printed)."""
+    t0 = time.perf_counter()
+    generate(frames, folder, session)
+    info = np.load(folder / "info.npy")
+    bound = api.crb_validation_px(info, api.validation_jacobian(TRUTH, ALL))
+    d = np.sqrt(np.diag(info))  # equilibrated: the entries span 30 orders of magnitude
+    sigma = np.sqrt(np.diag(np.linalg.pinv(info / d[:, None] / d[None, :], hermitian=True))) / d
+    print(
+        f"\n{frames} frames (data ready in {time.perf_counter() - t0:.1f} s); CRB of the validation residual "
+        f"{bound:.5f} px",
+        flush=True,
+    )
+    return bound, sigma
+
+
+def _scored(methods: list[str], runs: dict[str, list[dict]], bound: float, skip_scipy_above: int) -> dict:
+    """Each method's best run (:func:`_best_run`) with its validation residual against the bound ``bound`` [px],
+    each printed (a method without runs: skipped)."""
+    results = {}
+    for method in methods:
+        if method not in runs:
+            print(f"  {method:10s} skipped (above {skip_scipy_above} frames)", flush=True)
+            continue
+        r = _best_run(runs[method])
+        results[method] = r
+        if "error" in r:
+            print(f"  {method:10s} FAILED: {r['error']}", flush=True)
+            continue
+        v = validation_px(method, np.array(r["estimate"]))
+        r["validation_px"] = v
+        r["crb_px"] = bound
+        cpu_runs = r["cpu_runs_s"]
+        spread = f" (best of {len(cpu_runs)}; the slowest {max(cpu_runs):.2f} s CPU)" if len(cpu_runs) > 1 else ""
+        print(
+            f"  {method:10s} {r['time_s']:9.2f} s wall {r['cpu_s']:9.2f} s CPU  peak {r['peak_mb']:8.1f} MB "
+            f"(own VmHWM {r['vmhwm_mb']:.1f})  "
+            f"validation {v:.5f} px ({v / bound:.2f}x CRB){spread}",
+            flush=True,
+        )
+    return results
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1000,10000,100000")
@@ -373,43 +417,13 @@ def main() -> None:
     results: dict[int, dict[str, dict]] = {}
     for frames in [int(s) for s in args.sizes.split(",")]:
         folder = work / f"frames{frames}"
-        t0 = time.perf_counter()
-        generate(frames, folder, args.session)
-        info = np.load(folder / "info.npy")
-        bound = api.crb_validation_px(info, api.validation_jacobian(TRUTH, ALL))
-        d = np.sqrt(np.diag(info))  # equilibrated: the entries span 30 orders of magnitude
-        sigma_of[frames] = np.sqrt(np.diag(np.linalg.pinv(info / d[:, None] / d[None, :], hermitian=True))) / d
-        print(
-            f"\n{frames} frames (data ready in {time.perf_counter() - t0:.1f} s); CRB of the validation residual "
-            f"{bound:.5f} px",
-            flush=True,
-        )
-        results[frames] = {}
+        bound, sigma_of[frames] = _prepare(frames, folder, args.session)
         runs: dict[str, list[dict]] = {}
         for _ in range(args.repeat):  # interleaved: every method sees the same spells of a shared machine's load
             for method in methods:
                 if not (method == "scipy" and frames > args.skip_scipy_above):
                     runs.setdefault(method, []).append(run_measured(method, folder))
-        for method in methods:
-            if method not in runs:
-                print(f"  {method:10s} skipped (above {args.skip_scipy_above} frames)", flush=True)
-                continue
-            r = _best_run(runs[method])
-            results[frames][method] = r
-            if "error" in r:
-                print(f"  {method:10s} FAILED: {r['error']}", flush=True)
-                continue
-            v = validation_px(method, np.array(r["estimate"]))
-            r["validation_px"] = v
-            r["crb_px"] = bound
-            cpu_runs = r["cpu_runs_s"]
-            spread = f" (best of {len(cpu_runs)}; the slowest {max(cpu_runs):.2f} s CPU)" if len(cpu_runs) > 1 else ""
-            print(
-                f"  {method:10s} {r['time_s']:9.2f} s wall {r['cpu_s']:9.2f} s CPU  peak {r['peak_mb']:8.1f} MB "
-                f"(own VmHWM {r['vmhwm_mb']:.1f})  "
-                f"validation {v:.5f} px ({v / bound:.2f}x CRB){spread}",
-                flush=True,
-            )
+        results[frames] = _scored(methods, runs, bound, args.skip_scipy_above)
         _compare(results[frames], sigma_of[frames])
     store = work / "results.json"  # every size ever run here, the latest run of each (the scaling check below)
     saved = json.loads(store.read_text()) if store.exists() else {}
