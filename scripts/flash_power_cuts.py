@@ -220,39 +220,63 @@ def run_trials(
             recording = bytearray()
             upload = threading.Thread(target=_upload, args=(emulator.link, target, recording if replays else None))
             upload.start()
-            if cut_units[k] is not None:  # inside: the armed hook cuts the power
-                how = f"inside {cut_units[k]} units"
-            else:  # outside: kill -9 at a random time of the upload
-                delay_s = rng.uniform(0.0, delay_max_s)
-                how = f"outside {delay_s:.3f} s"
-                upload.join(delay_s)
-                emulator.process.send_signal(signal.SIGKILL)
-            upload.join(60.0)
-            emulator.process.send_signal(signal.SIGKILL)  # if the hook's cut lay beyond this upload's writes
+            how = _cut_power(emulator, upload, cut_units[k], rng, delay_max_s)
             emulator.stop()
             emulator = start(k + 1)
             after = read_active(emulator.link)
-            if after == before:
-                outcome = "old"
-            elif after == (before[0] + 1, params_to_table(target)):
-                outcome = "new"
-            else:
-                outcome = f"MIXED: generation {after[0]} (was {before[0]})"
+            outcome = _outcome(before, after, target)
             what, replay_outcome, opened = "", "", 0
             if replays:
                 if recording:
                     recordings.append(bytes(recording))
-                what, data = replay_piece(replay_rng, recordings[replay_rng.randrange(len(recordings))])
-                counter = session_counter(flash)
-                again = replay_on_line(emulator.link, data)
-                opened = session_counter(flash) - counter  # > 0: the replay reached the sensor and was acted on
-                replay_outcome = "nothing activated" if again == after else f"ACTIVATED: generation {again[0]}"
-                after = again
+                what, replay_outcome, opened, after = _replay_one(emulator.link, flash, recordings, replay_rng, after)
             trials.append(Trial(k, how, outcome, what, replay_outcome, opened))
             before = after
     finally:
         emulator.stop()
     return trials
+
+
+def _cut_power(
+    emulator: EmulatorProcess, upload: threading.Thread, cut_unit: int | None, rng: random.Random, delay_max_s: float
+) -> str:
+    """Power cut during the running ``upload``: by the emulator's armed hook after ``cut_unit`` units (inside), or
+    without one (``cut_unit`` None: outside) by kill -9 at a random time up to ``delay_max_s`` [s]; the emulator
+    killed in any case once the upload ends. Returns how it was cut."""
+    if cut_unit is not None:  # inside: the armed hook cuts the power
+        how = f"inside {cut_unit} units"
+    else:  # outside: kill -9 at a random time of the upload
+        delay_s = rng.uniform(0.0, delay_max_s)
+        how = f"outside {delay_s:.3f} s"
+        upload.join(delay_s)
+        emulator.process.send_signal(signal.SIGKILL)
+    upload.join(60.0)
+    emulator.process.send_signal(signal.SIGKILL)  # if the hook's cut lay beyond this upload's writes
+    return how
+
+
+def _outcome(before: tuple[int, bytes], after: tuple[int, bytes], target) -> str:
+    """What a restart after the cut booted: the old set (``before``), the new one (``target``, one generation on),
+    or anything else (MIXED: a failure)."""
+    if after == before:
+        return "old"
+    if after == (before[0] + 1, params_to_table(target)):
+        return "new"
+    return f"MIXED: generation {after[0]} (was {before[0]})"
+
+
+def _replay_one(
+    link: str, flash: Path, recordings: list[bytes], replay_rng: random.Random, after: tuple[int, bytes]
+) -> tuple[str, str, int, tuple[int, bytes]]:
+    """A piece of a recorded upload (:func:`replay_piece`) sent again on the line: what was sent, whether it
+    activated anything, how many staging sessions it opened (> 0: it reached the sensor and was acted on), and the
+    active set after it."""
+    what, data = replay_piece(replay_rng, recordings[replay_rng.randrange(len(recordings))])
+    counter = session_counter(flash)
+    again = replay_on_line(link, data)
+    opened = session_counter(flash) - counter
+    replay_outcome = "nothing activated" if again == after else f"ACTIVATED: generation {again[0]}"
+    return what, replay_outcome, opened, again
 
 
 def main(argv: list[str] | None = None) -> int:
