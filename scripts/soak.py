@@ -106,70 +106,31 @@ def soak(
     deadline_s = 4.0 * duration_s if deadline_s is None else deadline_s
     failures: list[str] = []
     with EmulatorProcess(transport) as emulator, tempfile.TemporaryFile("w+") as monitor_err:
-        monitor = subprocess.Popen(
-            [sys.executable, "-m", "hostlink.cli", "monitor", "--link", emulator.link, "--count", "0"]
-            + ["--interval", str(interval_s), "--json", "--timeout", "10"],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=monitor_err,  # a file, not a pipe nobody reads: a long run never stalls on it
-            text=True,
-        )
+        monitor = _start_monitor(emulator.link, interval_s, monitor_err)
         reader = MonitorReader(monitor)
-        pids = {"emulator": emulator.process.pid, "monitor": monitor.pid}
-        t0 = time.monotonic()
-        base: dict[str, float] = {}
-        peak: dict[str, float] = {}
-        at_warmup: dict = {}
-        samples = 0
+        procs = {"emulator": emulator.process, "monitor": monitor}
         try:
-            while (now := time.monotonic() - t0) < duration_s or (
-                now < deadline_s and _frames(reader.last) - _frames(at_warmup) < min_frames
-            ):
-                sampled = {name: rss_mb(pid) for name, pid in pids.items()}
-                ended = [n for n, p in (("emulator", emulator.process), ("monitor", monitor)) if p.poll() is not None]
-                ended += [n for n, v in sampled.items() if v is None and n not in ended]
-                if ended:
-                    failures.append(f"{', '.join(ended)} ended after {now:.0f} s")
-                    break
-                rss = {name: float(v) for name, v in sampled.items()}
-                samples += 1
-                if now >= warmup_s:
-                    if not base:
-                        base, at_warmup = dict(rss), dict(reader.last)
-                    peak = {n: max(peak.get(n, 0.0), v) for n, v in rss.items()}
-                if on_sample is not None:
-                    work = {k: reader.last.get(k) for k in ("frames_received", "updates")}
-                    on_sample({"t_s": round(now, 1), **{f"{n}_rss_mb": round(v, 2) for n, v in rss.items()}, **work})
-                time.sleep(sample_s)  # the sampling period of a measurement, not a synchronisation
+            run = _sample(procs, reader, (duration_s, deadline_s, warmup_s, sample_s), min_frames, on_sample, failures)
         finally:
-            monitor.terminate()
-            try:
-                monitor.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                monitor.kill()
-                monitor.wait()
+            _stop(monitor)
         end = dict(reader.last)
         if failures:
             monitor_err.seek(0)
             failures += [f"monitor: {line}" for line in monitor_err.read().strip().splitlines()[-1:]]
-    if not base:
+    if not run.base:
         failures.append(f"the soak ended before the warm-up ({warmup_s:g} s) was over")
-        base = peak = {"emulator": float("nan"), "monitor": float("nan")}
-    drift = {n: peak[n] - base[n] for n in base}
-    frames = _frames(end) - _frames(at_warmup)
-    updates = int(end.get("updates", 0)) - int(at_warmup.get("updates", 0))
-    for name, mb in drift.items():
-        if not mb <= max_drift_mb:
-            failures.append(f"{name} RSS grew {mb:.2f} MB after the warm-up (limit {max_drift_mb:g} MB)")
-    if frames <= 0 or updates < min_update_fraction * frames:
-        failures.append(f"the estimator made {updates} updates in {frames} frames after the warm-up: not at full work")
+        run.base = run.peak = {"emulator": float("nan"), "monitor": float("nan")}
+    drift = {n: run.peak[n] - run.base[n] for n in run.base}
+    frames = _frames(end) - _frames(run.at_warmup)
+    updates = int(end.get("updates", 0)) - int(run.at_warmup.get("updates", 0))
+    failures += _judged(drift, frames, updates, max_drift_mb, min_update_fraction)
     return SoakResult(
         transport=transport,
         duration_s=duration_s,
         warmup_s=warmup_s,
-        samples=samples,
-        emulator_rss_after_warmup_mb=round(base["emulator"], 2),
-        monitor_rss_after_warmup_mb=round(base["monitor"], 2),
+        samples=run.samples,
+        emulator_rss_after_warmup_mb=round(run.base["emulator"], 2),
+        monitor_rss_after_warmup_mb=round(run.base["monitor"], 2),
         emulator_drift_mb=round(drift["emulator"], 2),
         monitor_drift_mb=round(drift["monitor"], 2),
         max_drift_mb=max_drift_mb,
@@ -178,6 +139,88 @@ def soak(
         polls=reader.polls,
         failures=failures,
     )
+
+
+@dataclass
+class _Samples:
+    """What the sampling saw: RSS [MB] per process at the end of the warm-up (``base``, empty before it) and its
+    highest since, the monitor's last poll at the end of the warm-up, and the number of samples."""
+
+    base: dict[str, float] = field(default_factory=dict)
+    peak: dict[str, float] = field(default_factory=dict)
+    at_warmup: dict = field(default_factory=dict)
+    samples: int = 0
+
+
+def _start_monitor(link: str, interval_s: float, err) -> subprocess.Popen:
+    """``hostlink monitor --json`` on ``link``, polling every ``interval_s`` [s], its stderr into the file ``err``."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "hostlink.cli", "monitor", "--link", link, "--count", "0"]
+        + ["--interval", str(interval_s), "--json", "--timeout", "10"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=err,  # a file, not a pipe nobody reads: a long run never stalls on it
+        text=True,
+    )
+
+
+def _stop(monitor: subprocess.Popen) -> None:
+    monitor.terminate()
+    try:
+        monitor.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        monitor.kill()
+        monitor.wait()
+
+
+def _sample(
+    procs: dict[str, subprocess.Popen],
+    reader: MonitorReader,
+    times_s: tuple[float, float, float, float],
+    min_frames: int,
+    on_sample,  # noqa: ANN001 - callable(dict) per sample
+    failures: list[str],
+) -> _Samples:
+    """Every ``sample_s`` until ``duration_s`` (and on until ``min_frames`` after the warm-up, up to
+    ``deadline_s``; ``times_s`` = (duration_s, deadline_s, warmup_s, sample_s)), the processes' RSS; a process
+    that ended is a failure and stops the sampling."""
+    duration_s, deadline_s, warmup_s, sample_s = times_s
+    run = _Samples()
+    t0 = time.monotonic()
+    while (now := time.monotonic() - t0) < duration_s or (
+        now < deadline_s and _frames(reader.last) - _frames(run.at_warmup) < min_frames
+    ):
+        sampled = {name: rss_mb(p.pid) for name, p in procs.items()}
+        ended = [n for n, p in procs.items() if p.poll() is not None]
+        ended += [n for n, v in sampled.items() if v is None and n not in ended]
+        if ended:
+            failures.append(f"{', '.join(ended)} ended after {now:.0f} s")
+            break
+        rss = {name: float(v) for name, v in sampled.items()}
+        run.samples += 1
+        if now >= warmup_s:
+            if not run.base:
+                run.base, run.at_warmup = dict(rss), dict(reader.last)
+            run.peak = {n: max(run.peak.get(n, 0.0), v) for n, v in rss.items()}
+        if on_sample is not None:
+            work = {k: reader.last.get(k) for k in ("frames_received", "updates")}
+            on_sample({"t_s": round(now, 1), **{f"{n}_rss_mb": round(v, 2) for n, v in rss.items()}, **work})
+        time.sleep(sample_s)  # the sampling period of a measurement, not a synchronisation
+    return run
+
+
+def _judged(
+    drift: dict[str, float], frames: int, updates: int, max_drift_mb: float, min_update_fraction: float
+) -> list[str]:
+    """The failures of the judged window: a process whose RSS grew more than ``max_drift_mb``, or an estimator that
+    updated on fewer than ``min_update_fraction`` of the frames (not at full work)."""
+    failures = []
+    for name, mb in drift.items():
+        if not mb <= max_drift_mb:
+            failures.append(f"{name} RSS grew {mb:.2f} MB after the warm-up (limit {max_drift_mb:g} MB)")
+    if frames <= 0 or updates < min_update_fraction * frames:
+        failures.append(f"the estimator made {updates} updates in {frames} frames after the warm-up: not at full work")
+    return failures
 
 
 def _frames(poll: dict) -> int:
