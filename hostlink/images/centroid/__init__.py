@@ -15,7 +15,10 @@ Per image:
    faint star has 1-2; 3 lost 5 of the stars the plate solver names on the granasat frames; 1 keeps 5 more of them,
    but lets the heavy tail of clipped, correlated 8-bit noise through: 18 false detections per 1.3 Mpx in the test
    of it), its multi-threshold deblending (32 levels, contrast 0.005), without SEP's cleaning (it merged sharp stars
-   of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`);
+   of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`); on a frame whose PSF, measured on a first
+   extraction, is undersampled (sigma below ~0.575 px, a 2 x 2 binned frame's), also a footprint of 1 filtered pixel
+   whose peak reaches 1.2 x the threshold and which fits a star better than a hot pixel
+   (:func:`hostlink.images.centroid.screen._footprint_px`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
    flux its neighbours hold; at the border too; and one clipped pixel whose neighbours hold less than the sharpest

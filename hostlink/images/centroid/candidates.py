@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from hostlink.images.background import kernel_norm
 from hostlink.images.centroid.options import Candidates, CentroidOptions, Detections
 from hostlink.images.centroid.psf import (
     _PSF_FIT_SIGMAS,
@@ -13,7 +12,7 @@ from hostlink.images.centroid.psf import (
     _psf_fluxes,
     centroid_sigma_px,
 )
-from hostlink.images.centroid.screen import _FILTER_KERNEL, _HOT_BOX_HALF_PX
+from hostlink.images.centroid.screen import _HOT_BOX_HALF_PX
 from hostlink.images.centroid.stamps import _in_chunks
 from hostlink.images.centroid.windows import _window_half_px, _window_iterated
 from hostlink.sky.render import pixel_integrated_gaussian
@@ -23,15 +22,16 @@ from hostlink.sky.render import pixel_integrated_gaussian
 _CANDIDATE_CLEAR_SIGMAS = _PSF_FIT_SIGMAS
 
 
-def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
-    """Package docstring, step 7: faint candidates, the local maxima of the filtered image outside every detection's
-    footprint (below the threshold, or lost by the extraction) and clear of the kept stars, centroided by
-    the window of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for
-    every faint star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at
+def _candidates(sub, rms, significance, segmap, kept: Detections, sigma: float, options: CentroidOptions) -> Candidates:
+    """Package docstring, step 7: faint candidates, the local maxima of the detection's ``significance`` (its
+    filtered image over its noise, :func:`hostlink.images.centroid.screen._extract`) outside every detection's
+    footprint (below the threshold, or lost by the extraction) and clear of the kept stars, centroided by the window
+    of the PSF's width (:func:`_window_iterated`: where the background's noise dominates, as it does for every faint
+    star, the matched filter, the maximum-likelihood centroid) and kept when their PSF-fit flux F is at
     least ``candidate_sigma`` x its noise: snr = F sqrt(sum P^2) / rms (:func:`_snr`). Most are noise, and they are
     not tested for hot pixels: :mod:`hostlink.images.guided` names one only where the calibrated camera predicts a
     catalogue star as bright, and states the chance of that for noise, counting every candidate (hot pixels too)."""
-    rows, cols = _local_maxima(filtered / (rms * _FILTERED_NOISE_PER_PX), options.candidate_sigma, segmap)
+    rows, cols = _local_maxima(significance, options.candidate_sigma, segmap)
     x0, y0 = cols.astype(np.float64), rows.astype(np.float64)
     clear = _CANDIDATE_CLEAR_SIGMAS * sigma + 1.0
     if kept.x_px.size and x0.size:
@@ -49,10 +49,6 @@ def _candidates(sub, rms, filtered, segmap, kept: Detections, sigma: float, opti
     stated = _noise_stated(sigma_px)  # a row without a centroid noise is not written
     x, y, flux, sigma_px, snr = x[stated], y[stated], flux[stated], sigma_px[stated], snr[stated]
     return Candidates(x, y, flux, -2.5 * np.log10(flux), sigma_px, snr)
-
-
-#: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
-_FILTERED_NOISE_PER_PX = kernel_norm(_FILTER_KERNEL)
 
 
 def _local_maxima(significance: np.ndarray, limit: float, segmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

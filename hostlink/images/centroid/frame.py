@@ -60,7 +60,7 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     raw = np.ascontiguousarray(pixels, dtype=np.float64)
     level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     blank = saturated_regions(raw, level)
-    sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank)
+    sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank, raw, level)
     report = FrameReport(path="", detected=int(objects.size), background_rms_adu=float(np.median(rms[~blank])))
     if objects.size == 0:
         return _no_stars(report)
@@ -87,7 +87,7 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     detections = _measured(sub, rms, stars, sigma, options, report)
     fainter = options.candidate_sigma is not None and options.candidate_sigma < options.threshold_sigma
     if fainter and detections.x_px.size:  # candidates are what lies below the detection threshold
-        detections.candidates = _candidates(sub, rms, filtered, segmap, detections, report.psf_sigma_px, options)
+        detections.candidates = _candidates(sub, rms, filtered, screen.segmap, detections, report.psf_sigma_px, options)
         report.candidates = int(detections.candidates.x_px.size)
     return detections
 

@@ -48,7 +48,9 @@ class CentroidOptions:
     of a frame, the anchors of every pattern matcher: an 8-bit camera saturates its brightest stars in most exposures)
     with a windowed centroid (a clipped core does not follow the PSF), ranked first, flagged in the ``saturated`` column
     with a ``sigma_px`` of at least :data:`SATURATED_SIGMA_PX`, counted in ``FrameReport.saturated_kept``; False rejects
-    them."""
+    them; ``footprint_follows_psf`` (default True): on a frame whose measured PSF is undersampled, detections of 1
+    filtered pixel at a raised threshold are kept beside those of ``min_area_px`` (:func:`hostlink.images.centroid.
+    screen._footprint_px`); False: ``min_area_px`` on every frame."""
 
     threshold_sigma: float = 5.0
     min_area_px: int = _DEFAULT_MIN_AREA_PX
@@ -65,6 +67,7 @@ class CentroidOptions:
     background_box_px: int = 64
     max_stars: int | None = None
     candidate_sigma: float | None = DEFAULT_CANDIDATE_SIGMA
+    footprint_follows_psf: bool = True
 
 
 @dataclass(frozen=True)

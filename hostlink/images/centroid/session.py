@@ -72,7 +72,10 @@ def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, k
     subtracting it removes them. The median of frames at different pointings holds at most a few star-like sources
     (warm pixel clusters, a star that stayed put), fewer than :data:`_MEDIAN_MAX_STARS` and fewer than a frame
     keeps."""
-    in_median = centroid_pixels(median, replace(options, max_stars=None, candidate_sigma=None)).report.kept
+    # warm pixels, sharp as an undersampled PSF, are not to pass a footprint matched to the PSF in the median
+    in_median = centroid_pixels(
+        median, replace(options, max_stars=None, candidate_sigma=None, footprint_follows_psf=False)
+    ).report.kept
     per_frame = float(np.mean(kept)) if kept else 0.0
     if in_median >= _MEDIAN_MAX_STARS and in_median >= per_frame:
         raise UserError(
