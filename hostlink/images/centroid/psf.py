@@ -118,6 +118,15 @@ def psf_model_batch(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`psf_model` for N stars at once: ``cols`` (N, W), ``rows`` (N, H), ``params`` (N, 4) = (x, y, N, B);
     returns mu (N, H, W) and d mu / d params (N, H, W, 4)."""
+    mu, (dx, dy, shape) = _model_columns(cols, rows, params, sigma_px)
+    return mu, np.stack([dx, dy, shape, np.ones_like(shape)], axis=-1)
+
+
+def _model_columns(
+    cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`psf_model_batch`'s mu and the first three columns of its Jacobian, d mu / d (x, y, N), each (N, H, W)
+    (the fourth, d mu / d B, is 1)."""
     x, y, n, b = (params[:, k : k + 1] for k in range(4))
     px = pixel_integrated_gaussian(cols, x, sigma_px)
     py = pixel_integrated_gaussian(rows, y, sigma_px)
@@ -125,11 +134,8 @@ def psf_model_batch(
     dpy = pixel_integrated_gaussian_dsource(rows, y, sigma_px)
     shape = py[:, :, None] * px[:, None, :]
     nn = n[:, :, None]
-    jac = np.stack(
-        [nn * py[:, :, None] * dpx[:, None, :], nn * dpy[:, :, None] * px[:, None, :], shape, np.ones_like(shape)],
-        axis=-1,
-    )
-    return b[:, :, None] + nn * shape, jac
+    columns = (nn * py[:, :, None] * dpx[:, None, :], nn * dpy[:, :, None] * px[:, None, :], shape)
+    return b[:, :, None] + nn * shape, columns
 
 
 def _levenberg_marquardt_batch(
@@ -153,7 +159,8 @@ def _levenberg_marquardt_batch(
         active = np.flatnonzero(~done)
         if active.size == 0:
             break
-        ja, ra = j[active], r[active]
+        every = active.size == n  # every star still active (the first iterations): no copy of their rows
+        ja, ra = (j, r) if every else (j[active], r[active])
         jt = np.swapaxes(ja, 1, 2)
         normal = jt @ ja  # J^T J and J^T r per star: batched products (a 3-operand einsum is ~8 times slower)
         gradient = (jt @ ra[..., None])[..., 0]
@@ -171,7 +178,10 @@ def _levenberg_marquardt_batch(
         take = active[better]
         fall = cost[take] - cost_new[better]
         params[take] = trial[take]
-        r[take], j[take] = r_new[better], j_new[better]
+        if every and take.size == n:  # every star's step taken: the new rows are the rows
+            r, j = r_new, j_new
+        else:
+            r[take], j[take] = r_new[better], j_new[better]
         cost[take] = cost_new[better]
         damping[take] /= 10.0
         damping[active[~better]] *= 10.0
@@ -186,25 +196,46 @@ def _levenberg_marquardt_batch(
 
 def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """x with lhs[k] x[k] = rhs[k] for each of the (n, 4, 4) systems, and which are singular (their x 0: a
-    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the batch is then split in
-    halves until the singular ones stand alone (each system solved by the same LAPACK call as on its own)."""
+    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the singular ones are found
+    first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
+    ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
+    same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
+    ones stand alone (a singular system in the batch took a split per level: ~170 calls per fit of a frame)."""
+    singular = np.linalg.slogdet(lhs)[0] == 0
+    if singular.any():
+        out = np.zeros_like(rhs)
+        if not singular.all():
+            out[~singular], again = _solve_halving(lhs[~singular], rhs[~singular])
+            singular[np.flatnonzero(~singular)[again]] = True
+        return out, singular
+    return _solve_halving(lhs, rhs)
+
+
+def _solve_halving(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_solve_each` by splitting the batch in halves until the singular systems stand alone."""
     try:
         return np.linalg.solve(lhs, rhs[..., None])[..., 0], np.zeros(lhs.shape[0], dtype=bool)
     except np.linalg.LinAlgError:
         if lhs.shape[0] == 1:
             return np.zeros_like(rhs), np.ones(1, dtype=bool)
     half = lhs.shape[0] // 2
-    (x1, s1), (x2, s2) = _solve_each(lhs[:half], rhs[:half]), _solve_each(lhs[half:], rhs[half:])
+    (x1, s1), (x2, s2) = _solve_halving(lhs[:half], rhs[:half]), _solve_halving(lhs[half:], rhs[half:])
     return np.concatenate([x1, x2]), np.concatenate([s1, s2])
 
 
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
-    """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``."""
-    mu, jac = psf_model_batch(cols[active], rows[active], params[active], sigma_px)
+    """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
+    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
+    and the product of it took twice as long; d mu / d B = 1 whitened is the whitening)."""
+    mu, columns = _model_columns(cols[active], rows[active], params[active], sigma_px)
     w = whiten[active]
     k = active.size
     r = ((mu - data[active]) * w).reshape(k, -1)
-    j = (jac * w[..., None]).reshape(k, -1, 4)
+    j = np.empty((*w.shape, 4))
+    for c, column in enumerate(columns):
+        np.multiply(column, w, out=j[..., c])
+    j[..., 3] = w
+    j = j.reshape(k, -1, 4)
     return r, j, np.einsum("np,np->n", r, r)
 
 
