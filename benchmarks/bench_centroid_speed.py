@@ -73,6 +73,20 @@ def _time(paths: list[Path], repeat: int):
     return seconds, result
 
 
+def _identify_once(result, set_name: str) -> None:
+    """``identify_session`` of the detected stars (the candidates left out), as benchmarks/bench_realsky.py's
+    ``_run_ours`` identifies once: the stars identified and the frames with an attitude."""
+    from bench_realsky import SETS
+
+    from hostlink.files.params import params_from_dict
+    from hostlink.images.guided import candidate_rows
+    from hostlink.images.identify import identify_session
+
+    detected = result.session.select(~candidate_rows(result.session))
+    once = identify_session(detected, params_from_dict(SETS[set_name].nominal))
+    print(f"identified once: {once.n_identified} of {detected.x_px.size} detected stars")
+
+
 def _compare(a_path: str, b_path: str) -> None:
     a, b = np.load(a_path), np.load(b_path)
     print(f"rows: {a['x'].size} / {b['x'].size}")
@@ -94,6 +108,9 @@ def main() -> None:
     parser.add_argument("--set", default="granasat")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--rows", help="write the session's rows (.npz) for --compare")
+    parser.add_argument(
+        "--identify", action="store_true", help="identify the detected stars once (as bench_realsky.py does)"
+    )
     parser.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --rows files and stop")
     args = parser.parse_args()
     if args.compare:
@@ -107,6 +124,8 @@ def main() -> None:
     print("centroid_images CPU [s]: " + " ".join(f"{s:.3f}" for s in seconds) + f"  (min {min(seconds):.3f})")
     if args.rows:
         np.savez(args.rows, **_rows(paths))
+    if args.identify:
+        _identify_once(result, args.set)
 
 
 if __name__ == "__main__":
