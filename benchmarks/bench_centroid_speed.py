@@ -93,6 +93,9 @@ def _compare(a_path: str, b_path: str) -> None:
     if a["x"].size != b["x"].size or not np.array_equal(a["frame"], b["frame"]):
         print("different rows per frame:", np.bincount(a["frame"].astype(int)), np.bincount(b["frame"].astype(int)))
         return
+    texts = sorted(name for name in a.files if name.startswith("text_"))
+    same = [name[5:] for name in texts if name in b.files and np.array_equal(a[name], b[name])]
+    print(f"session columns written the same: {len(same)} of {len(texts)} ({', '.join(same)})")
     for name in ("x", "y", *_COLUMNS):
         if name not in a.files or name not in b.files:
             continue
@@ -123,7 +126,8 @@ def main() -> None:
     print(f"tree {Path(hostlink.__file__).parent.parent}: {len(paths)} frames, {result.session.x_px.size} rows")
     print("centroid_images CPU [s]: " + " ".join(f"{s:.3f}" for s in seconds) + f"  (min {min(seconds):.3f})")
     if args.rows:
-        np.savez(args.rows, **_rows(paths))
+        text = {f"text_{name}": np.asarray(column, dtype=str) for name, column in result.session.extra.items()}
+        np.savez(args.rows, **_rows(paths), **text, text_mag=np.asarray(result.session.mag, dtype=str))
     if args.identify:
         _identify_once(result, args.set)
 
