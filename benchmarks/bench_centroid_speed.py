@@ -1,15 +1,16 @@
-"""Benchmark: the centroid stage alone (images -> centroids, ``centroid_images`` with the defaults, time unknown) on
-the real granasat frames, CPU seconds of this process (time.process_time: the machine may be shared), for the tree
-it runs in (issue 30). Run it alternately on two trees to compare them side by side:
+"""Benchmark: the centroid stage alone (images -> centroids, ``centroid_images`` as benchmarks/bench_realsky.py's
+``_run_ours`` calls it, time unknown) on a real image set (granasat by default, or openstartracker), CPU seconds of
+this process (time.process_time: the machine may be shared), for the tree it runs in (issue 30). Run it alternately
+on two trees to compare them side by side:
 
     PYTHONPATH=/path/to/baseline .venv/bin/python benchmarks/bench_centroid_speed.py --repeat 3 --rows base.npz
     PYTHONPATH=. .venv/bin/python benchmarks/bench_centroid_speed.py --repeat 3 --rows new.npz
     .venv/bin/python benchmarks/bench_centroid_speed.py --compare base.npz new.npz
 
 ``--rows`` writes every frame's detections at full precision (x, y, sigma_px, flux, saturated, blended, the
-candidates' snr; per frame the report's stars kept, PSF sigma and median noise) for ``--compare``, which prints the
-counts and the largest differences. STARTRACKER_REALSKY_ROOT names the folder of the
-image sets (docs/realsky.md)."""
+candidates' snr; per frame the report's stars kept, PSF sigma and median noise) and the session's text columns for
+``--compare``, which prints the counts and the largest differences; ``--identify`` identifies the detected stars
+once. STARTRACKER_REALSKY_ROOT names the folder of the image sets (docs/realsky.md)."""
 
 from __future__ import annotations
 
@@ -25,25 +26,42 @@ _COLUMNS = ("sigma_px", "flux_adu", "saturated", "blended", "snr", "report")
 
 
 def _paths(set_name: str) -> list[Path]:
+    from bench_realsky import SETS
+
     root = os.environ.get("STARTRACKER_REALSKY_ROOT")
     if root is None:
         sys.exit("bench_centroid_speed: set STARTRACKER_REALSKY_ROOT to the folder of the image sets")
-    paths = sorted((Path(root) / set_name).glob("*.jpg"))
+    pattern = SETS[set_name].pattern
+    paths = sorted((Path(root) / set_name).glob(pattern))
     if not paths:
-        sys.exit(f"bench_centroid_speed: no *.jpg under {Path(root) / set_name}")
+        sys.exit(f"bench_centroid_speed: no {pattern} under {Path(root) / set_name}")
     return paths
 
 
-def _rows(paths: list[Path]) -> dict[str, np.ndarray]:
+def _options(set_name: str):
+    """The set's centroiding as benchmarks/bench_realsky.py's ``_run_ours`` (openstartracker: the median of its
+    frames subtracted, 3 sigma)."""
+    from bench_realsky import SETS
+
+    from hostlink.images.centroid import CentroidOptions
+
+    image_set = SETS[set_name]
+    return CentroidOptions(threshold_sigma=image_set.threshold_sigma, median_of_inputs=image_set.median_of_inputs)
+
+
+def _rows(paths: list[Path], options) -> dict[str, np.ndarray]:
     """Every frame's detections at full precision (``centroid_pixels`` of each image, as ``centroid_images`` calls
     it), stars then candidates, and per frame its report's figures."""
-    from hostlink.images.centroid import CentroidOptions, centroid_pixels
+    from hostlink.images.centroid import centroid_pixels
+    from hostlink.images.centroid.session import _background_frame
     from hostlink.images.read import read_image
+
+    background = _background_frame(paths, options)
 
     parts: dict[str, list[np.ndarray]] = {}
     for k, path in enumerate(paths):
         image = read_image(path)
-        det = centroid_pixels(image.pixels, CentroidOptions(), None, image.saturation_adu)
+        det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
         c = det.candidates
         rows = {
             "frame": np.full(det.x_px.size + (c.x_px.size if c else 0), k),
@@ -62,13 +80,13 @@ def _rows(paths: list[Path]) -> dict[str, np.ndarray]:
     return {name: np.concatenate(values) for name, values in parts.items()}
 
 
-def _time(paths: list[Path], repeat: int):
-    from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
+def _time(paths: list[Path], options, repeat: int):
+    from hostlink.images.centroid import TimeOptions, centroid_images
 
     seconds = []
     for _ in range(repeat):
         t0 = time.process_time()
-        result = centroid_images(paths, CentroidOptions(), TimeOptions(time_unknown=True))
+        result = centroid_images(paths, options, TimeOptions(time_unknown=True))
         seconds.append(time.process_time() - t0)
     return seconds, result
 
@@ -108,7 +126,7 @@ def _compare(a_path: str, b_path: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--set", default="granasat")
+    parser.add_argument("--set", default="granasat", choices=("granasat", "openstartracker"))
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--rows", help="write the session's rows (.npz) for --compare")
     parser.add_argument(
@@ -122,12 +140,13 @@ def main() -> None:
     import hostlink
 
     paths = _paths(args.set)
-    seconds, result = _time(paths, args.repeat)
+    options = _options(args.set)
+    seconds, result = _time(paths, options, args.repeat)
     print(f"tree {Path(hostlink.__file__).parent.parent}: {len(paths)} frames, {result.session.x_px.size} rows")
     print("centroid_images CPU [s]: " + " ".join(f"{s:.3f}" for s in seconds) + f"  (min {min(seconds):.3f})")
     if args.rows:
         text = {f"text_{name}": np.asarray(column, dtype=str) for name, column in result.session.extra.items()}
-        np.savez(args.rows, **_rows(paths), **text, text_mag=np.asarray(result.session.mag, dtype=str))
+        np.savez(args.rows, **_rows(paths, options), **text, text_mag=np.asarray(result.session.mag, dtype=str))
     if args.identify:
         _identify_once(result, args.set)
 
