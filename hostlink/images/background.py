@@ -271,9 +271,11 @@ def _star_light(
 class _Boxes:
     """The pixels of an image in boxes from pixel (0, 0) (:func:`_boxes`): ``values`` (boxes, box^2) float32, NaN
     for masked pixels and beyond the image; ``inside`` each box's number of pixels within the image; the boxes' grid
-    shape, the shape of the image padded to whole boxes, and the boxes' centres [px]."""
+    shape, the shape of the image padded to whole boxes, and the boxes' centres [px]; ``work``, an array of
+    ``values``' shape for each pass's pixels left (:func:`_masked_box_percentiles`)."""
 
     values: np.ndarray
+    work: np.ndarray
     inside: np.ndarray
     grid_shape: tuple[int, int]
     padded_shape: tuple[int, int]
@@ -304,7 +306,7 @@ def _boxes(image: np.ndarray, mask: np.ndarray, box_px: int) -> _Boxes:
     blocks, inside, row_centres, col_centres = _box_blocks(image, mask, box_px)
     grid = (row_centres.size, col_centres.size)
     padded = (grid[0] * box_px, grid[1] * box_px)
-    return _Boxes(blocks, inside, grid, padded, row_centres, col_centres)
+    return _Boxes(blocks, np.empty_like(blocks), inside, grid, padded, row_centres, col_centres)
 
 
 def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
@@ -318,9 +320,13 @@ def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple
     counted = gone.shape[1] - np.count_nonzero(gone, axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
     measurable = (counted >= _MIN_BOX_FRACTION * boxes.inside) & (counted > 0)
-    if measurable.any():
-        left = np.where(gone[measurable], np.float32(np.nan), boxes.values[measurable])
-        out[measurable] = _row_percentiles(left, percents, counted[measurable])
+    if measurable.any():  # sorted in place in the boxes' work array (no new 5 MB arrays each pass)
+        left = boxes.work
+        np.copyto(left, boxes.values)
+        np.copyto(left, np.float32(np.nan), where=gone)
+        left.sort(axis=1)
+        ordered = left if measurable.all() else left[measurable]
+        out[measurable] = _sorted_row_percentiles(ordered, percents, counted[measurable])
     return out.reshape(ny, nx, len(percents))
 
 
@@ -388,8 +394,14 @@ def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...], counts: np.n
     a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5. ``counts``: each row's number of finite values,
     the rest NaN (sorted last), for ``np.percentile`` of each row's finite values (one call to it per row took
     ~40 ms a frame once the stars' light is masked)."""
-    ordered = np.sort(rows, axis=1)
-    n = np.full((rows.shape[0], 1), rows.shape[1]) if counts is None else np.asarray(counts)[:, None]
+    return _sorted_row_percentiles(np.sort(rows, axis=1), percents, counts)
+
+
+def _sorted_row_percentiles(
+    ordered: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None
+) -> np.ndarray:
+    """:func:`_row_percentiles` of rows already sorted (``ordered``)."""
+    n = np.full((ordered.shape[0], 1), ordered.shape[1]) if counts is None else np.asarray(counts)[:, None]
     below, above, gamma = _percentile_ranks(n, percents)
     a = np.take_along_axis(ordered, below, axis=1)
     b = np.take_along_axis(ordered, above, axis=1)
