@@ -227,10 +227,12 @@ def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
     """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
     columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
     and the product of it took twice as long; d mu / d B = 1 whitened is the whitening)."""
-    mu, columns = _model_columns(cols[active], rows[active], params[active], sigma_px)
-    w = whiten[active]
     k = active.size
-    r = ((mu - data[active]) * w).reshape(k, -1)
+    if k != data.shape[0]:  # some stars only (holding every star, ``active`` is 0 .. n - 1: no copies needed)
+        cols, rows, params, data, whiten = (v[active] for v in (cols, rows, params, data, whiten))
+    mu, columns = _model_columns(cols, rows, params, sigma_px)
+    w = whiten
+    r = ((mu - data) * w).reshape(k, -1)
     j = np.empty((*w.shape, 4))
     for c, column in enumerate(columns):
         np.multiply(column, w, out=j[..., c])
