@@ -245,8 +245,8 @@ def _star_light(
     from pixel 0, constant over each box (:func:`_box_constant`). The image is compared box by box (each box's
     threshold broadcast over its pixels, the same comparisons as against the thresholds spread over the image) when
     its size is a whole number of boxes, as the padded image of :func:`_clipped_box_noise` is. ``labels``: an int32
-    array of ``above``'s shape to label the regions in (its passes reuse one: a new 5 MB array each time doubled the
-    labelling's median time, the page faults of its fresh memory)."""
+    array of ``above``'s shape to label the regions in (the passes reuse one instead of a new 5 MB array each: ~6 %
+    of the function's CPU time on a granasat frame)."""
     from scipy import ndimage
 
     ny, nx = noise.shape
@@ -264,7 +264,7 @@ def _star_light(
     star = np.zeros(n + 1, dtype=bool)
     star[labels[peaks]] = True
     star[0] = False
-    return np.take(star, labels)  # a third of the time of star[labels]
+    return np.take(star, labels)  # under half the time of star[labels]
 
 
 @dataclass(frozen=True)

@@ -226,7 +226,7 @@ def _solve_halving(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.nda
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
     """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
     columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
-    and the product of it took twice as long; d mu / d B = 1 whitened is the whitening)."""
+    and the product of it took 1.4 times as long; d mu / d B = 1 whitened is the whitening)."""
     k = active.size
     if k != data.shape[0]:  # some stars only (holding every star, ``active`` is 0 .. n - 1: no copies needed)
         cols, rows, params, data, whiten = (v[active] for v in (cols, rows, params, data, whiten))
