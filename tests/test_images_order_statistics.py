@@ -5,7 +5,7 @@ medians and the median of the input frames (ties as 8-bit and JPEG pixels have t
 import numpy as np
 import pytest
 
-from hostlink.images.background import _row_percentiles
+from hostlink.images.background import _box_percentiles, _boxes, _masked_box_percentiles, _row_percentiles
 from hostlink.images.centroid.session import _median_frame
 from hostlink.images.centroid.stamps import _row_medians
 
@@ -57,3 +57,28 @@ def test_median_frame_is_numpys(frames):
     np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
     stack[1, 3, 4] = np.nan
     np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+
+
+@pytest.mark.parametrize("shape", [(256, 320), (250, 300)])  # whole boxes, and boxes the border cuts
+def test_each_pass_of_the_clipped_noise_takes_the_box_percentiles_of_the_pixels_left(shape):
+    """The boxes laid out once and the stars' light excluded per pass (background._masked_box_percentiles) give
+    _box_percentiles' numbers of the image with that light masked, bit for bit, NaN where too few pixels are left."""
+    rng = np.random.default_rng(shape[1])
+    image = np.round(rng.normal(size=shape) * 6)
+    mask = np.zeros(shape, dtype=bool)
+    mask[:40, :70] = True  # a blank region: boxes wholly or partly masked
+    box = 32
+    boxes = _boxes(image, mask, box)
+    ny, nx = boxes.grid_shape
+    gradient = np.linspace(0.0, 1.0, shape[1])  # from every pixel left to none
+    for fraction in (0.0, 0.05, 0.5, gradient):
+        stars = rng.uniform(size=shape) < fraction
+        excluded = np.ones(boxes.padded_shape, dtype=bool)
+        excluded[: shape[0], : shape[1]] = mask | stars
+        out = _masked_box_percentiles(boxes, excluded, (50.0, 97.725))
+        expected, rows, cols = _box_percentiles(image, mask | stars, box, (50.0, 97.725))
+        np.testing.assert_array_equal(out, expected)
+        np.testing.assert_array_equal(boxes.row_centres, rows)
+        np.testing.assert_array_equal(boxes.col_centres, cols)
+        assert out.shape == (ny, nx, 2)
+    assert np.isnan(out).any() and np.isfinite(out).any()  # the gradient leaves some boxes too few pixels

@@ -118,6 +118,15 @@ def psf_model_batch(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`psf_model` for N stars at once: ``cols`` (N, W), ``rows`` (N, H), ``params`` (N, 4) = (x, y, N, B);
     returns mu (N, H, W) and d mu / d params (N, H, W, 4)."""
+    mu, (dx, dy, shape) = _model_columns(cols, rows, params, sigma_px)
+    return mu, np.stack([dx, dy, shape, np.ones_like(shape)], axis=-1)
+
+
+def _model_columns(
+    cols: np.ndarray, rows: np.ndarray, params: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`psf_model_batch`'s mu and the first three columns of its Jacobian, d mu / d (x, y, N), each (N, H, W)
+    (the fourth, d mu / d B, is 1)."""
     x, y, n, b = (params[:, k : k + 1] for k in range(4))
     px = pixel_integrated_gaussian(cols, x, sigma_px)
     py = pixel_integrated_gaussian(rows, y, sigma_px)
@@ -125,11 +134,8 @@ def psf_model_batch(
     dpy = pixel_integrated_gaussian_dsource(rows, y, sigma_px)
     shape = py[:, :, None] * px[:, None, :]
     nn = n[:, :, None]
-    jac = np.stack(
-        [nn * py[:, :, None] * dpx[:, None, :], nn * dpy[:, :, None] * px[:, None, :], shape, np.ones_like(shape)],
-        axis=-1,
-    )
-    return b[:, :, None] + nn * shape, jac
+    columns = (nn * py[:, :, None] * dpx[:, None, :], nn * dpy[:, :, None] * px[:, None, :], shape)
+    return b[:, :, None] + nn * shape, columns
 
 
 def _levenberg_marquardt_batch(
@@ -153,7 +159,8 @@ def _levenberg_marquardt_batch(
         active = np.flatnonzero(~done)
         if active.size == 0:
             break
-        ja, ra = j[active], r[active]
+        every = active.size == n  # every star still active (the first iterations): no copy of their rows
+        ja, ra = (j, r) if every else (j[active], r[active])
         jt = np.swapaxes(ja, 1, 2)
         normal = jt @ ja  # J^T J and J^T r per star: batched products (a 3-operand einsum is ~8 times slower)
         gradient = (jt @ ra[..., None])[..., 0]
@@ -171,7 +178,10 @@ def _levenberg_marquardt_batch(
         take = active[better]
         fall = cost[take] - cost_new[better]
         params[take] = trial[take]
-        r[take], j[take] = r_new[better], j_new[better]
+        if every and take.size == n:  # every star's step taken: the new rows are the rows
+            r, j = r_new, j_new
+        else:
+            r[take], j[take] = r_new[better], j_new[better]
         cost[take] = cost_new[better]
         damping[take] /= 10.0
         damping[active[~better]] *= 10.0
@@ -186,25 +196,48 @@ def _levenberg_marquardt_batch(
 
 def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """x with lhs[k] x[k] = rhs[k] for each of the (n, 4, 4) systems, and which are singular (their x 0: a
-    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the batch is then split in
-    halves until the singular ones stand alone (each system solved by the same LAPACK call as on its own)."""
+    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the singular ones are found
+    first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
+    ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
+    same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
+    ones stand alone (a singular system in the batch took a split per level: ~170 calls per fit of a frame)."""
+    singular = np.linalg.slogdet(lhs)[0] == 0
+    if singular.any():
+        out = np.zeros_like(rhs)
+        if not singular.all():
+            out[~singular], again = _solve_halving(lhs[~singular], rhs[~singular])
+            singular[np.flatnonzero(~singular)[again]] = True
+        return out, singular
+    return _solve_halving(lhs, rhs)
+
+
+def _solve_halving(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_solve_each` by splitting the batch in halves until the singular systems stand alone."""
     try:
         return np.linalg.solve(lhs, rhs[..., None])[..., 0], np.zeros(lhs.shape[0], dtype=bool)
     except np.linalg.LinAlgError:
         if lhs.shape[0] == 1:
             return np.zeros_like(rhs), np.ones(1, dtype=bool)
     half = lhs.shape[0] // 2
-    (x1, s1), (x2, s2) = _solve_each(lhs[:half], rhs[:half]), _solve_each(lhs[half:], rhs[half:])
+    (x1, s1), (x2, s2) = _solve_halving(lhs[:half], rhs[:half]), _solve_halving(lhs[half:], rhs[half:])
     return np.concatenate([x1, x2]), np.concatenate([s1, s2])
 
 
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
-    """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``."""
-    mu, jac = psf_model_batch(cols[active], rows[active], params[active], sigma_px)
-    w = whiten[active]
+    """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
+    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
+    and the product of it took 1.4 times as long; d mu / d B = 1 whitened is the whitening)."""
     k = active.size
-    r = ((mu - data[active]) * w).reshape(k, -1)
-    j = (jac * w[..., None]).reshape(k, -1, 4)
+    if k != data.shape[0]:  # some stars only (holding every star, ``active`` is 0 .. n - 1: no copies needed)
+        cols, rows, params, data, whiten = (v[active] for v in (cols, rows, params, data, whiten))
+    mu, columns = _model_columns(cols, rows, params, sigma_px)
+    w = whiten
+    r = ((mu - data) * w).reshape(k, -1)
+    j = np.empty((*w.shape, 4))
+    for c, column in enumerate(columns):
+        np.multiply(column, w, out=j[..., c])
+    j[..., 3] = w
+    j = j.reshape(k, -1, 4)
     return r, j, np.einsum("np,np->n", r, r)
 
 
@@ -262,29 +295,50 @@ def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start
     3 ``sigma_start_px`` + 1 of each: d P / d s = -[phi(u) u - phi(l) l] / s with u, l = (c +- 1/2 - x) / s (the
     derivative of Phi((c +- 1/2 - x) / s) in s). NaN when no star's fit converges to a positive width."""
     half = _psf_fit_half_px(sigma_start_px)
-    cols, rows, data, inside = _stamps(sub, np.asarray(x, float), np.asarray(y, float), half)
-    widths = []
-    for k in range(cols.shape[0]):
-        if not inside[k].all():
-            continue
-        c, r, d = cols[k], rows[k], data[k].ravel()
-        p = np.array([x[k], y[k], 0.0, float(np.median(data[k])), sigma_start_px])
-        p[2] = max(float(d.sum() - p[3] * d.size), 1.0)
-        for _ in range(_WIDTH_FIT_ITERATIONS):
-            s = p[4]
-            _, jac = psf_model(c, r, p[:4], s)  # d mu / d (x, y, N, B): the PSF fit's own model, d / ds added
-            px, py = pixel_integrated_gaussian(c, p[0], s), pixel_integrated_gaussian(r, p[1], s)
-            spx, spy = pixel_integrated_gaussian_dwidth(c, p[0], s), pixel_integrated_gaussian_dwidth(r, p[1], s)
-            dwidth = p[2] * (np.outer(spy, px) + np.outer(py, spx))
-            jac = np.concatenate([jac.reshape(d.size, 4), dwidth.reshape(d.size, 1)], axis=1)
-            step = np.linalg.lstsq(jac, d - p[3] - p[2] * jac[:, 2], rcond=None)[0]
-            step *= min(1.0, _WIDTH_FIT_MAX_STEP * s / max(abs(step[4]), 1e-300))
-            p = p + step
-            if not (p[4] > 0 and p[2] > 0 and abs(p[0] - x[k]) < half and abs(p[1] - y[k]) < half):
-                break
-        else:
-            widths.append(p[4])
-    return float(np.median(widths)) if widths else float("nan")
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    whole = np.flatnonzero(inside.reshape(x.size, -1).all(axis=1))
+    p = np.zeros((whole.size, 5))
+    for i, k in enumerate(whole):
+        d = data[k].ravel()
+        p[i] = [x[k], y[k], 0.0, float(np.median(data[k])), sigma_start_px]
+        p[i, 2] = max(float(d.sum() - p[i, 3] * d.size), 1.0)
+    running = np.ones(whole.size, dtype=bool)  # no step has left the bounds yet
+    for _ in range(_WIDTH_FIT_ITERATIONS):
+        if not running.any():
+            break
+        at = np.flatnonzero(running)
+        jacobians, residuals = _width_fit_rows(cols[whole[at]], rows[whole[at]], data[whole[at]], p[at])
+        for i, jac, residual in zip(at, jacobians, residuals, strict=True):
+            k, width = whole[i], p[i, 4]
+            step = np.linalg.lstsq(jac, residual, rcond=None)[0]
+            step *= min(1.0, _WIDTH_FIT_MAX_STEP * width / max(abs(step[4]), 1e-300))
+            p[i] = p[i] + step
+            if not (p[i, 4] > 0 and p[i, 2] > 0 and abs(p[i, 0] - x[k]) < half and abs(p[i, 1] - y[k]) < half):
+                running[i] = False
+    widths = p[running, 4]
+    return float(np.median(widths)) if widths.size else float("nan")
+
+
+def _width_fit_rows(cols, rows, data, p):
+    """The Jacobian (K, P, 5) of :func:`_psf_width_fit_px`'s model at ``p`` (K, 5) = (x, y, N, B, s) of K stars,
+    d mu / d (x, y, N, B) as :func:`psf_model` makes it (every star with its own width) and d mu / d s, and the
+    residuals its step fits, (K, P): every star's pixels at once (one call per function for all, not per star)."""
+    k = p.shape[0]
+    x, y, n, b, s = (p[:, i : i + 1] for i in range(5))
+    px, py = pixel_integrated_gaussian(cols, x, s), pixel_integrated_gaussian(rows, y, s)
+    dpx, dpy = pixel_integrated_gaussian_dsource(cols, x, s), pixel_integrated_gaussian_dsource(rows, y, s)
+    spx, spy = pixel_integrated_gaussian_dwidth(cols, x, s), pixel_integrated_gaussian_dwidth(rows, y, s)
+    nn = n[:, :, None]
+    shape = py[:, :, None] * px[:, None, :]
+    jac = np.empty((*shape.shape, 5))
+    jac[..., 0] = nn * (py[:, :, None] * dpx[:, None, :])  # psf_model's n * outer(py, dpx)
+    jac[..., 1] = nn * (dpy[:, :, None] * px[:, None, :])
+    jac[..., 2] = shape
+    jac[..., 3] = 1.0
+    jac[..., 4] = nn * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :])
+    jac = jac.reshape(k, -1, 5)
+    return jac, data.reshape(k, -1) - b - n * jac[:, :, 2]
 
 
 def centroid_crb_px(

@@ -87,7 +87,7 @@ def _extract(
         bkg = sep.Background(data, mask=blank, bw=box, bh=box, fw=3, fh=3)
         sub = data - bkg.back()
         offset, rms, filtered, ignored = filtered_noise_correction(
-            sub, bkg.rms(), _FILTER_KERNEL, box, blank, bkg.globalback
+            sub, bkg.rms, _FILTER_KERNEL, box, blank, bkg.globalback
         )
         sub -= offset
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
