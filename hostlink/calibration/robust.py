@@ -104,9 +104,24 @@ def _field_rad(pairs: _FramePairs) -> float:
 
 
 def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> float:
-    """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
-    chunks = frame_chunks(data.frame_starts, chunk_obs)
-    return max((_field_rad(_frame_pairs(data, f0, f1)) for f0, f1 in chunks), default=0.0)
+    """The largest catalogue angle between two stars of one frame [rad] (the field the data span): the angle of the
+    smallest dot product of the Gram matrices of :func:`_frame_pairs`, the star itself included (its
+    ``min_dot_r``, without the angles of every pair)."""
+    min_dot = 1.0
+    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
+        _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
+        if nmax == 0:
+            continue
+        m = f1 - f0
+        rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
+        gram = gram_matrices(_padded(frame * nmax + slot, data.r[rows], m, nmax))
+        # the padding's zero rows give dot products 0: only the real stars' pairs i <= j count (_frame_pairs's)
+        real = np.zeros((m, nmax), dtype=bool)
+        real[frame, slot] = True
+        upper = np.triu(np.ones((nmax, nmax), dtype=bool))
+        use = real[:, :, None] & real[:, None, :] & upper[None, :, :]
+        min_dot = min(min_dot, float(np.min(gram, where=use, initial=1.0)))
+    return float(angle_from_dot_rad(np.float64(min_dot)))
 
 
 def _padded(slots: np.ndarray, v: np.ndarray, m: int, nmax: int) -> np.ndarray:
@@ -173,6 +188,43 @@ def consistent_stars_and_field(
         misses += np.bincount(frame * n + second[pair], minlength=m * n)
         keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
     return keep, float(angle_from_dot_rad(np.float64(min_dot)))
+
+
+def pair_table(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> list[_FramePairs]:
+    """The catalogue side of every star pair of ``data`` (:func:`_frame_pairs` of each chunk with a pair), built once
+    for what a caller asks of the same stars: :func:`estimate_scale_of_table`, :func:`vote_of_table` and
+    :func:`triple_handedness_of_table` give what :func:`estimate_scale`, :func:`vote_consistent_stars` and
+    :func:`triple_handedness` give (the same Gram entries, angles and tests), each of which builds its own."""
+    return _chunk_pairs(data, chunk_obs, 2)
+
+
+def estimate_scale_of_table(data: CalibrationData, table: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
+    """:func:`estimate_scale` of ``data`` from its :func:`pair_table`."""
+    return _estimate_scale(data, table, theta)
+
+
+def vote_of_table(
+    table: list[_FramePairs],
+    b: np.ndarray,
+    n_obs: int,
+    rel_tol: float = VOTE_REL_TOL,
+    abs_tol_rad: float = VOTE_ABS_TOL_RAD,
+    min_agreement: float = VOTE_MIN_AGREEMENT,
+) -> np.ndarray:
+    """:func:`vote_consistent_stars` of the ``n_obs`` stars of a :func:`pair_table` (measured directions ``b``):
+    a star of a frame of one star agrees with no other (False), as there."""
+    keep = np.zeros(n_obs, dtype=bool)
+    for pairs in table:
+        keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
+    return keep
+
+
+def triple_handedness_of_table(
+    table: list[_FramePairs], b: np.ndarray, consistent: np.ndarray, seed: int = 0
+) -> tuple[int, int]:
+    """:func:`triple_handedness` from a :func:`pair_table` (its chunks of at least 3 stars)."""
+    with3 = [c for c in table if c.nmax >= 3]
+    return _triple_handedness(with3, [_padded_directions(c, b) for c in with3], consistent, seed)
 
 
 def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
@@ -260,12 +312,41 @@ class ScaleParity:
 
 def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     """Median of the values inside the window of the given width that holds the most of them (a mode estimate:
-    unlike the median it survives more than 50 % of outliers when they are spread out), and that count."""
-    v = np.sort(values)
+    unlike the median it survives more than 50 % of outliers when they are spread out), and that count; the first
+    such window in ascending order. Only the values near the windows that may hold the most are sorted
+    (:func:`_near_densest`): the same window and values as a sort of them all."""
+    v = np.sort(_near_densest(values, width))
     upper = np.searchsorted(v, v + width, side="right")
     counts = upper - np.arange(v.size)
     i = int(np.argmax(counts))
     return float(np.median(v[i : upper[i]])), int(counts[i])
+
+
+#: :func:`_near_densest` sorts everything below this many values (binning would not save time).
+NEAR_DENSEST_MIN_VALUES = 4096
+
+
+def _near_densest(values: np.ndarray, width: float) -> np.ndarray:
+    """The values (a subset, unordered) that hold every window [v, v + width] starting at a value v that can hold
+    the most of them, with all the values of those windows. In bins of one width (floor((v - min) / width),
+    monotone in v), a window starting in bin k lies in bins k to k + 2 (k + 1 in exact arithmetic; rounding of
+    v + width can reach the next); the window starting at the fullest bin's smallest value holds a count M that is
+    reached (counted exactly on its bins), so a best window starts in a bin whose three bins hold at least M: those
+    bins are kept, with their next two."""
+    if values.size < NEAR_DENSEST_MIN_VALUES or not np.all(np.isfinite(values)):
+        return values
+    low = float(np.min(values))
+    k = np.floor((values - low) / width).astype(np.int64)
+    counts = np.bincount(k, minlength=int(k.max(initial=0)) + 3)  # two empty bins after the last
+    fullest = int(np.argmax(counts))
+    near = np.sort(values[(k >= fullest) & (k <= fullest + 2)])
+    reached = int(np.searchsorted(near, near[0] + width, side="right"))
+    three = counts[:-2] + counts[1:-1] + counts[2:]
+    start = np.flatnonzero(three >= reached)
+    wanted = np.zeros(counts.size, dtype=bool)
+    for offset in (0, 1, 2):
+        wanted[start + offset] = True
+    return values[wanted[k]]
 
 
 def _long_pairs(pairs: _FramePairs) -> tuple[np.ndarray, np.ndarray]:

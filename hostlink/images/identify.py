@@ -328,8 +328,13 @@ def identify_session(
     ctx = _SessionContext(session, nominal, fov, sky, database, cache)
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
-    results = _engine_pass(ctx, todo, progress) if engine else {}
-    _fallback_pass(ctx, todo, results)
+    # BLAS on one thread (as guided.identify_then_admit): the frames' products are thin (a refinement's least squares
+    # of 3 N x 8, Gram matrices of a frame), and OpenBLAS's threads cost several times the CPU time they save
+    from hostlink.calibration.data import one_blas_thread
+
+    with one_blas_thread():
+        results = _engine_pass(ctx, todo, progress) if engine else {}
+        _fallback_pass(ctx, todo, results)
     star_id = session.star_id.copy()
     for k in todo:
         a, b = int(starts[k]), int(starts[k + 1])
