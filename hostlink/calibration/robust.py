@@ -312,41 +312,12 @@ class ScaleParity:
 
 def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     """Median of the values inside the window of the given width that holds the most of them (a mode estimate:
-    unlike the median it survives more than 50 % of outliers when they are spread out), and that count; the first
-    such window in ascending order. Only the values near the windows that may hold the most are sorted
-    (:func:`_near_densest`): the same window and values as a sort of them all."""
-    v = np.sort(_near_densest(values, width))
+    unlike the median it survives more than 50 % of outliers when they are spread out), and that count."""
+    v = np.sort(values)
     upper = np.searchsorted(v, v + width, side="right")
     counts = upper - np.arange(v.size)
     i = int(np.argmax(counts))
     return float(np.median(v[i : upper[i]])), int(counts[i])
-
-
-#: :func:`_near_densest` sorts everything below this many values (binning would not save time).
-NEAR_DENSEST_MIN_VALUES = 4096
-
-
-def _near_densest(values: np.ndarray, width: float) -> np.ndarray:
-    """The values (a subset, unordered) that hold every window [v, v + width] starting at a value v that can hold
-    the most of them, with all the values of those windows. In bins of one width (floor((v - min) / width),
-    monotone in v), a window starting in bin k lies in bins k to k + 2 (k + 1 in exact arithmetic; rounding of
-    v + width can reach the next); the window starting at the fullest bin's smallest value holds a count M that is
-    reached (counted exactly on its bins), so a best window starts in a bin whose three bins hold at least M: those
-    bins are kept, with their next two."""
-    if values.size < NEAR_DENSEST_MIN_VALUES or not np.all(np.isfinite(values)):
-        return values
-    low = float(np.min(values))
-    k = np.floor((values - low) / width).astype(np.int64)
-    counts = np.bincount(k, minlength=int(k.max(initial=0)) + 3)  # two empty bins after the last
-    fullest = int(np.argmax(counts))
-    near = np.sort(values[(k >= fullest) & (k <= fullest + 2)])
-    reached = int(np.searchsorted(near, near[0] + width, side="right"))
-    three = counts[:-2] + counts[1:-1] + counts[2:]
-    start = np.flatnonzero(three >= reached)
-    wanted = np.zeros(counts.size, dtype=bool)
-    for offset in (0, 1, 2):
-        wanted[start + offset] = True
-    return values[wanted[k]]
 
 
 def _long_pairs(pairs: _FramePairs) -> tuple[np.ndarray, np.ndarray]:
