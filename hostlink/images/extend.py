@@ -181,14 +181,17 @@ def _ambiguous(
     if near.size < 2:
         return out
     radius = _match_radius_px(theta, v)
-    d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
-    other = (d2 <= radius * radius) & (near[None, :] != stars[:, None])
-    bright_enough = sky.mag[near][None, :] <= sky.mag[stars][:, None] + AMBIGUITY_MAG_MARGIN
+    # the (candidate, predicted star) pairs within the radius (k-d trees; their squared distances as a full table
+    # would hold them)
+    i, p, d2 = _close_pairs(x_px, y_px, xp, yp, radius)
+    other = (d2 <= radius * radius) & (near[p] != stars[i])
+    bright_enough = sky.mag[near][p] <= sky.mag[stars][i] + AMBIGUITY_MAG_MARGIN
     if detection_mag is not None:
         known = np.isfinite(detection_mag)
-        explains = blends.could_be(sky.mag[near][None, :], detection_mag[:, None], window)
-        bright_enough = np.where(known[:, None], explains, bright_enough)
-    return np.any(other & bright_enough, axis=1)
+        explains = blends.could_be(sky.mag[near][p], detection_mag[i], window)
+        bright_enough = np.where(known[i], explains, bright_enough)
+    out[np.unique(i[other & bright_enough])] = True
+    return out
 
 
 #: Completeness is counted only in the cells of a COMPLETENESS_CELLS x COMPLETENESS_CELLS grid over the detector that
