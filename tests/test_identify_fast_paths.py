@@ -134,3 +134,23 @@ def test_extension_and_ambiguity_as_the_full_table(seed, monkeypatch):
         named = near[rng.choice(n_pred, n_cent)]
         flags = extend._ambiguous(x, y, named, sky, np.ones(10), v, (200, 200), 9.0, calibrated, 0.5)
         assert np.array_equal(flags, _ambiguous_by_table(x, y, named, near, xp, yp, sky, radius, calibrated, 0.5))
+
+
+def _densest_by_every_start(values, width):
+    """The densest window as it was counted before the blocks: every start's window by a binary search."""
+    v = np.sort(values)
+    upper = np.searchsorted(v, v + width, side="right")
+    counts = upper - np.arange(v.size)
+    i = int(np.argmax(counts))
+    return float(np.median(v[i : upper[i]])), int(counts[i])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_densest_window_as_every_start_counted(seed):
+    """Log ratios as the scale sees them (a narrow mode among spread outliers), values rounded so that windows tie
+    and values repeat, a uniform spread (every block a candidate), and sizes below and above the block bound's."""
+    rng = np.random.default_rng(seed)
+    for n in (3, 40, 300, 5000, 120_000):
+        mode = np.concatenate([rng.normal(0.003, 0.002, n - n // 5), rng.uniform(-3.0, 1.0, n // 5)])
+        for values in (mode, np.round(mode, 3), rng.uniform(-0.1, 0.1, n), np.round(rng.normal(0, 0.01, n), 2)):
+            assert robust._densest_window(values, 0.02) == _densest_by_every_start(values, 0.02)
