@@ -38,12 +38,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hostlink.files.session import Session
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
+
+if TYPE_CHECKING:
+    from hostlink.images.skyindex import SkyIndex
 
 #: Two stars nearer than this [px] are one detection: the sum of two equal Gaussians of sigma s has a single peak
 #: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (0.8-1.2 px on the granasat frames but the
@@ -167,7 +171,7 @@ def _flux_ratio_px(q: np.ndarray, g: np.ndarray, d_px: np.ndarray, sigma_dm: flo
 
 
 def blend_references(
-    session: Session, before: np.ndarray, catalogue: Catalogue, focal_px: float, index=None
+    session: Session, before: np.ndarray, catalogue: Catalogue, focal_px: float, index: SkyIndex | None = None
 ) -> tuple[Session, list[dict]]:
     """``session`` (its ``star_id`` final) with every row identified here (``before`` == 0, the ``star_id`` the rows
     had before identification) that has unresolved catalogue companions given the photocentre as its ``ra_deg``/

@@ -111,7 +111,7 @@ def _refine_radial(
     corner's (``r_corner_px``): stars in a ring alone (a proposal's first verified ones) cannot tell the focal length
     from distortion, and a fit of both there bends the rest of the field away. Returns
     (theta, C); the given ones when no step lowers the residual."""
-    b_now = pixels_to_unit(x_px, y_px, theta)  # through ``current``: each iteration's b is the step before's
+    b_now = pixels_to_unit(x_px, y_px, theta)  # b through ``current``, computed once per step
     best = (theta, c, float(np.sum((b_now - r @ c.T) ** 2)))
     current, att = np.array(theta, dtype=np.float64), c
     r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
