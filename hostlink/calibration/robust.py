@@ -79,8 +79,12 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     slots = frame * nmax + slot
     second_slot, first_slot = np.tril_indices(nmax, -1)  # (1, 0), (2, 0), (2, 1), (3, 0), ...: by second star
     per_frame = counts * (counts - 1) // 2
-    k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
-    positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + (first_slot * nmax + second_slot)[k]
+    upper = first_slot * nmax + second_slot  # a frame of nmax stars: its pairs' positions (one frame: all of them)
+    if m == 1:
+        positions = upper
+    else:
+        k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
+        positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + upper[k]
     r = _padded(slots, data.r[rows], m, nmax)
     gram = gram_matrices(r).reshape(-1)
     dots = gram[positions]
