@@ -79,8 +79,12 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     slots = frame * nmax + slot
     second_slot, first_slot = np.tril_indices(nmax, -1)  # (1, 0), (2, 0), (2, 1), (3, 0), ...: by second star
     per_frame = counts * (counts - 1) // 2
-    k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
-    positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + (first_slot * nmax + second_slot)[k]
+    upper = first_slot * nmax + second_slot  # a frame of nmax stars: its pairs' positions (one frame: all of them)
+    if m == 1:
+        positions = upper
+    else:
+        k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
+        positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + upper[k]
     r = _padded(slots, data.r[rows], m, nmax)
     gram = gram_matrices(r).reshape(-1)
     dots = gram[positions]
@@ -104,9 +108,24 @@ def _field_rad(pairs: _FramePairs) -> float:
 
 
 def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> float:
-    """The largest catalogue angle between two stars of one frame [rad] (the field the data span)."""
-    chunks = frame_chunks(data.frame_starts, chunk_obs)
-    return max((_field_rad(_frame_pairs(data, f0, f1)) for f0, f1 in chunks), default=0.0)
+    """The largest catalogue angle between two stars of one frame [rad] (the field the data span): the angle of the
+    smallest dot product of the Gram matrices of :func:`_frame_pairs`, the star itself included (its
+    ``min_dot_r``, without the angles of every pair)."""
+    min_dot = 1.0
+    for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
+        _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
+        if nmax == 0:
+            continue
+        m = f1 - f0
+        rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
+        gram = gram_matrices(_padded(frame * nmax + slot, data.r[rows], m, nmax))
+        # the padding's zero rows give dot products 0: only the real stars' pairs i <= j count (_frame_pairs's)
+        real = np.zeros((m, nmax), dtype=bool)
+        real[frame, slot] = True
+        upper = np.triu(np.ones((nmax, nmax), dtype=bool))
+        use = real[:, :, None] & real[:, None, :] & upper[None, :, :]
+        min_dot = min(min_dot, float(np.min(gram, where=use, initial=1.0)))
+    return float(angle_from_dot_rad(np.float64(min_dot)))
 
 
 def _padded(slots: np.ndarray, v: np.ndarray, m: int, nmax: int) -> np.ndarray:
@@ -173,6 +192,43 @@ def consistent_stars_and_field(
         misses += np.bincount(frame * n + second[pair], minlength=m * n)
         keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
     return keep, float(angle_from_dot_rad(np.float64(min_dot)))
+
+
+def pair_table(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> list[_FramePairs]:
+    """The catalogue side of every star pair of ``data`` (:func:`_frame_pairs` of each chunk with a pair), built once
+    for what a caller asks of the same stars: :func:`estimate_scale_of_table`, :func:`vote_of_table` and
+    :func:`triple_handedness_of_table` give what :func:`estimate_scale`, :func:`vote_consistent_stars` and
+    :func:`triple_handedness` give (the same Gram entries, angles and tests), each of which builds its own."""
+    return _chunk_pairs(data, chunk_obs, 2)
+
+
+def estimate_scale_of_table(data: CalibrationData, table: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
+    """:func:`estimate_scale` of ``data`` from its :func:`pair_table`."""
+    return _estimate_scale(data, table, theta)
+
+
+def vote_of_table(
+    table: list[_FramePairs],
+    b: np.ndarray,
+    n_obs: int,
+    rel_tol: float = VOTE_REL_TOL,
+    abs_tol_rad: float = VOTE_ABS_TOL_RAD,
+    min_agreement: float = VOTE_MIN_AGREEMENT,
+) -> np.ndarray:
+    """:func:`vote_consistent_stars` of the ``n_obs`` stars of a :func:`pair_table` (measured directions ``b``):
+    a star of a frame of one star agrees with no other (False), as there."""
+    keep = np.zeros(n_obs, dtype=bool)
+    for pairs in table:
+        keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
+    return keep
+
+
+def triple_handedness_of_table(
+    table: list[_FramePairs], b: np.ndarray, consistent: np.ndarray, seed: int = 0
+) -> tuple[int, int]:
+    """:func:`triple_handedness` from a :func:`pair_table` (its chunks of at least 3 stars)."""
+    with3 = [c for c in table if c.nmax >= 3]
+    return _triple_handedness(with3, [_padded_directions(c, b) for c in with3], consistent, seed)
 
 
 def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
@@ -260,12 +316,39 @@ class ScaleParity:
 
 def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     """Median of the values inside the window of the given width that holds the most of them (a mode estimate:
-    unlike the median it survives more than 50 % of outliers when they are spread out), and that count."""
+    unlike the median it survives more than 50 % of outliers when they are spread out), and that count; of equally
+    full windows the first. The windows [v_i, v_i + width] of the sorted values are counted exactly only in the
+    blocks of :data:`DENSEST_BLOCK` starts that can hold the fullest (:func:`_densest_start`)."""
     v = np.sort(values)
-    upper = np.searchsorted(v, v + width, side="right")
-    counts = upper - np.arange(v.size)
-    i = int(np.argmax(counts))
-    return float(np.median(v[i : upper[i]])), int(counts[i])
+    i, upper = _densest_start(v, width)
+    return float(np.median(v[i:upper])), upper - i
+
+
+#: :func:`_densest_start` bounds the windows' counts by blocks of this many sorted values.
+DENSEST_BLOCK = 64
+
+
+def _densest_start(v: np.ndarray, width: float) -> tuple[int, int]:
+    """(i, upper): the first i maximising the count upper - i of the sorted values ``v`` in [v_i, v_i + width]
+    (upper: the number of values <= v_i + width), as an argmax over every i gives. upper is non-decreasing in i, so
+    in a block of starts [i0, i1) no count exceeds upper(i1 - 1) - i0; the count at each block's first start is
+    reached, and only the blocks whose bound reaches the largest of those are counted start by start (a handful of
+    blocks about the mode instead of a binary search per value: 6 times faster for 10^5 values)."""
+    n = v.size
+    if n <= 4 * DENSEST_BLOCK:
+        upper = np.searchsorted(v, v + width, side="right")
+        i = int(np.argmax(upper - np.arange(n)))
+        return i, int(upper[i])
+    first = np.arange(0, n, DENSEST_BLOCK)
+    last = np.minimum(first + DENSEST_BLOCK - 1, n - 1)
+    reached = np.searchsorted(v, v[first] + width, side="right") - first
+    bound = np.searchsorted(v, v[last] + width, side="right") - first
+    blocks = np.flatnonzero(bound >= reached.max())
+    starts = (first[blocks, None] + np.arange(DENSEST_BLOCK)).ravel()
+    starts = starts[starts < n]
+    upper = np.searchsorted(v, v[starts] + width, side="right")
+    k = int(np.argmax(upper - starts))
+    return int(starts[k]), int(upper[k])
 
 
 def _long_pairs(pairs: _FramePairs) -> tuple[np.ndarray, np.ndarray]:

@@ -38,12 +38,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hostlink.files.session import Session, session_flag, session_number
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
+
+if TYPE_CHECKING:
+    from hostlink.images.skyindex import SkyIndex
 
 #: Two stars nearer than this [px] are one detection: the sum of two equal Gaussians of sigma s has a single peak
 #: below a separation of 2 s, and 3 px is 2 s for PSFs up to 1.5 px (the real sets' PSF widths: docs/realsky.md,
@@ -167,13 +171,13 @@ def _flux_ratio_px(q: np.ndarray, g: np.ndarray, d_px: np.ndarray, sigma_dm: flo
 
 
 def blend_references(
-    session: Session, before: np.ndarray, catalogue: Catalogue, focal_px: float
+    session: Session, before: np.ndarray, catalogue: Catalogue, focal_px: float, index: SkyIndex | None = None
 ) -> tuple[Session, list[dict]]:
     """``session`` (its ``star_id`` final) with every row identified here (``before`` == 0, the ``star_id`` the rows
     had before identification) that has unresolved catalogue companions given the photocentre as its ``ra_deg``/
     ``dec_deg`` and its ``sigma_px`` grown in quadrature (module docstring), and one record per such row (frame,
     row, hip, companions, offset_px, sigma_px). Returns the session unchanged (and no record) when no row is a
-    blend."""
+    blend. ``index``: the :class:`hostlink.images.skyindex.SkyIndex` of ``catalogue`` when the caller holds one."""
     from hostlink.sky.apparent import hip_find
 
     new = np.flatnonzero((session.star_id != 0) & (before == 0))
@@ -181,9 +185,11 @@ def blend_references(
     new, cat_rows = new[found], cat_rows[found]
     if new.size == 0:
         return session, []
-    from hostlink.images.skyindex import catalogue_tree
+    from hostlink.images.skyindex import SkyIndex
 
-    r_all, tree = catalogue_tree(catalogue)
+    if index is None or index.catalogue is not catalogue:
+        index = SkyIndex(catalogue)
+    r_all, tree = index.directions, index.tree
     found = tree.query_ball_point(r_all[cat_rows], 2.0 * math.sin(0.5 * UNRESOLVED_PX / focal_px))
     frame_of_row = np.repeat(np.arange(session.n_frames), np.diff(session.frame_starts))
     blends = []

@@ -74,29 +74,73 @@ def _extend(
     several catalogue stars nearly as close (within twice the nearest's distance) is named after the one of them
     whose light alone can explain its flux (:func:`hostlink.images.blends.could_be` within ``window``) when only one
     can: a fainter star beside it adds light to it but cannot be it."""
+    none = np.zeros(0, np.int64), np.zeros(0, np.int64)
     near, xp, yp = _predict(sky, theta, v, image_size_px, mag_limit)
-    if near.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    radius = _match_radius_px(theta, v)
-    d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2  # (centroids, predicted)
     free = np.flatnonzero(~taken_rows)
-    if free.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    own = d2[free]
-    j = np.argmin(own, axis=1)  # each free centroid's nearest predicted star
-    nearest = own[np.arange(free.size), j]
-    tied = own < 4.0 * nearest[:, None]  # the other catalogue stars nearly as close ...
-    tied[np.arange(free.size), j] = True
-    ok = np.count_nonzero(tied, axis=1) == 1  # ... make it ambiguous
+    if near.size == 0 or free.size == 0:
+        return none
+    radius = _match_radius_px(theta, v)
+    # Only a free centroid whose nearest predicted star lies within the radius can match, and the stars tied with
+    # that nearest (closer than twice its distance) then lie within twice the radius: the (centroid, predicted star)
+    # pairs that close, from k-d trees, with their squared distances computed as a full (centroids, predicted)
+    # table would hold them, give every test of that table (the same nearest, ties broken by the lower index).
+    i, p, d2 = _close_pairs(x_px[free], y_px[free], xp, yp, 2.0 * radius)
+    nearest = np.full(free.size, np.inf)
+    np.minimum.at(nearest, i, d2)
+    j = np.full(free.size, near.size, dtype=np.int64)  # each free centroid's nearest predicted star
+    at_nearest = d2 == nearest[i]
+    np.minimum.at(j, i[at_nearest], p[at_nearest])
+    tied = (d2 < 4.0 * nearest[i]) | (p == j[i])  # the other catalogue stars nearly as close ...
+    ok = np.bincount(i[tied], minlength=free.size) == 1  # ... make it ambiguous
     if calibrated_mag is not None:  # ... unless the light of one alone can explain the centroid's flux
         known = np.isfinite(calibrated_mag[free])
-        able = tied & blends.could_be(sky.mag[near][None, :], calibrated_mag[free, None], window)
-        single = known & (np.count_nonzero(able, axis=1) == 1)
-        j = np.where(single, np.argmax(able, axis=1), j)
+        able = tied & blends.could_be(sky.mag[near][p], calibrated_mag[free][i], window)
+        single = known & (np.bincount(i[able], minlength=free.size) == 1)
+        j_able = j.copy()
+        j_able[i[able]] = p[able]  # the one able star where there is one
+        j = np.where(single, j_able, j)
         ok |= single
-    ok &= own[np.arange(free.size), j] <= radius * radius
-    ok &= np.argmin(d2, axis=0)[j] == free  # no other centroid nearer to this star
+    ok &= np.isfinite(nearest)
+    rows = np.flatnonzero(ok)
+    jj = j[rows]
+    ok[rows] = (x_px[free[rows]] - xp[jj]) ** 2 + (y_px[free[rows]] - yp[jj]) ** 2 <= radius * radius
+    rows = np.flatnonzero(ok)
+    ok[rows] = _nearest_centroid(x_px, y_px, xp[j[rows]], yp[j[rows]], radius) == free[rows]  # none nearer the star
     return free[ok].astype(np.int64), near[j[ok]].astype(np.int64)
+
+
+#: :func:`_close_pairs` asks its k-d trees for pairs this fraction farther apart than asked: their distances round
+#: differently from the squared distances it then tests (by ~1e-16 relatively).
+_CLOSE_PAIR_SLACK = 1e-9
+
+
+def _close_pairs(
+    x_px: np.ndarray, y_px: np.ndarray, xq_px: np.ndarray, yq_px: np.ndarray, max_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(i, q, d2): every pair of a point (x, y)_i and a point (xq, yq)_q closer than ``max_px`` (some a little
+    farther, :data:`_CLOSE_PAIR_SLACK`), with its squared distance (x_i - xq_q)^2 + (y_i - yq_q)^2 [px^2] computed in
+    that order (``scipy.spatial.cKDTree.sparse_distance_matrix`` finds them)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.column_stack([x_px, y_px]))
+    other = cKDTree(np.column_stack([xq_px, yq_px]))
+    found = tree.sparse_distance_matrix(other, max_px * (1.0 + _CLOSE_PAIR_SLACK), output_type="ndarray")
+    i, q = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    return i, q, (x_px[i] - xq_px[q]) ** 2 + (y_px[i] - yq_px[q]) ** 2
+
+
+def _nearest_centroid(
+    x_px: np.ndarray, y_px: np.ndarray, xq_px: np.ndarray, yq_px: np.ndarray, max_px: float
+) -> np.ndarray:
+    """(Q,) for each point (xq, yq) the index of the nearest of the points (x, y) within ``max_px`` (the lowest index
+    of those equally near; -1 when none is): the argmin over the points of a full table of squared distances."""
+    i, q, d2 = _close_pairs(x_px, y_px, xq_px, yq_px, max_px)
+    best = np.full(xq_px.size, np.inf)
+    np.minimum.at(best, q, d2)
+    out = np.full(xq_px.size, x_px.size, dtype=np.int64)
+    at_best = d2 == best[q]
+    np.minimum.at(out, q[at_best], i[at_best])
+    return np.where(out < x_px.size, out, -1)
 
 
 def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
@@ -137,14 +181,17 @@ def _ambiguous(
     if near.size < 2:
         return out
     radius = _match_radius_px(theta, v)
-    d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
-    other = (d2 <= radius * radius) & (near[None, :] != stars[:, None])
-    bright_enough = sky.mag[near][None, :] <= sky.mag[stars][:, None] + AMBIGUITY_MAG_MARGIN
+    # the (candidate, predicted star) pairs within the radius (k-d trees; their squared distances as a full table
+    # would hold them)
+    i, p, d2 = _close_pairs(x_px, y_px, xp, yp, radius)
+    other = (d2 <= radius * radius) & (near[p] != stars[i])
+    bright_enough = sky.mag[near][p] <= sky.mag[stars][i] + AMBIGUITY_MAG_MARGIN
     if detection_mag is not None:
         known = np.isfinite(detection_mag)
-        explains = blends.could_be(sky.mag[near][None, :], detection_mag[:, None], window)
-        bright_enough = np.where(known[:, None], explains, bright_enough)
-    return np.any(other & bright_enough, axis=1)
+        explains = blends.could_be(sky.mag[near][p], detection_mag[i], window)
+        bright_enough = np.where(known[i], explains, bright_enough)
+    out[np.unique(i[other & bright_enough])] = True
+    return out
 
 
 #: Completeness is counted only in the cells of a COMPLETENESS_CELLS x COMPLETENESS_CELLS grid over the detector that

@@ -57,7 +57,7 @@ from hostlink.images.blends import (
     without_pair_bound,
     zero_point,
 )
-from hostlink.images.skyindex import _mirror_x, catalogue_directions, catalogue_tree
+from hostlink.images.skyindex import SkyIndex, _mirror_x
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
@@ -134,20 +134,20 @@ def _merged(session: Session, stars: np.ndarray, identified: Session, star_id: n
     return out
 
 
-def identify_then_admit(session: Session, identify, catalogue: Catalogue | None = None):
+def identify_then_admit(session: Session, identify, catalogue: Catalogue | None = None, index: SkyIndex | None = None):
     """``identify(session)`` (an :class:`hostlink.images.identify.Identification`) on the session without its
     candidates, then the candidates admitted (module docstring) with the camera calibrated on what it identified.
     Returns the identification with every row back in place (candidates not admitted unidentified) and one more
     record in ``rounds``: ``{"round": "guided", ...}`` with the per-frame admissions. BLAS on one thread
     (:func:`hostlink.calibration.data.one_blas_thread`): the products here are thin (the catalogue's directions by
-    an attitude, per-frame pairs)."""
+    an attitude, per-frame pairs). ``index``: the :class:`SkyIndex` of ``catalogue`` when the caller holds one."""
     from hostlink.calibration.data import one_blas_thread
 
     with one_blas_thread():
-        return _identify_then_admit(session, identify, catalogue)
+        return _identify_then_admit(session, identify, catalogue, index)
 
 
-def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None):
+def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None, index: SkyIndex | None):
     """:func:`identify_then_admit`."""
     held = candidate_rows(session)
     if not np.any(held):
@@ -156,6 +156,8 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
+    if index is None or index.catalogue is not catalogue:
+        index = SkyIndex(catalogue)
     stars = np.flatnonzero(~held)
     result = identify(session.select(stars))
     star_id = session.star_id.copy()
@@ -179,7 +181,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         )
         frames = ()
     else:
-        star_id, frames = admit(session, star_id, held, camera, catalogue)
+        star_id, frames = admit(session, star_id, held, camera, catalogue, index)
         record.update(
             focal_length_px=float(camera.focal_length_px),
             status="admitted",
@@ -197,7 +199,8 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
     # every row identified here, detected or admitted, with its unresolved companions' light (blends.py), at the
     # calibrated focal length
     focal_px = (camera or result.camera).focal_length_px
-    out, blends = blend_references(_with_identities(session, star_id, catalogue), session.star_id, catalogue, focal_px)
+    identified = _with_identities(session, star_id, catalogue)
+    out, blends = blend_references(identified, session.star_id, catalogue, focal_px, index)
     record["blends"] = len(blends)
     return replace(result, session=out, rounds=(*result.rounds, record), blends=tuple(blends))
 
@@ -220,11 +223,17 @@ def _calibrated(session: Session, camera: CameraParams | None, outcome=None) -> 
 
 
 def admit(
-    session: Session, star_id: np.ndarray, held: np.ndarray, camera: CameraParams, catalogue: Catalogue
+    session: Session,
+    star_id: np.ndarray,
+    held: np.ndarray,
+    camera: CameraParams,
+    catalogue: Catalogue,
+    index: SkyIndex | None = None,
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
-    frame's :class:`FrameAdmission`."""
-    directions = catalogue_directions(catalogue)
+    frame's :class:`FrameAdmission`. ``index``: the :class:`SkyIndex` of ``catalogue`` (built here when not given)."""
+    if index is None or index.catalogue is not catalogue:
+        index = SkyIndex(catalogue)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
     frames = []
@@ -244,7 +253,7 @@ def admit(
             (sigma_px[rows], own_px[rows]),
             theta,
             camera.image_size_px,
-            directions,
+            index,
             catalogue,
         )
         out[rows] = names
@@ -252,7 +261,7 @@ def admit(
     return out, tuple(frames)
 
 
-def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_size_px, directions, catalogue):
+def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_size_px, index, catalogue):
     """One frame of :func:`admit`: (its star ids with the admitted candidates named, its :class:`FrameAdmission`).
     ``sigma_px``: the rows' ``sigma_px`` and that without an elongated blend's bound (``blend_px``, which a blend's
     reference replaces: :func:`hostlink.images.blends.without_pair_bound`)."""
@@ -261,7 +270,7 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     if np.count_nonzero(named) < MIN_FRAME_STARS:
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} identified stars")
     cat_rows = np.searchsorted(catalogue.hip, star_id[named])
-    fit = _frame_attitude(x[named], y[named], directions[cat_rows], theta)
+    fit = _frame_attitude(x[named], y[named], index.directions[cat_rows], theta)
     if fit is None:
         return star_id, FrameAdmission(0, status="no attitude")
     c, mirrored, sigma_pred = fit
@@ -270,13 +279,11 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
         return star_id, FrameAdmission(0, status=f"fewer than {MIN_FRAME_STARS} unsaturated identified stars")
     zp, scatter = zero_point(catalogue.mag[np.searchsorted(catalogue.hip, star_id[bright])], mag[bright])
     window = window_mag(scatter)
-    near, xp, yp = _predicted(directions, c, theta, mirrored, image_size_px)
+    near, xp, yp = _predicted(index.directions, c, theta, mirrored, image_size_px)
     searched = ~np.isin(catalogue.hip[near], star_id[named])
     near, xp, yp = near[searched], xp[searched], yp[searched]
     # a star whose unresolved companions add their light is expected at its blend's centroid (blends.py)
-    xp, yp, sigma_ref = _blend_places(
-        near, xp, yp, directions, (c, theta, mirrored), catalogue, star_id[named], scatter
-    )
+    xp, yp, sigma_ref = _blend_places(near, xp, yp, index, (c, theta, mirrored), catalogue, star_id[named], scatter)
     predicted_mag = catalogue.mag[near] - zp  # instrumental
     # every row left unidentified: the candidates, and the detected stars identification could not name (with the
     # calibrated camera the radius is a pixel or less, where the uncalibrated one needed several)
@@ -377,7 +384,7 @@ def _nearest_rows(row: np.ndarray, star: np.ndarray, d2: np.ndarray, n_stars: in
     return nearest
 
 
-def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):
+def _blend_places(near, xp, yp, index, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):
     """(xp, yp, sigma_ref [px]) of the searched catalogue stars ``near`` (their single-star places ``xp, yp``): where
     a star has catalogue companions within :data:`UNRESOLVED_PX` that the frame has not identified as rows of their
     own (``named_hip``), its expected place is its blend's reference (:func:`hostlink.images.blends.photocentre`)
@@ -386,8 +393,8 @@ def _blend_places(near, xp, yp, directions, view, catalogue: Catalogue, named_hi
 
     c, theta, mirrored = view
     xp, yp, sigma_ref = xp.copy(), yp.copy(), np.zeros(near.size)
-    _, tree = catalogue_tree(catalogue)
-    found = tree.query_ball_point(directions[near], 2.0 * math.sin(0.5 * UNRESOLVED_PX / float(theta[0])))
+    directions = index.directions
+    found = index.tree.query_ball_point(directions[near], 2.0 * math.sin(0.5 * UNRESOLVED_PX / float(theta[0])))
     for k, (j, close) in enumerate(zip(near, found, strict=True)):
         companions = [i for i in close if i != j and catalogue.hip[i] not in named_hip] if len(close) > 1 else []
         if not companions:

@@ -86,6 +86,7 @@ from hostlink.images.skyindex import (  # noqa: F401
     MAX_DIAGONAL_FIELD_DEG,
     PairCache,
     PairCatalogue,
+    SkyIndex,
     _field_sr,
     _Sky,
     _sky,
@@ -324,12 +325,18 @@ def identify_session(
         database = (cache.database if cache else solver_adapter.pattern_database)(
             catalogue, database_fov_deg or fov, maglim
         )
-    sky = cache.sky(catalogue) if cache else _sky(catalogue)
+    index = cache.index(catalogue) if cache else SkyIndex(catalogue)
+    sky = index.sky
     ctx = _SessionContext(session, nominal, fov, sky, database, cache)
     starts = session.frame_starts
     todo = [k for k in range(session.n_frames) if np.any(session.star_id[starts[k] : starts[k + 1]] == 0)]
-    results = _engine_pass(ctx, todo, progress) if engine else {}
-    _fallback_pass(ctx, todo, results)
+    # BLAS on one thread (as guided.identify_then_admit): the frames' products are thin (a refinement's least squares
+    # of 3 N x 8, Gram matrices of a frame), and OpenBLAS's threads cost several times the CPU time they save
+    from hostlink.calibration.data import one_blas_thread
+
+    with one_blas_thread():
+        results = _engine_pass(ctx, todo, progress) if engine else {}
+        _fallback_pass(ctx, todo, results)
     star_id = session.star_id.copy()
     for k in todo:
         a, b = int(starts[k]), int(starts[k + 1])
@@ -338,7 +345,7 @@ def identify_session(
     out = _with_identities(session, star_id, catalogue)
     scales = [f.scale for f in frames if f.status == "identified"]
     focal_px = nominal.focal_length_px * (float(np.median(scales)) if scales else 1.0)
-    out, blended = blends.blend_references(out, session.star_id, catalogue, focal_px)
+    out, blended = blends.blend_references(out, session.star_id, catalogue, focal_px, index)
     name = solver_adapter.ENGINE_NAME + " + pair-anchored matching" if engine else "pair-anchored matching"
     return Identification(out, frames, name, fov, blends=tuple(blended))
 
@@ -368,7 +375,7 @@ def identify_iteratively(
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
-    args = (catalogue, maglim, use_engine, max_rounds, progress)
+    args = (catalogue, maglim, use_engine, max_rounds, progress, PairCache())  # one cache for both parities
     result = _identify_iteratively(session, nominal, *args)
     if not result.mirrored:
         return result
@@ -407,6 +414,7 @@ def _identify_iteratively(
     use_engine: bool = True,
     max_rounds: int = MAX_ROUNDS,
     progress=None,
+    cache: PairCache | None = None,
 ) -> Identification:
     """Identify, calibrate, identify again with the calibrated camera, until a round adds nothing (at most
     ``max_rounds``; 1: :func:`identify_session` alone). Every round identifies the session's originally
@@ -416,22 +424,24 @@ def _identify_iteratively(
     where the new stars are. A round is kept only when it identifies more stars than the one before; a calibration
     that fails (:meth:`CalibrationOutcome.failure`) ends the rounds. The result's ``rounds`` hold, per round: the
     camera used (focal length [px], where it came from), frames and stars identified, and the stars it added, lost
-    and renamed against the round before. ``catalogue``: the one :func:`identify_iteratively` was given or loaded."""
+    and renamed against the round before. ``catalogue``: the one :func:`identify_iteratively` was given or loaded;
+    ``cache``: what the rounds share (:class:`PairCache`; the guided admission uses its catalogue's
+    :class:`SkyIndex`)."""
     from hostlink.calibration.run import calibrate_session
     from hostlink.errors import UserError
 
     if max_rounds < 1:
         raise UserError(f"rounds must be at least 1, got {max_rounds}")
+    cache = cache if cache is not None else PairCache()  # what does not change between rounds
     if np.any(guided.candidate_rows(session)):  # faint candidates: held back, admitted after the rounds (guided.py)
         return guided.identify_then_admit(
             session,
-            lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress),
+            lambda s: _identify_iteratively(s, nominal, catalogue, maglim, use_engine, max_rounds, progress, cache),
             catalogue,
+            cache.index(catalogue),
         )
     width = nominal.image_size_px[0]
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, width)
-
-    cache = PairCache()  # what does not change between rounds
 
     def one_round(camera: CameraParams) -> Identification:
         return identify_session(

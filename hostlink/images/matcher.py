@@ -95,15 +95,16 @@ def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) ->
 
 
 def _pyramid_may_hit(
-    r: np.ndarray,
+    columns: tuple[np.ndarray, np.ndarray, np.ndarray],
     first: np.ndarray,
     second: np.ndarray,
     with_first: _PairsOfAngle | None,
     with_second: _PairsOfAngle | None,
 ) -> np.ndarray:
-    """(M,) bool: the anchor hypotheses (``first``, ``second``: sky indices of the anchor stars b_i, b_j; ``r``: the
-    sky's unit vectors) that can put a third star b_m within the hit chord c of a catalogue star s at all: a
-    necessary condition only (the k-d tree decides). A hypothesis (TRIAD) maps b_i onto its first star exactly,
+    """(M,) bool: the anchor hypotheses (``first``, ``second``: sky indices of the anchor stars b_i, b_j;
+    ``columns``: the columns of the sky's unit vectors, :func:`hostlink.images.skyindex.sky_columns`) that can put a
+    third star b_m within the hit chord c of a catalogue star s at all: a necessary condition only (the k-d tree
+    decides). A hypothesis (TRIAD) maps b_i onto its first star exactly,
     b_j onto the great circle toward its second star, off it by the pair's angle mismatch d (at most the anchor
     window's tolerance), and preserves angles. So s lies at the angle (b_i, b_m) from the first star to within
     the angle 2 asin(c / 2) < 1.001 c that the chord subtends, and at (b_j, b_m) from the second to within
@@ -123,7 +124,7 @@ def _pyramid_may_hit(
     hyp = np.repeat(cand, count)
     s = with_first.partner[np.arange(hyp.size) + np.repeat(lo - (np.cumsum(count) - count), count)]
     # |angle - with_second.angle_rad| <= slack as cosines (arccos decreases on [0, pi]; the window starts above 0)
-    dot = _dot_rows(r, second[hyp], s)
+    dot = _dot_rows(columns, second[hyp], s)
     cos_hi = math.cos(with_second.angle_rad - with_second.slack_rad)
     cos_lo = math.cos(min(with_second.angle_rad + with_second.slack_rad, math.pi))
     may[:] = False
@@ -195,7 +196,7 @@ def anchor_candidates(
         if tree is pairs.tree:
             for t, m in enumerate(thirds):
                 may_hit[t] = _pyramid_may_hit(
-                    pairs.r, first, second, pairs_of(i, m, slack_first_rad), pairs_of(j, m, slack_second_rad)
+                    pairs.columns, first, second, pairs_of(i, m, slack_first_rad), pairs_of(j, m, slack_second_rad)
                 )
             kept = np.flatnonzero(np.any(may_hit, axis=0))
             first, second, may_hit = first[kept], second[kept], may_hit[:, kept]

@@ -1,12 +1,13 @@
 """The catalogue as lost-in-space identification (:mod:`hostlink.images.identify`) indexes it: the J2000 unit vectors
-(:func:`catalogue_directions`, :class:`_Sky`) and their k-d tree (:func:`catalogue_tree`; guided admission and the
-blends' companions use both), the own matcher's table of catalogue pairs sorted by angle (:func:`pair_catalogue`) and
-what the rounds of :func:`hostlink.images.identify.identify_iteratively` share of it (:class:`PairCache`); the places
-written for the identified rows (:func:`catalogue_radec_deg`); and the widest field the camera model describes
-(:func:`check_field`)."""
+(:func:`catalogue_directions`, :class:`_Sky`) and their k-d tree (guided admission and the blends' companions use
+both), held by a :class:`SkyIndex` that its caller builds once per catalogue; the own matcher's table of catalogue
+pairs sorted by angle (:func:`pair_catalogue`) and what the rounds of
+:func:`hostlink.images.identify.identify_iteratively` share of it (:class:`PairCache`); the places written for the
+identified rows (:func:`catalogue_radec_deg`); and the widest field the camera model describes (:func:`check_field`)."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 
@@ -32,35 +33,39 @@ def _sky(catalogue: Catalogue) -> _Sky:
     return _Sky(catalogue.hip, catalogue_directions(catalogue), catalogue.mag)
 
 
-#: The last catalogue :func:`catalogue_directions` was asked about, with its J2000 unit vectors; and the last one
-#: :func:`catalogue_tree` was asked about, with its k-d tree.
-_DIRECTIONS: list = []
-_TREE: list = []
-
-
 def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
-    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only), kept for the last
-    catalogue asked: identification's rounds, its admission and its blends ask about the same one (each propagation
-    of the whole catalogue is ~35 ms of ``erfa.pmsafe``)."""
-    if not _DIRECTIONS or _DIRECTIONS[0] is not catalogue:
-        from hostlink.sky.apparent import stars_at_j2000
+    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only): ~35 ms of
+    ``erfa.pmsafe`` for the whole catalogue, so a caller that asks more than once holds a :class:`SkyIndex`."""
+    from hostlink.sky.apparent import stars_at_j2000
 
-        stars = stars_at_j2000(catalogue)
-        r_all = radec_to_unit(stars.ra_rad, stars.dec_rad)
-        r_all.setflags(write=False)
-        _DIRECTIONS[:] = [catalogue, r_all]
-    return _DIRECTIONS[1]
+    stars = stars_at_j2000(catalogue)
+    r_all = radec_to_unit(stars.ra_rad, stars.dec_rad)
+    r_all.setflags(write=False)
+    return r_all
 
 
-def catalogue_tree(catalogue: Catalogue):
-    """(J2000 unit vectors (S, 3) (:func:`catalogue_directions`), ``scipy.spatial.cKDTree`` of them) of
-    ``catalogue``, kept for the last catalogue asked (the rounds of one identification ask about the same one)."""
-    if not _TREE or _TREE[0] is not catalogue:
+class SkyIndex:
+    """One catalogue as identification indexes it, each part built on first use and kept by this object (no module
+    state): its J2000 unit vectors (:func:`catalogue_directions`), their k-d tree (``scipy.spatial.cKDTree``, for the
+    guided admission and the blends' companions) and the :class:`_Sky`. Built once by whoever holds the catalogue
+    (:class:`PairCache` for the rounds of :func:`hostlink.images.identify.identify_iteratively`) and passed along."""
+
+    def __init__(self, catalogue: Catalogue) -> None:
+        self.catalogue = catalogue
+
+    @functools.cached_property
+    def directions(self) -> np.ndarray:
+        return catalogue_directions(self.catalogue)
+
+    @functools.cached_property
+    def tree(self):
         from scipy.spatial import cKDTree
 
-        r_all = catalogue_directions(catalogue)
-        _TREE[:] = [catalogue, r_all, cKDTree(r_all)]
-    return _TREE[1], _TREE[2]
+        return cKDTree(self.directions)
+
+    @functools.cached_property
+    def sky(self) -> _Sky:
+        return _Sky(self.catalogue.hip, self.directions, self.catalogue.mag)
 
 
 def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray:
@@ -86,21 +91,23 @@ class PairCatalogue:
     tree: object
     #: (S,) uint16: each sky star's rank among ``rows`` (None when more than 65536 stars take part): a 16-bit sort
     #: key, which numpy's stable sort orders in linear time (radix sort), for :func:`_pairs_of_angle`
-    rank16: np.ndarray | None = None
+    rank16: np.ndarray | None
+    #: the three columns of ``r`` (x, y, z), each contiguous (:func:`sky_columns`), for :func:`_dot_rows`
+    columns: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-#: The last unit-vector array :func:`_dot_rows` was given, and its three columns, contiguous.
-_COLUMNS: list = []
+def sky_columns(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The columns x, y, z of unit vectors ``r`` (S, 3), each contiguous (:func:`_dot_rows`)."""
+    x, y, z = (np.ascontiguousarray(r[:, axis]) for axis in range(3))
+    return x, y, z
 
 
-def _dot_rows(r: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """r[i] . r[j] row by row, x + y + z summed axis by axis from contiguous columns (no (M, 3) gathers: 15 times
-    faster for 5 million pairs), (x + y) + z as a sum over the 3 components of each row adds them: the same angles
-    for :func:`pair_catalogue`; another summation order would differ in the last bit, which
+def _dot_rows(columns: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """r[i] . r[j] row by row from the columns of r (:func:`sky_columns`), x + y + z summed axis by axis (no (M, 3)
+    gathers: 15 times faster for 5 million pairs), (x + y) + z as a sum over the 3 components of each row adds them:
+    the same angles for :func:`pair_catalogue`; another summation order would differ in the last bit, which
     :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its bounds are twice the hit chord from any hit)."""
-    if not _COLUMNS or _COLUMNS[0] is not r:
-        _COLUMNS[:] = [r, *(np.ascontiguousarray(r[:, axis]) for axis in range(3))]
-    x, y, z = _COLUMNS[1:]
+    x, y, z = columns
     return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
 
 
@@ -116,11 +123,14 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     tree = cKDTree(sky.r[rows])
     pairs = tree.query_pairs(chord, output_type="ndarray")
     a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
+    columns = sky_columns(sky.r)
     # without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs
-    angle = np.arccos(np.clip(_dot_rows(sky.r, a, b), -1.0, 1.0))
+    angle = np.arccos(np.clip(_dot_rows(columns, a, b), -1.0, 1.0))
     # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
     order = _ties_by_stars(np.argsort(angle), angle, a, b)
-    return PairCatalogue(a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
+    return PairCatalogue(
+        a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns
+    )
 
 
 def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
@@ -163,11 +173,12 @@ PAIR_CACHE_MAG_MARGIN = 0.05
 
 class PairCache:
     """What the rounds of one :func:`identify_iteratively` share and do not change: the catalogue as unit vectors
-    (:func:`_sky`), the own matcher's pair table (:func:`pair_catalogue`, built once a little wider than asked and cut
-    to each round's angle and depth: the same table a fresh build gives) and the engine's pattern database."""
+    and their tree (:class:`SkyIndex`), the own matcher's pair table (:func:`pair_catalogue`, built once a little
+    wider than asked and cut to each round's angle and depth: the same table a fresh build gives) and the engine's
+    pattern database."""
 
     def __init__(self) -> None:
-        self._skies: dict[int, tuple[Catalogue, _Sky]] = {}
+        self._indexes: dict[int, tuple[Catalogue, SkyIndex]] = {}
         self._table: PairCatalogue | None = None
         self._table_maglim = -math.inf
         self._databases: dict[tuple, tuple[Catalogue, object]] = {}
@@ -182,13 +193,17 @@ class PairCache:
             self._subsets[key] = held
         return held[1]
 
-    def sky(self, catalogue: Catalogue) -> _Sky:
-        """:func:`_sky` of ``catalogue`` (computed once per catalogue object)."""
-        held = self._skies.get(id(catalogue))
+    def index(self, catalogue: Catalogue) -> SkyIndex:
+        """The :class:`SkyIndex` of ``catalogue`` (one per catalogue object)."""
+        held = self._indexes.get(id(catalogue))
         if held is None or held[0] is not catalogue:
-            held = (catalogue, _sky(catalogue))
-            self._skies[id(catalogue)] = held
+            held = (catalogue, SkyIndex(catalogue))
+            self._indexes[id(catalogue)] = held
         return held[1]
+
+    def sky(self, catalogue: Catalogue) -> _Sky:
+        """:func:`_sky` of ``catalogue`` (computed once per catalogue object, :meth:`index`)."""
+        return self.index(catalogue).sky
 
     def database(self, catalogue: Catalogue, fov_deg: float, maglim: float | None):
         """:func:`solver_adapter.pattern_database` (read once)."""
@@ -227,7 +242,7 @@ def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, t
         a, b, angle = a[keep], b[keep], angle[keep]
         rows = np.flatnonzero(bright)
         tree = cKDTree(sky.r[rows])
-    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows))
+    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns)
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)

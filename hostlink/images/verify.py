@@ -10,7 +10,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostlink.calibration.data import build_data
-from hostlink.calibration.robust import estimate_scale, triple_handedness, vote_consistent_stars
+from hostlink.calibration.robust import (
+    estimate_scale_of_table,
+    pair_table,
+    triple_handedness_of_table,
+    vote_consistent_stars,
+    vote_of_table,
+)
 from hostlink.images.skyindex import _mirror_x
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit
@@ -105,7 +111,8 @@ def _refine_radial(
     corner's (``r_corner_px``): stars in a ring alone (a proposal's first verified ones) cannot tell the focal length
     from distortion, and a fit of both there bends the rest of the field away. Returns
     (theta, C); the given ones when no step lowers the residual."""
-    best = (theta, c, float(np.sum((pixels_to_unit(x_px, y_px, theta) - r @ c.T) ** 2)))
+    b_now = pixels_to_unit(x_px, y_px, theta)  # b through ``current``, computed once per step
+    best = (theta, c, float(np.sum((b_now - r @ c.T) ** 2)))
     current, att = np.array(theta, dtype=np.float64), c
     r_max2 = float(np.max((x_px - theta[1]) ** 2 + (y_px - theta[2]) ** 2))
     steps = {0: 1e-6 * current[0]}
@@ -118,15 +125,15 @@ def _refine_radial(
     if x_px.size >= REFINE_CENTRE_STARS:
         steps[1] = steps[2] = REFINE_CENTRE_STEP_PX
     for _ in range(REFINE_ITERATIONS):
-        b = pixels_to_unit(x_px, y_px, current)
-        residual = (b - r @ att.T).ravel()
+        b = b_now
+        cr = r @ att.T
+        residual = (b - cr).ravel()
         columns = []
         for index, step in steps.items():
             shifted = current.copy()
             shifted[index] += step
             columns.append(((pixels_to_unit(x_px, y_px, shifted) - b) / step).ravel())
         # the attitude's small rotation phi: C -> (I - [phi x]) C moves b - C r by -(C r) x phi
-        cr = r @ att.T
         for axis in np.eye(3):
             columns.append(-np.cross(cr, axis).ravel())
         jac = np.stack(columns, axis=1)
@@ -136,11 +143,12 @@ def _refine_radial(
         delta = np.linalg.lstsq(jac / norm, -residual, rcond=None)[0] / norm
         for (index, _), d in zip(steps.items(), delta[:-3], strict=True):
             current[index] += d
+        b_now = pixels_to_unit(x_px, y_px, current)
         try:
-            att = attitude_from_vectors(pixels_to_unit(x_px, y_px, current), r)
+            att = attitude_from_vectors(b_now, r)
         except DegenerateGeometry:
             break
-        cost = float(np.sum((pixels_to_unit(x_px, y_px, current) - r @ att.T) ** 2))
+        cost = float(np.sum((b_now - r @ att.T) ** 2))
         if cost < best[2]:
             best = (current.copy(), att, cost)
     return best[0], best[1]
@@ -185,8 +193,9 @@ def _verify(
     if n < 3:
         return nothing
     data = build_data(_mirror_x(x_px, theta, mirrored), y_px, r, np.zeros(n, dtype=np.int64))
+    table = pair_table(data)  # the catalogue side of the candidates' pairs, for the scale, the vote and the triples
     if scale is None:
-        scale, n_pairs = estimate_scale(data, theta)
+        scale, n_pairs = estimate_scale_of_table(data, table, theta)
         if n_pairs == 0:
             return nothing
     theta_s = np.array(theta, dtype=np.float64)
@@ -196,19 +205,24 @@ def _verify(
     alive = np.ones(n, dtype=bool)
     while prune and np.count_nonzero(alive) >= 3:
         sub = np.flatnonzero(alive)
-        part, _, _ = data.select(alive, min_stars=1)
-        ok = vote_consistent_stars(part, b[sub], min_agreement=PRUNE_MIN_AGREEMENT, **tolerances)
+        if sub.size == n:  # every candidate: the table's pairs
+            ok = vote_of_table(table, b, n, min_agreement=PRUNE_MIN_AGREEMENT, **tolerances)
+        else:
+            part, _, _ = data.select(alive, min_stars=1)
+            ok = vote_consistent_stars(part, b[sub], min_agreement=PRUNE_MIN_AGREEMENT, **tolerances)
         if np.all(ok):
             break
         alive[sub[~ok]] = False
     keep = np.zeros(n, dtype=bool)
     sub = np.flatnonzero(alive)
-    if sub.size >= 3:
+    if sub.size == n:  # every candidate: the table's pairs
+        keep = vote_of_table(table, b, n, min_agreement=VERIFY_MIN_AGREEMENT, **tolerances)
+    elif sub.size >= 3:
         part, _, _ = data.select(alive, min_stars=1)
         keep[sub] = vote_consistent_stars(part, b[sub], min_agreement=VERIFY_MIN_AGREEMENT, **tolerances)
     if np.count_nonzero(keep) < 3:
         return _Verified(keep, mirrored, scale, math.nan, None, None)
-    opposite, total = triple_handedness(data, b, keep)
+    opposite, total = triple_handedness_of_table(table, b, keep)
     agreement = 1.0 - opposite / total if total else math.nan
     try:
         c = attitude_from_vectors(b[keep], r[keep])
