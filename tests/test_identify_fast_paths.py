@@ -9,12 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-# scipy's BLAS loaded at collection, before any test here first asks for hostlink.calibration.data.one_blas_thread
-# (whose thread-pool controller is found once per process and knows only the libraries loaded by then): otherwise the
-# extension's k-d trees load it later, and test_calibration_pair_angles's check of every BLAS library's limit fails
-# when it runs after this module
-import scipy.spatial  # noqa: F401
-
 from hostlink.calibration import robust
 from hostlink.calibration.data import build_data
 from hostlink.images import blends, extend

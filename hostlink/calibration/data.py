@@ -7,6 +7,7 @@ Everything is float64 numpy columns, one row per identified star, rows grouped b
 from __future__ import annotations
 
 import functools
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -440,9 +441,16 @@ def gram_matrices(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         return np.matmul(v, np.ascontiguousarray(v.transpose(0, 2, 1)), out=out)
 
 
-@functools.cache
 def _blas_controller():
-    """The process's thread-pool controller (threadpoolctl): found once (it scans the loaded libraries)."""
+    """The process's thread-pool controller (threadpoolctl), found again whenever a module was imported since the
+    last call (a BLAS library, scipy's for one, is loaded by an import; a controller made before it would not hold
+    it to one thread), else reused (a scan of the loaded libraries costs ~1 ms)."""
+    return _blas_controller_of(len(sys.modules))
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller_of(n_modules: int):
+    """The thread-pool controller made while ``n_modules`` modules were imported (:func:`_blas_controller`)."""
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
