@@ -125,8 +125,9 @@ class _Ours:
     times: dict
 
 
-def _run_ours(paths: list[Path], image_set: ImageSet, nominal, candidates: bool) -> _Ours:
-    """Images -> identified stars, ours, in process (CPU seconds of each stage)."""
+def _run_ours(paths: list[Path], image_set: ImageSet, nominal, candidates: bool, cache) -> _Ours:
+    """Images -> identified stars, ours, in process (CPU seconds of each stage); ``cache``: the catalogue's indexes,
+    pair tables and pattern database (``PairCache``), built before the timing as the solver's database is."""
     from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
     from hostlink.images.guided import candidate_rows
     from hostlink.images.identify import identify_iteratively, identify_session
@@ -138,9 +139,9 @@ def _run_ours(paths: list[Path], image_set: ImageSet, nominal, candidates: bool)
     cent = centroid_images(paths, options, TimeOptions(time_unknown=True))
     t1 = time.process_time()
     detected = cent.session.select(~candidate_rows(cent.session))  # the faint candidates are only for ..._iteratively
-    once = identify_session(detected, nominal)
+    once = identify_session(detected, nominal, cache=cache)
     t2 = time.process_time()
-    ident = identify_iteratively(cent.session, nominal)
+    ident = identify_iteratively(cent.session, nominal, cache=cache)
     t3 = time.process_time()
     times = {"ours_centroid": t1 - t0, "ours_identify_once": t2 - t1, "ours_identify_iterative": t3 - t2}
     return _Ours(ident, detected, once, times)
@@ -310,6 +311,7 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     from hostlink.images import solver_adapter
     from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
     from hostlink.images.identify import identify_session
+    from hostlink.images.skyindex import PairCache
     from hostlink.sky.catalogue import load_catalogue
 
     if SHARED is None:
@@ -321,9 +323,11 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     catalogue = load_catalogue()
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
     database = solver_adapter.pattern_database(catalogue, fov)  # loaded before any timing, for both
-    identify_session(centroid_images(paths[:1], CentroidOptions(), TimeOptions(time_unknown=True)).session, nominal)
+    cache = PairCache()  # our database: built on the first frame before the timing, as the solver's is loaded
+    first = centroid_images(paths[:1], CentroidOptions(), TimeOptions(time_unknown=True)).session
+    identify_session(first, nominal, cache=cache)
 
-    ours = _run_ours(paths, image_set, nominal, candidates)
+    ours = _run_ours(paths, image_set, nominal, candidates, cache)
     engine, engine_cal, engine_on_ours, solver_s = _run_solver(paths, database, fov, nominal, ours.detected)
     # our camera: calibrated on the final identities (the default method), our residual per frame through it
     outcome, _ = calibrate_session(ours.ident.session, ours.ident.camera or nominal, keep_failed=True)

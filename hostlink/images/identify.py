@@ -364,18 +364,21 @@ def identify_iteratively(
     use_engine: bool = True,
     max_rounds: int = MAX_ROUNDS,
     progress=None,
+    cache: PairCache | None = None,
 ) -> Identification:
     """:func:`_identify_iteratively`; a session found mirrored (odd parity, which the calibration refuses: its
     rounds and the guided admission would end at the first calibration) is identified again with x flipped,
     x -> width - 1 - x, and the nominal with it (:func:`flipped_x_camera`), then written back in its own columns.
     Its frames keep the parity ``mirrored`` and the attitude of the mirrored-back columns (as a mirrored frame's
     always was: x mirrored about the principal point); ``camera`` is that of the flipped detector, the one
-    ``calibrate`` needs (the session's x flipped first, as its error on a mirrored session says)."""
+    ``calibrate`` needs (the session's x flipped first, as its error on a mirrored session says). ``cache``: the
+    catalogue's indexes and pair tables (:class:`PairCache`, default a new one), to share with other calls on the
+    same catalogue (the same results)."""
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
-    args = (catalogue, maglim, use_engine, max_rounds, progress, PairCache())  # one cache for both parities
+    args = (catalogue, maglim, use_engine, max_rounds, progress, cache or PairCache())  # one cache for both parities
     result = _identify_iteratively(session, nominal, *args)
     if not result.mirrored:
         return result
