@@ -310,8 +310,7 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     from hostlink.files.params import params_from_dict
     from hostlink.images import solver_adapter
     from hostlink.images.centroid import CentroidOptions, TimeOptions, centroid_images
-    from hostlink.images.identify import identify_session
-    from hostlink.images.skyindex import PairCache
+    from hostlink.images.identify import identify_session, prepare_cache
     from hostlink.sky.catalogue import load_catalogue
 
     if SHARED is None:
@@ -323,7 +322,7 @@ def run_set(image_set: ImageSet, log=print, candidates: bool = True) -> dict:
     catalogue = load_catalogue()
     fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
     database = solver_adapter.pattern_database(catalogue, fov)  # loaded before any timing, for both
-    cache = PairCache()  # our database: built on the first frame before the timing, as the solver's is loaded
+    cache = prepare_cache(nominal, catalogue)  # our database, built before the timing as the solver's is loaded
     first = centroid_images(paths[:1], CentroidOptions(), TimeOptions(time_unknown=True)).session
     identify_session(first, nominal, cache=cache)
 

@@ -80,7 +80,9 @@ from hostlink.images.matcher import (  # noqa: F401
     _pairs_of_angle,
     _pyramid_may_hit,
     anchor_candidates,
+    fallback_angle_rad,
     fallback_depth_mag,
+    prepare_cache,
 )
 from hostlink.images.skyindex import (  # noqa: F401
     MAX_DIAGONAL_FIELD_DEG,
@@ -227,11 +229,9 @@ def _fallback_pairs(ctx: _SessionContext, todo: list[int], results: dict) -> Pai
         if hips.size
         else field_depth
     )
-    width, height = nominal.image_size_px
-    half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
     if ctx.cache is not None:
-        return ctx.cache.pairs(sky, 2.0 * math.atan(half_diagonal), depth)
-    return pair_catalogue(sky, 2.0 * math.atan(half_diagonal), depth)
+        return ctx.cache.pairs(sky, fallback_angle_rad(nominal), depth)
+    return pair_catalogue(sky, fallback_angle_rad(nominal), depth)
 
 
 def _engine_pass(ctx: _SessionContext, todo: list[int], progress) -> dict[int, tuple[FrameIdentity, np.ndarray]]:

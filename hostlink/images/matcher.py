@@ -1,7 +1,7 @@
 """The project's own lost-in-space matcher (:mod:`hostlink.images.identify`, module docstring step 1): pair-anchored
 hypothesise-and-test over the catalogue pairs of the same angle (:func:`anchor_candidates`), the order and budget of its
 anchor pairs (:func:`_anchor_schedule`, :data:`MAX_ANCHOR_PAIRS`) and the catalogue depth it indexes
-(:func:`fallback_depth_mag`)."""
+(:func:`fallback_depth_mag`), and the tables it needs for a camera built beforehand (:func:`prepare_cache`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hostlink.images.skyindex import PairCatalogue, _dot_rows
+from hostlink.images import solver_adapter
+from hostlink.images.skyindex import PairCache, PairCatalogue, _dot_rows, _field_sr, check_field
+from hostlink.sky.catalogue import Catalogue
+from onboard.params import CameraParams
 
 #: Fallback matcher: the brightest centroids of a frame it uses; pairs among the first ANCHOR_STARS are anchors.
 MATCH_STARS = 20
@@ -314,3 +317,38 @@ def fallback_depth_mag(sky_mag: np.ndarray, field_sr: float) -> float:
 FALLBACK_MAG_MARGIN = 0.5
 #: ... the percentile of the identified stars' magnitudes that margin is added to (above) [%].
 FALLBACK_DEPTH_PERCENTILE = 90
+
+
+def fallback_angle_rad(nominal: CameraParams) -> float:
+    """How wide the own matcher's pairs go [rad]: the detector's diagonal at the smallest scanned scale."""
+    width, height = nominal.image_size_px
+    half_diagonal = 0.5 * math.hypot(width, height) / (nominal.focal_length_px * min(SCAN_SCALES))
+    return 2.0 * math.atan(half_diagonal)
+
+
+def prepare_cache(
+    nominal: CameraParams, catalogue: Catalogue | None = None, maglim: float | None = None, use_engine: bool = True
+) -> PairCache:
+    """A :class:`PairCache` holding what identifying sessions of the camera ``nominal`` builds from the catalogue
+    alone, built now rather than in the first call: the catalogue's index, the engine's pattern database at the
+    nominal field and the own matcher's pair table as wide and as deep as identification can ask for this camera
+    (:func:`fallback_angle_rad`; the field's depth plus :data:`FALLBACK_MAG_MARGIN`). Pass it as ``cache`` to
+    ``identify_session`` or ``identify_iteratively`` (:mod:`hostlink.images.identify`; the same results: a table cut
+    from a larger one is the table built for the cut): for a user identifying many sessions of one camera, and for
+    timing identification apart from its database, as a plate solver's database is built beforehand. ``catalogue``,
+    ``maglim``, ``use_engine``: as those calls will be given them."""
+    if catalogue is None:
+        from hostlink.sky.catalogue import load_catalogue
+
+        catalogue = load_catalogue()
+    check_field(nominal)
+    cache = PairCache()
+    if maglim is not None:
+        catalogue = cache.bright(catalogue, maglim)
+    sky = cache.sky(catalogue)
+    if use_engine and solver_adapter.engine_available():
+        fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
+        cache.database(catalogue, fov, maglim)
+    depth = fallback_depth_mag(sky.mag, _field_sr(nominal)) + FALLBACK_MAG_MARGIN
+    cache.pairs(sky, fallback_angle_rad(nominal), depth)
+    return cache
