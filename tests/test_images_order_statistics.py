@@ -59,6 +59,24 @@ def test_median_frame_is_numpys(frames):
     np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.int32, np.float32, np.float64])
+def test_median_frame_of_any_pixel_type_is_numpys_without_wrapping(dtype):
+    """The mean of the middle two frames is taken as np.median takes it, in float64 for integers (their sum in their
+    own type wraps: two uint16 frames of 60000 gave 27232): each integer type's extremes keep their exact median."""
+    if np.issubdtype(dtype, np.integer):
+        top, bottom = np.iinfo(dtype).max, np.iinfo(dtype).min
+        stack = np.array([[[top, bottom]], [[top, bottom]], [[top, bottom]], [[bottom, top]]], dtype=dtype)
+        np.testing.assert_array_equal(_median_frame(stack), [[float(top), float(bottom)]])
+        np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 256, size=(6, 30, 40)).astype(dtype)
+    np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+
+
+def test_median_of_two_uint16_frames_of_60000_is_60000():
+    assert _median_frame(np.full((2, 1, 1), 60000, dtype=np.uint16))[0, 0] == 60000.0
+
+
 @pytest.mark.parametrize("shape", [(256, 320), (250, 300)])  # whole boxes, and boxes the border cuts
 def test_each_pass_of_the_clipped_noise_takes_the_box_percentiles_of_the_pixels_left(shape):
     """The boxes laid out once and the stars' light excluded per pass (background._masked_box_percentiles) give

@@ -428,6 +428,16 @@ def _interpolated_percentiles(a: np.ndarray, b: np.ndarray, gamma: np.ndarray) -
     return out.astype(np.float64)
 
 
+def _sorted_medians(ordered: np.ndarray, axis: int) -> np.ndarray:
+    """``np.median(values, axis=axis)`` of values already sorted along ``axis`` (``ordered``), the same numbers for
+    any dtype: the middle value, or the mean of the middle two, each taken by ``np.mean`` as ``np.median`` takes it
+    (in the values' own float type; float64 for integers, whose sum would wrap in theirs). ``np.median``'s rule, where
+    :func:`_sorted_row_percentiles` at 50 % is ``np.percentile``'s interpolation (which can differ in the last
+    bit)."""
+    n = ordered.shape[axis]
+    return np.mean(np.take(ordered, [n // 2] if n % 2 else [n // 2 - 1, n // 2], axis=axis), axis=axis)
+
+
 def _positive(noise: np.ndarray) -> np.ndarray:
     """``noise`` with its non-positive or non-finite values replaced by the smallest positive finite one (a frame
     whose every pixel is clipped: 1 ADU)."""

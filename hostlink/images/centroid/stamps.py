@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from hostlink.images.background import _sorted_medians
+
 
 def _row_medians(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """The median of each row of ``values`` (n, p) over its ``valid`` entries (NaN where none): the rows wholly
-    valid (every stamp inside the image) at once, each sorted (the middle value, or the mean of the middle two:
+    valid (every stamp inside the image) at once, each sorted (:func:`hostlink.images.background._sorted_medians`:
     ``np.median``'s numbers, which it finds by a strided partition across the rows, 10 times slower), the others one
     by one (``np.nanmedian``'s masked arrays are several times slower still)."""
     out = np.full(values.shape[0], np.nan)
     whole = valid.all(axis=1)
     if whole.any():
-        ordered = np.sort(values[whole], axis=1)
-        p = ordered.shape[1]
-        out[whole] = ordered[:, p // 2] if p % 2 else (ordered[:, p // 2 - 1] + ordered[:, p // 2]) / 2.0
+        out[whole] = _sorted_medians(np.sort(values[whole], axis=1), axis=1)
     for k in np.flatnonzero(~whole & valid.any(axis=1)):
         out[k] = np.median(values[k][valid[k]])
     return out
