@@ -63,12 +63,11 @@ def test_widest_pair_without_every_angle(frames):
         np.r_[np.repeat(np.arange(frames), 40), frames],
     )
     for d in (data, one):
-        chunks = robust.frame_chunks(d.frame_starts, robust.PAIR_BLOCK_OBS)
-        expected = max(robust._field_rad(robust._frame_pairs(d, f0, f1)) for f0, f1 in chunks)
-        assert robust.max_pair_angle_rad(d) == expected
-        assert robust.max_pair_angle_rad(d, chunk_obs=50) == max(
-            robust._field_rad(robust._frame_pairs(d, f0, f1)) for f0, f1 in robust.frame_chunks(d.frame_starts, 50)
-        )
+        for chunk_obs in (robust.PAIR_BLOCK_OBS, 50):
+            chunks = robust.frame_chunks(d.frame_starts, chunk_obs)
+            min_dot = min(robust._frame_pairs(d, f0, f1).min_dot_r for f0, f1 in chunks)
+            expected = float(robust.angle_from_dot_rad(np.float64(min_dot)))  # every pair's table, as before
+            assert robust.max_pair_angle_rad(d, chunk_obs=chunk_obs) == expected
 
 
 def _extend_by_table(x_px, y_px, near, xp, yp, sky, radius, taken_rows, calibrated_mag, window):
