@@ -115,7 +115,7 @@ def _may_hold_blank(clipped: np.ndarray) -> bool:
     padded = np.zeros((ny * b, nx * b), dtype=np.uint8)
     padded[:h, :w] = clipped
     # along the columns of blocks first (a reduction across whole rows), then within each block's row: the same
-    # maxima as over both block axes at once, in a seventh of the time
+    # maxima as over both block axes at once, faster (docs/realsky.md, "Time")
     occupied = padded.reshape(ny, b, nx * b).max(axis=1).reshape(ny, nx, b).max(axis=2)
     if ny < k or nx < k:
         return bool(occupied.any())
@@ -141,7 +141,7 @@ def local_noise_map(
     """(offset map [ADU], noise map [ADU], the pixels of a sharp step where nothing is detected) of the module
     docstring, step 2. ``filtered``: the image less SEP's background, filtered by the detection kernel normalised to
     unit sum; ``sep_rms``: SEP's noise map, or what makes it (``sep.Background.rms``: used only when no box is
-    measurable, the common frame never spends the ~2 ms of a full-frame map on it); ``kernel_norm``: sqrt(sum k^2) of
+    measurable, so that the common frame never spends the time of a full-frame map on it); ``kernel_norm``: sqrt(sum k^2) of
     that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
 
     The offset is measured in boxes :data:`_FINE_BOXES_PER_BOX` times finer than the mesh (the median of each), the
@@ -245,8 +245,8 @@ def _star_light(
     from pixel 0, constant over each box (:func:`_box_constant`). The image is compared box by box (each box's
     threshold broadcast over its pixels, the same comparisons as against the thresholds spread over the image) when
     its size is a whole number of boxes, as the padded image of :func:`_clipped_box_noise` is. ``labels``: an int32
-    array of ``above``'s shape to label the regions in (the passes reuse one instead of a new 5 MB array each: ~6 %
-    of the function's CPU time on a granasat frame)."""
+    array of ``above``'s shape to label the regions in (the passes reuse one instead of allocating a new frame-sized
+    array each)."""
     from scipy import ndimage
 
     ny, nx = noise.shape
@@ -264,7 +264,7 @@ def _star_light(
     star = np.zeros(n + 1, dtype=bool)
     star[labels[peaks]] = True
     star[0] = False
-    return np.take(star, labels)  # under half the time of star[labels]
+    return np.take(star, labels)  # star[labels], faster (docs/realsky.md, "Time")
 
 
 @dataclass(frozen=True)

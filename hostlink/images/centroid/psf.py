@@ -200,7 +200,7 @@ def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarra
     first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
     ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
     same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
-    ones stand alone (a singular system in the batch took a split per level: ~170 calls per fit of a frame)."""
+    ones stand alone (alone, that took a split per level for every singular system in the batch)."""
     singular = np.linalg.slogdet(lhs)[0] == 0
     if singular.any():
         out = np.zeros_like(rhs)
@@ -225,8 +225,8 @@ def _solve_halving(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
     """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
-    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
-    and the product of it took 1.4 times as long; d mu / d B = 1 whitened is the whitening)."""
+    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (no stacked Jacobian
+    and no product of it: docs/realsky.md, "Time"; d mu / d B = 1 whitened is the whitening)."""
     k = active.size
     if k != data.shape[0]:  # some stars only (holding every star, ``active`` is 0 .. n - 1: no copies needed)
         cols, rows, params, data, whiten = (v[active] for v in (cols, rows, params, data, whiten))

@@ -133,11 +133,10 @@ def _saturated_objects(raw: np.ndarray, segmap: np.ndarray, level: float, n_obje
 
 #: Where the footprint is 1 filtered pixel (:func:`_footprint_px`), a detection of 1 pixel above the threshold is
 #: kept when its filtered peak reaches this factor x the threshold (those of 2 pixels or more are kept as before):
-#: white noise then gives a tenth more detections than SEP's footprint of 2 alone. Measured on 100 Mpx of white
-#: noise filtered by SEP's kernel (24 frames of 2048 x 2048; the local maxima, each with its highest neighbour): the
-#: single-pixel maxima above f x t are a tenth of those with a second pixel above t at f = 1.214 (t = 3 sigma),
-#: 1.204 (3.5), 1.199 (4); the false-alarm rate equal to SEP's footprint alone would need 1.12-1.13, and then the
-#: 2-pixel detections under 1.125 t dropped too, which lost named stars on openstartracker (docs/realsky.md).
+#: white noise filtered by SEP's kernel then gives a tenth more detections than SEP's footprint of 2 alone (the
+#: local maxima with and without a second pixel above the threshold: docs/realsky.md, "Binned and undersampled
+#: frames", tests/test_centroid_undersampled_detection.py); holding the footprint of 2's false-alarm rate exactly
+#: would have dropped 2-pixel detections too, which lost named stars.
 _SINGLE_PIXEL_THRESHOLD = 1.2
 
 

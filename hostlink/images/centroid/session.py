@@ -127,7 +127,7 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
 
 def _formatted(values: np.ndarray, spec: str) -> np.ndarray:
     """Each value as text by the format ``spec``, "" where it is not finite (an object array): formatted as Python
-    floats (``tolist``), the same text as from numpy's scalars in a seventh of the time."""
+    floats (``tolist``): the same text as from numpy's scalars, faster (docs/realsky.md, "Time")."""
     return np.array([format(v, spec) if math.isfinite(v) else "" for v in values.tolist()], dtype=object)
 
 
