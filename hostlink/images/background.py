@@ -141,8 +141,8 @@ def local_noise_map(
     """(offset map [ADU], noise map [ADU], the pixels of a sharp step where nothing is detected) of the module
     docstring, step 2. ``filtered``: the image less SEP's background, filtered by the detection kernel normalised to
     unit sum; ``sep_rms``: SEP's noise map, or what makes it (``sep.Background.rms``: used only when no box is
-    measurable, so that the common frame never spends the time of a full-frame map on it); ``kernel_norm``: sqrt(sum k^2) of
-    that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
+    measurable, so that the common frame never spends the time of a full-frame map on it); ``kernel_norm``:
+    sqrt(sum k^2) of that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
 
     The offset is measured in boxes :data:`_FINE_BOXES_PER_BOX` times finer than the mesh (the median of each), the
     noise in the mesh's boxes (P50 and P97.725, the stars' light left out: :func:`_clipped_box_noise`); each is then
