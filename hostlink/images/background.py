@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostlink.images.order_statistics import row_percentiles, sorted_row_percentiles
+
 #: A region at the clip level narrower than this [px] in either direction is a star's or a planet's core, not a
 #: blank region (the rendered 50-deg set's brightest planet, Hp -4 with a PSF of 2.6 px at the corner, saturates a
 #: disc ~20 px across; the horizon glow of the same set spans the frame).
@@ -313,20 +315,20 @@ def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple
     """(ny, nx, len(percents)): the ``percents`` of each box's pixels not ``excluded`` ((padded h, padded w) bool,
     holding the masked pixels and those beyond the image), NaN for a box whose pixels left are fewer than
     :data:`_MIN_BOX_FRACTION` of those within the image: :func:`_box_percentiles`' numbers
-    (:func:`_row_percentiles` of the pixels left), from the boxes laid out once."""
+    (:func:`row_percentiles` of the pixels left), from the boxes laid out once."""
     ny, nx = boxes.grid_shape
     box_px = boxes.padded_shape[0] // ny
     gone = excluded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
     counted = gone.shape[1] - np.count_nonzero(gone, axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
-    measurable = (counted >= _MIN_BOX_FRACTION * boxes.inside) & (counted > 0)
+    measurable = _measurable(counted, boxes.inside)
     if measurable.any():  # sorted in place in the boxes' work array (no new 5 MB arrays each pass)
         left = boxes.work
         np.copyto(left, boxes.values)
         np.copyto(left, np.float32(np.nan), where=gone)
         left.sort(axis=1)
         ordered = left if measurable.all() else left[measurable]
-        out[measurable] = _sorted_row_percentiles(ordered, percents, counted[measurable])
+        out[measurable] = sorted_row_percentiles(ordered, percents, counted[measurable])
     return out.reshape(ny, nx, len(percents))
 
 
@@ -372,70 +374,26 @@ def _box_percentiles(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``percents`` of the unmasked pixels of ``image`` in each box of ``box_px`` x ``box_px`` from pixel (0, 0)
     (the last row and column of boxes cut by the border), (ny, nx, len(percents)), NaN for a box whose unmasked
-    pixels are fewer than :data:`_MIN_BOX_FRACTION` of its pixels; and the boxes' centres, rows and columns [px]."""
+    pixels are fewer than :data:`_MIN_BOX_FRACTION` of its pixels within the image (:func:`_measurable`); and the
+    boxes' centres, rows and columns [px]."""
     blocks, inside, row_centres, col_centres = _box_blocks(image, mask, box_px)
     ny, nx = row_centres.size, col_centres.size
     counted = np.isfinite(blocks).sum(axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
     whole = counted == box_px * box_px
     if whole.any():  # the common case, in one call
-        out[whole] = _row_percentiles(blocks[whole], percents)
-    part = ~whole & (counted >= _MIN_BOX_FRACTION * inside) & (counted > 0)
+        out[whole] = row_percentiles(blocks[whole], percents)
+    part = ~whole & _measurable(counted, inside)
     if part.any():  # boxes cut by the border, a mask or the stars' light (_clipped_box_noise), in one call
-        out[part] = _row_percentiles(blocks[part], percents, counted[part])
+        out[part] = row_percentiles(blocks[part], percents, counted[part])
     return out.reshape(ny, nx, len(percents)), row_centres, col_centres
 
 
-def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None) -> np.ndarray:
-    """``np.percentile(rows, percents, axis=1).T`` (method "linear") as float64, the same numbers, from each row
-    sorted: numpy partitions along the first axis of the transposed rows, a strided pass per order statistic (~15 ms
-    for a frame's 4800 boxes of 256 pixels), where sorting each contiguous row takes ~1 ms. The interpolation is
-    numpy's own: v = (n - 1) q / 100 between the neighbouring order statistics a, b with gamma = v - floor(v):
-    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5. ``counts``: each row's number of finite values,
-    the rest NaN (sorted last), for ``np.percentile`` of each row's finite values (one call to it per row took
-    ~40 ms a frame once the stars' light is masked)."""
-    return _sorted_row_percentiles(np.sort(rows, axis=1), percents, counts)
-
-
-def _sorted_row_percentiles(
-    ordered: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None
-) -> np.ndarray:
-    """:func:`_row_percentiles` of rows already sorted (``ordered``)."""
-    n = np.full((ordered.shape[0], 1), ordered.shape[1]) if counts is None else np.asarray(counts)[:, None]
-    below, above, gamma = _percentile_ranks(n, percents)
-    a = np.take_along_axis(ordered, below, axis=1)
-    b = np.take_along_axis(ordered, above, axis=1)
-    return _interpolated_percentiles(a, b, gamma)
-
-
-def _percentile_ranks(n: np.ndarray, percents: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """numpy's "linear" percentile of ``n`` (rows, 1) values at ``percents``: the ranks (from 0) of the two
-    neighbouring order statistics and the weight of the second, (rows, len(percents)) each (v = (n - 1) q / 100,
-    gamma = v - floor(v))."""
-    virtual = (n - 1) * (np.asarray(percents, dtype=np.float64) / 100.0)
-    below = np.floor(virtual)
-    gamma = virtual - below
-    return np.minimum(below, n - 1).astype(np.intp), np.minimum(below + 1, n - 1).astype(np.intp), gamma
-
-
-def _interpolated_percentiles(a: np.ndarray, b: np.ndarray, gamma: np.ndarray) -> np.ndarray:
-    """numpy's interpolation between neighbouring order statistics ``a``, ``b`` with weight ``gamma``:
-    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5, as float64."""
-    diff = b - a
-    out = a + diff * gamma
-    upper = np.broadcast_to(gamma >= 0.5, out.shape)
-    out[upper] = (b - diff * (1 - gamma))[upper]
-    return out.astype(np.float64)
-
-
-def _sorted_medians(ordered: np.ndarray, axis: int) -> np.ndarray:
-    """``np.median(values, axis=axis)`` of values already sorted along ``axis`` (``ordered``), the same numbers for
-    any dtype: the middle value, or the mean of the middle two, each taken by ``np.mean`` as ``np.median`` takes it
-    (in the values' own float type; float64 for integers, whose sum would wrap in theirs). ``np.median``'s rule, where
-    :func:`_sorted_row_percentiles` at 50 % is ``np.percentile``'s interpolation (which can differ in the last
-    bit)."""
-    n = ordered.shape[axis]
-    return np.mean(np.take(ordered, [n // 2] if n % 2 else [n // 2 - 1, n // 2], axis=axis), axis=axis)
+def _measurable(counted: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """(boxes,) bool: the boxes whose ``counted`` pixels left hold at least :data:`_MIN_BOX_FRACTION` of their
+    ``inside`` pixels within the image, and one at least (the rule of :func:`_box_percentiles` and
+    :func:`_masked_box_percentiles`)."""
+    return (counted >= _MIN_BOX_FRACTION * inside) & (counted > 0)
 
 
 def _positive(noise: np.ndarray) -> np.ndarray:

@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-from hostlink.images.centroid.stamps import _in_chunks, _row_medians, _stamps
+from hostlink.images.centroid.stamps import _in_chunks, _stamps
+from hostlink.images.order_statistics import row_medians
 from hostlink.sky.render import (
     pixel_integrated_gaussian,
     pixel_integrated_gaussian_dsource,
@@ -64,7 +65,7 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     offsets = np.abs(np.arange(-outer, outer + 1))
     inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
     ring = ~inner.ravel()
-    background = _row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
+    background = row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
     background[~np.isfinite(background)] = 0.0
     p = np.where(inside & inner, _psf_shape_batch(cols, rows, x, y, sigma_px), 0.0)
     return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
@@ -262,7 +263,7 @@ def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None
     out_x, out_y = x.copy(), y.copy()
     cols, rows, data, inside = _stamps(sub, x, y, half)
     noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
-    background = _row_medians(data.reshape(x.size, -1), inside.reshape(x.size, -1))
+    background = row_medians(data.reshape(x.size, -1), inside.reshape(x.size, -1))
     masked = np.where(inside, data, np.nan).reshape(x.size, -1)
     flux = np.maximum(np.nansum(masked - background[:, None], axis=1), 1.0)
     params = np.column_stack([x, y, flux, background])

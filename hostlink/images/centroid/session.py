@@ -13,10 +13,10 @@ import numpy as np
 from hostlink.errors import UserError
 from hostlink.files.session import Session
 from hostlink.files.times import parse_iso_utc_many
-from hostlink.images.background import _sorted_medians
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
 from hostlink.images.centroid.times import _read_times_file, _time_choices, image_time
+from hostlink.images.order_statistics import sorted_medians
 from hostlink.images.read import read_image
 
 #: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
@@ -173,13 +173,13 @@ def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray
 
 def _median_frame(stack: np.ndarray) -> np.ndarray:
     """``np.median(stack, axis=0)`` as float64, the same numbers for any dtype, from the stack sorted along its first
-    axis (:func:`hostlink.images.background._sorted_medians`: the middle frame's value, or the mean of the middle two
-    as ``np.median`` takes it, in float64 for an integer stack): numpy's partition along that axis is slower
-    (docs/realsky.md, "Time"). A stack with a NaN goes to ``np.median`` (which makes its pixel NaN; sorting would
-    not)."""
+    axis (:func:`hostlink.images.order_statistics.sorted_medians`: the middle frame's value, or the mean of the
+    middle two as ``np.median`` takes it, in float64 for an integer stack): numpy's partition along that axis is
+    slower (docs/realsky.md, "Time"). A stack with a NaN goes to ``np.median`` (which makes its pixel NaN; sorting
+    would not)."""
     if np.isnan(stack).any():
         return np.median(stack, axis=0).astype(np.float64)
-    return _sorted_medians(np.sort(stack, axis=0), axis=0).astype(np.float64)
+    return sorted_medians(np.sort(stack, axis=0), axis=0).astype(np.float64)
 
 
 def _blend_px(det: Detections) -> np.ndarray:

@@ -4,22 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from hostlink.images.background import _sorted_medians
-
-
-def _row_medians(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The median of each row of ``values`` (n, p) over its ``valid`` entries (NaN where none): the rows wholly
-    valid (every stamp inside the image) at once, each sorted (:func:`hostlink.images.background._sorted_medians`:
-    ``np.median``'s numbers, which it finds by a strided partition across the rows, 10 times slower), the others one
-    by one (``np.nanmedian``'s masked arrays are several times slower still)."""
-    out = np.full(values.shape[0], np.nan)
-    whole = valid.all(axis=1)
-    if whole.any():
-        out[whole] = _sorted_medians(np.sort(values[whole], axis=1), axis=1)
-    for k in np.flatnonzero(~whole & valid.any(axis=1)):
-        out[k] = np.median(values[k][valid[k]])
-    return out
-
 
 def _in_chunks(half_px: int, n: int, block):
     """``block(slice)`` over consecutive slices of the n stars, each of at most the package's ``_STAMP_BUDGET_PX``
