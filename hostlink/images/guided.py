@@ -57,7 +57,7 @@ from hostlink.images.blends import (
     without_pair_bound,
     zero_point,
 )
-from hostlink.images.skyindex import SkyIndex, _mirror_x
+from hostlink.images.skyindex import SkyIndex, _mirror_x, sky_index
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
@@ -156,8 +156,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
-    if index is None or index.catalogue is not catalogue:
-        index = SkyIndex(catalogue)
+    index = sky_index(catalogue, index)
     stars = np.flatnonzero(~held)
     result = identify(session.select(stars))
     star_id = session.star_id.copy()
@@ -232,8 +231,7 @@ def admit(
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
     frame's :class:`FrameAdmission`. ``index``: the :class:`SkyIndex` of ``catalogue`` (built here when not given)."""
-    if index is None or index.catalogue is not catalogue:
-        index = SkyIndex(catalogue)
+    index = sky_index(catalogue, index)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
     frames = []
