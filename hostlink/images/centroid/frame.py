@@ -63,8 +63,8 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     blank = saturated_regions(raw, level)
     sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank, raw, level)
     # np.median's number, from the pixels sorted once (row_medians)
-    median_rms = float(row_medians(rms.reshape(1, -1), ~blank.reshape(1, -1))[0])
-    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=median_rms)
+    median_rms_adu = float(row_medians(rms.reshape(1, -1), ~blank.reshape(1, -1))[0])
+    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=median_rms_adu)
     if objects.size == 0:
         return _no_stars(report)
     screen = _screen(sub, rms, raw, objects, segmap, options, level)
