@@ -306,7 +306,8 @@ def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     return float(np.median(v[i:upper])), upper - i
 
 
-#: :func:`_densest_start` bounds the windows' counts by blocks of this many sorted values.
+#: :func:`_densest_start` bounds the windows' counts by blocks of this many sorted values: few enough for the blocks
+#: about the mode to be counted start by start cheaply, enough for one bound (a binary search) to stand for many.
 DENSEST_BLOCK = 64
 
 
@@ -317,7 +318,7 @@ def _densest_start(v: np.ndarray, width: float) -> tuple[int, int]:
     reached, and only the blocks whose bound reaches the largest of those are counted start by start (a handful of
     blocks about the mode instead of a binary search per value: docs/realsky.md, "Identification alone")."""
     n = v.size
-    if n <= 4 * DENSEST_BLOCK:
+    if n <= 4 * DENSEST_BLOCK:  # a few blocks: every start counted costs no more
         upper = np.searchsorted(v, v + width, side="right")
         i = int(np.argmax(upper - np.arange(n)))
         return i, int(upper[i])
