@@ -125,3 +125,40 @@ def test_single_pixel_detections_add_a_tenth_to_the_false_alarms_of_two_pixels()
         two_pixels = int(np.sum((peak > t) & (second > t)))
         one_pixel = int(np.sum((peak >= screen._SINGLE_PIXEL_THRESHOLD * t) & (second <= t)))
         assert 0.08 <= one_pixel / two_pixels <= 0.14, (t, one_pixel, two_pixels)
+
+
+def _small_undersampled_frame() -> np.ndarray:
+    """A 256 x 256 frame of 36 bright stars of PSF sigma 0.45 px: its measured PSF takes the footprint of 1."""
+    g = np.arange(24, 232, 40) + 0.3
+    x, y = (v.ravel() for v in np.meshgrid(g, g))
+    return render_stars(x, y, np.full(x.size, _flux_e(30.0)), (256, 256), CONFIG, seed=5).image_adu
+
+
+def test_a_failed_second_extraction_is_one_line_and_a_fault_in_measuring_the_psf_is_not_called_seps(monkeypatch):
+    """SEP failing on the extraction with the footprint of 1 is the one-line error of any failed extraction; an
+    exception of the first pass's PSF measurement (ours, not SEP's) is not turned into that error and its advice."""
+    from hostlink.errors import UserError
+
+    image = _small_undersampled_frame()
+    calls = []
+    sep_extract = screen._sep_extract
+
+    def failing_on_one_pixel(sep, sub, rms, ignored, options, min_area_px):
+        calls.append(min_area_px)
+        if min_area_px == 1:
+            raise Exception("internal error: pixel buffer full")
+        return sep_extract(sep, sub, rms, ignored, options, min_area_px)
+
+    monkeypatch.setattr(screen, "_sep_extract", failing_on_one_pixel)
+    with pytest.raises(UserError) as failed:
+        centroid_pixels(image, CentroidOptions(candidate_sigma=None), saturation_adu=CONFIG.saturation_adu)
+    assert calls == [2, 1]  # the first extraction at SEP's footprint, the second at 1 pixel
+    assert "\n" not in str(failed.value) and str(failed.value).startswith("source extraction failed")
+
+    def broken(*args):
+        raise ZeroDivisionError("a fault of ours")
+
+    monkeypatch.setattr(screen, "_sep_extract", sep_extract)
+    monkeypatch.setattr(screen, "_first_pass_psf_sigma_px", broken)
+    with pytest.raises(ZeroDivisionError):
+        centroid_pixels(image, CentroidOptions(candidate_sigma=None), saturation_adu=CONFIG.saturation_adu)

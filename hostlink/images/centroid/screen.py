@@ -91,15 +91,24 @@ def _extract(
         )
         sub -= offset
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
-        significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
-        sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
-        min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
-        if min_area < options.min_area_px:
-            objects, segmap = _sep_extract(sep, sub, rms, ignored, options, min_area)
-            objects, segmap = _single_pixels_kept(objects, segmap, significance, options)
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
-        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
+        raise _extraction_failed(exc) from None
+    significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
+    # the PSF measured outside the guard: a failure of ours there is not SEP's, nor cured by a higher threshold
+    sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
+    min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
+    if min_area < options.min_area_px:
+        try:
+            objects, segmap = _sep_extract(sep, sub, rms, ignored, options, min_area)
+        except Exception as exc:
+            raise _extraction_failed(exc) from None
+        objects, segmap = _single_pixels_kept(objects, segmap, significance, options)
     return sub, rms, significance, objects, segmap
+
+
+def _extraction_failed(exc: Exception) -> UserError:
+    """The one-line error of a failed background or extraction (SEP's own message, and the cure)."""
+    return UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma")
 
 
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
