@@ -404,7 +404,8 @@ def _hot_pixels(
     only) and the pixel-integrated Gaussian of sigma ``psf_sigma_px`` (:func:`hostlink.sky.render.
     pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions and of three widths from
     :data:`_HOT_SHARPEST_FRACTION` of it to all of it; chi^2 = |d|^2 - d^T Q d for each
-    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit``: the star model is
+    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit`` (one for all, or
+    (N,) one per detection: :func:`_screen` holds those under the minimum footprint to 0): the star model is
     rejected (both have 2 free amplitudes: under a true star the difference is noise of a few units, under a spike
     of amplitude A it grows as (A / noise)^2). A sharp star (sigma 0.5-0.8 px), whose neighbours hold little of
     its flux, still fits its PSF better than a spike; a faint star, whose neighbours are lost in the noise, fits
