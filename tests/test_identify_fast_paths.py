@@ -1,7 +1,7 @@
 """Identification's faster paths (issue 30) give exactly what the computations they replace gave: the verification's
 one pair table (scale, vote, triples) against the functions that each build their own, the field's widest pair
-without every pair's angle, and the extension's nearest neighbours and ambiguity from k-d trees against the full
-(centroids x predicted stars) table of squared distances. Exact equality throughout: the same Gram entries, the same
+without every pair's angle, and the extension's nearest neighbours and ambiguity from the pairs within reach
+(extend._near_pairs) against the full (centroids x predicted stars) table of squared distances. Exact equality throughout: the same Gram entries, the same
 squared distances and the same tests, so any difference is a bug, not rounding."""
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def test_widest_pair_without_every_angle(frames):
 
 
 def _extend_by_table(x_px, y_px, near, xp, yp, sky, radius, taken_rows, calibrated_mag, window):
-    """The extension's matching as it was before the k-d trees: the full (centroids, predicted) table."""
+    """The extension's matching as it was before the pairs within reach: the full (centroids, predicted) table."""
     d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
     free = np.flatnonzero(~taken_rows)
     own = d2[free]
