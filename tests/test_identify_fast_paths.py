@@ -1,8 +1,9 @@
 """Identification's faster paths (issue 30) give exactly what the computations they replace gave: the verification's
 one pair table (scale, vote, triples) against the functions that each build their own, the field's widest pair
 without every pair's angle, and the extension's nearest neighbours and ambiguity from the pairs within reach
-(extend._near_pairs) against the full (centroids x predicted stars) table of squared distances. Exact equality throughout: the same Gram entries, the same
-squared distances and the same tests, so any difference is a bug, not rounding."""
+(extend._near_pairs) against the full (centroids x predicted stars) table of squared distances. Exact equality
+throughout: the same Gram entries, the same squared distances and the same tests, so any difference is a bug, not
+rounding."""
 
 from __future__ import annotations
 
