@@ -9,6 +9,7 @@ detections than the footprint of 2 alone), which must fit a star better than a h
 Gaussian PSF, Poisson and read noise, hot pixels)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -63,16 +64,15 @@ def _found(det, x, y) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def frames():
     """Two frames of 1131 stars each, SNR 8, centroided by the detection matched to the PSF and by SEP's default
-    footprint (``_footprint_px`` keeping ``min_area_px``: the detection before)."""
+    footprint (``footprint_follows_psf=False``: the detection before)."""
     out = []
     for seed in (1, 2):
         x, y = _grid(seed)
         rendered = render_stars(x, y, np.full(x.size, _flux_e(SNR)), SIZE, CONFIG, seed=10 + seed)
         options = CentroidOptions(candidate_sigma=None)
         det = centroid_pixels(rendered.image_adu, options, saturation_adu=CONFIG.saturation_adu)
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(screen, "_footprint_px", lambda sigma_px, min_area_px: min_area_px)
-            before = centroid_pixels(rendered.image_adu, options, saturation_adu=CONFIG.saturation_adu)
+        sep_footprint = replace(options, footprint_follows_psf=False)
+        before = centroid_pixels(rendered.image_adu, sep_footprint, saturation_adu=CONFIG.saturation_adu)
         out.append((det, before, rendered, x, y))
     return out
 
