@@ -107,7 +107,7 @@ def test_single_pixel_detections_add_a_tenth_to_the_false_alarms_of_two_pixels()
     pixel above the threshold t whose peak reaches 1.2 t (the detections the footprint of 1 adds) are 0.08-0.14 of
     those with a second pixel above t (SEP's footprint of 2), at 3 and 3.5 sigma (measured on 100 Mpx: a tenth at
     1.214 t and 1.204 t; here 0.124 and 0.104 at 1.2 t, the ratio's binomial scatter 0.003 and 0.008: the bounds
-    hold "about a tenth" and lie 5 of those scatters or more from both)."""
+    hold "about a tenth" and lie 3 of those scatters or more from both)."""
     kernel = screen._FILTER_KERNEL.astype(np.float64)
     rng = np.random.default_rng(7)
     peaks, seconds = [], []
