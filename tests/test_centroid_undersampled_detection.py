@@ -9,6 +9,7 @@ detections than the footprint of 2 alone), which must fit a star better than a h
 Gaussian PSF, Poisson and read noise, hot pixels)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -63,16 +64,15 @@ def _found(det, x, y) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def frames():
     """Two frames of 1131 stars each, SNR 8, centroided by the detection matched to the PSF and by SEP's default
-    footprint (``_footprint_px`` keeping ``min_area_px``: the detection before)."""
+    footprint (``footprint_follows_psf=False``: the detection before)."""
     out = []
     for seed in (1, 2):
         x, y = _grid(seed)
         rendered = render_stars(x, y, np.full(x.size, _flux_e(SNR)), SIZE, CONFIG, seed=10 + seed)
         options = CentroidOptions(candidate_sigma=None)
         det = centroid_pixels(rendered.image_adu, options, saturation_adu=CONFIG.saturation_adu)
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(screen, "_footprint_px", lambda sigma_px, min_area_px: min_area_px)
-            before = centroid_pixels(rendered.image_adu, options, saturation_adu=CONFIG.saturation_adu)
+        sep_footprint = replace(options, footprint_follows_psf=False)
+        before = centroid_pixels(rendered.image_adu, sep_footprint, saturation_adu=CONFIG.saturation_adu)
         out.append((det, before, rendered, x, y))
     return out
 
@@ -106,7 +106,8 @@ def test_single_pixel_detections_add_a_tenth_to_the_false_alarms_of_two_pixels()
     """On white noise filtered by SEP's kernel (12 frames of 2048 x 2048, 50 Mpx), the local maxima with no second
     pixel above the threshold t whose peak reaches 1.2 t (the detections the footprint of 1 adds) are 0.08-0.14 of
     those with a second pixel above t (SEP's footprint of 2), at 3 and 3.5 sigma (measured on 100 Mpx: a tenth at
-    1.214 t and 1.204 t; the binomial scatter of the ratio is 0.003 and 0.008 here)."""
+    1.214 t and 1.204 t; here 0.124 and 0.104 at 1.2 t, the ratio's binomial scatter 0.003 and 0.008: the bounds
+    hold "about a tenth" and lie 3 of those scatters or more from both)."""
     kernel = screen._FILTER_KERNEL.astype(np.float64)
     rng = np.random.default_rng(7)
     peaks, seconds = [], []
@@ -125,3 +126,40 @@ def test_single_pixel_detections_add_a_tenth_to_the_false_alarms_of_two_pixels()
         two_pixels = int(np.sum((peak > t) & (second > t)))
         one_pixel = int(np.sum((peak >= screen._SINGLE_PIXEL_THRESHOLD * t) & (second <= t)))
         assert 0.08 <= one_pixel / two_pixels <= 0.14, (t, one_pixel, two_pixels)
+
+
+def _small_undersampled_frame() -> np.ndarray:
+    """A 256 x 256 frame of 36 bright stars of PSF sigma 0.45 px: its measured PSF takes the footprint of 1."""
+    g = np.arange(24, 232, 40) + 0.3
+    x, y = (v.ravel() for v in np.meshgrid(g, g))
+    return render_stars(x, y, np.full(x.size, _flux_e(30.0)), (256, 256), CONFIG, seed=5).image_adu
+
+
+def test_a_failed_second_extraction_is_one_line_and_a_fault_in_measuring_the_psf_is_not_called_seps(monkeypatch):
+    """SEP failing on the extraction with the footprint of 1 is the one-line error of any failed extraction; an
+    exception of the first pass's PSF measurement (ours, not SEP's) is not turned into that error and its advice."""
+    from hostlink.errors import UserError
+
+    image = _small_undersampled_frame()
+    calls = []
+    sep_extract = screen._sep_extract
+
+    def failing_on_one_pixel(sep, sub, rms, ignored, options, min_area_px):
+        calls.append(min_area_px)
+        if min_area_px == 1:
+            raise Exception("internal error: pixel buffer full")
+        return sep_extract(sep, sub, rms, ignored, options, min_area_px)
+
+    monkeypatch.setattr(screen, "_sep_extract", failing_on_one_pixel)
+    with pytest.raises(UserError) as failed:
+        centroid_pixels(image, CentroidOptions(candidate_sigma=None), saturation_adu=CONFIG.saturation_adu)
+    assert calls == [2, 1]  # the first extraction at SEP's footprint, the second at 1 pixel
+    assert "\n" not in str(failed.value) and str(failed.value).startswith("source extraction failed")
+
+    def broken(*args):
+        raise ZeroDivisionError("a fault of ours")
+
+    monkeypatch.setattr(screen, "_sep_extract", sep_extract)
+    monkeypatch.setattr(screen, "_first_pass_psf_sigma_px", broken)
+    with pytest.raises(ZeroDivisionError):
+        centroid_pixels(image, CentroidOptions(candidate_sigma=None), saturation_adu=CONFIG.saturation_adu)

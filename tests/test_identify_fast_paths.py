@@ -1,8 +1,9 @@
 """Identification's faster paths (issue 30) give exactly what the computations they replace gave: the verification's
 one pair table (scale, vote, triples) against the functions that each build their own, the field's widest pair
-without every pair's angle, and the extension's nearest neighbours and ambiguity from k-d trees against the full
-(centroids x predicted stars) table of squared distances. Exact equality throughout: the same Gram entries, the same
-squared distances and the same tests, so any difference is a bug, not rounding."""
+without every pair's angle, and the extension's nearest neighbours and ambiguity from the pairs within reach
+(extend._near_pairs) against the full (centroids x predicted stars) table of squared distances. Exact equality
+throughout: the same Gram entries, the same squared distances and the same tests, so any difference is a bug, not
+rounding."""
 
 from __future__ import annotations
 
@@ -63,16 +64,15 @@ def test_widest_pair_without_every_angle(frames):
         np.r_[np.repeat(np.arange(frames), 40), frames],
     )
     for d in (data, one):
-        chunks = robust.frame_chunks(d.frame_starts, robust.PAIR_BLOCK_OBS)
-        expected = max(robust._field_rad(robust._frame_pairs(d, f0, f1)) for f0, f1 in chunks)
-        assert robust.max_pair_angle_rad(d) == expected
-        assert robust.max_pair_angle_rad(d, chunk_obs=50) == max(
-            robust._field_rad(robust._frame_pairs(d, f0, f1)) for f0, f1 in robust.frame_chunks(d.frame_starts, 50)
-        )
+        for chunk_obs in (robust.PAIR_BLOCK_OBS, 50):
+            chunks = robust.frame_chunks(d.frame_starts, chunk_obs)
+            min_dot = min(robust._frame_pairs(d, f0, f1).min_dot_r for f0, f1 in chunks)
+            expected = float(robust.angle_from_dot_rad(np.float64(min_dot)))  # every pair's table, as before
+            assert robust.max_pair_angle_rad(d, chunk_obs=chunk_obs) == expected
 
 
 def _extend_by_table(x_px, y_px, near, xp, yp, sky, radius, taken_rows, calibrated_mag, window):
-    """The extension's matching as it was before the k-d trees: the full (centroids, predicted) table."""
+    """The extension's matching as it was before the pairs within reach: the full (centroids, predicted) table."""
     d2 = (x_px[:, None] - xp[None, :]) ** 2 + (y_px[:, None] - yp[None, :]) ** 2
     free = np.flatnonzero(~taken_rows)
     own = d2[free]

@@ -5,9 +5,9 @@ medians and the median of the input frames (ties as 8-bit and JPEG pixels have t
 import numpy as np
 import pytest
 
-from hostlink.images.background import _box_percentiles, _boxes, _masked_box_percentiles, _row_percentiles
+from hostlink.images.background import _box_percentiles, _boxes, _masked_box_percentiles
 from hostlink.images.centroid.session import _median_frame
-from hostlink.images.centroid.stamps import _row_medians
+from hostlink.images.order_statistics import row_medians, row_percentiles
 
 
 @pytest.mark.parametrize("n", [1, 7, 64, 100, 256, 4096])
@@ -16,7 +16,7 @@ def test_box_percentiles_are_numpys(n):
     rows = np.round(rng.normal(size=(300, n)) * 6).astype(np.float32)  # ties, as on quantised pixels
     for percents in [(50.0,), (50.0, 97.725), (0.0, 99.9, 100.0)]:
         expected = np.percentile(rows, percents, axis=1).T.astype(np.float64)
-        np.testing.assert_array_equal(_row_percentiles(rows, percents), expected)
+        np.testing.assert_array_equal(row_percentiles(rows, percents), expected)
 
 
 @pytest.mark.parametrize("n", [7, 256, 4096])
@@ -30,7 +30,7 @@ def test_box_percentiles_of_rows_with_masked_pixels_are_numpys_of_the_rest(n):
     rows[0, 3] = 2.0  # one value left
     counts = np.isfinite(rows).sum(axis=1)
     for percents in [(50.0,), (50.0, 97.725), (0.0, 99.9, 100.0)]:
-        out = _row_percentiles(rows, percents, counts)
+        out = row_percentiles(rows, percents, counts)
         for k in range(rows.shape[0]):
             expected = np.percentile(rows[k][np.isfinite(rows[k])], percents).astype(np.float64)
             np.testing.assert_array_equal(out[k], expected)
@@ -43,7 +43,7 @@ def test_ring_medians_are_numpys_and_a_partial_ring_counts_its_pixels_alone():
         valid = np.ones(values.shape, dtype=bool)
         valid[:20, : p // 3] = False  # stamps the border cuts
         valid[20] = False  # no pixel at all
-        out = _row_medians(values, valid)
+        out = row_medians(values, valid)
         np.testing.assert_array_equal(out[21:], np.median(values[21:], axis=1))
         for k in range(20):
             assert out[k] == np.median(values[k][valid[k]])
@@ -57,6 +57,24 @@ def test_median_frame_is_numpys(frames):
     np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
     stack[1, 3, 4] = np.nan
     np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.int32, np.float32, np.float64])
+def test_median_frame_of_any_pixel_type_is_numpys_without_wrapping(dtype):
+    """The mean of the middle two frames is taken as np.median takes it, in float64 for integers (their sum in their
+    own type wraps: two uint16 frames of 60000 gave 27232): each integer type's extremes keep their exact median."""
+    if np.issubdtype(dtype, np.integer):
+        top, bottom = np.iinfo(dtype).max, np.iinfo(dtype).min
+        stack = np.array([[[top, bottom]], [[top, bottom]], [[top, bottom]], [[bottom, top]]], dtype=dtype)
+        np.testing.assert_array_equal(_median_frame(stack), [[float(top), float(bottom)]])
+        np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 256, size=(6, 30, 40)).astype(dtype)
+    np.testing.assert_array_equal(_median_frame(stack), np.median(stack, axis=0).astype(np.float64))
+
+
+def test_median_of_two_uint16_frames_of_60000_is_60000():
+    assert _median_frame(np.full((2, 1, 1), 60000, dtype=np.uint16))[0, 0] == 60000.0
 
 
 @pytest.mark.parametrize("shape", [(256, 320), (250, 300)])  # whole boxes, and boxes the border cuts

@@ -199,12 +199,7 @@ def calibrate_chunks(
         after=stats_from_sums(res.residual_sums),
         interstar_before_rad=inter_before_rad,
         interstar_after_rad=inter_after_rad,
-        rejected={
-            "voting": int(voted.size),
-            "gating": int(res.gated_rows.size),
-            "frames_dropped": int(screened.n_frames - res.n_frames),
-            "total_stars": int(screened.n_stars - res.n_obs),
-        },
+        rejected=_rejected(screened, res),
         degeneracies=with_mirror(source, nominal, res, options, voted, run_pass),
         history=res.history,
         converged=res.converged,
@@ -231,6 +226,17 @@ def _screen(source: ChunkSource, theta: np.ndarray) -> _Screened:
         sum(v.n_frames for v in screened),
         max((v.field_rad for v in screened), default=float("nan")),
     )
+
+
+def _rejected(screened: _Screened, res: ChunkedBundleResult) -> dict[str, int]:
+    """The outcome's ``rejected``: the stars voted out, the stars gated out, and the frames and stars the fit did not
+    use of the input."""
+    return {
+        "voting": int(screened.voted_rows.size),
+        "gating": int(res.gated_rows.size),
+        "frames_dropped": int(screened.n_frames - res.n_frames),
+        "total_stars": int(screened.n_stars - res.n_obs),
+    }
 
 
 def _fit(

@@ -444,7 +444,7 @@ def gram_matrices(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
 def _blas_controller():
     """The process's thread-pool controller (threadpoolctl), found again whenever a module was imported since the
     last call (a BLAS library, scipy's for one, is loaded by an import; a controller made before it would not hold
-    it to one thread), else reused (a scan of the loaded libraries costs ~1 ms)."""
+    it to one thread), else reused (each controller scans the loaded libraries)."""
     return _blas_controller_of(len(sys.modules))
 
 

@@ -72,11 +72,9 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     """The :class:`_FramePairs` of frames [f0, f1) of ``data``: the padded layout of
     :func:`hostlink.calibration.data.frame_slots` and the catalogue angles of its real pairs (their Gram matrix
     entries, :func:`hostlink.calibration.data.pair_angles_at_rad`)."""
-    _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
-    m = f1 - f0
-    rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
+    rows, slot, slots, r, gram = _padded_gram(data, f0, f1)
+    m, nmax = r.shape[:2]
     counts = np.diff(data.frame_starts[f0 : f1 + 1])
-    slots = frame * nmax + slot
     second_slot, first_slot = np.tril_indices(nmax, -1)  # (1, 0), (2, 0), (2, 1), (3, 0), ...: by second star
     per_frame = counts * (counts - 1) // 2
     upper = first_slot * nmax + second_slot  # a frame of nmax stars: its pairs' positions (one frame: all of them)
@@ -85,8 +83,7 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     else:
         k = np.arange(int(per_frame.sum())) - np.repeat(np.cumsum(per_frame) - per_frame, per_frame)
         positions = np.repeat(np.arange(m) * (nmax * nmax), per_frame) + upper[k]
-    r = _padded(slots, data.r[rows], m, nmax)
-    gram = gram_matrices(r).reshape(-1)
+    gram = gram.reshape(-1)
     dots = gram[positions]
     diagonal = gram[slots * nmax + slot]
     return _FramePairs(
@@ -101,29 +98,27 @@ def _frame_pairs(data: CalibrationData, f0: int, f1: int) -> _FramePairs:
     )
 
 
-def _field_rad(pairs: _FramePairs) -> float:
-    """The largest catalogue angle between two stars of one frame of ``pairs`` [rad] (0 for frames of one star):
-    the angle is monotone in the dot product, so it is that of the smallest."""
-    return float(angle_from_dot_rad(np.float64(pairs.min_dot_r)))
+def _padded_gram(data: CalibrationData, f0: int, f1: int):
+    """The frames [f0, f1) of ``data`` in the padded layout of :func:`hostlink.calibration.data.frame_slots`: their
+    data rows, each row's slot in its frame and flat slot (frame * nmax + slot), the catalogue directions
+    (m, nmax, 3) with zero rows as padding, and their Gram matrices (m, nmax, nmax)."""
+    _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
+    rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
+    slots = frame * nmax + slot
+    r = _padded(slots, data.r[rows], f1 - f0, nmax)
+    return rows, slot, slots, r, gram_matrices(r)
 
 
 def max_pair_angle_rad(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> float:
-    """The largest catalogue angle between two stars of one frame [rad] (the field the data span): the angle of the
-    smallest dot product of the Gram matrices of :func:`_frame_pairs`, the star itself included (its
-    ``min_dot_r``, without the angles of every pair)."""
+    """The largest catalogue angle between two stars of one frame [rad] (the field the data span; 0 for frames of
+    one star): the angle, monotone in the dot product, of the smallest dot product of the Gram matrices of
+    :func:`_frame_pairs`, the star itself included (its ``min_dot_r``, without the angles of every pair)."""
     min_dot = 1.0
     for f0, f1 in frame_chunks(data.frame_starts, chunk_obs):
-        _, frame, slot, nmax = frame_slots(data.frame_starts, f0, f1)
-        if nmax == 0:
-            continue
-        m = f1 - f0
-        rows = slice(int(data.frame_starts[f0]), int(data.frame_starts[f1]))
-        gram = gram_matrices(_padded(frame * nmax + slot, data.r[rows], m, nmax))
+        _, _, slots, r, gram = _padded_gram(data, f0, f1)
         # the padding's zero rows give dot products 0: only the real stars' pairs i <= j count (_frame_pairs's)
-        real = np.zeros((m, nmax), dtype=bool)
-        real[frame, slot] = True
-        upper = np.triu(np.ones((nmax, nmax), dtype=bool))
-        use = real[:, :, None] & real[:, None, :] & upper[None, :, :]
+        real = np.bincount(slots, minlength=r.shape[0] * r.shape[1]).reshape(r.shape[:2]) > 0  # (m, nmax)
+        use = real[:, :, None] & real[:, None, :] & np.triu(np.ones(gram.shape[1:], dtype=bool))
         min_dot = min(min_dot, float(np.min(gram, where=use, initial=1.0)))
     return float(angle_from_dot_rad(np.float64(min_dot)))
 
@@ -202,11 +197,6 @@ def pair_table(data: CalibrationData, chunk_obs: int = PAIR_BLOCK_OBS) -> list[_
     return _chunk_pairs(data, chunk_obs, 2)
 
 
-def estimate_scale_of_table(data: CalibrationData, table: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
-    """:func:`estimate_scale` of ``data`` from its :func:`pair_table`."""
-    return _estimate_scale(data, table, theta)
-
-
 def vote_of_table(
     table: list[_FramePairs],
     b: np.ndarray,
@@ -221,14 +211,6 @@ def vote_of_table(
     for pairs in table:
         keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
     return keep
-
-
-def triple_handedness_of_table(
-    table: list[_FramePairs], b: np.ndarray, consistent: np.ndarray, seed: int = 0
-) -> tuple[int, int]:
-    """:func:`triple_handedness` from a :func:`pair_table` (its chunks of at least 3 stars)."""
-    with3 = [c for c in table if c.nmax >= 3]
-    return _triple_handedness(with3, [_padded_directions(c, b) for c in with3], consistent, seed)
 
 
 def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
@@ -324,7 +306,8 @@ def _densest_window(values: np.ndarray, width: float) -> tuple[float, int]:
     return float(np.median(v[i:upper])), upper - i
 
 
-#: :func:`_densest_start` bounds the windows' counts by blocks of this many sorted values.
+#: :func:`_densest_start` bounds the windows' counts by blocks of this many sorted values: few enough for the blocks
+#: about the mode to be counted start by start cheaply, enough for one bound (a binary search) to stand for many.
 DENSEST_BLOCK = 64
 
 
@@ -333,9 +316,9 @@ def _densest_start(v: np.ndarray, width: float) -> tuple[int, int]:
     (upper: the number of values <= v_i + width), as an argmax over every i gives. upper is non-decreasing in i, so
     in a block of starts [i0, i1) no count exceeds upper(i1 - 1) - i0; the count at each block's first start is
     reached, and only the blocks whose bound reaches the largest of those are counted start by start (a handful of
-    blocks about the mode instead of a binary search per value: 6 times faster for 10^5 values)."""
+    blocks about the mode instead of a binary search per value: docs/realsky.md, "Identification alone")."""
     n = v.size
-    if n <= 4 * DENSEST_BLOCK:
+    if n <= 4 * DENSEST_BLOCK:  # a few blocks: every start counted costs no more
         upper = np.searchsorted(v, v + width, side="right")
         i = int(np.argmax(upper - np.arange(n)))
         return i, int(upper[i])
@@ -394,11 +377,12 @@ def estimate_scale(data: CalibrationData, theta: np.ndarray, chunk_obs: int = PA
     catalogue angles are computed once and kept for them (16 bytes per pair: the pre-pass calls this on at most
     :data:`PREPASS_MAX_FRAMES` frames). Returns (scale, number of pairs in the winning window); (1.0, 0) when no
     pair votes."""
-    return _estimate_scale(data, _chunk_pairs(data, chunk_obs, 2), theta)
+    return estimate_scale_of_table(data, pair_table(data, chunk_obs), theta)
 
 
-def _estimate_scale(data: CalibrationData, chunks: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
-    """:func:`estimate_scale` with the catalogue side of its pairs (``chunks``) computed once for its iterations."""
+def estimate_scale_of_table(data: CalibrationData, chunks: list[_FramePairs], theta: np.ndarray) -> tuple[float, int]:
+    """:func:`estimate_scale` of ``data`` from its :func:`pair_table` (``chunks``), computed once for the
+    iterations."""
     theta = np.array(theta, dtype=np.float64)
     long = [_long_pairs(c) for c in chunks]
     scale, n = 1.0, 0
@@ -423,18 +407,18 @@ def triple_handedness(
     the sign of every triple product; a mirror (one flipped image axis) reverses it, while it keeps every interstar
     angle, so only this test finds it. Triples too close to collinear (:data:`PARITY_MIN_VOLUME_FRACTION`) or
     degenerate (:data:`PARITY_MIN_VOLUME`) are skipped. Deterministic for a given ``seed``."""
-    chunks = _chunk_pairs(data, chunk_obs, 3)
-    return _triple_handedness(chunks, [_padded_directions(c, b) for c in chunks], consistent, seed)
+    return triple_handedness_of_table(_chunk_pairs(data, chunk_obs, 3), b, consistent, seed)
 
 
-def _triple_handedness(
-    chunks: list[_FramePairs], padded_b: list[np.ndarray], consistent: np.ndarray, seed: int
+def triple_handedness_of_table(
+    table: list[_FramePairs], b: np.ndarray, consistent: np.ndarray, seed: int = 0
 ) -> tuple[int, int]:
-    """:func:`triple_handedness` over chunks of at least 3 stars (``padded_b``: their measured directions)."""
+    """:func:`triple_handedness` from a :func:`pair_table` (its chunks of at least 3 stars)."""
     rng = np.random.default_rng(seed)
     opposite = total = 0
     k = PARITY_TRIPLES_PER_FRAME
-    for pairs, pb in zip(chunks, padded_b, strict=True):
+    for pairs in (c for c in table if c.nmax >= 3):
+        pb = _padded_directions(pairs, b)
         m, nmax = pairs.r.shape[:2]
         valid = np.zeros(m * nmax, dtype=bool)
         valid[pairs.slots] = consistent[pairs.rows]
@@ -506,16 +490,11 @@ def scale_and_parity_of_sample(
     data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS
 ) -> ScaleParity:
     """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
-    # the catalogue side of every pair once, for the three scale iterations, the vote and the triples
-    chunks = _chunk_pairs(data, chunk_obs, 2)
-    scale, n_pairs = _estimate_scale(data, chunks, theta)
+    table = pair_table(data, chunk_obs)  # the catalogue side of every pair once: the scale, the vote, the triples
+    scale, n_pairs = estimate_scale_of_table(data, table, theta)
     theta_s = np.array(theta, dtype=np.float64)
     theta_s[0] *= scale
     b = pixels_to_unit(data.x_px, data.y_px, theta_s)
-    padded_b = [_padded_directions(c, b) for c in chunks]
-    consistent = np.zeros(data.n_obs, dtype=bool)
-    for pairs, pb in zip(chunks, padded_b, strict=True):
-        consistent[pairs.rows] = _agreement(pairs, pb, VOTE_REL_TOL, VOTE_ABS_TOL_RAD) >= VOTE_MIN_AGREEMENT
-    with3 = [k for k, c in enumerate(chunks) if c.nmax >= 3]
-    opposite, total = _triple_handedness([chunks[k] for k in with3], [padded_b[k] for k in with3], consistent, 0)
+    consistent = vote_of_table(table, b, data.n_obs)
+    opposite, total = triple_handedness_of_table(table, b, consistent)
     return ScaleParity(scale, n_pairs, opposite / total if total else float("nan"), total)

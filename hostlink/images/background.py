@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostlink.images.order_statistics import row_percentiles, sorted_row_percentiles
+
 #: A region at the clip level narrower than this [px] in either direction is a star's or a planet's core, not a
 #: blank region (the rendered 50-deg set's brightest planet, Hp -4 with a PSF of 2.6 px at the corner, saturates a
 #: disc ~20 px across; the horizon glow of the same set spans the frame).
@@ -115,7 +117,7 @@ def _may_hold_blank(clipped: np.ndarray) -> bool:
     padded = np.zeros((ny * b, nx * b), dtype=np.uint8)
     padded[:h, :w] = clipped
     # along the columns of blocks first (a reduction across whole rows), then within each block's row: the same
-    # maxima as over both block axes at once, in a seventh of the time
+    # maxima as over both block axes at once, faster (docs/realsky.md, "Time")
     occupied = padded.reshape(ny, b, nx * b).max(axis=1).reshape(ny, nx, b).max(axis=2)
     if ny < k or nx < k:
         return bool(occupied.any())
@@ -141,8 +143,8 @@ def local_noise_map(
     """(offset map [ADU], noise map [ADU], the pixels of a sharp step where nothing is detected) of the module
     docstring, step 2. ``filtered``: the image less SEP's background, filtered by the detection kernel normalised to
     unit sum; ``sep_rms``: SEP's noise map, or what makes it (``sep.Background.rms``: used only when no box is
-    measurable, the common frame never spends the ~2 ms of a full-frame map on it); ``kernel_norm``: sqrt(sum k^2) of
-    that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
+    measurable, so that the common frame never spends the time of a full-frame map on it); ``kernel_norm``:
+    sqrt(sum k^2) of that kernel; ``box_px``: the mesh box; ``mask``: pixels not measured (blank regions).
 
     The offset is measured in boxes :data:`_FINE_BOXES_PER_BOX` times finer than the mesh (the median of each), the
     noise in the mesh's boxes (P50 and P97.725, the stars' light left out: :func:`_clipped_box_noise`); each is then
@@ -245,8 +247,8 @@ def _star_light(
     from pixel 0, constant over each box (:func:`_box_constant`). The image is compared box by box (each box's
     threshold broadcast over its pixels, the same comparisons as against the thresholds spread over the image) when
     its size is a whole number of boxes, as the padded image of :func:`_clipped_box_noise` is. ``labels``: an int32
-    array of ``above``'s shape to label the regions in (the passes reuse one instead of a new 5 MB array each: ~6 %
-    of the function's CPU time on a granasat frame)."""
+    array of ``above``'s shape to label the regions in (the passes reuse one instead of allocating a new frame-sized
+    array each)."""
     from scipy import ndimage
 
     ny, nx = noise.shape
@@ -264,7 +266,7 @@ def _star_light(
     star = np.zeros(n + 1, dtype=bool)
     star[labels[peaks]] = True
     star[0] = False
-    return np.take(star, labels)  # under half the time of star[labels]
+    return np.take(star, labels)  # star[labels], faster (docs/realsky.md, "Time")
 
 
 @dataclass(frozen=True)
@@ -313,20 +315,20 @@ def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple
     """(ny, nx, len(percents)): the ``percents`` of each box's pixels not ``excluded`` ((padded h, padded w) bool,
     holding the masked pixels and those beyond the image), NaN for a box whose pixels left are fewer than
     :data:`_MIN_BOX_FRACTION` of those within the image: :func:`_box_percentiles`' numbers
-    (:func:`_row_percentiles` of the pixels left), from the boxes laid out once."""
+    (:func:`row_percentiles` of the pixels left), from the boxes laid out once."""
     ny, nx = boxes.grid_shape
     box_px = boxes.padded_shape[0] // ny
     gone = excluded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
     counted = gone.shape[1] - np.count_nonzero(gone, axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
-    measurable = (counted >= _MIN_BOX_FRACTION * boxes.inside) & (counted > 0)
+    measurable = _measurable(counted, boxes.inside)
     if measurable.any():  # sorted in place in the boxes' work array (no new 5 MB arrays each pass)
         left = boxes.work
         np.copyto(left, boxes.values)
         np.copyto(left, np.float32(np.nan), where=gone)
         left.sort(axis=1)
         ordered = left if measurable.all() else left[measurable]
-        out[measurable] = _sorted_row_percentiles(ordered, percents, counted[measurable])
+        out[measurable] = sorted_row_percentiles(ordered, percents, counted[measurable])
     return out.reshape(ny, nx, len(percents))
 
 
@@ -372,60 +374,26 @@ def _box_percentiles(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``percents`` of the unmasked pixels of ``image`` in each box of ``box_px`` x ``box_px`` from pixel (0, 0)
     (the last row and column of boxes cut by the border), (ny, nx, len(percents)), NaN for a box whose unmasked
-    pixels are fewer than :data:`_MIN_BOX_FRACTION` of its pixels; and the boxes' centres, rows and columns [px]."""
+    pixels are fewer than :data:`_MIN_BOX_FRACTION` of its pixels within the image (:func:`_measurable`); and the
+    boxes' centres, rows and columns [px]."""
     blocks, inside, row_centres, col_centres = _box_blocks(image, mask, box_px)
     ny, nx = row_centres.size, col_centres.size
     counted = np.isfinite(blocks).sum(axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
     whole = counted == box_px * box_px
     if whole.any():  # the common case, in one call
-        out[whole] = _row_percentiles(blocks[whole], percents)
-    part = ~whole & (counted >= _MIN_BOX_FRACTION * inside) & (counted > 0)
+        out[whole] = row_percentiles(blocks[whole], percents)
+    part = ~whole & _measurable(counted, inside)
     if part.any():  # boxes cut by the border, a mask or the stars' light (_clipped_box_noise), in one call
-        out[part] = _row_percentiles(blocks[part], percents, counted[part])
+        out[part] = row_percentiles(blocks[part], percents, counted[part])
     return out.reshape(ny, nx, len(percents)), row_centres, col_centres
 
 
-def _row_percentiles(rows: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None) -> np.ndarray:
-    """``np.percentile(rows, percents, axis=1).T`` (method "linear") as float64, the same numbers, from each row
-    sorted: numpy partitions along the first axis of the transposed rows, a strided pass per order statistic (~15 ms
-    for a frame's 4800 boxes of 256 pixels), where sorting each contiguous row takes ~1 ms. The interpolation is
-    numpy's own: v = (n - 1) q / 100 between the neighbouring order statistics a, b with gamma = v - floor(v):
-    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5. ``counts``: each row's number of finite values,
-    the rest NaN (sorted last), for ``np.percentile`` of each row's finite values (one call to it per row took
-    ~40 ms a frame once the stars' light is masked)."""
-    return _sorted_row_percentiles(np.sort(rows, axis=1), percents, counts)
-
-
-def _sorted_row_percentiles(
-    ordered: np.ndarray, percents: tuple[float, ...], counts: np.ndarray | None = None
-) -> np.ndarray:
-    """:func:`_row_percentiles` of rows already sorted (``ordered``)."""
-    n = np.full((ordered.shape[0], 1), ordered.shape[1]) if counts is None else np.asarray(counts)[:, None]
-    below, above, gamma = _percentile_ranks(n, percents)
-    a = np.take_along_axis(ordered, below, axis=1)
-    b = np.take_along_axis(ordered, above, axis=1)
-    return _interpolated_percentiles(a, b, gamma)
-
-
-def _percentile_ranks(n: np.ndarray, percents: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """numpy's "linear" percentile of ``n`` (rows, 1) values at ``percents``: the ranks (from 0) of the two
-    neighbouring order statistics and the weight of the second, (rows, len(percents)) each (v = (n - 1) q / 100,
-    gamma = v - floor(v))."""
-    virtual = (n - 1) * (np.asarray(percents, dtype=np.float64) / 100.0)
-    below = np.floor(virtual)
-    gamma = virtual - below
-    return np.minimum(below, n - 1).astype(np.intp), np.minimum(below + 1, n - 1).astype(np.intp), gamma
-
-
-def _interpolated_percentiles(a: np.ndarray, b: np.ndarray, gamma: np.ndarray) -> np.ndarray:
-    """numpy's interpolation between neighbouring order statistics ``a``, ``b`` with weight ``gamma``:
-    a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 0.5, as float64."""
-    diff = b - a
-    out = a + diff * gamma
-    upper = np.broadcast_to(gamma >= 0.5, out.shape)
-    out[upper] = (b - diff * (1 - gamma))[upper]
-    return out.astype(np.float64)
+def _measurable(counted: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """(boxes,) bool: the boxes whose ``counted`` pixels left hold at least :data:`_MIN_BOX_FRACTION` of their
+    ``inside`` pixels within the image, and one at least (the rule of :func:`_box_percentiles` and
+    :func:`_masked_box_percentiles`)."""
+    return (counted >= _MIN_BOX_FRACTION * inside) & (counted > 0)
 
 
 def _positive(noise: np.ndarray) -> np.ndarray:

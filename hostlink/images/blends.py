@@ -185,10 +185,9 @@ def blend_references(
     new, cat_rows = new[found], cat_rows[found]
     if new.size == 0:
         return session, []
-    from hostlink.images.skyindex import SkyIndex
+    from hostlink.images.skyindex import sky_index
 
-    if index is None or index.catalogue is not catalogue:
-        index = SkyIndex(catalogue)
+    index = sky_index(catalogue, index)
     r_all, tree = index.directions, index.tree
     found = tree.query_ball_point(r_all[cat_rows], 2.0 * math.sin(0.5 * UNRESOLVED_PX / focal_px))
     frame_of_row = np.repeat(np.arange(session.n_frames), np.diff(session.frame_starts))

@@ -82,14 +82,12 @@ def _extend(
     radius = _match_radius_px(theta, v)
     # Only a free centroid whose nearest predicted star lies within the radius can match, and the stars tied with
     # that nearest (closer than twice its distance) then lie within twice the radius: the (centroid, predicted star)
-    # pairs that close, from k-d trees, with their squared distances computed as a full (centroids, predicted)
-    # table would hold them, give every test of that table (the same nearest, ties broken by the lower index).
-    i, p, d2 = _close_pairs(x_px[free], y_px[free], xp, yp, 2.0 * radius)
+    # pairs that close (:func:`_near_pairs`), with their squared distances as a full (centroids, predicted) table
+    # would hold them, give every test of that table (the same nearest, ties broken by the lower index).
+    i, p, d2 = _near_pairs(x_px[free], y_px[free], xp, yp, 2.0 * radius)
     nearest = np.full(free.size, np.inf)
     np.minimum.at(nearest, i, d2)
-    j = np.full(free.size, near.size, dtype=np.int64)  # each free centroid's nearest predicted star
-    at_nearest = d2 == nearest[i]
-    np.minimum.at(j, i[at_nearest], p[at_nearest])
+    j = _nearest_rows(p, i, d2, free.size)  # each free centroid's nearest predicted star (-1: none within reach)
     tied = (d2 < 4.0 * nearest[i]) | (p == j[i])  # the other catalogue stars nearly as close ...
     ok = np.bincount(i[tied], minlength=free.size) == 1  # ... make it ambiguous
     if calibrated_mag is not None:  # ... unless the light of one alone can explain the centroid's flux
@@ -105,42 +103,45 @@ def _extend(
     jj = j[rows]
     ok[rows] = (x_px[free[rows]] - xp[jj]) ** 2 + (y_px[free[rows]] - yp[jj]) ** 2 <= radius * radius
     rows = np.flatnonzero(ok)
-    ok[rows] = _nearest_centroid(x_px, y_px, xp[j[rows]], yp[j[rows]], radius) == free[rows]  # none nearer the star
+    at, star, star_d2 = _near_pairs(x_px, y_px, xp[j[rows]], yp[j[rows]], radius)
+    ok[rows] = _nearest_rows(at, star, star_d2, rows.size) == free[rows]  # no other centroid nearer to the star
     return free[ok].astype(np.int64), near[j[ok]].astype(np.int64)
 
 
-#: :func:`_close_pairs` asks its k-d trees for pairs this fraction farther apart than asked: their distances round
-#: differently from the squared distances it then tests (by ~1e-16 relatively).
-_CLOSE_PAIR_SLACK = 1e-9
+#: :func:`_near_pairs` searches a band of columns this much wider than the reach (relative, and as many pixels): no
+#: rounding of the band's edges can then drop a pair within reach.
+_BAND_SLACK = 1e-9
 
 
-def _close_pairs(
-    x_px: np.ndarray, y_px: np.ndarray, xq_px: np.ndarray, yq_px: np.ndarray, max_px: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(i, q, d2): every pair of a point (x, y)_i and a point (xq, yq)_q closer than ``max_px`` (some a little
-    farther, :data:`_CLOSE_PAIR_SLACK`), with its squared distance (x_i - xq_q)^2 + (y_i - yq_q)^2 [px^2] computed in
-    that order (``scipy.spatial.cKDTree.sparse_distance_matrix`` finds them)."""
-    from scipy.spatial import cKDTree
+def _near_pairs(x, y, xp, yp, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (row, prediction) pair of points (x, y) and (xp, yp) at most ``reach_px`` apart, with its squared
+    distance (x - xp)^2 + (y - yp)^2 [px^2], the same numbers the full (rows x predictions) matrix holds: the
+    predictions sorted by column, each row's run of predictions within a band of columns (:data:`_BAND_SLACK`) found
+    by bisection, then each pair's distance tested. The extension, its ambiguity test and the guided admission
+    (:mod:`hostlink.images.guided`) take their pairs here."""
+    order = np.argsort(xp, kind="stable")
+    sorted_xp = xp[order]
+    band_px = reach_px * (1.0 + _BAND_SLACK) + _BAND_SLACK
+    lo = np.searchsorted(sorted_xp, x - band_px, side="left")
+    counts = np.searchsorted(sorted_xp, x + band_px, side="right") - lo
+    row = np.repeat(np.arange(x.size), counts)
+    # the k-th pair of a row's run is its prediction lo + (k - the run's first pair)
+    star = order[np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(row.size)]
+    d2 = (x[row] - xp[star]) ** 2 + (y[row] - yp[star]) ** 2
+    keep = d2 <= reach_px * reach_px
+    return row[keep], star[keep], d2[keep]
 
-    tree = cKDTree(np.column_stack([x_px, y_px]))
-    other = cKDTree(np.column_stack([xq_px, yq_px]))
-    found = tree.sparse_distance_matrix(other, max_px * (1.0 + _CLOSE_PAIR_SLACK), output_type="ndarray")
-    i, q = found["i"].astype(np.int64), found["j"].astype(np.int64)
-    return i, q, (x_px[i] - xq_px[q]) ** 2 + (y_px[i] - yq_px[q]) ** 2
 
-
-def _nearest_centroid(
-    x_px: np.ndarray, y_px: np.ndarray, xq_px: np.ndarray, yq_px: np.ndarray, max_px: float
-) -> np.ndarray:
-    """(Q,) for each point (xq, yq) the index of the nearest of the points (x, y) within ``max_px`` (the lowest index
-    of those equally near; -1 when none is): the argmin over the points of a full table of squared distances."""
-    i, q, d2 = _close_pairs(x_px, y_px, xq_px, yq_px, max_px)
-    best = np.full(xq_px.size, np.inf)
-    np.minimum.at(best, q, d2)
-    out = np.full(xq_px.size, x_px.size, dtype=np.int64)
-    at_best = d2 == best[q]
-    np.minimum.at(out, q[at_best], i[at_best])
-    return np.where(out < x_px.size, out, -1)
+def _nearest_rows(row: np.ndarray, star: np.ndarray, d2: np.ndarray, n_stars: int) -> np.ndarray:
+    """Per prediction, the row nearest to it among the pairs of :func:`_near_pairs` (-1 when none is within reach),
+    the lower row on a tie: the frame's nearest row wherever one is within reach, as ``argmin`` over every row.
+    (Called with ``row`` and ``star`` swapped: per row, the nearest prediction.)"""
+    nearest = np.full(n_stars, -1, dtype=np.int64)
+    order = np.lexsort((row, d2, star))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = star[order][1:] != star[order][:-1]
+    nearest[star[order][first]] = row[order][first]
+    return nearest
 
 
 def _match_radius_px(theta: np.ndarray, v: _Verified) -> float:
@@ -181,9 +182,8 @@ def _ambiguous(
     if near.size < 2:
         return out
     radius = _match_radius_px(theta, v)
-    # the (candidate, predicted star) pairs within the radius (k-d trees; their squared distances as a full table
-    # would hold them)
-    i, p, d2 = _close_pairs(x_px, y_px, xp, yp, radius)
+    # the (candidate, predicted star) pairs within the radius (their squared distances as a full table holds them)
+    i, p, d2 = _near_pairs(x_px, y_px, xp, yp, radius)
     other = (d2 <= radius * radius) & (near[p] != stars[i])
     bright_enough = sky.mag[near][p] <= sky.mag[stars][i] + AMBIGUITY_MAG_MARGIN
     if detection_mag is not None:

@@ -57,7 +57,8 @@ from hostlink.images.blends import (
     without_pair_bound,
     zero_point,
 )
-from hostlink.images.skyindex import SkyIndex, _mirror_x
+from hostlink.images.extend import _near_pairs, _nearest_rows
+from hostlink.images.skyindex import SkyIndex, _mirror_x, sky_index
 from hostlink.sky.catalogue import Catalogue
 from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
@@ -156,8 +157,7 @@ def _identify_then_admit(session: Session, identify, catalogue: Catalogue | None
         from hostlink.sky.catalogue import load_catalogue
 
         catalogue = load_catalogue()
-    if index is None or index.catalogue is not catalogue:
-        index = SkyIndex(catalogue)
+    index = sky_index(catalogue, index)
     stars = np.flatnonzero(~held)
     result = identify(session.select(stars))
     star_id = session.star_id.copy()
@@ -232,8 +232,7 @@ def admit(
 ) -> tuple[np.ndarray, tuple[FrameAdmission, ...]]:
     """``star_id`` with the admitted candidates (rows ``held``) named, frame by frame (module docstring), and each
     frame's :class:`FrameAdmission`. ``index``: the :class:`SkyIndex` of ``catalogue`` (built here when not given)."""
-    if index is None or index.catalogue is not catalogue:
-        index = SkyIndex(catalogue)
+    index = sky_index(catalogue, index)
     theta = camera.model_vector(np.float64)
     out = star_id.copy()
     frames = []
@@ -353,35 +352,6 @@ def _row_sigma_px(sigma_px: np.ndarray, own_px: np.ndarray, sigma_ref: np.ndarra
     """A row's 1-sigma against a prediction: without an elongated blend's bound where the prediction is a blend's
     reference (``sigma_ref`` > 0: the reference models that shift, so the bound is counted once), else as written."""
     return np.where(sigma_ref > 0, own_px, sigma_px)
-
-
-def _near_pairs(x, y, xp, yp, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (row, prediction) pair at most ``reach_px`` apart, with its squared distance (x - xp)^2 + (y - yp)^2
-    [px^2], the same numbers the full (rows x predictions) matrix holds: the predictions sorted by column, each row's
-    run of predictions within a band of columns found by bisection, then each pair's distance tested. The band is
-    wider than ``reach_px`` by a relative 1e-9 (and 1e-9 px), so that rounding cannot drop a pair within reach."""
-    order = np.argsort(xp, kind="stable")
-    sorted_xp = xp[order]
-    band_px = reach_px * (1.0 + 1e-9) + 1e-9
-    lo = np.searchsorted(sorted_xp, x - band_px, side="left")
-    counts = np.searchsorted(sorted_xp, x + band_px, side="right") - lo
-    row = np.repeat(np.arange(x.size), counts)
-    # the k-th pair of a row's run is its prediction lo + (k - the run's first pair)
-    star = order[np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(row.size)]
-    d2 = (x[row] - xp[star]) ** 2 + (y[row] - yp[star]) ** 2
-    keep = d2 <= reach_px**2
-    return row[keep], star[keep], d2[keep]
-
-
-def _nearest_rows(row: np.ndarray, star: np.ndarray, d2: np.ndarray, n_stars: int) -> np.ndarray:
-    """Per prediction, the row nearest to it among the pairs of :func:`_near_pairs` (-1 when none is within reach),
-    the lower row on a tie: the frame's nearest row wherever one is within reach, as ``argmin`` over every row."""
-    nearest = np.full(n_stars, -1, dtype=np.int64)
-    order = np.lexsort((row, d2, star))
-    first = np.ones(order.size, dtype=bool)
-    first[1:] = star[order][1:] != star[order][:-1]
-    nearest[star[order][first]] = row[order][first]
-    return nearest
 
 
 def _blend_places(near, xp, yp, index, view, catalogue: Catalogue, named_hip: np.ndarray, scatter: float):

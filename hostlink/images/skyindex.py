@@ -29,10 +29,6 @@ class _Sky:
     mag: np.ndarray
 
 
-def _sky(catalogue: Catalogue) -> _Sky:
-    return _Sky(catalogue.hip, catalogue_directions(catalogue), catalogue.mag)
-
-
 def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
     """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only): ~35 ms of
     ``erfa.pmsafe`` for the whole catalogue, so a caller that asks more than once holds a :class:`SkyIndex`."""
@@ -66,6 +62,17 @@ class SkyIndex:
     @functools.cached_property
     def sky(self) -> _Sky:
         return _Sky(self.catalogue.hip, self.directions, self.catalogue.mag)
+
+
+def sky_index(catalogue: Catalogue, held: SkyIndex | None = None) -> SkyIndex:
+    """``held`` when it indexes ``catalogue`` (the same object), else a new :class:`SkyIndex` of it: for a function
+    whose caller may hold one."""
+    return held if held is not None and held.catalogue is catalogue else SkyIndex(catalogue)
+
+
+def _sky(catalogue: Catalogue) -> _Sky:
+    """The :class:`_Sky` of ``catalogue`` (a new :class:`SkyIndex`'s, for a caller that asks once)."""
+    return SkyIndex(catalogue).sky
 
 
 def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray:

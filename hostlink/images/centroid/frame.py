@@ -26,13 +26,13 @@ from hostlink.images.centroid.shapes import (
     _unresolved_pairs,
     _windowed_ellipticity,
 )
-from hostlink.images.centroid.stamps import _row_medians
 from hostlink.images.centroid.windows import (
     _border_windows,
     _frame_psf_sigma_px,
     _psf_model_sigma_px,
     _windowed_centroids,
 )
+from hostlink.images.order_statistics import row_medians
 
 
 def centroid_pixels(
@@ -62,9 +62,9 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     blank = saturated_regions(raw, level)
     sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank, raw, level)
-    # np.median's number, from the pixels sorted once (_row_medians: faster than np.median of rms[~blank])
-    median_rms = float(_row_medians(rms.reshape(1, -1), ~blank.reshape(1, -1))[0])
-    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=median_rms)
+    # np.median's number, from the pixels sorted once (row_medians)
+    median_rms_adu = float(row_medians(rms.reshape(1, -1), ~blank.reshape(1, -1))[0])
+    report = FrameReport(path="", detected=int(objects.size), background_rms_adu=median_rms_adu)
     if objects.size == 0:
         return _no_stars(report)
     screen = _screen(sub, rms, raw, objects, segmap, options, level)

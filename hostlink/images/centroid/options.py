@@ -49,8 +49,8 @@ class CentroidOptions:
     with a windowed centroid (a clipped core does not follow the PSF), ranked first, flagged in the ``saturated`` column
     with a ``sigma_px`` of at least :data:`SATURATED_SIGMA_PX`, counted in ``FrameReport.saturated_kept``; False rejects
     them; ``footprint_follows_psf`` (default True): on a frame whose measured PSF is undersampled, detections of 1
-    filtered pixel at a raised threshold are kept beside those of ``min_area_px`` (:func:`hostlink.images.centroid.
-    screen._footprint_px`); False: ``min_area_px`` on every frame."""
+    filtered pixel at a raised threshold are kept beside those of ``min_area_px`` when that is SEP's 2
+    (:func:`hostlink.images.centroid.screen._footprint_px`); False: ``min_area_px`` on every frame."""
 
     threshold_sigma: float = 5.0
     min_area_px: int = _DEFAULT_MIN_AREA_PX

@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-from hostlink.images.centroid.stamps import _in_chunks, _row_medians, _stamps
+from hostlink.images.centroid.stamps import _in_chunks, _stamps
+from hostlink.images.order_statistics import row_medians
 from hostlink.sky.render import (
     pixel_integrated_gaussian,
     pixel_integrated_gaussian_dsource,
@@ -64,7 +65,7 @@ def _psf_fluxes_block(sub, x, y, sigma_px: float, half: int, outer: int) -> np.n
     offsets = np.abs(np.arange(-outer, outer + 1))
     inner = (offsets[:, None] <= half) & (offsets[None, :] <= half)
     ring = ~inner.ravel()
-    background = _row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
+    background = row_medians(cut.reshape(x.size, -1)[:, ring], inside.reshape(x.size, -1)[:, ring])
     background[~np.isfinite(background)] = 0.0
     p = np.where(inside & inner, _psf_shape_batch(cols, rows, x, y, sigma_px), 0.0)
     return np.sum((cut - background[:, None, None]) * p, axis=(1, 2)) / np.sum(p * p, axis=(1, 2))
@@ -200,7 +201,7 @@ def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarra
     first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
     ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
     same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
-    ones stand alone (a singular system in the batch took a split per level: ~170 calls per fit of a frame)."""
+    ones stand alone (alone, that took a split per level for every singular system in the batch)."""
     singular = np.linalg.slogdet(lhs)[0] == 0
     if singular.any():
         out = np.zeros_like(rhs)
@@ -225,8 +226,8 @@ def _solve_halving(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def _evaluate_rows(cols, rows, data, whiten, params, active, sigma_px):
     """Whitened residuals (K, P), Jacobian (K, P, 4) and cost (K,) of the stars ``active`` at ``params[active]``: the
-    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (its stacked Jacobian
-    and the product of it took 1.4 times as long; d mu / d B = 1 whitened is the whitening)."""
+    columns of :func:`psf_model_batch`'s Jacobian each times the whitening, written in place (no stacked Jacobian
+    and no product of it: docs/realsky.md, "Time"; d mu / d B = 1 whitened is the whitening)."""
     k = active.size
     if k != data.shape[0]:  # some stars only (holding every star, ``active`` is 0 .. n - 1: no copies needed)
         cols, rows, params, data, whiten = (v[active] for v in (cols, rows, params, data, whiten))
@@ -262,7 +263,7 @@ def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None
     out_x, out_y = x.copy(), y.copy()
     cols, rows, data, inside = _stamps(sub, x, y, half)
     noise_var = np.where(inside, _stamps(rms, x, y, half)[2], 1.0) ** 2
-    background = _row_medians(data.reshape(x.size, -1), inside.reshape(x.size, -1))
+    background = row_medians(data.reshape(x.size, -1), inside.reshape(x.size, -1))
     masked = np.where(inside, data, np.nan).reshape(x.size, -1)
     flux = np.maximum(np.nansum(masked - background[:, None], axis=1), 1.0)
     params = np.column_stack([x, y, flux, background])

@@ -91,15 +91,24 @@ def _extract(
         )
         sub -= offset
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
-        significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
-        sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
-        min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
-        if min_area < options.min_area_px:
-            objects, segmap = _sep_extract(sep, sub, rms, ignored, options, min_area)
-            objects, segmap = _single_pixels_kept(objects, segmap, significance, options)
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
-        raise UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma") from None
+        raise _extraction_failed(exc) from None
+    significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
+    # the PSF measured outside the guard: a failure of ours there is not SEP's, nor cured by a higher threshold
+    sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
+    min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
+    if min_area < options.min_area_px:
+        try:
+            objects, segmap = _sep_extract(sep, sub, rms, ignored, options, min_area)
+        except Exception as exc:
+            raise _extraction_failed(exc) from None
+        objects, segmap = _single_pixels_kept(objects, segmap, significance, options)
     return sub, rms, significance, objects, segmap
+
+
+def _extraction_failed(exc: Exception) -> UserError:
+    """The one-line error of a failed background or extraction (SEP's own message, and the cure)."""
+    return UserError(f"source extraction failed ({one_line(exc)}); raise --threshold-sigma")
 
 
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
@@ -133,11 +142,10 @@ def _saturated_objects(raw: np.ndarray, segmap: np.ndarray, level: float, n_obje
 
 #: Where the footprint is 1 filtered pixel (:func:`_footprint_px`), a detection of 1 pixel above the threshold is
 #: kept when its filtered peak reaches this factor x the threshold (those of 2 pixels or more are kept as before):
-#: white noise then gives a tenth more detections than SEP's footprint of 2 alone. Measured on 100 Mpx of white
-#: noise filtered by SEP's kernel (24 frames of 2048 x 2048; the local maxima, each with its highest neighbour): the
-#: single-pixel maxima above f x t are a tenth of those with a second pixel above t at f = 1.214 (t = 3 sigma),
-#: 1.204 (3.5), 1.199 (4); the false-alarm rate equal to SEP's footprint alone would need 1.12-1.13, and then the
-#: 2-pixel detections under 1.125 t dropped too, which lost named stars on openstartracker (docs/realsky.md).
+#: white noise filtered by SEP's kernel then gives a tenth more detections than SEP's footprint of 2 alone (the
+#: local maxima with and without a second pixel above the threshold: docs/realsky.md, "Binned and undersampled
+#: frames", tests/test_centroid_undersampled_detection.py); holding the footprint of 2's false-alarm rate exactly
+#: would have dropped 2-pixel detections too, which lost named stars.
 _SINGLE_PIXEL_THRESHOLD = 1.2
 
 
@@ -396,7 +404,8 @@ def _hot_pixels(
     only) and the pixel-integrated Gaussian of sigma ``psf_sigma_px`` (:func:`hostlink.sky.render.
     pixel_integrated_gaussian`) at the best of a 5 x 5 grid of sub-pixel positions and of three widths from
     :data:`_HOT_SHARPEST_FRACTION` of it to all of it; chi^2 = |d|^2 - d^T Q d for each
-    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit``: the star model is
+    model's projector Q. A detection is a hot pixel when chi^2_star - chi^2_spike > ``chi2_limit`` (one for all, or
+    (N,) one per detection: :func:`_screen` holds those under the minimum footprint to 0): the star model is
     rejected (both have 2 free amplitudes: under a true star the difference is noise of a few units, under a spike
     of amplitude A it grows as (A / noise)^2). A sharp star (sigma 0.5-0.8 px), whose neighbours hold little of
     its flux, still fits its PSF better than a spike; a faint star, whose neighbours are lost in the noise, fits

@@ -16,6 +16,7 @@ from hostlink.files.times import parse_iso_utc_many
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
 from hostlink.images.centroid.times import _read_times_file, _time_choices, image_time
+from hostlink.images.order_statistics import sorted_medians
 from hostlink.images.read import read_image
 
 #: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
@@ -126,7 +127,7 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
 
 def _formatted(values: np.ndarray, spec: str) -> np.ndarray:
     """Each value as text by the format ``spec``, "" where it is not finite (an object array): formatted as Python
-    floats (``tolist``), the same text as from numpy's scalars in a seventh of the time."""
+    floats (``tolist``): the same text as from numpy's scalars, faster (docs/realsky.md, "Time")."""
     return np.array([format(v, spec) if math.isfinite(v) else "" for v in values.tolist()], dtype=object)
 
 
@@ -171,16 +172,14 @@ def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray
 
 
 def _median_frame(stack: np.ndarray) -> np.ndarray:
-    """``np.median(stack, axis=0)`` as float64, the same numbers, from the stack sorted along its first axis (the
-    middle frame's value, or the mean of the middle two in the stack's type, as ``np.median``): numpy's partition
-    along that axis takes 3 times longer (ten 1.4 Mpx frames: 0.44 s against 0.13 s). A stack with a NaN goes to
-    ``np.median`` (which makes its pixel NaN; sorting would not)."""
+    """``np.median(stack, axis=0)`` as float64, the same numbers for any dtype, from the stack sorted along its first
+    axis (:func:`hostlink.images.order_statistics.sorted_medians`: the middle frame's value, or the mean of the
+    middle two as ``np.median`` takes it, in float64 for an integer stack): numpy's partition along that axis is
+    slower (docs/realsky.md, "Time"). A stack with a NaN goes to ``np.median`` (which makes its pixel NaN; sorting
+    would not)."""
     if np.isnan(stack).any():
         return np.median(stack, axis=0).astype(np.float64)
-    ordered = np.sort(stack, axis=0)
-    n = stack.shape[0]
-    middle = ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2
-    return middle.astype(np.float64)
+    return sorted_medians(np.sort(stack, axis=0), axis=0).astype(np.float64)
 
 
 def _blend_px(det: Detections) -> np.ndarray:

@@ -5,22 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def _row_medians(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The median of each row of ``values`` (n, p) over its ``valid`` entries (NaN where none): the rows wholly
-    valid (every stamp inside the image) at once, each sorted (the middle value, or the mean of the middle two:
-    ``np.median``'s numbers, which it finds by a strided partition across the rows, 10 times slower), the others one
-    by one (``np.nanmedian``'s masked arrays are several times slower still)."""
-    out = np.full(values.shape[0], np.nan)
-    whole = valid.all(axis=1)
-    if whole.any():
-        ordered = np.sort(values[whole], axis=1)
-        p = ordered.shape[1]
-        out[whole] = ordered[:, p // 2] if p % 2 else (ordered[:, p // 2 - 1] + ordered[:, p // 2]) / 2.0
-    for k in np.flatnonzero(~whole & valid.any(axis=1)):
-        out[k] = np.median(values[k][valid[k]])
-    return out
-
-
 def _in_chunks(half_px: int, n: int, block):
     """``block(slice)`` over consecutive slices of the n stars, each of at most the package's ``_STAMP_BUDGET_PX``
     pixels of stamps of half-width ``half_px``; the results (an array or a tuple of arrays per slice)
@@ -39,8 +23,8 @@ def _in_chunks(half_px: int, n: int, block):
 def _stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, half: int):
     """The (2 half + 1)^2 pixels around each star's nearest pixel: (cols (N, W), rows (N, H) as float pixel
     coordinates, the pixel values (N, H, W) (0 outside the image) and a mask (N, H, W), True inside the image). The
-    pixels are taken by their flat indices (one ``take``: 35-50 % less time than indexing by rows and columns), and
-    zeroed outside the image only when a stamp reaches beyond it."""
+    pixels are taken by their flat indices (one ``take``, faster than indexing by rows and columns: docs/realsky.md,
+    "Time"), and zeroed outside the image only when a stamp reaches beyond it."""
     h, w = image.shape
     offsets = np.arange(-half, half + 1)
     cols = np.rint(x).astype(np.int64)[:, None] + offsets[None, :]
