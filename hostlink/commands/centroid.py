@@ -143,7 +143,7 @@ def _add_candidate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hostlink.api import CentroidOptions, TimeOptions, centroid_images, write_session
+    from hostlink.api import CentroidOptions, TimeOptions, centroid_images, progress_bar, write_session
 
     options = CentroidOptions(
         threshold_sigma=args.threshold_sigma,
@@ -166,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
         date=args.date,
         time_unknown=args.time_unknown,
     )
-    result = centroid_images(args.images, options, times)
+    with progress_bar("centroiding images", len(args.images), enabled=not args.quiet) as advance:
+        result = centroid_images(args.images, options, times, progress=advance)
     write_session(args.out, result.session)
     if not args.quiet:
         for k, f in enumerate(result.frames):
