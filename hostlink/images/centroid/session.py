@@ -32,11 +32,13 @@ def centroid_images(
     """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
     the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
     (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
-    frame or an image of another size than the first, no star in any image) is a one-line :class:`UserError`.
+    frame or an image of another size than the first, an image given twice, no star in any image) is a one-line
+    :class:`UserError`.
     ``progress(done)`` is called after each image with the number of images done."""
     paths = [Path(p) for p in paths]
     if not paths:
         raise UserError("no image given")
+    _check_each_image_once(paths)
     chosen = [k for k, v in _time_choices(times).items() if v]
     if len(chosen) > 1:
         raise UserError(f"give at most one of {', '.join(chosen)}")
@@ -73,6 +75,17 @@ def centroid_images(
         jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
         order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
     return _session([frames[k] for k in order])
+
+
+def _check_each_image_once(paths: list[Path]) -> None:
+    """Refuse a file given twice (overlapping globs, a name typed again): each image is one frame, and a frame twice
+    over is counted twice by identify's and calibrate's statistics (and makes the median of ``--median-of-inputs``
+    that frame, removing its stars)."""
+    first: dict[Path, int] = {}
+    for k, path in enumerate(paths):
+        j = first.setdefault(path.resolve(), k)
+        if j != k:
+            raise UserError(f"{path}: given twice (images {j + 1} and {k + 1}); give each image once")
 
 
 def _check_same_size(path: Path, size_px: tuple[int, int], first: Path, first_size_px: tuple[int, int]) -> None:
