@@ -363,7 +363,6 @@ def _focal_hint(ratio: float) -> str:
 
 
 def _print_report(outcome, out_path: str, time_note: str | None = None, noise_model: str = "auto") -> None:
-
     from hostlink.api import DISTORTION_NAMES, DISTORTION_UNITS, iterations_text
 
     sig = outcome.sigma()
