@@ -49,3 +49,36 @@ def test_the_same_frame_readable_gives_stars(capsys, tmp_path):
     _jpeg(image)
     assert main(["centroid", str(image), "--time-unknown", "--quiet", "--out", str(tmp_path / "s.csv")]) == 0
     assert (tmp_path / "s.csv").exists()
+
+
+def test_an_image_of_another_size_is_refused_naming_both(capsys, tmp_path):
+    """A PNG of another camera among the frames (another size than the first image) is refused before anything is
+    written: a session is one camera's, and identify and calibrate would treat its stars as the first camera's."""
+    first, other = tmp_path / "frame.jpg", tmp_path / "other.png"
+    _jpeg(first)
+    _jpeg(tmp_path / "other.jpg", size=(400, 300))
+    Image.open(tmp_path / "other.jpg").save(other)
+    out = tmp_path / "s.csv"
+    code = main(["centroid", str(first), str(other), "--time-unknown", "--out", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and "Traceback" not in err[0], err
+    assert "other.png: 400 x 300 px, the first image (frame.jpg) is 320 x 240 px" in err[0], err
+    assert not out.exists() and not list(tmp_path.glob("*.partial"))
+
+
+def test_an_image_given_twice_is_refused(capsys, tmp_path):
+    """The same file twice (overlapping globs) would be two frames of one exposure, and with --median-of-inputs the
+    median would be that frame: its stars subtracted away. Refused in one line, by the file, however it is named."""
+    image = tmp_path / "frame.jpg"
+    _jpeg(image)
+    other = tmp_path / "other.jpg"
+    _jpeg(other, size=(320, 240))
+    out = tmp_path / "s.csv"
+    again = tmp_path / "link.jpg"  # the same file by another name
+    again.symlink_to(image)
+    code = main(
+        ["centroid", str(image), str(other), str(again), "--median-of-inputs", "--time-unknown", "--out", str(out)]
+    )
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and "link.jpg: given twice (images 1 and 3)" in err[0], err
+    assert not out.exists() and not list(tmp_path.glob("*.partial"))

@@ -24,7 +24,8 @@ DESCRIPTION = (
     "time_source. The "
     "time of each image comes from one option (--time, --times, --time-pattern, --date, --time-unknown) or else from "
     "the file (FITS DATE-AVG or DATE-OBS + EXPTIME/2; EXIF DateTimeOriginal); an image with no known time is an "
-    "error. Exit 2 when no star is found in any image. After each frame's stars come its fainter candidates "
+    "error, and so is an image of another size than the first (a session is one camera's) or a file given twice. "
+    "Exit 2 when no star is found in any image. After each frame's stars come its fainter candidates "
     "(--candidate-sigma, default 3: local maxima of the filtered image outside every detection whose PSF-fit flux "
     "is at least that many times its noise), flagged by their significance in an snr column: identify builds no "
     "pattern from them and names one only where the calibrated camera predicts a catalogue star."
@@ -143,7 +144,7 @@ def _add_candidate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hostlink.api import CentroidOptions, TimeOptions, centroid_images, write_session
+    from hostlink.api import CentroidOptions, TimeOptions, centroid_images, progress_bar, write_session
 
     options = CentroidOptions(
         threshold_sigma=args.threshold_sigma,
@@ -166,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
         date=args.date,
         time_unknown=args.time_unknown,
     )
-    result = centroid_images(args.images, options, times)
+    with progress_bar("centroiding images", len(args.images), enabled=not args.quiet) as advance:
+        result = centroid_images(args.images, options, times, progress=advance)
     write_session(args.out, result.session)
     if not args.quiet:
         for k, f in enumerate(result.frames):

@@ -70,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         check_on_detector,
         identify_iteratively,
         load_params,
+        progress_bar,
         read_session,
         write_json,
         write_session,
@@ -83,7 +84,11 @@ def run(args: argparse.Namespace) -> int:
     rounds = MAX_ROUNDS if args.rounds is None else args.rounds
     if rounds < 1:
         raise UserError(f"--rounds must be at least 1, got {rounds}")
-    result = identify_iteratively(session, nominal, maglim=args.maglim, max_rounds=rounds)
+    # the bar starts again with each round (each goes over the frames again, with the camera calibrated before)
+    with progress_bar("identifying frames", session.n_frames, enabled=not (args.quiet or args.json)) as advance:
+        result = identify_iteratively(
+            session, nominal, maglim=args.maglim, max_rounds=rounds, progress=lambda done, _total: advance(done)
+        )
     if not result.frames:
         raise UserError(f"{args.session}: no unidentified star (every star_id is already set)")
     if args.report:

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,14 +28,18 @@ def centroid_images(
     paths: Sequence[str | Path],
     options: CentroidOptions = CentroidOptions(),  # noqa: B008 (a frozen dataclass)
     times: TimeOptions = TimeOptions(),  # noqa: B008 (a frozen dataclass)
+    progress: Callable[[int], None] | None = None,
 ) -> CentroidResult:
     """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
     the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
     (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
-    frame of another size, no star in any image) is a one-line :class:`UserError`."""
+    frame or an image of another size than the first, an image given twice, no star in any image) is a one-line
+    :class:`UserError`.
+    ``progress(done)`` is called after each image with the number of images done."""
     paths = [Path(p) for p in paths]
     if not paths:
         raise UserError("no image given")
+    _check_each_image_once(paths)
     chosen = [k for k, v in _time_choices(times).items() if v]
     if len(chosen) > 1:
         raise UserError(f"give at most one of {', '.join(chosen)}")
@@ -47,14 +51,19 @@ def centroid_images(
 
     frames: list[tuple[str, Detections, str]] = []
     blank = 0  # images whose every pixel has one value (a lens cap, no exposure, a failed readout)
-    for path in paths:
+    first_size_px: tuple[int, int] | None = None
+    for done, path in enumerate(paths, start=1):
         image = read_image(path)
+        first_size_px = first_size_px or image.image_size_px
+        _check_same_size(path, image.image_size_px, paths[0], first_size_px)
         blank += int(image.pixels.size == 0 or float(np.ptp(image.pixels)) == 0.0)
         time_utc, source = image_time(image, times, listed)
         det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
         det.report.path = str(path)
         det.report.time_utc, det.report.time_source = time_utc, source
         frames.append((time_utc, det, source))
+        if progress is not None:
+            progress(done)
     if options.median_of_inputs:
         _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
     if all(det.report.kept == 0 for _, det, _ in frames):
@@ -67,6 +76,29 @@ def centroid_images(
         jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
         order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
     return _session([frames[k] for k in order])
+
+
+def _check_each_image_once(paths: list[Path]) -> None:
+    """Refuse a file given twice (overlapping globs, a name typed again): each image is one frame, and a frame twice
+    over is counted twice by identify's and calibrate's statistics (and makes the median of ``--median-of-inputs``
+    that frame, removing its stars)."""
+    first: dict[Path, int] = {}
+    for k, path in enumerate(paths):
+        j = first.setdefault(path.resolve(), k)
+        if j != k:
+            raise UserError(f"{path}: given twice (images {j + 1} and {k + 1}); give each image once")
+
+
+def _check_same_size(path: Path, size_px: tuple[int, int], first: Path, first_size_px: tuple[int, int]) -> None:
+    """Refuse an image of another size than the first: a session is one camera's frames, described by one nominal
+    (``identify`` and ``calibrate`` take one ``image_size_px``), and a frame of another detector in it would be
+    identified and calibrated as if it were the first camera's."""
+    if size_px != first_size_px:
+        raise UserError(
+            f"{path}: {size_px[0]} x {size_px[1]} px, the first image ({first.name}) is {first_size_px[0]} x "
+            f"{first_size_px[1]} px: a session holds one camera's frames; centroid each camera's images into a "
+            "session of its own"
+        )
 
 
 def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, kept: list[int]) -> None:
