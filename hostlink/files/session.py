@@ -135,6 +135,20 @@ def session_filled(session: Session, name: str) -> np.ndarray:
     return np.array([str(v).strip().lower() not in ("", "nan") for v in values], dtype=bool)
 
 
+#: The text of a star's pixel uncertainties, the optional columns ``sigma_px`` and ``blend_px``: 4 significant digits
+#: (docs/file-formats.md), finer than the bounds themselves are known (they rest on a measured noise and flux).
+PIXEL_SIGMA_FORMAT = ".4g"
+
+
+def pixel_sigma_text(values_px: np.ndarray) -> np.ndarray:
+    """(N,) object: each of ``values_px`` [px] as the text of ``sigma_px`` / ``blend_px`` (:data:`PIXEL_SIGMA_FORMAT`),
+    "" where not finite (no value); formatted as Python floats (``tolist``), the same text as numpy's scalars give."""
+    return np.array(
+        [format(v, PIXEL_SIGMA_FORMAT) if math.isfinite(v) else "" for v in np.asarray(values_px).tolist()],
+        dtype=object,
+    )
+
+
 #: How far a centroid may lie outside the detector extent before a session and a parameter file are declared not to
 #: belong together [px]: an edge star's centroid window can extrapolate a fraction of a pixel past the last pixel.
 DETECTOR_MARGIN_PX = 1.0
