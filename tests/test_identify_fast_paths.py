@@ -182,16 +182,18 @@ def _frames_of_random_counts(seed: int, frames: int, max_stars: int):
 def test_the_vote_over_the_pair_table_is_the_vote_over_count_blocks_on_many_frames(seed):
     """The two layouts of the interstar vote (padded chunks in time order, :func:`robust.vote_of_table`; unpadded
     blocks of one star count, :func:`robust.vote_consistent_stars`) keep the same stars, over many frames of every
-    count, chunks small enough to split the frames several ways, and thresholds down to one agreeing star in three."""
+    count, chunks small enough to split the frames several ways, and thresholds from none to every other star."""
     data, b = _frames_of_random_counts(seed, frames=40, max_stars=30)
     mixed = 0  # the cases that keep some stars and drop others
+    alone = np.repeat(np.diff(data.frame_starts) == 1, np.diff(data.frame_starts))
     for chunk_obs in (robust.PAIR_BLOCK_OBS, 97, 31):
         table = robust.pair_table(data, chunk_obs)
         for rel_tol, abs_tol_rad in ((0.03, 1e-3), (0.02, 2e-4), (0.005, 1.5e-3)):
-            for min_agreement in (0.3, 0.5, 0.7, 1.0):
+            for min_agreement in (0.0, 0.3, 0.5, 0.7, 1.0):
                 tolerances = {"rel_tol": rel_tol, "abs_tol_rad": abs_tol_rad, "min_agreement": min_agreement}
                 expected = robust.vote_consistent_stars(data, b, chunk_obs=chunk_obs, **tolerances)
                 got = robust.vote_of_table(table, b, data.n_obs, **tolerances)
                 assert np.array_equal(got, expected), (chunk_obs, tolerances)
                 mixed += 0 < np.count_nonzero(got) < data.n_obs
-    assert mixed >= 27  # of 36 cases: both outcomes of the test occur, so the equality means something
+                assert not np.any(got[alone])  # a star alone in its frame agrees with no other, at any threshold
+    assert mixed >= 27  # of 45 cases: both outcomes of the test occur, so the equality means something
