@@ -35,7 +35,7 @@ from hostlink.files.session.data import (
     check_on_detector,
     concatenate_sessions,
 )
-from hostlink.files.session.parse import CSV_BLOCK_BYTES
+from hostlink.files.session.parse import CSV_BLOCK_BYTES  # read there: a caller changes it in session.parse
 from hostlink.files.session.read import (
     DEFAULT_CHUNK_FRAMES,
     SessionSource,
