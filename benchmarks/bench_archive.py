@@ -24,7 +24,7 @@ Usage: nice -n 10 .venv/bin/python benchmarks/bench_archive.py [--sizes 1000,100
            [--replay-time-limit SECONDS] [--json RESULTS.json]
 At 10^6 frames (about 20 min of one core for the estimator alone): ``--sizes 1000000 --no-read``.
 The Parquet writer and reader are those of hostlink/files/columnar.py; the CSV reader is pyarrow's streaming CSV
-reader behind the same checks (hostlink/files/session.py).
+reader behind the same checks (hostlink/files/session/).
 """
 
 from __future__ import annotations

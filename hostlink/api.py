@@ -40,7 +40,9 @@ Images:
     :func:`centroid_crb_px` (the Cramer-Rao bound of a centroid), :func:`render_stars` / :func:`render_frame` with
     :class:`RenderConfig` (images of simulated stars with known truth, for tests),
     :func:`identify_session` (lost-in-space identification of a session's unidentified stars against Hipparcos,
-    with :class:`Identification` and one :class:`FrameIdentity` per frame: attitude, parity, scale).
+    with :class:`Identification` and one :class:`FrameIdentity` per frame: attitude, parity, scale),
+    :func:`prepare_cache` (a camera's catalogue index, pattern database and pair table built beforehand, a
+    :class:`PairCache` to pass to many identifications).
 Calibration:
     :func:`calibrate_session` (batch ground calibration), :func:`calibrate_archive` (the same for sessions of any
     length: files, globs, Parquet, chunk by chunk in bounded memory, optionally on a Dask cluster),
@@ -178,8 +180,10 @@ if TYPE_CHECKING:
         MAX_ROUNDS,
         FrameIdentity,
         Identification,
+        PairCache,
         identify_iteratively,
         identify_session,
+        prepare_cache,
     )
     from hostlink.images.read import RawImage, read_image
     from hostlink.links import Link, open_link
@@ -316,6 +320,8 @@ __all__ = [
     "identify_session",
     "identify_iteratively",
     "MAX_ROUNDS",
+    "prepare_cache",
+    "PairCache",
     "session_references",
     "simulate",
     "simulate_chunks",

@@ -89,8 +89,9 @@ class _DocsAction(argparse.Action):
 
 
 class _VersionAction(argparse.Action):
-    """``hostlink --version``: print the version, then exit 0. Looked up only when asked: ``importlib.metadata``
-    takes about 20 ms, which every command paid at its start when the parser was built with the version in it."""
+    """``hostlink --version``: print the version, then exit 0. Looked up only when asked: ``importlib.metadata`` is
+    slow enough to notice (docs/realsky.md, "Figures behind the speed choices"), and every command paid it at its
+    start when the parser was built with the version in it."""
 
     def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None) -> None:  # noqa: A002
         super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)

@@ -154,3 +154,46 @@ def test_densest_window_as_every_start_counted(seed):
         mode = np.concatenate([rng.normal(0.003, 0.002, n - n // 5), rng.uniform(-3.0, 1.0, n // 5)])
         for values in (mode, np.round(mode, 3), rng.uniform(-0.1, 0.1, n), np.round(rng.normal(0, 0.01, n), 2)):
             assert robust._densest_window(values, 0.02) == _densest_by_every_start(values, 0.02)
+
+
+def _frames_of_random_counts(seed: int, frames: int, max_stars: int):
+    """``frames`` frames of 1..``max_stars`` stars each (every count, frames of one star too), a quarter of each
+    frame's catalogue directions misidentified, measured through a camera 2 % long (angles near the vote's
+    tolerance, so both outcomes of the test occur): data and measured directions b."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(1, max_stars + 1, frames)
+    xs, ys, rs, keys = [], [], [], []
+    theta = np.array([2000.0, 640.0, 480.0] + [0.0] * 7)
+    for f, n in enumerate(counts):
+        x, y = rng.uniform(0.0, 1280.0, n), rng.uniform(0.0, 960.0, n)
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        r = pixels_to_unit(x + rng.normal(0, 0.5, n), y + rng.normal(0, 0.5, n), theta) @ q
+        bad = rng.random(n) < 0.25
+        v = rng.normal(size=(int(bad.sum()), 3))
+        r[bad] += 0.02 * v / np.linalg.norm(v, axis=1, keepdims=True)
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        xs.append(x), ys.append(y), rs.append(r), keys.append(np.full(n, f))
+    data = build_data(np.concatenate(xs), np.concatenate(ys), np.concatenate(rs), np.concatenate(keys))
+    b = pixels_to_unit(data.x_px, data.y_px, theta * np.r_[1.02, np.ones(9)])
+    return data, b
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_vote_over_the_pair_table_is_the_vote_over_count_blocks_on_many_frames(seed):
+    """The two layouts of the interstar vote (padded chunks in time order, :func:`robust.vote_of_table`; unpadded
+    blocks of one star count, :func:`robust.vote_consistent_stars`) keep the same stars, over many frames of every
+    count, chunks small enough to split the frames several ways, and thresholds from none to every other star."""
+    data, b = _frames_of_random_counts(seed, frames=40, max_stars=30)
+    mixed = 0  # the cases that keep some stars and drop others
+    alone = np.repeat(np.diff(data.frame_starts) == 1, np.diff(data.frame_starts))
+    for chunk_obs in (robust.PAIR_BLOCK_OBS, 97, 31):
+        table = robust.pair_table(data, chunk_obs)
+        for rel_tol, abs_tol_rad in ((0.03, 1e-3), (0.02, 2e-4), (0.005, 1.5e-3)):
+            for min_agreement in (0.0, 0.3, 0.5, 0.7, 1.0):
+                tolerances = {"rel_tol": rel_tol, "abs_tol_rad": abs_tol_rad, "min_agreement": min_agreement}
+                expected = robust.vote_consistent_stars(data, b, chunk_obs=chunk_obs, **tolerances)
+                got = robust.vote_of_table(table, b, data.n_obs, **tolerances)
+                assert np.array_equal(got, expected), (chunk_obs, tolerances)
+                mixed += 0 < np.count_nonzero(got) < data.n_obs
+                assert not np.any(got[alone])  # a star alone in its frame agrees with no other, at any threshold
+    assert mixed >= 27  # of 45 cases: both outcomes of the test occur, so the equality means something

@@ -124,6 +124,16 @@ def test_times_file_date_and_unknown_time(images, tmp_path):
     assert not unknown.time_known and unknown.n_frames == 2  # the session format's "time unknown"
 
 
+def test_each_frame_line_says_its_time_and_source_or_once_that_it_has_none(images, tmp_path, capsys):
+    paths, _ = images
+    out = tmp_path / "u.csv"
+    assert main(["centroid", str(paths[0]), "--out", str(out)]) == 0
+    assert "time 2018-05-09T03:10:01.000Z (FITS DATE-OBS + EXPTIME/2);" in capsys.readouterr().out
+    assert main(["centroid", str(paths[0]), "--time-unknown", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "; time unknown; " in printed and "(unknown)" not in printed
+
+
 @pytest.mark.parametrize(
     "extra, needle",
     [

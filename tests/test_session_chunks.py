@@ -8,7 +8,6 @@ import pytest
 
 from hostlink.errors import UserError
 from hostlink.files import columnar
-from hostlink.files import session as session_module
 from hostlink.files.session import (
     Session,
     SessionWriter,
@@ -17,6 +16,7 @@ from hostlink.files.session import (
     read_session_chunks,
     write_session,
 )
+from hostlink.files.session import parse as session_parse  # the CSV reader, which reads CSV_BLOCK_BYTES
 
 HEADER = "frame,t_utc,star_id,x_px,y_px,mag,ra_deg,dec_deg\n"
 
@@ -94,7 +94,7 @@ def test_frames_cut_by_the_csv_reader_blocks_are_rejoined(tmp_path, monkeypatch,
     s = _session(30, seed=block_bytes)
     write_session(tmp_path / "s.csv", s)
     whole = read_session(tmp_path / "s.csv")
-    monkeypatch.setattr(session_module, "CSV_BLOCK_BYTES", block_bytes)  # a row is ~100 bytes: blocks of 1-9 rows
+    monkeypatch.setattr(session_parse, "CSV_BLOCK_BYTES", block_bytes)  # a row is ~100 bytes: blocks of 1-9 rows
     for chunk_frames in (1, 3, 30):
         _assert_same(concatenate_sessions(list(read_session_chunks(tmp_path / "s.csv", chunk_frames))), whole)
 
@@ -199,7 +199,7 @@ def test_a_bad_value_far_into_a_csv_is_named_by_its_line(tmp_path, monkeypatch):
     fields[3] = "abc"
     lines[k] = ",".join(fields)
     (tmp_path / "s.csv").write_text("\n".join(lines) + "\n")
-    monkeypatch.setattr(session_module, "CSV_BLOCK_BYTES", 400)  # the bad line is several blocks in
+    monkeypatch.setattr(session_parse, "CSV_BLOCK_BYTES", 400)  # the bad line is several blocks in
     with pytest.raises(UserError, match=f"line {k + 1}, column x_px: not a number: 'abc'"):
         list(read_session_chunks(tmp_path / "s.csv", 4))
     lines[k] = ",".join(fields[:-1])  # one field short
@@ -303,7 +303,7 @@ def test_stream_and_simulate_write_parquet_holding_what_they_write_as_csv(tmp_pa
 def test_reading_in_chunks_holds_one_chunk_whatever_the_length_of_the_file(tmp_path, monkeypatch, fmt):
     import tracemalloc
 
-    monkeypatch.setattr(session_module, "CSV_BLOCK_BYTES", 4096)  # small reader blocks, so that a file of a few
+    monkeypatch.setattr(session_parse, "CSV_BLOCK_BYTES", 4096)  # small reader blocks, so that a file of a few
     monkeypatch.setattr(columnar, "READ_BATCH_ROWS", 64)  # thousand rows is read in many of them
 
     def peak_bytes(path, whole: bool) -> int:

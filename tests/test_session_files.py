@@ -70,3 +70,16 @@ def test_missing_file_is_a_user_error(tmp_path):
 def test_minimal_columns_without_reference_directions_are_accepted(tmp_path):
     s = read_session(_write(tmp_path, "frame,t_utc,star_id,x_px,y_px\n3,2026-03-14T02:10:00.5Z,7,1.5,2.5\n"))
     assert s.ra_deg is None and s.mag is None and s.n_frames == 1
+
+
+def test_pixel_sigma_text_is_four_significant_digits_as_numpy_scalars_give_and_empty_without_a_value():
+    from hostlink.files.session import pixel_sigma_text
+
+    rng = np.random.default_rng(7)
+    values = np.concatenate([10.0 ** rng.uniform(-4, 3, 2000), [0.0, 0.30000000000000004, 12345.6, np.nan, np.inf]])
+    text = pixel_sigma_text(values)
+    finite = np.isfinite(values)
+    assert list(text[finite]) == [f"{v:.4g}" for v in values[finite]]  # numpy float64 scalars, as blends wrote them
+    assert list(text[~finite]) == ["", ""]
+    assert list(pixel_sigma_text(np.array([0.123456, 1234.5]))) == ["0.1235", "1234"]  # half to even at 1234.5
+    np.testing.assert_allclose(np.array(text[finite], dtype=float), values[finite], rtol=5e-4)  # 4 digits: <= 5e-4

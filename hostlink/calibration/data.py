@@ -433,10 +433,10 @@ def half_angle_from_dot_rad(dot: np.ndarray) -> np.ndarray:
 def gram_matrices(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """The Gram matrices v v^T (m, n, n) of stacked padded frames ``v`` (m, n, 3): every dot product between two of
     a frame's vectors. The transposed factor is a contiguous copy, so numpy calls BLAS gemm rather than syrk (its
-    choice for v @ v^T of one buffer): the same three-term dot products, ~40 % faster for these thin factors
-    (OpenBLAS). On one BLAS thread (:func:`one_blas_thread`): each product is a few milliseconds at most, and
-    OpenBLAS's threads spend more waiting than computing (the same numbers: each entry is one thread's three-term
-    dot product either way). ``out``: an (m, n, n) buffer to reuse."""
+    choice for v @ v^T of one buffer): the same three-term dot products, faster for these thin factors (OpenBLAS;
+    docs/calibration.md, "Figures behind the constants"). On one BLAS thread (:func:`one_blas_thread`): each product
+    is a few milliseconds at most, and OpenBLAS's threads spend more waiting than computing (the same numbers: each
+    entry is one thread's three-term dot product either way). ``out``: an (m, n, n) buffer to reuse."""
     with one_blas_thread():
         return np.matmul(v, np.ascontiguousarray(v.transpose(0, 2, 1)), out=out)
 
@@ -459,7 +459,7 @@ def _blas_controller_of(n_modules: int):
 def one_blas_thread():
     """A context in which BLAS runs on one thread (the previous limit restored on exit): for code whose matrix
     products are thin (N x 3 by 3 x 3, per-frame Gram matrices), which OpenBLAS would spread over threads that
-    spend more time synchronising than computing (on granasat's identification, 3 times the CPU time). The limit is
+    spend more time synchronising than computing (docs/calibration.md, "Figures behind the constants"). The limit is
     the process's (OpenBLAS keeps one): threads that enter and leave this at once can leave it at one thread, which
     only slows large products elsewhere in the process."""
     return _blas_controller().limit(limits=1, user_api="blas")

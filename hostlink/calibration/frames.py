@@ -53,7 +53,8 @@ def wahba_attitudes(
 
 def rotations_from_profiles(profile: np.ndarray) -> np.ndarray:
     """Markley's rotation C = U diag(1, 1, det U det V) V^T for each of a stack of profile matrices B = U S V^T
-    (M, 3, 3), float64: :func:`onboard.attitude.rotation_from_profile`'s rotations, ~3x faster for 10^4 frames.
+    (M, 3, 3), float64: :func:`onboard.attitude.rotation_from_profile`'s rotations, faster for many frames
+    (docs/calibration.md, "Figures behind the constants").
 
     Where det B > 0 that rotation is U V^T, the orthogonal polar factor of B, which Newton's iteration
     X <- (g X + X^-T / g) / 2 from X = B / |B|_F finds with Higham's Frobenius-norm scaling g = (|X^-1|_F / |X|_F)^1/2

@@ -148,8 +148,9 @@ def vote_consistent_stars(
 
     A pair agrees when |angle_b - angle_r| <= rel_tol * angle_r + abs_tol_rad (defaults: a nominal focal length
     within 3 %, and 1 mrad for principal-point and distortion errors of a few pixels at typical focal lengths).
-    Frames go in blocks of one star count of at most ``chunk_obs`` stars, so the work is vectorised and bounded.
-    """
+    Frames go in blocks of one star count of at most ``chunk_obs`` stars, unpadded (one camera over a session), so
+    the work is vectorised and bounded. :func:`vote_of_table` is the same test and count (:func:`_disagreeing`,
+    :func:`_consistent`) on padded chunks whose catalogue side serves several cameras: the same stars kept."""
     return consistent_stars_and_field(data, b, rel_tol, abs_tol_rad, min_agreement, chunk_obs)[0]
 
 
@@ -180,12 +181,10 @@ def consistent_stars_and_field(
         upper = first * n + second
         ang_r = angle_from_dot_rad(np.take(gram_r, upper, axis=1))
         ang_b = angle_from_dot_rad(np.take(block_gram(b, rows, m, n), upper, axis=1))
-        disagree = np.flatnonzero(~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad))
-        frame, pair = np.divmod(disagree, upper.size)
-        # a disagreeing pair counts against both its stars (exact integer counts)
-        misses = np.bincount(frame * n + first[pair], minlength=m * n)
+        frame, pair = np.divmod(np.flatnonzero(_disagreeing(ang_b, ang_r, rel_tol, abs_tol_rad)), upper.size)
+        misses = np.bincount(frame * n + first[pair], minlength=m * n)  # a pair counts against both its stars
         misses += np.bincount(frame * n + second[pair], minlength=m * n)
-        keep[rows] = (n - 1 - misses) / (n - 1) >= min_agreement
+        keep[rows] = _consistent(misses, n - 1, min_agreement)
     return keep, float(angle_from_dot_rad(np.float64(min_dot)))
 
 
@@ -205,28 +204,29 @@ def vote_of_table(
     abs_tol_rad: float = VOTE_ABS_TOL_RAD,
     min_agreement: float = VOTE_MIN_AGREEMENT,
 ) -> np.ndarray:
-    """:func:`vote_consistent_stars` of the ``n_obs`` stars of a :func:`pair_table` (measured directions ``b``):
-    a star of a frame of one star agrees with no other (False), as there."""
+    """:func:`vote_consistent_stars` of the ``n_obs`` stars of a :func:`pair_table` (measured directions ``b``), its
+    test and count (:func:`_disagreeing`, :func:`_consistent`) on the table's padded chunks, whose catalogue angles
+    serve every camera a caller tries (identification's scale, vote and triples); the same stars kept."""
     keep = np.zeros(n_obs, dtype=bool)
     for pairs in table:
-        keep[pairs.rows] = _agreement(pairs, _padded_directions(pairs, b), rel_tol, abs_tol_rad) >= min_agreement
+        ang_b = pair_angles_at_rad(_padded_directions(pairs, b), pairs.positions)
+        nmax, size = pairs.nmax, pairs.r.shape[0] * pairs.nmax
+        first, second = np.divmod(pairs.positions[_disagreeing(ang_b, pairs.ang_r_rad, rel_tol, abs_tol_rad)], nmax)
+        second += first - first % nmax  # first: the first star's flat slot; second: the second's slot, made flat
+        misses = (np.bincount(first, minlength=size) + np.bincount(second, minlength=size))[pairs.slots]
+        keep[pairs.rows] = _consistent(misses, np.repeat(pairs.counts - 1, pairs.counts), min_agreement)
     return keep
 
 
-def _agreement(pairs: _FramePairs, padded_b: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
-    """(n,) fraction of the other stars of its frame with which each row's interstar angle agrees (the test of
-    :func:`vote_consistent_stars`): each star's pairs less its disagreeing ones (a pair counts for both its stars;
-    exact integer counts)."""
-    ang_b = pair_angles_at_rad(padded_b, pairs.positions)
-    ang_r = pairs.ang_r_rad
-    disagree = ~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad)
-    nmax = pairs.nmax
-    first, second = np.divmod(pairs.positions[disagree], nmax)  # flat slot of the first star, slot of the second
-    second += first - first % nmax
-    size = pairs.r.shape[0] * nmax
-    misses = (np.bincount(first, minlength=size) + np.bincount(second, minlength=size))[pairs.slots]
-    others = np.repeat(pairs.counts - 1, pairs.counts)
-    return (others - misses) / np.maximum(others, 1)
+def _disagreeing(ang_b: np.ndarray, ang_r: np.ndarray, rel_tol: float, abs_tol_rad: float) -> np.ndarray:
+    """(P,) bool: the vote's test fails, |angle_b - angle_r| > rel_tol * angle_r + abs_tol_rad (NaN fails)."""
+    return ~(np.abs(ang_b - ang_r) <= rel_tol * ang_r + abs_tol_rad)
+
+
+def _consistent(misses: np.ndarray, others, min_agreement: float) -> np.ndarray:
+    """(n,) bool: a star agrees with at least ``min_agreement`` of the ``others`` stars of its frame, given the
+    ``misses`` among them (exact integer counts); one with no other star is not consistent."""
+    return (others > 0) & ((others - misses) / np.maximum(others, 1) >= min_agreement)
 
 
 def robust_sigma_2d(residual_norm: np.ndarray) -> float:

@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{f.rejected_no_flux} without flux"
                 f"; {f.saturated_kept} saturated kept, {f.blended_kept} blends kept flagged); "
                 f"noise {f.background_rms_adu:.2f} ADU, PSF sigma {f.psf_sigma_px:.2f} px; "
-                f"time {f.time_utc or 'unknown'} ({f.time_source}); {f.candidates} fainter candidates"
+                f"{_time_text(f.time_utc, f.time_source)}; {f.candidates} fainter candidates"
             )
         held = sum(f.candidates for f in result.frames)
         print(
@@ -186,3 +186,8 @@ def run(args: argparse.Namespace) -> int:
             f"wrote {args.out}"
         )
     return 0
+
+
+def _time_text(time_utc: str, time_source: str) -> str:
+    """A frame's time and where it came from, for the frame's line; with no time (``--time-unknown``) only that."""
+    return f"time {time_utc} ({time_source})" if time_utc else "time unknown"

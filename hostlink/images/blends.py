@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hostlink.files.session import Session, session_flag, session_number
+from hostlink.files.session import Session, pixel_sigma_text, session_flag, session_number
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit, unit_to_radec
 
@@ -255,9 +255,9 @@ def _with_photocentres(session, catalogue, blends, focal_px) -> tuple[Session, l
     extra = dict(session.extra)
     if "sigma_px" in extra:
         column = extra["sigma_px"].copy()  # the other rows' text as it was
-        for rec in records:
-            value = sigma[rec["row"]]
-            column[rec["row"]] = f"{value:.4g}" if np.isfinite(value) else column[rec["row"]]
+        rows = [rec["row"] for rec in records]
+        for row, text in zip(rows, pixel_sigma_text(sigma[rows]), strict=True):
+            column[row] = text or column[row]  # no value: the text as it was
         extra["sigma_px"] = column
     if "blend_px" in extra:  # the bound a reference replaced is no longer in sigma_px: the column says what is
         column = extra["blend_px"].copy()

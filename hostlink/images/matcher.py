@@ -24,7 +24,7 @@ ANCHOR_STARS = 7
 
 
 #: Fallback matcher, second round at a known scale for frames the first did not identify (faint fields where
-#: noise outranks some stars): deeper, and about 5 x slower.
+#: noise outranks some stars): deeper, and slower (docs/realsky.md, "Figures behind the speed choices").
 DEEP_MATCH_STARS = 40
 
 

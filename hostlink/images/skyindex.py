@@ -30,8 +30,9 @@ class _Sky:
 
 
 def catalogue_directions(catalogue: Catalogue) -> np.ndarray:
-    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only): ~35 ms of
-    ``erfa.pmsafe`` for the whole catalogue, so a caller that asks more than once holds a :class:`SkyIndex`."""
+    """The J2000 unit vectors (S, 3) of ``catalogue``'s stars (``stars_at_j2000``, read-only): ``erfa.pmsafe`` over
+    the whole catalogue, costly enough (docs/realsky.md, "Figures behind the speed choices") that a caller that asks
+    more than once holds a :class:`SkyIndex`."""
     from hostlink.sky.apparent import stars_at_j2000
 
     stars = stars_at_j2000(catalogue)
@@ -111,9 +112,10 @@ def sky_columns(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _dot_rows(columns: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """r[i] . r[j] row by row from the columns of r (:func:`sky_columns`), x + y + z summed axis by axis (no (M, 3)
-    gathers: 15 times faster for 5 million pairs), (x + y) + z as a sum over the 3 components of each row adds them:
-    the same angles for :func:`pair_catalogue`; another summation order would differ in the last bit, which
-    :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its bounds are twice the hit chord from any hit)."""
+    gathers, which cost many times more: docs/realsky.md, "Figures behind the speed choices"), (x + y) + z as a sum
+    over the 3 components of each row adds them: the same angles for :func:`pair_catalogue`; another summation
+    order would differ in the last bit, which :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its
+    bounds are twice the hit chord from any hit)."""
     x, y, z = columns
     return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
 
@@ -131,7 +133,8 @@ def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalo
     pairs = tree.query_pairs(chord, output_type="ndarray")
     a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
     columns = sky_columns(sky.r)
-    # without the (P, 3) gathers: 0.2 s instead of 1.8 s for 13 million pairs
+    # without the (P, 3) gathers, the build's costliest step otherwise (docs/realsky.md, "Figures behind the speed
+    # choices")
     angle = np.arccos(np.clip(_dot_rows(columns, a, b), -1.0, 1.0))
     # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
     order = _ties_by_stars(np.argsort(angle), angle, a, b)

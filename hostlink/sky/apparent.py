@@ -14,11 +14,11 @@ The chain, all in pyerfa (IAU 2006/2000A):
 Times: the frame's UTC is converted to TT (``hostlink.files.times.utc_to_tt``) and used where ERFA asks for TDB;
 TDB - TT is below 2 ms, whose effect on aberration is below 1e-9 arcsec. UT1 does not enter a geocentric apparent place.
 
-Per epoch, not per star: ``apci13`` evaluates the whole IAU 2000A nutation series (about 0.1 ms a call) and
-``pmsafe``/``atciq`` cost ~1 us a star, so a session of 10^5 frames of 20 stars would spend minutes on them row by
-row. :func:`apparent_directions` therefore computes each distinct star's place exactly at nodes
-:data:`APPARENT_NODE_SPACING_S` apart (one ``apci13`` per node, one ``atciq`` per star and node) and interpolates
-linearly in time between the two nodes around each row's time, then renormalises. The error of linear
+Per epoch, not per star: ``apci13`` evaluates the whole IAU 2000A nutation series and ``pmsafe``/``atciq`` are
+per star, so a session of 10^5 frames of 20 stars would spend minutes on them row by row (their costs:
+docs/api.md, "Per epoch, not per star"). :func:`apparent_directions` therefore computes each distinct star's place
+exactly at nodes :data:`APPARENT_NODE_SPACING_S` apart (one ``apci13`` per node, one ``atciq`` per star and node)
+and interpolates linearly in time between the two nodes around each row's time, then renormalises. The error of linear
 interpolation is at most h^2/8 max|d^2 r/dt^2| (h the spacing). The apparent place's fastest curvature comes from
 the short-period nutation terms (the 13.66-day term's 0.23" gives 0.049"/day^2, all terms with periods under a
 month together less than 0.1"/day^2) and from annual aberration (20.5" (2 pi/year)^2 = 0.006"/day^2); proper

@@ -2,9 +2,10 @@
 
 ``hip2.dat`` is whitespace separated, one star per line. Fields used (1-based): 1 HIP, 5 RArad and 6 DErad (ICRS,
 radians, epoch J1991.25), 7 Plx (mas), 8 pmRA (mas/yr, mu_alpha* = cos(dec) d(ra)/dt), 9 pmDE (mas/yr),
-20 Hpmag (Hipparcos magnitude). The text file is parsed once (about 2 s) and cached as a compressed ``.npz`` in the
-user cache directory (``$XDG_CACHE_HOME/startracker-companion`` or ``~/.cache/startracker-companion``), keyed by the
-catalogue file's size and modification time; a cached load takes ~0.1 s, once per process.
+20 Hpmag (Hipparcos magnitude). The text file is parsed once and cached as a compressed ``.npz`` in the user cache
+directory (``$XDG_CACHE_HOME/startracker-companion`` or ``~/.cache/startracker-companion``), keyed by the
+catalogue file's size and modification time; a cached load, much faster, once per process (both times: docs/api.md,
+"Per epoch, not per star").
 """
 
 from __future__ import annotations

@@ -163,7 +163,7 @@ def _levenberg_marquardt_batch(
         every = active.size == n  # every star still active (the first iterations): no copy of their rows
         ja, ra = (j, r) if every else (j[active], r[active])
         jt = np.swapaxes(ja, 1, 2)
-        normal = jt @ ja  # J^T J and J^T r per star: batched products (a 3-operand einsum is ~8 times slower)
+        normal = jt @ ja  # J^T J and J^T r per star: batched products (a 3-operand einsum is slower: docs/realsky.md)
         gradient = (jt @ ra[..., None])[..., 0]
         diag = np.einsum("nii->ni", normal)
         lhs = normal + damping[active, None, None] * diag[:, :, None] * eye

@@ -32,7 +32,7 @@ _FILTER_KERNEL = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], d
 
 #: SEP's buffer of pixels above the threshold: its default first, then this when a frame fills it (a noisy frame at a
 #: low threshold can hold many more). Only the buffer's size differs, not what is extracted: SEP either fills it and
-#: stops with an error or does not; the large one costs ~50 ms per 1.2 Mpx frame to set up (docs/realsky.md, "Time").
+#: stops with an error or does not; the large one is costly to set up for every frame (docs/realsky.md, "Time").
 _SEP_PIXSTACK_FIRST = 300_000
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.session import Session
+from hostlink.files.session import Session, pixel_sigma_text
 from hostlink.files.times import parse_iso_utc_many
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
@@ -136,10 +136,10 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
     flux, snr = cat("flux"), cat("snr")
     extra = {
         "flux_adu": np.array([format(v, ".1f") for v in flux.tolist()], dtype=object),
-        "sigma_px": _formatted(cat("sigma_px"), ".4g"),
+        "sigma_px": pixel_sigma_text(cat("sigma_px")),
         "saturated": np.array([str(int(v)) for v in cat("saturated").tolist()], dtype=object),
         "blended": np.array([str(int(v)) for v in cat("blended").tolist()], dtype=object),
-        "blend_px": _formatted(cat("blend_px"), ".4g"),
+        "blend_px": pixel_sigma_text(cat("blend_px")),
     }
     if any(det.candidates is not None for _, det, _ in frames):
         extra["snr"] = _formatted(snr, ".2f")
