@@ -110,6 +110,7 @@ if TYPE_CHECKING:
     )
     from hostlink.calibration.floorfit import NOISE_MODELS, noise_model_text
     from hostlink.calibration.holdout import CrossValidation, cross_validate
+    from hostlink.calibration.outcome import focal_hint
     from hostlink.calibration.plots import write_calibration_plots
     from hostlink.calibration.replay import (
         ReplayResult,
@@ -250,6 +251,7 @@ if TYPE_CHECKING:
 __all__ = [
     "estimated_session_rows",
     "DISTORTION_UNITS",
+    "focal_hint",
     "iterations_text",
     "json_text",
     "params_json",

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
+from hostlink.api import focal_hint
 from hostlink.cli import main
-from hostlink.commands.calibrate import _focal_hint
 
 BINNING = "a factor near 2: check the pixel pitch for binning"
 OTHER_CAMERA = "check that the nominal is this camera's"
@@ -28,7 +28,7 @@ OTHER_CAMERA = "check that the nominal is this camera's"
     ],
 )
 def test_the_hint_follows_the_factor(ratio, expected):
-    hint = _focal_hint(ratio)
+    hint = focal_hint(ratio)
     assert (expected in hint) if expected else hint == "", hint
 
 

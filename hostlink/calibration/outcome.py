@@ -290,3 +290,20 @@ def check_result(outcome: CalibrationOutcome, keep_failed: bool) -> None:
             validate_params(outcome.params)
         except ParameterError as exc:
             raise UserError(f"the calibrated parameters are not usable ({exc}); check the nominal file") from None
+
+
+#: A nominal's focal length is within 10-20 % of the lens's (design values, a stock lens); a pixel pitch that leaves
+#: out a 2 x 2 binning makes it 2 x (or 1/2 x) that, so a factor within this of 2 points to the pitch.
+BINNING_FACTOR_TOLERANCE = 1.25
+
+
+def focal_hint(ratio: float) -> str:
+    """What a focal length ``ratio`` x the nominal's found from the stars points to, as the text ``calibrate`` appends
+    to its line: a factor near 2 (within :data:`BINNING_FACTOR_TOLERANCE`) to a binning left out of the pixel pitch;
+    a larger one to a nominal that is not this camera's; a smaller one to nothing (nominals are that far off)."""
+    factor = abs(math.log(ratio))
+    if abs(factor - math.log(2.0)) <= math.log(BINNING_FACTOR_TOLERANCE):
+        return " (a factor near 2: check the pixel pitch for binning)"
+    if factor > math.log(2.0):
+        return " (check that the nominal is this camera's: focal length, pixel pitch, image size)"
+    return ""

@@ -11,9 +11,6 @@ from hostlink.commands.siteopts import add_site_arguments, site_and_weather
 #: Sessions of more stars than this print one line per iteration of the fit (it then takes seconds to minutes);
 #: smaller ones only the report.
 ITERATION_LINES_ABOVE_STARS = 200_000
-#: A nominal's focal length is within 10-20 % of the lens's (design values, a stock lens); a pixel pitch that leaves
-#: out a 2 x 2 binning makes it 2 x (or 1/2 x) that, so a factor within this of 2 points to the pitch.
-BINNING_FACTOR_TOLERANCE = 1.25
 
 HELP = "batch ground calibration of a session (default: bundle adjustment, the most accurate method)"
 DESCRIPTION = (
@@ -348,22 +345,8 @@ def _noise_line(outcome, noise_model: str = "auto") -> str:
     return f"noise: {outcome.sigma_estimated_px:.4f} px estimated, {outcome.sigma_px:.4f} px used for sigma"
 
 
-def _focal_hint(ratio: float) -> str:
-    """What a focal length ``ratio`` x the nominal's found from the stars points to: a factor near 2 (within
-    :data:`BINNING_FACTOR_TOLERANCE`) to a binning left out of the pixel pitch; a larger one to a nominal that is
-    not this camera's; a smaller one to nothing (nominals are that far off)."""
-    import math
-
-    factor = abs(math.log(ratio))
-    if abs(factor - math.log(2.0)) <= math.log(BINNING_FACTOR_TOLERANCE):
-        return " (a factor near 2: check the pixel pitch for binning)"
-    if factor > math.log(2.0):
-        return " (check that the nominal is this camera's: focal length, pixel pitch, image size)"
-    return ""
-
-
 def _print_report(outcome, out_path: str, time_note: str | None = None, noise_model: str = "auto") -> None:
-    from hostlink.api import DISTORTION_NAMES, DISTORTION_UNITS, iterations_text
+    from hostlink.api import DISTORTION_NAMES, DISTORTION_UNITS, focal_hint, iterations_text
 
     sig = outcome.sigma()
     p = outcome.params
@@ -394,7 +377,7 @@ def _print_report(outcome, out_path: str, time_note: str | None = None, noise_mo
         lines_after.insert(
             0,
             f"focal length from the stars: {pre['start_focal_length_mm']:.6g} mm, where the fit started (the nominal "
-            f"{pre['nominal_focal_length_mm']:.6g} mm is off by {100 * (1 / ratio - 1):+.1f} %){_focal_hint(ratio)}",
+            f"{pre['nominal_focal_length_mm']:.6g} mm is off by {100 * (1 / ratio - 1):+.1f} %){focal_hint(ratio)}",
         )
     lines_after += [f"held at nominal: {h['parameter']} ({h['reason']})" for h in outcome.held]
     if time_note:
