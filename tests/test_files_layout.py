@@ -13,7 +13,7 @@ import hostlink.files.session as session
 
 ROOM = Path(files.__file__).parent
 
-#: The public names of ``hostlink/files/session.py`` when it was one module (820 lines), which callers import.
+#: The public names of ``hostlink.files.session`` when it was one module (820 lines), which callers import.
 NAMES_BEFORE_THE_SPLIT = (
     "CSV_BLOCK_BYTES DEFAULT_CHUNK_FRAMES DETECTOR_MARGIN_PX MAY_BE_ABSENT OPTIONAL_COLUMNS PIXEL_SIGMA_FORMAT "
     "REQUIRED_COLUMNS Session SessionSource SessionWriter cell_numbers check_on_detector concatenate_sessions "
