@@ -1,7 +1,8 @@
 """What the rounds of hostlink.images.identify.identify_iteratively share (PairCache) gives the same answers as
-building everything again: the own matcher's pair table cut from a wider and deeper one is the table a fresh build
-gives (pair for pair, in the same order), pairs of exactly equal angle are ordered by their stars, and the guided
-admission reuses the rounds' last calibration only where it is the calibration it would run."""
+building everything again: the own matcher's pair table cut from a wider and deeper one, or from the cut held when
+asked again as deep over no wider an angle, is the table a fresh build gives (pair for pair, in the same order),
+pairs of exactly equal angle are ordered by their stars, and the guided admission reuses the rounds' last
+calibration only where it is the calibration it would run."""
 
 import math
 
@@ -70,6 +71,18 @@ def test_a_slightly_deeper_request_is_cut_from_the_held_table(sky):
     got = cache.pairs(sky, ANGLE_RAD, depth)
     assert cache._table is held
     _assert_same_table(got, pair_catalogue(sky, ANGLE_RAD, depth))
+
+
+@pytest.mark.parametrize("depth_delta", [0.0, -0.4], ids=["first-depth", "shallower"])
+def test_a_narrower_request_at_the_same_depth_is_the_held_cuts_leading_part(sky, depth_delta):
+    # a later round asks as deep over a hair narrower an angle (its calibrated focal length is a little longer)
+    cache = PairCache()
+    depth = DEPTH_MAG + depth_delta
+    wide = cache.pairs(sky, ANGLE_RAD, depth)
+    narrow = cache.pairs(sky, ANGLE_RAD * 0.999, depth)
+    assert narrow.tree is wide.tree  # not cut again from the table
+    _assert_same_table(narrow, pair_catalogue(sky, ANGLE_RAD * 0.999, depth))
+    _assert_same_table(cache.pairs(sky, ANGLE_RAD, depth), wide)  # the held cut kept, not the narrower one
 
 
 def test_pairs_of_equal_angle_are_ordered_by_their_stars():

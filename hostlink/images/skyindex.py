@@ -184,13 +184,16 @@ PAIR_CACHE_MAG_MARGIN = 0.05
 class PairCache:
     """What the rounds of one :func:`identify_iteratively` share and do not change: the catalogue as unit vectors
     and their tree (:class:`SkyIndex`), the own matcher's pair table (:func:`pair_catalogue`, built once a little
-    wider than asked and cut to each round's angle and depth: the same table a fresh build gives) and the engine's
-    pattern database."""
+    wider than asked and cut to each round's angle and depth: the same table a fresh build gives; the last cut held,
+    a round asking for the same depth over no wider an angle gets its leading part) and the engine's pattern
+    database."""
 
     def __init__(self) -> None:
         self._indexes: dict[int, tuple[Catalogue, SkyIndex]] = {}
         self._table: PairCatalogue | None = None
         self._table_maglim = -math.inf
+        #: the last cut and what it was cut from and to: (the table, the sky's magnitudes, the depth, the cut)
+        self._cut: tuple[PairCatalogue, np.ndarray, float, PairCatalogue] | None = None
         self._databases: dict[tuple, tuple[Catalogue, object]] = {}
         self._subsets: dict[tuple, tuple[Catalogue, Catalogue]] = {}
 
@@ -235,7 +238,20 @@ class PairCache:
             deep = max(deep, self._table_maglim) if table is not None and table.r is sky.r else deep
             table = pair_catalogue(sky, wide, deep)
             self._table, self._table_maglim = table, deep
-        return _cut(table, sky, max_angle_rad, maglim, self._table_maglim)
+        held = self._cut
+        same_depth = held is not None and held[0] is table and held[1] is sky.mag and held[2] == maglim
+        if same_depth and max_angle_rad <= held[3].max_angle_rad:
+            return _narrower(held[3], max_angle_rad)
+        cut = _cut(table, sky, max_angle_rad, maglim, self._table_maglim)
+        self._cut = (table, sky.mag, maglim, cut)
+        return cut
+
+
+def _narrower(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
+    """The pairs of ``pairs`` within ``max_angle_rad`` (no wider than its own): its leading part, as it is in
+    (angle, a, b) order, with the same stars taking part (the same table :func:`_cut` gives)."""
+    n = int(np.searchsorted(pairs.angle_rad, max_angle_rad, side="right"))
+    return replace(pairs, a=pairs.a[:n], b=pairs.b[:n], angle_rad=pairs.angle_rad[:n], max_angle_rad=max_angle_rad)
 
 
 def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
@@ -248,8 +264,8 @@ def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, t
     rows, tree = table.rows, table.tree
     if maglim < table_maglim:
         bright = sky.mag <= maglim
-        keep = bright[a] & bright[b]
-        a, b, angle = a[keep], b[keep], angle[keep]
+        keep = np.flatnonzero(bright[a] & bright[b])  # the indices once, then three takes (not three masks)
+        a, b, angle = a.take(keep), b.take(keep), angle.take(keep)
         rows = np.flatnonzero(bright)
         tree = cKDTree(sky.r[rows])
     return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns)
