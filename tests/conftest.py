@@ -21,3 +21,23 @@ def replay_file(tmp_path_factory):
     sim = simulate(SimConfig(camera=seed004_camera(), frames=50, noise_px=0.01, seed=11, false_star_fraction=0.1))
     write_session(path, sim.session)
     return path
+
+
+@pytest.fixture
+def recorded_progress(monkeypatch):
+    """The progress bars a command opens, recorded instead of drawn: a list of (what, total, enabled, the advances
+    made), one entry per bar (``hostlink.api.progress_bar`` replaced for the test)."""
+    import contextlib
+
+    import hostlink.api
+
+    shown: list[tuple[str, int | None, bool, list[int]]] = []
+
+    @contextlib.contextmanager
+    def recording_bar(what, total, enabled=True):
+        advanced: list[int] = []
+        shown.append((what, total, enabled, advanced))
+        yield advanced.append
+
+    monkeypatch.setattr(hostlink.api, "progress_bar", recording_bar)
+    return shown

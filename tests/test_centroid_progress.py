@@ -2,12 +2,9 @@
 done, and the command passes that to the progress bar with the number of images as its total (the bar itself,
 ``hostlink.progress``, is silent when stderr is no terminal)."""
 
-import contextlib
-
 import numpy as np
 from PIL import Image
 
-import hostlink.api
 from hostlink.api import centroid_images
 from hostlink.cli import main
 from hostlink.images.centroid.options import TimeOptions
@@ -32,16 +29,8 @@ def test_centroid_images_reports_each_image_done(tmp_path):
     assert done == [1, 2, 3] and len(result.frames) == 3
 
 
-def test_the_command_drives_a_progress_bar_over_the_images(tmp_path, monkeypatch):
-    shown: list[tuple[str, int | None, bool, list[int]]] = []
-
-    @contextlib.contextmanager
-    def recording_bar(what, total, enabled=True):
-        advanced: list[int] = []
-        shown.append((what, total, enabled, advanced))
-        yield advanced.append
-
-    monkeypatch.setattr(hostlink.api, "progress_bar", recording_bar)
+def test_the_command_drives_a_progress_bar_over_the_images(tmp_path, recorded_progress):
+    shown = recorded_progress
     paths = _frames(tmp_path, 3)
     assert main(["centroid", *paths, "--time-unknown", "--out", str(tmp_path / "s.csv")]) == 0
     assert shown == [("centroiding images", 3, True, [1, 2, 3])]

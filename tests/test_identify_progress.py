@@ -3,31 +3,21 @@ printed nothing until the end): the command passes :func:`hostlink.api.identify_
 ``progress`` to the progress bar, the session's frames its total (the bar, ``hostlink.progress``, is silent when
 stderr is no terminal)."""
 
-import contextlib
 from dataclasses import replace
 
 import numpy as np
 
-import hostlink.api
 from hostlink.cli import main
 from hostlink.files.session import write_session
 from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
 
 
-def test_the_command_drives_a_progress_bar_over_the_frames(tmp_path, monkeypatch):
+def test_the_command_drives_a_progress_bar_over_the_frames(tmp_path, recorded_progress):
     sim = simulate(SimConfig(camera=seed004_camera(), frames=3, noise_px=0.05, min_stars=10, maglim=6.5, seed=2))
     blind = replace(sim.session, star_id=np.zeros_like(sim.session.star_id), ra_deg=None, dec_deg=None)
     path = tmp_path / "blind.csv"
     write_session(path, blind)
-    shown: list[tuple[str, int | None, bool, list[int]]] = []
-
-    @contextlib.contextmanager
-    def recording_bar(what, total, enabled=True):
-        advanced: list[int] = []
-        shown.append((what, total, enabled, advanced))
-        yield advanced.append
-
-    monkeypatch.setattr(hostlink.api, "progress_bar", recording_bar)
+    shown = recorded_progress
     out = tmp_path / "out.csv"
     assert (
         main(["identify", str(path), "--nominal", "builtin:seed004_nominal", "--out", str(out), "--rounds", "1"]) == 0
