@@ -331,12 +331,15 @@ def prepare_cache(
 ) -> PairCache:
     """A :class:`PairCache` holding what identifying sessions of the camera ``nominal`` builds from the catalogue
     alone, built now rather than in the first call: the catalogue's index, the engine's pattern database at the
-    nominal field and the own matcher's pair table as wide and as deep as identification can ask for this camera
-    (:func:`fallback_angle_rad`; the field's depth plus :data:`FALLBACK_MAG_MARGIN`). Pass it as ``cache`` to
-    ``identify_session`` or ``identify_iteratively`` (:mod:`hostlink.images.identify`; the same results: a table cut
-    from a larger one is the table built for the cut): for a user identifying many sessions of one camera, and for
-    timing identification apart from its database, as a plate solver's database is built beforehand. ``catalogue``,
-    ``maglim``, ``use_engine``: as those calls will be given them."""
+    nominal field and the own matcher's pair table as wide as identification can ask for this camera
+    (:func:`fallback_angle_rad`) and as deep as it asks when the engine identified no frame (the field's depth,
+    :func:`fallback_depth_mag`; a session whose engine-identified stars ask for up to :data:`FALLBACK_MAG_MARGIN`
+    more has it built again: the deepest table at once would cost far more memory, docs/realsky.md "Where the speed
+    stands"). Pass it as ``cache`` to ``identify_session`` or ``identify_iteratively``
+    (:mod:`hostlink.images.identify`; the same results: a table cut from a larger one is the table built for the
+    cut): for a user identifying many sessions of one camera, and for timing identification apart from its
+    database, as a plate solver's database is built beforehand. ``catalogue``, ``maglim``, ``use_engine``: as those
+    calls will be given them."""
     if catalogue is None:
         from hostlink.sky.catalogue import load_catalogue
 
@@ -349,6 +352,6 @@ def prepare_cache(
     if use_engine and solver_adapter.engine_available():
         fov = solver_adapter.horizontal_fov_deg(nominal.focal_length_px, nominal.image_size_px[0])
         cache.database(catalogue, fov, maglim)
-    depth = fallback_depth_mag(sky.mag, _field_sr(nominal)) + FALLBACK_MAG_MARGIN
+    depth = fallback_depth_mag(sky.mag, _field_sr(nominal))
     cache.pairs(sky, fallback_angle_rad(nominal), depth)
     return cache
