@@ -167,13 +167,13 @@ def _filtered_stars(sigma_px: float) -> np.ndarray:
 
     half = _FILTER_KERNEL.shape[0] // 2 + math.ceil(3.0 * sigma_px) + 1
     offsets = np.arange(-half, half + 1, dtype=np.float64)
-    k = _FILTER_KERNEL.astype(np.float64)
+    k = _FILTER_KERNEL.astype(np.float64) / float(_FILTER_KERNEL.sum())  # unit sum, as kernel_norm's
     rows = []
     for dy in _PHASES_PX:
         py = pixel_integrated_gaussian(offsets, dy, sigma_px)
         for dx in _PHASES_PX:
             star = np.outer(py, pixel_integrated_gaussian(offsets, dx, sigma_px))
-            rows.append(ndimage.correlate(star, k, mode="constant").ravel() / math.sqrt(float(np.sum(k * k))))
+            rows.append(ndimage.correlate(star, k, mode="constant").ravel() / _FILTERED_NOISE_PER_PX)
     return np.array(rows)
 
 
