@@ -192,8 +192,10 @@ def _clipped_box_noise(
     detection). ``fine_medians``: the medians of the fine boxes of ``fine_px`` (the offset the stars stand above).
 
     The boxes are laid out once (:func:`_boxes`); a pass takes the percentiles of the pixels left in each
-    (:func:`_masked_box_percentiles`: the same numbers as :func:`_box_percentiles`); the passes work on the image
-    padded to whole boxes (the padding masked)."""
+    (:func:`_masked_box_percentiles`: the same numbers as :func:`_box_percentiles`, sorting again only the boxes
+    whose pixels left changed since the pass before); the passes work on the image padded to whole boxes (the
+    padding masked). Each pass labels the whole frame again: its thresholds change in most boxes, and a region's
+    membership depends on the threshold of every box it crosses (docs/realsky.md, "The noise map's passes")."""
     boxes = _boxes(filtered, mask, box_px)
     h, w = filtered.shape
     masked = np.ones(boxes.padded_shape, dtype=bool)
