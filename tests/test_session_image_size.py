@@ -7,6 +7,8 @@ before."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -33,6 +35,18 @@ def _with_size(session, width: int, height: int):
     n = len(session)
     sizes = {"image_width_px": np.full(n, str(width), object), "image_height_px": np.full(n, str(height), object)}
     return replace(session, extra={**session.extra, **sizes})
+
+
+#: Seconds an emulated sensor is given to refuse the session: it does so before serving, in about a second; a sensor
+#: that accepted it would serve until stopped, and the test then fails instead of waiting for ever.
+REFUSAL_WAIT_S = 120
+
+
+def _hostlink(argv: list[str]) -> subprocess.CompletedProcess:
+    code = "import sys; from hostlink.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, check=False, timeout=REFUSAL_WAIT_S
+    )
 
 
 def _one_line(capsys) -> str:
@@ -97,13 +111,14 @@ def test_identify_keeps_the_image_size_and_calibrate_then_refuses_a_wider_nomina
 
 
 #: Every command that takes a session and a nominal: calibrate chunk by chunk (its default) and read whole
-#: (--rejected), identify, replay, attitude.
+#: (--rejected), identify, replay, attitude, and the emulated sensor replaying the session (which writes nothing).
 COMMANDS = {
-    "calibrate": ["calibrate", "new.csv", "--nominal"],
-    "calibrate --rejected": ["calibrate", "new.csv", "--rejected", "OUT.rejected.csv", "--nominal"],
-    "identify": ["identify", "blind.csv", "--nominal"],
-    "replay": ["replay", "new.csv", "--nominal"],
-    "attitude": ["attitude", "new.csv", "--params"],
+    "calibrate": ["calibrate", "new.csv", "--out", "OUT", "--nominal"],
+    "calibrate --rejected": ["calibrate", "new.csv", "--rejected", "OUT.rejected.csv", "--out", "OUT", "--nominal"],
+    "identify": ["identify", "blind.csv", "--out", "OUT", "--nominal"],
+    "replay": ["replay", "new.csv", "--out", "OUT", "--nominal"],
+    "attitude": ["attitude", "new.csv", "--out", "OUT", "--params"],
+    "emulate --replay": ["emulate", "--transport", "serial", "--replay", "new.csv", "--nominal"],
 }
 
 
@@ -114,8 +129,13 @@ def test_a_nominal_of_another_detector_size_is_refused_in_one_line(files, tmp_pa
         a.replace("OUT", str(out)) if "OUT" in a else (str(files / a) if a.endswith(".csv") else a)
         for a in COMMANDS[command]
     ]
-    code = main([*argv, str(files / "wider.json"), "--out", str(out)])
-    err = _one_line(capsys)
+    if argv[0] == "emulate":  # its own process: a sensor that accepted the session would serve until stopped
+        done = _hostlink([*argv, str(files / "wider.json")])
+        code, err = done.returncode, done.stderr
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    else:
+        code = main([*argv, str(files / "wider.json")])
+        err = _one_line(capsys)
     assert code == 2
     assert "its images are 1024 x 1024 px (frame 0) but the detector of" in err and "is 1280 x 1024 px" in err
     assert "the parameter file does not describe this camera" in err
