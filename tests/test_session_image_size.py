@@ -19,8 +19,16 @@ from hypothesis import strategies as st
 from hostlink.cli import main
 from hostlink.errors import UserError
 from hostlink.files.params import load_params
-from hostlink.files.session import Session, check_on_detector, concatenate_sessions, read_session, write_session
-from hostlink.files.session.data import IMAGE_SIZE_COLUMNS, image_size_mismatch, image_sizes_px
+from hostlink.files.session import (
+    IMAGE_SIZE_COLUMNS,
+    Session,
+    check_on_detector,
+    concatenate_sessions,
+    image_size_mismatch,
+    image_sizes_px,
+    read_session,
+    write_session,
+)
 from hostlink.sky.render import RenderConfig, render_stars
 from hostlink.sky.simulate import seed004_config, simulate
 from onboard.params import params_to_dict

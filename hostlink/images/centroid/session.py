@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.session import Session, pixel_sigma_text
-from hostlink.files.session.data import IMAGE_SIZE_COLUMNS
+from hostlink.files.session import IMAGE_SIZE_COLUMNS, Session, pixel_sigma_text
 from hostlink.files.times import parse_iso_utc_many
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
