@@ -126,7 +126,7 @@ MAX_BINNING = 16
 
 def image_sizes_px(session: Session) -> np.ndarray | None:
     """(N, 2) int64: each row's image width and height [px] from :data:`IMAGE_SIZE_COLUMNS` (0 where a cell is empty
-    or not a whole number); None when the session has neither column."""
+    or not a whole number); None unless the session has both columns (the reader refuses one without the other)."""
     if not all(name in session.extra for name in IMAGE_SIZE_COLUMNS):
         return None
     return np.stack([_whole_cells(session.extra[name]) for name in IMAGE_SIZE_COLUMNS], axis=1)
