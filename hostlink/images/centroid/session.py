@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.session import Session, pixel_sigma_text
+from hostlink.files.session import IMAGE_SIZE_COLUMNS, Session, pixel_sigma_text
 from hostlink.files.times import parse_iso_utc_many
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
@@ -32,7 +32,8 @@ def centroid_images(
 ) -> CentroidResult:
     """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
     the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
-    (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
+    (file name), ``image_width_px`` and ``image_height_px`` (its size, which identify and calibrate check the nominal
+    against) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
     frame or an image of another size than the first, an image given twice, no star in any image) is a one-line
     :class:`UserError`.
     ``progress(done)`` is called after each image with the number of images done."""
@@ -49,7 +50,7 @@ def centroid_images(
     listed = _read_times_file(Path(times.times_file)) if times.times_file is not None else None
     background = _background_frame(paths, options)
 
-    frames: list[tuple[str, Detections, str]] = []
+    frames: list[tuple[str, Detections, str, tuple[int, int]]] = []
     blank = 0  # images whose every pixel has one value (a lens cap, no exposure, a failed readout)
     first_size_px: tuple[int, int] | None = None
     for done, path in enumerate(paths, start=1):
@@ -61,19 +62,19 @@ def centroid_images(
         det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
         det.report.path = str(path)
         det.report.time_utc, det.report.time_source = time_utc, source
-        frames.append((time_utc, det, source))
+        frames.append((time_utc, det, source, image.image_size_px))
         if progress is not None:
             progress(done)
     if options.median_of_inputs:
-        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
-    if all(det.report.kept == 0 for _, det, _ in frames):
+        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, *_ in frames])
+    if all(det.report.kept == 0 for _, det, *_ in frames):
         if blank == len(paths):
             raise UserError(f"no star found: every pixel of each of the {len(paths)} image(s) has one value (blank)")
         raise UserError(f"no star found in any of the {len(paths)} image(s); lower --threshold-sigma")
     if times.time_unknown:
         order = list(range(len(frames)))
     else:
-        jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
+        jd1, jd2 = parse_iso_utc_many([t for t, *_ in frames])
         order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
     return _session([frames[k] for k in order])
 
@@ -119,10 +120,10 @@ def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, k
         )
 
 
-def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
-    """The session of the frames: per frame its stars (brightest first), then its candidates (most significant first;
-    ``snr`` set only on them)."""
-    parts = [_frame_rows(det) for _, det, _ in frames]
+def _session(frames: list[tuple[str, Detections, str, tuple[int, int]]]) -> CentroidResult:
+    """The session of the frames (time, detections, time source, image (width, height) [px]): per frame its stars
+    (brightest first), then its candidates (most significant first; ``snr`` set only on them)."""
+    parts = [_frame_rows(det) for _, det, *_ in frames]
     counts = [part["x"].size for part in parts]
     n = int(sum(counts))
     frame_no = np.repeat(np.arange(len(frames), dtype=np.int64), counts)
@@ -141,20 +142,22 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
         "blended": np.array([str(int(v)) for v in cat("blended").tolist()], dtype=object),
         "blend_px": pixel_sigma_text(cat("blend_px")),
     }
-    if any(det.candidates is not None for _, det, _ in frames):
+    if any(det.candidates is not None for _, det, *_ in frames):
         extra["snr"] = _formatted(snr, ".2f")
-    extra["image"] = repeat([Path(det.report.path).name for _, det, _ in frames])
-    extra["time_source"] = repeat([source for _, _, source in frames])
+    extra["image"] = repeat([Path(det.report.path).name for _, det, *_ in frames])
+    for axis, name in enumerate(IMAGE_SIZE_COLUMNS):
+        extra[name] = repeat([str(size_px[axis]) for *_, size_px in frames])
+    extra["time_source"] = repeat([source for _, _, source, _ in frames])
     session = Session(
         frame=frame_no,
-        t_utc=repeat([t for t, _, _ in frames]),
+        t_utc=repeat([t for t, *_ in frames]),
         star_id=np.zeros(n, np.int64),
         x_px=cat("x"),
         y_px=cat("y"),
         mag=cat("mag"),
         extra=extra,
     )
-    return CentroidResult(session, [det.report for _, det, _ in frames])
+    return CentroidResult(session, [det.report for _, det, *_ in frames])
 
 
 def _formatted(values: np.ndarray, spec: str) -> np.ndarray:
