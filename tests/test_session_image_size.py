@@ -146,7 +146,7 @@ def test_a_nominal_of_another_detector_size_is_refused_in_one_line(files, tmp_pa
         err = _one_line(capsys)
     assert code == 2
     assert "its images are 1024 x 1024 px (frame 0) but the detector of" in err and "is 1280 x 1024 px" in err
-    assert "the parameter file does not describe this camera" in err
+    assert "a window (crop) of the detector?" in err  # 1024 x 1024 fits inside 1280 x 1024
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
@@ -164,7 +164,7 @@ def test_a_session_without_the_image_size_calibrates_as_before(files, tmp_path):
     assert new["residuals"] == old["residuals"]
 
 
-def test_the_refusal_names_a_turned_or_binned_image():
+def test_the_refusal_names_a_turned_binned_or_windowed_image():
     """A 90-deg turned image swaps width and height, k x k binning divides each side (rounding down, as
     scripts/newcamera.py's bin2 form keeps whole pixel pairs); the hint gives the nominal that fits (the principal
     point as newcamera.form_nominal moves it: (x0 - 0.5) / 2 for 2 x 2)."""
@@ -174,8 +174,11 @@ def test_the_refusal_names_a_turned_or_binned_image():
     assert "binned 2 x 2?" in binned and "pixel_pitch_um x 2" in binned and "(x0 - 0.5) / 2" in binned
     assert "binned 3 x 3?" in image_size_mismatch((426, 320), (1280, 960))
     assert "(y0 - 1) / 3" in image_size_mismatch((426, 320), (1280, 960))
-    for other in [(1000, 900), (640, 481), (2560, 1920), (1024, 1024)]:
+    for other in [(2560, 1920), (1024, 1024), (1300, 900)]:  # larger on a side: not from this detector
         assert image_size_mismatch(other, (1280, 960)) == "; the parameter file does not describe this camera"
+    for window in [(1000, 900), (640, 481), (1280, 959)]:  # smaller, neither turned nor binned: a readout window
+        hint = image_size_mismatch(window, (1280, 960))
+        assert "a window (crop) of the detector?" in hint and f"image_size_px [{window[0]}, {window[1]}]" in hint
 
 
 def test_binned_images_match_the_binned_nominal_and_not_the_full_one(tmp_path, capsys):

@@ -159,7 +159,8 @@ def image_size_mismatch(images_px: tuple[int, int], detector_px: tuple[int, int]
     """What images of ``images_px`` (width, height) [px] measured against a detector of ``detector_px`` look like, as
     the end of a one-line error: the detector turned 90 deg (width and height swapped), binned k x k (each side the
     detector's // k: the nominal of the binned camera has image_size_px the binned size, pixel_pitch_um x k and the
-    principal point (x0 - (k - 1) / 2) / k, as scripts/newcamera.py writes it), or another camera."""
+    principal point (x0 - (k - 1) / 2) / k, as scripts/newcamera.py writes it), a window of it (smaller on both sides:
+    the principal point less the window's origin), or another camera."""
     (w, h), (width, height) = images_px, detector_px
     if (w, h) == (height, width):
         return (
@@ -171,6 +172,11 @@ def image_size_mismatch(images_px: tuple[int, int], detector_px: tuple[int, int]
         return (
             f"; binned {k} x {k}? give a nominal for the binned pixels (image_size_px [{w}, {h}], "
             f"pixel_pitch_um x {k}, principal point (x0 - {(k - 1) / 2:g}) / {k}, (y0 - {(k - 1) / 2:g}) / {k})"
+        )
+    if w <= width and h <= height:
+        return (
+            f"; a window (crop) of the detector? give a nominal for the window (image_size_px [{w}, {h}], the "
+            "principal point less the window's first column and row), or the parameter file of this camera"
         )
     return "; the parameter file does not describe this camera"
 
