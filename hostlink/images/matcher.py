@@ -59,15 +59,20 @@ MIN_HITS = 3
 SCAN_SCALES = tuple(sorted((float(s) for s in np.round(np.arange(0.90, 1.1001, 0.004), 3)), key=lambda s: abs(s - 1)))
 
 
-def _triad_inverse(b1, b2, r1, r2) -> np.ndarray:
-    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r."""
+def _triad_frame(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the TRIAD frames (Black 1964) of the vector pairs: columns t1 = v1, t2 = v1 x v2 / |v1 x v2|,
+    t3 = t1 x t2."""
+    t2 = np.cross(v1, v2)
+    t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
+    return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)
 
-    def frame(v1, v2):
-        t2 = np.cross(v1, v2)
-        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
-        return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)  # columns t1, t2, t3
 
-    return frame(r1, r2) @ np.swapaxes(frame(b1, b2), -1, -2)
+def _triad_inverse(b1, b2, r1, r2, r_frame: np.ndarray | None = None) -> np.ndarray:
+    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r.
+    ``r_frame``: :func:`_triad_frame` of (r1, r2) when already computed (it serves both parities of b)."""
+    if r_frame is None:
+        r_frame = _triad_frame(r1, r2)
+    return r_frame @ np.swapaxes(_triad_frame(b1, b2), -1, -2)
 
 
 @dataclass(frozen=True)
@@ -234,9 +239,10 @@ def anchor_candidates(
             first, second, may_hit, near = _pyramid_prefilter(pairs, first, second, windows_of_thirds)
             if first.size == 0:
                 continue
+        r_frame = _triad_frame(pairs.r[first], pairs.r[second])  # the catalogue's side, for both parities
         for mirrored in (False, True):
             found = _best_hypothesis(
-                b, (i, j), first, second, thirds, may_hit, tree, tree_rows, hit_chord, pairs.r, mirrored, near
+                b, (i, j), first, second, thirds, may_hit, tree, tree_rows, hit_chord, pairs.r, mirrored, near, r_frame
             )
             if found is not None:
                 yield found[0], found[1], mirrored
@@ -281,6 +287,7 @@ def _best_hypothesis(
     r: np.ndarray,
     mirrored: bool,
     near: list[tuple[np.ndarray, np.ndarray] | None] | None = None,
+    r_frame: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """:func:`anchor_candidates` for one anchor pair (rows ``anchors`` of ``b``) against its catalogue pairs
     (``first``, ``second``: sky indices; ``r`` the sky's unit vectors) at one parity: the TRIAD hypotheses that put a
@@ -289,12 +296,14 @@ def _best_hypothesis(
     or None. ``near``: per third star, the (hypothesis, catalogue star) pairs of :func:`_pyramid_candidates`, every
     star that can be within the hit chord of its prediction: their distances decide, as the tree's query would
     (within the chord: closer than it, the squared distance summed over x, y, z), instead of the tree (None: the
-    tree decides)."""
+    tree decides). ``r_frame``: the catalogue side of the TRIAD attitudes (:func:`_triad_frame` of the pairs), the
+    same at both parities."""
     i, j = anchors
     k = b.shape[0]
     others = np.array([m for m in range(k) if m not in (i, j)])
     bm = b * np.array([-1.0, 1.0, 1.0]) if mirrored else b
-    c_t = _triad_inverse(bm[i][None], bm[j][None], r[first], r[second])
+    r_frame = r_frame if r_frame is not None else _triad_frame(r[first], r[second])
+    c_t = _triad_inverse(bm[i][None], bm[j][None], r[first], r[second], r_frame)
     # pyramid pruning: a hypothesis must first put one more anchor star on a catalogue star
     alive = np.zeros(first.size, dtype=bool)
     for m, may, pair in zip(thirds, may_hit, near or [None] * len(thirds), strict=True):
