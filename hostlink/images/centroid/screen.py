@@ -96,7 +96,10 @@ def _extract(
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
         raise _extraction_failed(exc) from None
-    significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
+    # filtered / (rms x norm), the divisor's array reused for the quotient: a second frame-sized array at once made
+    # the allocator map fresh pages (3.2 against 0.6 ms for 1.2 Mpx)
+    significance = np.multiply(rms, _FILTERED_NOISE_PER_PX)
+    np.divide(filtered, significance, out=significance)
     # the PSF measured outside the guard: a failure of ours there is not SEP's, nor cured by a higher threshold
     sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
     min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
@@ -302,8 +305,9 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
     for mask in (hot, rejected_saturated, blended):  # a clipped hot pixel is hot, not a saturated star
         mask &= keep
         keep &= ~mask
-    cleared = np.concatenate([[False], small & hot])[segmap]
-    return _Screen(keep, saturated, hot, blended, truncated, blend_px, np.where(cleared, 0, segmap))
+    if np.any(small & hot):
+        segmap = np.where(np.concatenate([[False], small & hot])[segmap], 0, segmap)
+    return _Screen(keep, saturated, hot, blended, truncated, blend_px, segmap)
 
 
 #: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
