@@ -184,7 +184,7 @@ def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
 #: ``--median-of-inputs`` keeps the images it read for the median, to centroid them without decoding them again, while
 #: their pixels take at most this many bytes (ten 1.4 Mpx frames: 116 MB; decoding one of those PNGs took 28 ms, a
 #: ninth of the openstartracker set's time to centroid: docs/realsky.md, "Speed").
-_KEEP_READ_BYTES = 512 * 2**20
+_KEEP_READ_BYTES = 256 * 2**20
 
 
 def _background_frame(paths: list[Path], options: CentroidOptions) -> tuple[np.ndarray | None, dict[Path, RawImage]]:
