@@ -193,11 +193,16 @@ def _levenberg_marquardt_batch(
 
 def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """x with lhs[k] x[k] = rhs[k] for each of the (n, 4, 4) systems, and which are singular (their x 0: a
-    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the singular ones are found
-    first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
-    ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
-    same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
-    ones stand alone (alone, that took a split per level for every singular system in the batch)."""
+    degenerate stamp, no fit). The whole batch is solved in one call (each system by the same LAPACK call as on its
+    own); numpy refuses it for one singular system, and then the singular ones are found, an exact zero pivot of the
+    LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which ``np.linalg.solve``'s gesv starts
+    and on which it fails), and the others solved in one call. Should solve still refuse them, the batch is split in
+    halves until the singular ones stand alone (alone, that took a split per level for every singular system in the
+    batch)."""
+    try:  # the common batch, none singular: no determinants first
+        return np.linalg.solve(lhs, rhs[..., None])[..., 0], np.zeros(lhs.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
     singular = np.linalg.slogdet(lhs)[0] == 0
     if singular.any():
         out = np.zeros_like(rhs)
