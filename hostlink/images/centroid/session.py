@@ -17,7 +17,7 @@ from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
 from hostlink.images.centroid.times import _read_times_file, _time_choices, image_time
 from hostlink.images.order_statistics import sorted_medians
-from hostlink.images.read import read_image
+from hostlink.images.read import RawImage, read_image
 
 #: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
 #: frame keeps): the images then share a pointing.
@@ -48,13 +48,13 @@ def centroid_images(
     if sum(s is not None for s in sources) > 1:
         raise UserError("give at most one of --dark, --median, --median-of-inputs")
     listed = _read_times_file(Path(times.times_file)) if times.times_file is not None else None
-    background = _background_frame(paths, options)
+    background, kept = _background_frame(paths, options)
 
     frames: list[tuple[str, Detections, str, tuple[int, int]]] = []
     blank = 0  # images whose every pixel has one value (a lens cap, no exposure, a failed readout)
     first_size_px: tuple[int, int] | None = None
     for done, path in enumerate(paths, start=1):
-        image = read_image(path)
+        image = kept.pop(path, None) or read_image(path)  # read once: for the median, then here
         first_size_px = first_size_px or image.image_size_px
         _check_same_size(path, image.image_size_px, paths[0], first_size_px)
         blank += int(image.pixels.size == 0 or float(np.ptp(image.pixels)) == 0.0)
@@ -184,17 +184,32 @@ def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
     }
 
 
-def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray | None:
+#: ``--median-of-inputs`` keeps the images it read for the median, to centroid them without decoding them again, while
+#: their pixels take at most this many bytes (ten 1.4 Mpx frames: 116 MB; decoding one of those PNGs took 28 ms, a
+#: ninth of the openstartracker set's time to centroid: docs/realsky.md, "Speed").
+_KEEP_READ_BYTES = 256 * 2**20
+
+
+def _background_frame(paths: list[Path], options: CentroidOptions) -> tuple[np.ndarray | None, dict[Path, RawImage]]:
+    """The frame to subtract from every image (a dark, a median, or the median of the inputs; None) and the input
+    images read for it that are kept to be centroided (within :data:`_KEEP_READ_BYTES`; the others are read
+    again)."""
     given = options.dark if options.dark is not None else options.median
     if given is not None:
-        return read_image(given).pixels
+        return read_image(given).pixels, {}
     if not options.median_of_inputs:
-        return None
+        return None, {}
     if len(paths) < 3:
         raise UserError(f"--median-of-inputs needs at least 3 images taken at different pointings, got {len(paths)}")
     stack = None
+    kept: dict[Path, RawImage] = {}
+    kept_bytes = 0
     for k, path in enumerate(paths):
-        pixels = read_image(path).pixels
+        image = read_image(path)
+        pixels = image.pixels
+        if kept_bytes + pixels.nbytes <= _KEEP_READ_BYTES:
+            kept[path] = image
+            kept_bytes += pixels.nbytes
         if stack is None:
             stack = np.empty((len(paths), *pixels.shape), dtype=np.float32)
         elif pixels.shape != stack.shape[1:]:
@@ -203,7 +218,7 @@ def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray
                 f"{stack.shape[2]} x {stack.shape[1]} px: --median-of-inputs needs one size"
             )
         stack[k] = pixels
-    return _median_frame(stack)
+    return _median_frame(stack), kept
 
 
 def _median_frame(stack: np.ndarray) -> np.ndarray:
