@@ -201,15 +201,17 @@ def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start
     # the fit is a function of these alone; a frame asks it twice of the same stars (its first extraction's most
     # significant ones, then the screened frame's), the second time answered from the first
     key = (x.tobytes(), y.tobytes(), float(sigma_start_px), data.tobytes(), inside.tobytes())
-    if _LAST_WIDTH_FIT and _LAST_WIDTH_FIT[0] == key:
-        return _LAST_WIDTH_FIT[1]
+    last = _LAST_WIDTH_FIT[-1] if _LAST_WIDTH_FIT else None  # one (key, width) tuple, replaced whole: thread-safe
+    if last is not None and last[0] == key:
+        return last[1]
     width = _width_fit_median_px(x, y, cols, rows, data, inside, sigma_start_px, half)
-    _LAST_WIDTH_FIT[:] = [key, width]
+    _LAST_WIDTH_FIT[:] = [(key, width)]
     return width
 
 
-#: The last :func:`_psf_width_fit_px`: its inputs (positions, start, the stamps' pixels) and its width.
-_LAST_WIDTH_FIT: list = []
+#: The last :func:`_psf_width_fit_px` as one (inputs, width) tuple: its inputs (positions, start, the stamps' pixels)
+#: decide the width, so a hit is the same answer whichever frame or thread asked.
+_LAST_WIDTH_FIT: list[tuple[tuple, float]] = []
 
 
 def _width_fit_median_px(x, y, cols, rows, data, inside, sigma_start_px: float, half: int) -> float:
