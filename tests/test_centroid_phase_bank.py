@@ -56,8 +56,8 @@ def _noise_frame(kind: str, seed: int) -> tuple[np.ndarray, float | None]:
 def test_the_bank_keeps_no_more_false_detections_on_noise(kind, sigma_px, monkeypatch):
     """On 6 Mpx of noise at a threshold of 3.5 sigma (the PSF given, so that the bank is searched), the centroid
     stage keeps no more detections with the bank than without it, within the Poisson scatter of the difference of
-    the two counts: n_bank <= n_before + 3 sqrt(n_before + n_bank) (docs/realsky.md, on 10-25 Mpx: 0.45 px white
-    393 against 422 per 10 Mpx, 0.77 px clipped 364 against 392)."""
+    the two counts: n_bank <= n_before + 3 sqrt(n_before + n_bank) (docs/realsky.md, on 25 Mpx: 0.45 px white
+    924 against 1096, 0.77 px clipped 1022 against 1060)."""
     options = CentroidOptions(candidate_sigma=None, threshold_sigma=3.5, psf_sigma_px=sigma_px)
     with_bank = without = 0
     for seed in range(6):
