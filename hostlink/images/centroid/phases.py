@@ -74,26 +74,34 @@ def _bank_profiles(sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     return profiles, np.sqrt(np.sum(profiles**2, axis=1))
 
 
-def bank_significance(sub: np.ndarray, rms: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """(significance, phase index 0-3): the maximum over the 4 kernels of :func:`_bank_profiles` of the image
+def bank_significance(sub: np.ndarray, rms: np.ndarray, sigma_px: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(significance, the 4 filtered images): the maximum over the 4 kernels of :func:`_bank_profiles` of the image
     ``sub`` [ADU] correlated with the kernel k (the matched filter of a star centred at the kernel's phase from the
     pixel), over its noise ``rms`` sqrt(sum k^2) (``rms``: the per-pixel noise map whose filtered noise that is, as
-    :func:`hostlink.images.background.filtered_noise_correction`'s), and which kernel gave it (2 a + b for the
-    phases a along rows, b along columns)."""
+    :func:`hostlink.images.background.filtered_noise_correction`'s); the filtered images (over sqrt(sum k^2), not
+    ``rms``) in the order 2 a + b for the phases a along rows, b along columns (:func:`_bank_phase`)."""
     from scipy import ndimage
 
     profiles, norms = _bank_profiles(sigma_px)
     image = np.asarray(sub, dtype=np.float64)
     across = [ndimage.correlate1d(image, p, axis=1, mode="nearest") for p in profiles]
-    best = np.full(image.shape, -np.inf)
-    which = np.zeros(image.shape, dtype=np.int8)
-    for a, pa in enumerate(profiles):
-        for b in range(len(profiles)):
-            value = ndimage.correlate1d(across[b], pa, axis=0, mode="nearest") / (norms[a] * norms[b])
-            higher = value > best
-            best[higher] = value[higher]
-            which[higher] = 2 * a + b
-    return best / rms, which
+    images = []
+    for pa, na in zip(profiles, norms, strict=True):
+        for nb, row_filtered in zip(norms, across, strict=True):
+            value = ndimage.correlate1d(row_filtered, pa, axis=0, mode="nearest")
+            value /= na * nb
+            images.append(value)
+    best = images[0].copy()
+    for value in images[1:]:
+        np.maximum(best, value, out=best)
+    best /= rms
+    return best, images
+
+
+def _bank_phase(images: list[np.ndarray], rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(K,) which of the 4 filtered images of :func:`bank_significance` is highest at each pixel (``rows``,
+    ``cols``): 2 a + b for the phases a along rows, b along columns (the first of equal ones)."""
+    return np.argmax(np.stack([value[rows, cols] for value in images]), axis=0)
 
 
 def _local_maxima(image: np.ndarray, limit: float, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,10 +126,13 @@ def bank_new_maxima(
     """(rows, cols) of the bank's local maxima (``significance``, :func:`bank_significance`) at least ``limit`` that
     SEP's extraction missed: neither on nor beside (8 neighbours) a footprint of ``segmap``, nor on or beside an
     ``ignored`` pixel."""
-    from scipy import ndimage
-
-    taken = ndimage.binary_dilation((segmap > 0) | ignored, structure=np.ones((3, 3), dtype=bool))
-    return _local_maxima(significance, limit, ~taken)
+    rows, cols = _local_maxima(significance, limit, np.ones(significance.shape, dtype=bool))
+    taken = (segmap > 0) | ignored
+    clear = np.ones(rows.size, dtype=bool)
+    for dr in (-1, 0, 1):  # a local maximum lies a pixel or more inside the border
+        for dc in (-1, 0, 1):
+            clear &= ~taken[rows + dr, cols + dc]
+    return rows[clear], cols[clear]
 
 
 def bank_confirmed(
@@ -165,7 +176,7 @@ def bank_detections(
     factor = bank_threshold(sigma_px, threshold_sigma)
     if factor is None:
         return objects, segmap
-    significance, which = bank_significance(sub, rms, sigma_px)
+    significance, images = bank_significance(sub, rms, sigma_px)
     significance[ignored] = 0.0
     keep = bank_confirmed(objects, segmap, sep_significance, significance, threshold_sigma, factor)
     label = np.zeros(objects.size + 1, dtype=segmap.dtype)
@@ -176,7 +187,7 @@ def bank_detections(
         return objects, segmap
     added = np.zeros(rows.size, dtype=objects.dtype)
     phase = np.asarray(_BANK_PHASES_PX)
-    a, b = np.divmod(which[rows, cols].astype(np.int64), len(_BANK_PHASES_PX))
+    a, b = np.divmod(_bank_phase(images, rows, cols), len(_BANK_PHASES_PX))
     added["x"], added["y"] = cols + phase[b], rows + phase[a]
     for field, value in (("xpeak", cols), ("ypeak", rows), ("xcpeak", cols), ("ycpeak", rows)):
         added[field] = value
