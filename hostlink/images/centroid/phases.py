@@ -1,15 +1,17 @@
 """A second detection pass for undersampled frames: a bank of matched filters of the PSF's own width at half-pixel
 phases (:mod:`hostlink.images.centroid`, step 1, after SEP's extraction).
 
-SEP's 3 x 3 kernel reaches 0.85 of the ideal matched filter's significance for a star of PSF sigma 0.45 px, averaged
+SEP's 3 x 3 kernel reaches 0.86 of the ideal matched filter's significance for a star of PSF sigma 0.45 px, averaged
 over sub-pixel phases: a star at a pixel's corner spreads its light over 4 pixels that a kernel centred on one pixel
 weighs badly. The bank holds the pixel-integrated Gaussian of the frame's PSF width centred on a pixel, on the right
 edge, the lower edge and the corner (4 kernels, separable); the maximum of the 4 significance images reaches
 0.97 of the ideal there (docs/realsky.md, "Binned and undersampled frames"). The maximum of 4 correlated images
 holds more noise maxima than one image, so its threshold is raised (:data:`_BANK_THRESHOLDS`) to hold the false-alarm
-rate, and only its local maxima that SEP's extraction missed are added, as detections of 1 pixel: measured afterwards
-on the frame's own pixels (the windowed centroid, the PSF fit, the hot-pixel test with a star needing to fit better
-than a spike) as the detections of the footprint of 1 are (:func:`hostlink.images.centroid.screen._footprint_px`)."""
+rate; the bank then decides the faint detections: its local maxima that SEP's extraction missed are added, as
+detections of 1 pixel measured afterwards on the frame's own pixels (the windowed centroid, the PSF fit, the hot-pixel
+test with a star needing to fit better than a spike) as the detections of the footprint of 1 are
+(:func:`hostlink.images.centroid.screen._footprint_px`), and SEP's faint detections stay only where the bank confirms
+them (:data:`_SEP_CONFIRMED_ABOVE`). Searched on frames of a PSF sigma under 0.85 px detected at 3.5 sigma or more."""
 
 from __future__ import annotations
 
