@@ -486,10 +486,47 @@ def prepass_frames(n_frames: int, max_frames: int = PREPASS_MAX_FRAMES) -> np.nd
     return np.unique(np.linspace(0, n_frames - 1, max_frames).round().astype(np.int64))
 
 
+#: Pre-pass: most star pairs it forms over all its frames (its pair table is held for the scale's iterations, the vote
+#: and the triples: ~56 bytes a pair at its peak, so ~450 MB here). Every frame's pairs are n (n - 1) / 2: a session of
+#: large frames (4574 identified stars a frame, a 16 Mpx 40-deg render) held 10^7 pairs a frame, 2.9 GB for 5 frames
+#: and ~25 GB for 50 (docs/realsky.md "Large frames"). Above it each frame keeps evenly spaced rows, as many in every
+#: frame as fit; the real sets' sessions (granasat 3.3 M pairs, the rendered 50-deg set 5.1 M) are below it, unchanged.
+PREPASS_MAX_PAIRS = 8_000_000
+
+
+def prepass_rows(frame_starts: np.ndarray, max_pairs: int = PREPASS_MAX_PAIRS) -> np.ndarray | None:
+    """The rows the pre-pass keeps so its frames hold at most ``max_pairs`` star pairs (:data:`PREPASS_MAX_PAIRS`):
+    None when all of them fit; else a row mask keeping, in each frame of more than N rows, N evenly spaced ones (its
+    first and last among them), N the largest cap whose pairs fit (at least 3: a triple for the parity)."""
+    counts = np.diff(np.asarray(frame_starts, dtype=np.int64))
+
+    def pairs(cap: int) -> int:
+        n = np.minimum(counts, cap)
+        return int(np.sum(n * (n - 1) // 2))
+
+    if counts.size == 0 or pairs(int(counts.max())) <= max_pairs:
+        return None
+    low, high = 3, int(counts.max())  # pairs(low) fits or low is the floor; pairs(high) does not
+    while high - low > 1:
+        mid = (low + high) // 2
+        low, high = (mid, high) if pairs(mid) <= max_pairs else (low, mid)
+    keep = np.zeros(int(frame_starts[-1]), dtype=bool)
+    for start, n in zip(np.asarray(frame_starts[:-1], dtype=np.int64), counts, strict=True):
+        if n <= low:
+            keep[start : start + n] = True
+        else:
+            keep[start + np.unique(np.linspace(0, n - 1, low).round().astype(np.int64))] = True
+    return keep
+
+
 def scale_and_parity_of_sample(
     data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS
 ) -> ScaleParity:
-    """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
+    """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled, on at most
+    :data:`PREPASS_MAX_PAIRS` of their star pairs (:func:`prepass_rows`)."""
+    keep = prepass_rows(data.frame_starts, PREPASS_MAX_PAIRS)  # read at the call: a test may lower it
+    if keep is not None:
+        data = data.select(keep, min_stars=1)[0]
     table = pair_table(data, chunk_obs)  # the catalogue side of every pair once: the scale, the vote, the triples
     scale, n_pairs = estimate_scale_of_table(data, table, theta)
     theta_s = np.array(theta, dtype=np.float64)
