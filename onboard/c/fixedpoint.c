@@ -155,6 +155,9 @@ fixedpoint_status_t fixedpoint_camera(const float theta[CAMERA_N_PARAMS], int32_
     if (!(f_px >= scale_px / 8.0)) {
         return FIXEDPOINT_ERR_FOCAL;
     }
+    if (!(f_px <= FIXEDPOINT_MAX_FOCAL_PX)) {
+        return FIXEDPOINT_ERR_FOCAL_LONG;
+    }
     cam->s = s;
     cam->width_px = width_px;
     cam->height_px = height_px;

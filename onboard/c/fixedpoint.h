@@ -31,6 +31,9 @@
 #define FIXEDPOINT_E_FRAC_BITS (2 * FIXEDPOINT_Q + 1)
 /* Largest detector shift s (S = 2^s px): the Q10 centroid must fit the Q(30 - s) grid. */
 #define FIXEDPOINT_MAX_DETECTOR_SHIFT (FIXEDPOINT_Q - FIXEDPOINT_CENTROID_FRAC_BITS)
+/* Longest focal length [px], 2^20: a Q30 unit vector's grid (F 2^-30 px on the detector) no coarser than the Q10
+ * centroid's; it also keeps F / S <= 2^19, so every shift of w stays below 64 bits (onboard.fixedpoint.MAX_FOCAL_PX). */
+#define FIXEDPOINT_MAX_FOCAL_PX 1048576.0
 /* Mantissa bits of a block-floating-point coefficient (float32's 24 bits fit exactly). */
 #define FIXEDPOINT_COEF_BITS 28
 /* Largest coefficient exponent (a right shift of an int64). */
@@ -53,7 +56,8 @@ typedef enum {
     FIXEDPOINT_ERR_PRINCIPAL_POINT = 3, /* principal point off the detector */
     FIXEDPOINT_ERR_FOCAL = 4,         /* focal length below S / 8 */
     FIXEDPOINT_ERR_DISTORTION = 5,    /* distortion correction beyond 100 % of the radius */
-    FIXEDPOINT_ERR_CENTROID = 6       /* a centroid off the detector */
+    FIXEDPOINT_ERR_CENTROID = 6,      /* a centroid off the detector */
+    FIXEDPOINT_ERR_FOCAL_LONG = 7     /* focal length above FIXEDPOINT_MAX_FOCAL_PX */
 } fixedpoint_status_t;
 
 /* A camera model vector in the front end's formats (onboard.fixedpoint.FixedCamera). */
