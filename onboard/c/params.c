@@ -249,8 +249,9 @@ static float min_mapping_determinant(const camera_t *cam, float *x_at, float *y_
     return det_min;
 }
 
-/* onboard.params.validate_params in float32: the scalars, then the distortion's mapping one-to-one over the
- * detector (the radial slope from 0 to the farthest corner, the Jacobian determinant on the grid). */
+/* onboard.params.validate_params in float32: the scalars, the farthest corner's distance, then the distortion's
+ * mapping one-to-one over the detector (the radial slope from 0 to the farthest corner, the Jacobian determinant on
+ * the grid). */
 static int validate_params(const camera_t *cam, pyformat_text_t *why)
 {
     double s_max;
@@ -259,6 +260,13 @@ static int validate_params(const camera_t *cam, pyformat_text_t *why)
         return 1;
     }
     s_max = farthest_corner_radius2_px2(cam);
+    if (!(s_max <= PARAMS_MAX_CORNER_RADIUS_PX * PARAMS_MAX_CORNER_RADIUS_PX)) {
+        refuse(why, "image_size_px", "the farthest corner is ");
+        pyformat_f0(why, sqrt(s_max));
+        pyformat_str(why, " px from the principal point, beyond 262144 px (a float32 sensor's distortion Jacobian "
+                          "r^7 would overflow)");
+        return 1;
+    }
     min_radial_slope(cam->theta, s_max, &p_min, &r_at);
     if (!(p_min > 0.0f)) {
         refuse(why, "distortion", "radial mapping is not one-to-one: d r'/d r = ");

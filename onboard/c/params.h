@@ -19,6 +19,9 @@ extern "C" {
 
 /* onboard.params.MAX_IMAGE_SIDE_PX */
 #define PARAMS_MAX_IMAGE_SIDE_PX 16777216.0
+/* onboard.params.MAX_CORNER_RADIUS_PX: the farthest corner's distance from the principal point, 2^18 px (the float32
+ * Jacobian column of k3, u r^6 <= r^7, finite) */
+#define PARAMS_MAX_CORNER_RADIUS_PX 262144.0
 /* onboard.params._MONOTONIC_GRID: points per detector side of the monotonicity and displacement grids */
 #define PARAMS_GRID 17
 /* onboard.params.MAX_DISTORTION_FRACTION, FOCAL_TOLERANCE */
