@@ -146,6 +146,22 @@ def detector_shift(image_size_px: tuple[int, int]) -> int:
     return max(1, (int(max(image_size_px)) - 1).bit_length())
 
 
+def distortion_share(s: int, x0_q: int, y0_q: int, image_size_px: tuple[int, int], coef: list[float]) -> float:
+    """The range condition's sum (module docstring) at the farthest corner: the distortion correction as a fraction
+    of the radius, <= 1 in range (float64 on 10 values; every bound has a factor >= 1.6 to spare). ``coef``: the
+    normalised K1 K2 K3 P1 P2 S1 S2 as held (m 2^-e); the principal point as held (Q30 normalised)."""
+    w, h = image_size_px
+    corners_x = (-0.5 - math.ldexp(x0_q, s - Q), w - 0.5 - math.ldexp(x0_q, s - Q))
+    corners_y = (-0.5 - math.ldexp(y0_q, s - Q), h - 0.5 - math.ldexp(y0_q, s - Q))
+    scale_px = float(1 << s)
+    rho2 = max(cx * cx + cy * cy for cx in corners_x for cy in corners_y) / (scale_px * scale_px)
+    rho = math.sqrt(rho2)
+    k1, k2, k3, p1, p2, s1, s2 = coef
+    c_rad = abs(k1) * rho2 + abs(k2) * (rho2 * rho2) + abs(k3) * (rho2 * rho2 * rho2)
+    c_tan = rho * max(3 * abs(p1) + abs(p2) + abs(s1), 3 * abs(p2) + abs(p1) + abs(s2))
+    return c_rad + c_tan
+
+
 def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCamera:
     """Model vector (F px, x0, y0, k1..s2; float32 or float64) -> the front end's formats.
 
@@ -163,10 +179,10 @@ def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCame
         raise FixedRangeError("parameters must be finite")
     f_px, x0, y0 = t[0], t[1], t[2]
     if not (-0.5 <= x0 <= w - 0.5 and -0.5 <= y0 <= h - 0.5):
-        raise FixedRangeError(f"principal point ({x0:.3f}, {y0:.3f}) px is off the detector")
+        raise FixedRangeError(f"principal point ({x0!r}, {y0!r}) px is off the detector")
     scale_px = float(1 << s)
     if not f_px >= scale_px / 8:
-        raise FixedRangeError(f"focal length {f_px:.1f} px is below S/8 = {scale_px / 8:.0f} px (field too wide)")
+        raise FixedRangeError(f"focal length {f_px:.6g} px is below S/8 = {scale_px / 8:.0f} px (field too wide)")
     if not f_px <= MAX_FOCAL_PX:
         raise FixedRangeError(
             f"focal length {f_px:.6g} px is above 2^20 = {MAX_FOCAL_PX:.0f} px (Q30 unit vectors coarser than the "
@@ -178,18 +194,10 @@ def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCame
     powers = (2, 4, 6, 1, 1, 1, 1)
     blocks = [_block_float(math.ldexp(t[3 + k], s * powers[k])) for k in range(7)]
     coef = [math.ldexp(m, -e) for m, e in blocks]
-    # range condition at the farthest corner (float64 on 10 values; every bound below has a factor >= 1.6 to spare)
-    corners_x = (-0.5 - math.ldexp(x0_q, s - Q), w - 0.5 - math.ldexp(x0_q, s - Q))
-    corners_y = (-0.5 - math.ldexp(y0_q, s - Q), h - 0.5 - math.ldexp(y0_q, s - Q))
-    rho2 = max(cx * cx + cy * cy for cx in corners_x for cy in corners_y) / (scale_px * scale_px)
-    rho = math.sqrt(rho2)
-    k1, k2, k3, p1, p2, s1, s2 = coef
-    c_rad = abs(k1) * rho2 + abs(k2) * rho2**2 + abs(k3) * rho2**3
-    c_tan = rho * max(3 * abs(p1) + abs(p2) + abs(s1), 3 * abs(p2) + abs(p1) + abs(s2))
-    if not c_rad + c_tan <= 1.0:
+    share = distortion_share(s, x0_q, y0_q, (w, h), coef)
+    if not share <= 1.0:
         raise FixedRangeError(
-            f"distortion correction up to {100 * (c_rad + c_tan):.0f} % of the radius exceeds the fixed-point "
-            "range (100 %)"
+            f"distortion correction up to {100 * share:.0f} % of the radius exceeds the fixed-point range (100 %)"
         )
     # w = (u', v', F) normalised: |u'| < 2.5 (below), so max(F/S, 4) 2^qw <= 2^30 bounds every component
     cap = max(f_px / scale_px, 4.0)

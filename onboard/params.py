@@ -302,6 +302,8 @@ class PlausibilityLimits:
     max_distortion_fraction: float = MAX_DISTORTION_FRACTION
     #: what the focal length is compared with, as a refusal names it
     design_name: str = "design value"
+    #: the sensor runs the fixed-point front end (``onboard.fixedpoint``): a set must lie in its formats' range
+    fixed_point: bool = False
 
 
 def max_distortion_displacement_px(params: CameraParams, dtype: type = np.float64) -> tuple[float, tuple[float, float]]:
@@ -330,7 +332,10 @@ def check_plausible(params: CameraParams, limits: PlausibilityLimits | None, dty
     1. :func:`validate_params` (finite values, principal point on the detector, a one-to-one mapping);
     2. distortion bound: max |(dx, dy)| over the detector <= ``max_distortion_fraction`` x half-diagonal;
     3. focal range: |f - f_design| <= ``focal_tolerance`` x f_design (skipped when ``limits`` is None, e.g. on a host
-       that does not know the sensor's design; rule 2 then uses the default fraction).
+       that does not know the sensor's design; rule 2 then uses the default fraction);
+    4. on a fixed-point sensor (``limits.fixed_point``), the range of its formats
+       (:func:`onboard.fixedpoint.fixed_camera` at the float32 model vector the estimator starts from), so the sensor
+       never commits a set its estimator could not run.
     """
     validate_params(params, dtype)
     fraction = MAX_DISTORTION_FRACTION if limits is None else limits.max_distortion_fraction
@@ -352,3 +357,10 @@ def check_plausible(params: CameraParams, limits: PlausibilityLimits | None, dty
             f"implausible: {params.focal_length_mm:.6g} mm is more than {limits.focal_tolerance:.0%} from the "
             f"{limits.design_name} {design:.6g} mm",
         )
+    if limits.fixed_point:
+        from onboard.fixedpoint import FixedRangeError, fixed_camera  # local: fixedpoint imports this module
+
+        try:
+            fixed_camera(params.model_vector(np.float32), params.image_size_px)
+        except FixedRangeError as exc:
+            raise ParameterError("fixed point", f"outside the sensor's range: {exc}") from None

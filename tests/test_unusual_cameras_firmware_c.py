@@ -8,16 +8,30 @@ and the Python model faulted on every frame while the C core reported NaN estima
 
 import os
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from hostlink.emulator.loopback import LoopbackLink
+from hostlink.emulator.sensor import EmulatedSensor
 from hostlink.emulator.setup import c_firmware, sensor_banks
+from hostlink.links.base import CommandRefused
+from hostlink.links.operations import safe_upload
 from hostlink.portkit import firmware_c
+from hostlink.portkit.firmware_c import CFirmware
 from onboard import banks
 from onboard.camera import pixels_to_unit
 from onboard.firmware import Firmware, RecursiveEstimator
-from onboard.params import ESTIMATE_NAMES, MAX_CORNER_RADIUS_PX, CameraParams, ParameterError, validate_params
+from onboard.params import (
+    ESTIMATE_NAMES,
+    MAX_CORNER_RADIUS_PX,
+    CameraParams,
+    Distortion,
+    ParameterError,
+    PlausibilityLimits,
+    validate_params,
+)
 from onboard.recursive import RecursiveConfig
 from protocol import messages as m
 
@@ -32,7 +46,8 @@ def run_both(nominal: CameraParams, precision: str) -> tuple[m.Message, m.Messag
     and counters."""
     c = c_firmware(nominal, precision=precision)
     py = Firmware(
-        sensor_banks(nominal, None, None), RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(), precision=precision)
+        sensor_banks(nominal, None, None, precision == "fixed"),
+        RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(), precision=precision),
     )
     rng = np.random.default_rng(1)
     w, h = nominal.image_size_px
@@ -79,3 +94,70 @@ def test_a_detector_whose_float32_jacobian_would_overflow_is_refused_in_one_line
     refusal = banks.check_table(table, None)
     assert refusal is not None and refusal.text == str(refused.value)
     assert firmware_c.check_table_c(table, None) == m.nak_text_bytes(refusal.text).decode()
+
+
+# ------------------------------------------------------------------------------------ the fixed-point sensor's range
+#: A 8192 x 8192 px, 5 um detector designed at F = 2^20 px, the longest focal length its fixed-point formats take,
+#: and one designed at F = S/8 = 1024 px, the shortest.
+LONG_DESIGN = CameraParams(float(1 << 20) * 5.0 / 1000, 5.0, (4095.5, 4095.5), (8192, 8192))
+SHORT_DESIGN = replace(LONG_DESIGN, focal_length_mm=1024 * 5.0 / 1000)
+
+
+def sensors(design: CameraParams, limits: PlausibilityLimits, precision: str):
+    """The Python model's sensor and the C core's, same identity and factory set ``design``, under ``limits``."""
+    python = Firmware(
+        banks.factory_store(design, limits=limits, identity=banks.seeded_identity(3)),
+        RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(), precision=precision),
+    )
+    identity = banks.seeded_identity(3)
+    c = CFirmware(banks.RamFlash(), identity, limits, factory=design, estimate_mask=0x3FF, precision=precision)
+    return python, c
+
+
+def upload_refusal(firmware, params: CameraParams) -> str | None:
+    """The sensor's refusal of a safe upload of ``params`` (the host's own check skipped), None when committed."""
+    try:
+        safe_upload(LoopbackLink(EmulatedSensor(firmware, iter(())), timeout_s=0.5), params, host_check=False)
+    except CommandRefused as exc:
+        return exc.text
+    return None
+
+
+@pytest.mark.parametrize(
+    "design, params, reason",
+    [
+        (LONG_DESIGN, replace(LONG_DESIGN, focal_length_mm=LONG_DESIGN.focal_length_mm * 1.03), "above 2^20"),
+        (SHORT_DESIGN, replace(SHORT_DESIGN, focal_length_mm=SHORT_DESIGN.focal_length_mm * 0.99), "below S/8 = 1024"),
+        (LONG_DESIGN, replace(LONG_DESIGN, distortion=Distortion(k1=-1.5 / 0.5 / 8192.0**2)), "up to 150 % of"),
+    ],
+    ids=["F-above-2^20", "F-below-S/8", "distortion-beyond-the-radius"],
+)
+def test_a_fixed_point_sensor_refuses_an_upload_outside_its_range_in_the_same_words_in_c_and_python(
+    design, params, reason
+):
+    """A set that passes every other rule (the focal length within 5 % of a design at the edge of the range; the
+    distortion under a 500 % displacement bound, so that only the fixed range can refuse it) is refused at
+    STAGE_VERIFY by a fixed-point sensor, in one line, the same in both; before, it was committed and every frame
+    then counted as an estimator fault. A float32 sensor commits it."""
+    limits = PlausibilityLimits(design.focal_length_mm, max_distortion_fraction=5.0)
+    texts = [upload_refusal(fw, params) for fw in sensors(design, replace(limits, fixed_point=True), "fixed")]
+    assert texts[0] == texts[1], texts
+    assert texts[0].startswith("fixed point: outside the sensor's range: ") and reason in texts[0], texts[0]
+    assert "\n" not in texts[0]
+    assert [upload_refusal(fw, params) for fw in sensors(design, limits, "float32")] == [None, None]
+
+
+def test_the_sensor_checks_name_the_fixed_range_alike_for_every_rule_at_the_edges():
+    """banks.check_table and the C core's params_check_table under a fixed-point sensor's limits, text for text, on
+    focal lengths around both bounds and detectors of every shift (the default 5 % distortion bound)."""
+    refused = 0
+    for side in (256, 2047, 2048, 2049, 8192, 131072):
+        for f_px in (side / 16, 2.0 ** ((side - 1).bit_length() - 3), 1048576.0, 1048577.0, 1.05 * 1048576.0):
+            params = CameraParams(f_px * 5.0 / 1000, 5.0, (side / 2 - 0.5, side / 2 - 0.5), (side, side))
+            limits = PlausibilityLimits(params.focal_length_mm, fixed_point=True)
+            table = banks.params_to_table(params)
+            refusal = banks.check_table(table, limits)
+            want = None if refusal is None else m.nak_text_bytes(refusal.text).decode()
+            assert firmware_c.check_table_c(table, limits) == want, (side, f_px)
+            refused += refusal is not None
+    assert refused >= 12  # both bounds refused at every size (the S/16 and above-2^20 cases)
