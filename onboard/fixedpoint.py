@@ -45,18 +45,22 @@ e_ij                Q61, exact from the Q30 vectors                |E| <= 2^62 +
 ==================  =============================================  ==================================================
 
 Range condition (:func:`fixed_camera` refuses a set outside it with :class:`FixedRangeError`): the principal point
-on the detector, s <= 20, F >= S / 8 (a diagonal field up to ~160 deg), and at the farthest corner (normalised
-radius rho_max <= sqrt 2) ``|K1| rho_max^2 + |K2| rho_max^4 + |K3| rho_max^6 + rho_max max(3|P1| + |P2| + |S1|,
-3|P2| + |P1| + |S2|) <= 1``, i.e. the distortion correction never exceeds the radius. Real lenses are far inside
-(seed 004's corrects 0.12 % of the radius at its farthest corner); :func:`onboard.params.validate_params` bounds
-positive radial distortion by monotonicity (k1 r^2 < 1/3) but not negative, so this check is the fixed-point
-sensor's own.
+on the detector, s <= 20, S / 8 <= F <= 2^20 px (a diagonal field up to ~160 deg; :data:`MAX_FOCAL_PX`), and at the
+farthest corner (normalised radius rho_max <= sqrt 2) ``|K1| rho_max^2 + |K2| rho_max^4 + |K3| rho_max^6 +
+rho_max max(3|P1| + |P2| + |S1|, 3|P2| + |P1| + |S2|) <= 1``, i.e. the distortion correction never exceeds the
+radius. Real lenses are far inside (seed 004's corrects 0.12 % of the radius at its farthest corner);
+:func:`onboard.params.validate_params` bounds positive radial distortion by monotonicity (k1 r^2 < 1/3) but not
+negative, so this check is the fixed-point sensor's own.
 
-Error against the float64 model at the same parameters (derived from the formats; measured in
-``tests/test_fixedpoint_camera.py`` for the seed-004 camera, S = 1024 px, F = 5852 px): u', v' within 4 Q30 steps
-(S 2^-30 = 9.5e-7 px; measured 2.3 steps); each component of b within 2^-30 (4 + 8 S / F) = 5.4 steps of 2^-30
-(2.9e-5 px on the detector; measured 1.5 steps, 8e-6 px); e_ij within |b_i - b_j| 2 sqrt(3) of that, under
-2e-3 of the pair's noise at 0.05 px centroid noise (measured: 2.3e-4 at most, 6e-5 RMS; 1.6e-5 px at most).
+Error against the float64 model at the same parameters (derived from the formats, :func:`error_bounds_q30`: u', v'
+within D Q30 steps, D = 2 + rho_max (3/2 + the normalised coefficients times their powers' rounding errors) + the
+tangential terms, and each component of b within 2^-30 (4 + sqrt 2 (D + 2) S / F); measured in
+``tests/test_fixedpoint_camera.py`` for the seed-004 camera, S = 1024 px, F = 5852 px: D = 3.1 steps (S 2^-30 =
+9.5e-7 px; measured 2.3), b within 5.3 steps of 2^-30 (2.9e-5 px on the detector; measured 1.5 steps, 8e-6 px));
+e_ij within |b_i - b_j| 2 sqrt(3) of that, under 2e-3 of the pair's noise at 0.05 px centroid noise (measured:
+2.3e-4 at most, 6e-5 RMS; 1.6e-5 px at most). A large normalised coefficient (strong distortion where rho_max is
+small, e.g. a strip detector with the principal point centred) multiplies its power's rounding: D grows with it
+(``tests/test_fixedpoint_camera_space.py`` draws cameras over the supported range against these bounds).
 """
 
 from __future__ import annotations
@@ -78,6 +82,11 @@ Q = 30
 E_FRAC_BITS = 2 * Q + 1
 #: Largest detector shift s (S = 2^s px): the Q10 centroid must fit the Q(30 - s) grid.
 MAX_DETECTOR_SHIFT = Q - CENTROID_FRAC_BITS
+#: Longest focal length F [px]: a Q30 unit vector's grid is F 2^-30 px on the detector, no coarser than the wire's Q10
+#: centroid steps (2^-10 px) up to F = 2^20 px; beyond it the front end would lose precision silently (figures in
+#: docs/camera-model.md, "Supported cameras") and, from F / S ~ 2^93, shift an int64 by 64 bits or more. With S >= 2
+#: it also bounds F / S <= 2^19, so w's fractional bits qw >= 11.
+MAX_FOCAL_PX = float(1 << (Q - CENTROID_FRAC_BITS))
 #: Mantissa bits of a block-floating-point coefficient (float32's 24 bits fit exactly).
 COEF_BITS = 28
 #: Largest coefficient exponent (a right shift of an int64).
@@ -137,6 +146,22 @@ def detector_shift(image_size_px: tuple[int, int]) -> int:
     return max(1, (int(max(image_size_px)) - 1).bit_length())
 
 
+def distortion_share(s: int, x0_q: int, y0_q: int, image_size_px: tuple[int, int], coef: list[float]) -> float:
+    """The range condition's sum (module docstring) at the farthest corner: the distortion correction as a fraction
+    of the radius, <= 1 in range (float64 on 10 values; every bound has a factor >= 1.6 to spare). ``coef``: the
+    normalised K1 K2 K3 P1 P2 S1 S2 as held (m 2^-e); the principal point as held (Q30 normalised)."""
+    w, h = image_size_px
+    corners_x = (-0.5 - math.ldexp(x0_q, s - Q), w - 0.5 - math.ldexp(x0_q, s - Q))
+    corners_y = (-0.5 - math.ldexp(y0_q, s - Q), h - 0.5 - math.ldexp(y0_q, s - Q))
+    scale_px = float(1 << s)
+    rho2 = max(cx * cx + cy * cy for cx in corners_x for cy in corners_y) / (scale_px * scale_px)
+    rho = math.sqrt(rho2)
+    k1, k2, k3, p1, p2, s1, s2 = coef
+    c_rad = abs(k1) * rho2 + abs(k2) * (rho2 * rho2) + abs(k3) * (rho2 * rho2 * rho2)
+    c_tan = rho * max(3 * abs(p1) + abs(p2) + abs(s1), 3 * abs(p2) + abs(p1) + abs(s2))
+    return c_rad + c_tan
+
+
 def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCamera:
     """Model vector (F px, x0, y0, k1..s2; float32 or float64) -> the front end's formats.
 
@@ -154,28 +179,25 @@ def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCame
         raise FixedRangeError("parameters must be finite")
     f_px, x0, y0 = t[0], t[1], t[2]
     if not (-0.5 <= x0 <= w - 0.5 and -0.5 <= y0 <= h - 0.5):
-        raise FixedRangeError(f"principal point ({x0:.3f}, {y0:.3f}) px is off the detector")
+        raise FixedRangeError(f"principal point ({x0!r}, {y0!r}) px is off the detector")
     scale_px = float(1 << s)
     if not f_px >= scale_px / 8:
-        raise FixedRangeError(f"focal length {f_px:.1f} px is below S/8 = {scale_px / 8:.0f} px (field too wide)")
+        raise FixedRangeError(f"focal length {f_px:.6g} px is below S/8 = {scale_px / 8:.0f} px (field too wide)")
+    if not f_px <= MAX_FOCAL_PX:
+        raise FixedRangeError(
+            f"focal length {f_px:.6g} px is above 2^20 = {MAX_FOCAL_PX:.0f} px (Q30 unit vectors coarser than the "
+            "Q10 centroids)"
+        )
     x0_q = round(math.ldexp(x0, Q - s))  # exact: ldexp scales by a power of two
     y0_q = round(math.ldexp(y0, Q - s))
     # normalised coefficients: k1 S^2, k2 S^4, k3 S^6, p S, s S (powers of two: exact)
     powers = (2, 4, 6, 1, 1, 1, 1)
     blocks = [_block_float(math.ldexp(t[3 + k], s * powers[k])) for k in range(7)]
     coef = [math.ldexp(m, -e) for m, e in blocks]
-    # range condition at the farthest corner (float64 on 10 values; every bound below has a factor >= 1.6 to spare)
-    corners_x = (-0.5 - math.ldexp(x0_q, s - Q), w - 0.5 - math.ldexp(x0_q, s - Q))
-    corners_y = (-0.5 - math.ldexp(y0_q, s - Q), h - 0.5 - math.ldexp(y0_q, s - Q))
-    rho2 = max(cx * cx + cy * cy for cx in corners_x for cy in corners_y) / (scale_px * scale_px)
-    rho = math.sqrt(rho2)
-    k1, k2, k3, p1, p2, s1, s2 = coef
-    c_rad = abs(k1) * rho2 + abs(k2) * rho2**2 + abs(k3) * rho2**3
-    c_tan = rho * max(3 * abs(p1) + abs(p2) + abs(s1), 3 * abs(p2) + abs(p1) + abs(s2))
-    if not c_rad + c_tan <= 1.0:
+    share = distortion_share(s, x0_q, y0_q, (w, h), coef)
+    if not share <= 1.0:
         raise FixedRangeError(
-            f"distortion correction up to {100 * (c_rad + c_tan):.0f} % of the radius exceeds the fixed-point "
-            "range (100 %)"
+            f"distortion correction up to {100 * share:.0f} % of the radius exceeds the fixed-point range (100 %)"
         )
     # w = (u', v', F) normalised: |u'| < 2.5 (below), so max(F/S, 4) 2^qw <= 2^30 bounds every component
     cap = max(f_px / scale_px, 4.0)
@@ -198,6 +220,35 @@ def fixed_camera(theta: np.ndarray, image_size_px: tuple[int, int]) -> FixedCame
         image_size_px=(w, h),
         theta_q=theta_q,
     )
+
+
+def farthest_radius_normalised(cam: FixedCamera) -> float:
+    """rho_max: the distance from the principal point (as held, x0_q, y0_q) to the farthest detector corner over S."""
+    w, h = cam.image_size_px
+    x0, y0 = math.ldexp(cam.x0_q, cam.s - Q), math.ldexp(cam.y0_q, cam.s - Q)
+    du = max(abs(-0.5 - x0), abs(w - 0.5 - x0))
+    dv = max(abs(-0.5 - y0), abs(h - 0.5 - y0))
+    return math.ldexp(math.hypot(du, dv), -cam.s)
+
+
+def error_bounds_q30(cam: FixedCamera) -> tuple[float, float]:
+    """The front end's error against the float64 model at ``cam.theta_q``, in Q30 steps (2^-30), derived from the
+    formats: (D, B) with D bounding u', v' (normalised) and B each component of b, for any centroid on the detector.
+
+    D adds the roundings of :func:`ideal_offsets_q30` (each half a step) and the powers' errors each coefficient
+    amplifies (rho = rho_max, K = |normalised coefficient|): delta r2 <= 1, delta r4 <= 1/2 + 2 rho^2,
+    delta r6 <= 1/2 + 3/2 rho^2 + 3 rho^4, so delta rho_radial <= 3/2 + K1 + K2 (1/2 + 2 rho^2) + K3 (1/2 + 3/2 rho^2
+    + 3 rho^4) and D = 2 + rho delta rho_radial + 2|P1| + |P2| + |S1| (v': P1 and P2, S1 and S2 swapped).
+    B = 4 + sqrt 2 (D + 2) S / F: the final rounding and the reciprocal square root (4), the offsets and w's grid
+    (2 steps when F < 4S, within the 4 otherwise) over |w| >= F / S through the projection I - b b^T (norm 1).
+    Small coefficients give D ~ 4 (the seed-004 camera: 3.1); a large one (a strong distortion where rho_max is
+    small, e.g. a strip detector) multiplies its power's rounding."""
+    rho = farthest_radius_normalised(cam)
+    k1, k2, k3, p1, p2, s1, s2 = (abs(math.ldexp(m, -e)) for m, e in zip(cam.coef_m, cam.coef_e, strict=True))
+    r2 = rho * rho
+    radial = 1.5 + k1 + k2 * (0.5 + 2 * r2) + k3 * (0.5 + 1.5 * r2 + 3 * r2 * r2)
+    d = 2 + rho * radial + max(2 * p1 + p2 + s1, 2 * p2 + p1 + s2)
+    return d, 4 + math.sqrt(2) * (d + 2) * math.ldexp(1.0, cam.s) / float(cam.theta_q[0])
 
 
 def on_detector(x_steps: np.ndarray, y_steps: np.ndarray, image_size_px: tuple[int, int]) -> np.ndarray:

@@ -21,6 +21,11 @@ N_PARAMS = len(ESTIMATE_NAMES)
 
 #: Largest detector side [px]: image sizes travel as float32 in the parameter table, exact up to 2**24.
 MAX_IMAGE_SIDE_PX = 1 << 24
+#: Largest distance [px] from the principal point to the farthest detector corner: the radial terms' Jacobian column
+#: of k3, u r^6 <= r^7, stays finite in a float32 sensor (2^126 < 3.4e38 = float32's largest) only up to ~3.2e5 px;
+#: 2^18 px leaves a factor 4. Beyond it the float32 estimator overflowed (the Python model faulted on every frame, the C
+#: core reported NaN estimates). A 370 000 px square detector, or a 524 288 px strip with the principal point centred.
+MAX_CORNER_RADIUS_PX = 1 << 18
 #: Grid used by the monotonicity check: points per detector side (corners and edges included).
 _MONOTONIC_GRID = 17
 
@@ -162,7 +167,8 @@ def validate_params(params: CameraParams, dtype: type = np.float64) -> None:
     """Refuse a parameter set that no sensor may use (raises :class:`ParameterError` naming the field).
 
     Checks, in order: every value finite; f > 0 and p > 0 (and F = 1000 f / p finite); image size in 1..2**24; the
-    principal point on the detector (``[-0.5, w-0.5] x [-0.5, h-0.5]``, docs/camera-model.md); and the distortion keeps
+    principal point on the detector (``[-0.5, w-0.5] x [-0.5, h-0.5]``, docs/camera-model.md); the farthest corner
+    within :data:`MAX_CORNER_RADIUS_PX` of it; and the distortion keeps
     the measured-to-ideal mapping one-to-one over the detector: the radial map r -> r (1 - k1 r^2 - k2 r^4 - k3 r^6)
     strictly increasing for every radius from 0 to the farthest corner (exact: :func:`min_radial_slope`), and the
     Jacobian determinant of (x, y) -> (u', v') positive on a 17 x 17 grid spanning the detector, corners included.
@@ -193,6 +199,12 @@ def validate_params(params: CameraParams, dtype: type = np.float64) -> None:
         if not (-0.5 <= c <= n - 0.5):
             raise ParameterError(f"principal_point_px[{i}]", f"{c!r} is off the detector [-0.5, {n - 0.5}]")
     s_max = farthest_corner_radius2_px2(params)
+    if not s_max <= float(MAX_CORNER_RADIUS_PX) ** 2:
+        raise ParameterError(
+            "image_size_px",
+            f"the farthest corner is {math.sqrt(s_max):.0f} px from the principal point, beyond "
+            f"{MAX_CORNER_RADIUS_PX} px (a float32 sensor's distortion Jacobian r^7 would overflow)",
+        )
     p_min, r_at = min_radial_slope(params.distortion, s_max, dtype)
     if not p_min > 0:
         raise ParameterError(
@@ -290,6 +302,8 @@ class PlausibilityLimits:
     max_distortion_fraction: float = MAX_DISTORTION_FRACTION
     #: what the focal length is compared with, as a refusal names it
     design_name: str = "design value"
+    #: the sensor runs the fixed-point front end (``onboard.fixedpoint``): a set must lie in its formats' range
+    fixed_point: bool = False
 
 
 def max_distortion_displacement_px(params: CameraParams, dtype: type = np.float64) -> tuple[float, tuple[float, float]]:
@@ -318,7 +332,10 @@ def check_plausible(params: CameraParams, limits: PlausibilityLimits | None, dty
     1. :func:`validate_params` (finite values, principal point on the detector, a one-to-one mapping);
     2. distortion bound: max |(dx, dy)| over the detector <= ``max_distortion_fraction`` x half-diagonal;
     3. focal range: |f - f_design| <= ``focal_tolerance`` x f_design (skipped when ``limits`` is None, e.g. on a host
-       that does not know the sensor's design; rule 2 then uses the default fraction).
+       that does not know the sensor's design; rule 2 then uses the default fraction);
+    4. on a fixed-point sensor (``limits.fixed_point``), the range of its formats
+       (:func:`onboard.fixedpoint.fixed_camera` at the float32 model vector the estimator starts from), so the sensor
+       never commits a set its estimator could not run.
     """
     validate_params(params, dtype)
     fraction = MAX_DISTORTION_FRACTION if limits is None else limits.max_distortion_fraction
@@ -340,3 +357,10 @@ def check_plausible(params: CameraParams, limits: PlausibilityLimits | None, dty
             f"implausible: {params.focal_length_mm:.6g} mm is more than {limits.focal_tolerance:.0%} from the "
             f"{limits.design_name} {design:.6g} mm",
         )
+    if limits.fixed_point:
+        from onboard.fixedpoint import FixedRangeError, fixed_camera  # local: fixedpoint imports this module
+
+        try:
+            fixed_camera(params.model_vector(np.float32), params.image_size_px)
+        except FixedRangeError as exc:
+            raise ParameterError("fixed point", f"outside the sensor's range: {exc}") from None

@@ -30,8 +30,9 @@ NOISE_PX = 0.05
 
 
 def unit_bound(cam: fx.FixedCamera) -> float:
-    """|b_fixed - b_float64| per component (module docstring): 2^-30 (4 + 8 S / F)."""
-    return 2.0**-30 * (4 + 8 * 2.0**cam.s / cam.theta_q[0])
+    """|b_fixed - b_float64| per component: 2^-30 B of onboard.fixedpoint.error_bounds_q30 (4 + sqrt 2 (D + 2) S / F,
+    D ~ 3-4 for small coefficients: about the 4 + 8 S / F this test module first stated)."""
+    return 2.0**-30 * fx.error_bounds_q30(cam)[1]
 
 
 def dense_grid_steps(size_px: int, step_px: float):

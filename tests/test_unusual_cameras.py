@@ -112,3 +112,24 @@ def test_bench_runs_a_narrow_field_camera_with_its_own_magnitude_limit(tmp_path,
     assert summary["drift_tracking"]["focal_error_rms_um_converged"] is not None
     assert summary["drift_tracking"]["estimator_updates"] == summary["drift_tracking"]["sensor_exposures"] > 0
     assert "nan" not in printed.lower()
+
+
+def test_bench_refuses_a_camera_outside_the_fixed_point_range_before_simulating(tmp_path, capsys):
+    """A --precision fixed run whose sensor could not run its estimator (F = 1.03 x 2^20 px on 8192 px) stops in one
+    line before anything is simulated or written (before, after simulating, when the emulator refused to start)."""
+    cam = tmp_path / "long.json"
+    cam.write_text(
+        json.dumps(
+            {
+                "focal_length_mm": 5400.0,
+                "pixel_pitch_um": 5.0,
+                "principal_point_px": [4095.5, 4095.5],
+                "image_size_px": [8192, 8192],
+            }
+        )
+    )
+    out = tmp_path / "b"
+    code = main(["bench", "--camera", str(cam), "--precision", "fixed", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and not (out.exists() and any(out.iterdir()))  # nothing written
+    assert len(err.splitlines()) == 1 and "above 2^20 = 1048576 px" in err, err

@@ -100,7 +100,8 @@ def build_sensor(
         )
     else:
         seam = RecursiveEstimator(names, config, precision=precision) if estimator else None
-        sensor_firmware = Firmware(sensor_banks(nominal_params, flash, power_cut_after_units), seam, budget)
+        store = sensor_banks(nominal_params, flash, power_cut_after_units, estimator and precision == "fixed")
+        sensor_firmware = Firmware(store, seam, budget)
     if replay:
         from hostlink.files.session import check_on_detector, read_session
 
@@ -124,14 +125,18 @@ def build_sensor(
 
 
 def sensor_banks(
-    nominal: CameraParams, flash: str | None = None, power_cut_after_units: int | None = None
+    nominal: CameraParams,
+    flash: str | None = None,
+    power_cut_after_units: int | None = None,
+    fixed_point: bool = False,
 ) -> banks.BankStore:
     """The sensor's parameter banks. Without ``flash``: in RAM, factory set ``nominal`` as generation 1 (lost when
     the process ends). With it: the flash image in that file (``hostlink.emulator.flash``), booted as the sensor
     boots (the last committed set, its generation and the session counter); a new or blank image first receives the
     factory set. Either way the sensor's declared design (``onboard.params.PlausibilityLimits``) is ``nominal``'s
-    focal length. ``power_cut_after_units``: :class:`~hostlink.emulator.flash.FileFlash`'s test hook."""
-    limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
+    focal length, and a ``fixed_point`` sensor's the range of its formats. ``power_cut_after_units``:
+    :class:`~hostlink.emulator.flash.FileFlash`'s test hook."""
+    limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm, fixed_point=fixed_point)
     identity = unit_identity(flash)  # each emulated unit its own: its sessions' nonces are its own
     if flash is None:
         return banks.factory_store(nominal, limits=limits, identity=identity)
@@ -177,7 +182,8 @@ def c_firmware(
     either: READ_ESTIMATE then answers NO_ESTIMATE ("this sensor has no onboard estimator")."""
     from hostlink.portkit.firmware_c import CFirmware
 
-    limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm)
+    fixed_point = precision == "fixed" and estimate_names is not None
+    limits = PlausibilityLimits(design_focal_length_mm=nominal.focal_length_mm, fixed_point=fixed_point)
     check_plausible(nominal, limits)  # what factory_store checks before it writes the set
     identity = unit_identity(flash)
     if flash is None:

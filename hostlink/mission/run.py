@@ -55,6 +55,11 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
         from hostlink.portkit.firmware_c import build_library
 
         build_library()
+    if cfg.precision == "fixed":  # the sensor's nominal in the fixed-point range, before anything is simulated
+        from hostlink.calibration.replay import check_fixed_range
+        from hostlink.mission.config import bench_nominal
+
+        check_fixed_range(bench_nominal(cfg))
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()

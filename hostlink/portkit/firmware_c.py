@@ -179,8 +179,8 @@ def load_library(cache: Path | None = None, sanitize: bool = False) -> ctypes.CD
     lib.sil_estimator_bytes.restype = ctypes.c_size_t
     lib.sil_boot.argtypes = [
         ctypes.c_void_p, _READ, _ERASE, _PROGRAM, _RANDOM, p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_double,
-        ctypes.c_double, ctypes.c_char_p, p_u8, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_double,
-        ctypes.c_double, ctypes.c_double,
+        ctypes.c_double, ctypes.c_char_p, ctypes.c_uint32, p_u8, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
+        ctypes.c_double, ctypes.c_double, ctypes.c_double,
     ]  # fmt: skip
     lib.sil_handle.argtypes = [
         ctypes.c_void_p, p_u8, ctypes.c_size_t, p_u8, ctypes.c_size_t, ctypes.POINTER(ctypes.c_size_t)
@@ -192,7 +192,7 @@ def load_library(cache: Path | None = None, sanitize: bool = False) -> ctypes.CD
     lib.sil_set_next_frame.argtypes = [ctypes.c_void_p, ctypes.c_uint32]
     lib.sil_state.argtypes = [ctypes.c_void_p, p_u8, ctypes.POINTER(ctypes.c_uint32)]
     lib.sil_check_table.argtypes = [
-        p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_char_p, ctypes.POINTER(ctypes.c_uint32)
+        p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_uint32, ctypes.c_char_p, ctypes.POINTER(ctypes.c_uint32)
     ]  # fmt: skip
     lib.sil_format.argtypes = [ctypes.c_uint32, ctypes.c_double, ctypes.c_char_p]
     lib.sil_format.restype = ctypes.c_uint32
@@ -275,7 +275,8 @@ class CFirmware:
         result = self._lib.sil_boot(
             _aligned(self._fw), *self._callbacks, _u8(identity.uid), int(limits is not None),
             limits.design_focal_length_mm if limits else 0.0, limits.focal_tolerance if limits else 0.0,
-            limits.max_distortion_fraction if limits else 0.0, self._design_name, table,
+            limits.max_distortion_fraction if limits else 0.0, self._design_name,
+            int(limits is not None and limits.fixed_point), table,
             _aligned(self._est) if self._est is not None else None, estimate_mask,
             {"float32": 0, "fixed": 1}[precision], centroid_noise_px, budget.flops_per_s, budget.min_frame_period_s,
         )  # fmt: skip
@@ -366,7 +367,12 @@ def check_table_c(table: bytes, limits: PlausibilityLimits | None) -> str | None
     text = ctypes.create_string_buffer(128)
     n = ctypes.c_uint32(0)
     bad = lib.sil_check_table(
-        _u8(table), int(limits is not None), limits.design_focal_length_mm if limits else 0.0, text, ctypes.byref(n)
+        _u8(table),
+        int(limits is not None),
+        limits.design_focal_length_mm if limits else 0.0,
+        int(limits is not None and limits.fixed_point),
+        text,
+        ctypes.byref(n),
     )
     return text.raw[: n.value].decode() if bad else None
 

@@ -20,9 +20,9 @@ int sil_estimator_available(void) { return estimator_seam_available(); }
  * (onboard.banks.factory_store). Returns 0, 1 for a bad budget, 2 for a power cut. */
 int sil_boot(firmware_t *fw, sil_read_fn read, sil_erase_fn erase, sil_program_fn program, sil_random_fn random32,
              const uint8_t *uid, uint32_t has_limits, double design_focal_length_mm, double focal_tolerance,
-             double max_distortion_fraction, const char *design_name, const uint8_t *factory_table,
-             estimator_seam_state_t *est, uint32_t estimate_mask, uint32_t precision, double centroid_noise_px,
-             double flops_per_s, double min_frame_period_s)
+             double max_distortion_fraction, const char *design_name, uint32_t fixed_point,
+             const uint8_t *factory_table, estimator_seam_state_t *est, uint32_t estimate_mask, uint32_t precision,
+             double centroid_noise_px, double flops_per_s, double min_frame_period_s)
 {
     banks_store_t store; /* copied into fw */
     banks_hal_t hal;
@@ -41,6 +41,7 @@ int sil_boot(firmware_t *fw, sil_read_fn read, sil_erase_fn erase, sil_program_f
     limits.focal_tolerance = focal_tolerance;
     limits.max_distortion_fraction = max_distortion_fraction;
     limits.design_name = design_name;
+    limits.fixed_point = fixed_point;
     result = factory_table != NULL ? banks_factory(&store, &hal, &limits, factory_table)
                                    : banks_boot(&store, &hal, &limits);
     if (result != BANKS_OK) {
@@ -83,13 +84,14 @@ void sil_state(const firmware_t *fw, uint8_t *streaming, uint32_t out[8])
 }
 
 /* the core's own check of a table (params_check_table): 0 usable, else 1 and the text */
-int sil_check_table(const uint8_t *table, uint32_t has_limits, double design_focal_length_mm, char *text,
-                    uint32_t *text_len)
+int sil_check_table(const uint8_t *table, uint32_t has_limits, double design_focal_length_mm, uint32_t fixed_point,
+                    char *text, uint32_t *text_len)
 {
     params_limits_t limits = params_default_limits(design_focal_length_mm);
     pyformat_text_t why;
     int bad;
     limits.has_limits = has_limits;
+    limits.fixed_point = fixed_point;
     pyformat_init(&why);
     bad = params_check_table(table, &limits, &why);
     memcpy(text, why.buf, why.len);

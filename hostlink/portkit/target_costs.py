@@ -508,6 +508,7 @@ def measure_commands(m: Machine, factory, new_set, precision: str) -> dict[str, 
         Arg("f64", 0.0),
         Arg("f64", 0.0),
         np.frombuffer(b"design value\0", np.uint8).copy(),
+        Arg("u32", 0),  # no fixed-point range rule (it goes with the limits)
         np.frombuffer(banks.params_to_table(factory), np.uint8).copy(),
         est,
         Arg("u32", 0x3FF),

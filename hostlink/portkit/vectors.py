@@ -987,13 +987,13 @@ def fixed_point_against_float64(directory: str | Path) -> dict[str, tuple[float,
     import json
 
     doc = json.loads((Path(directory) / "pixel_to_direction.fixed.json").read_text(encoding="utf-8"))
-    worst_b, bound_b = 0.0, 0.0
+    worst_b, bound_b = 0.0, math.inf
     for case in doc["cases"]:
         inp = {k: decode_array(v) for k, v in case["inputs"].items()}
         got = {k: decode_array(v) for k, v in case["outputs"].items()}
         theta_q = got["theta_q"]
         b64 = camera.pixels_to_unit(inp["x_q10"] / 1024.0, inp["y_q10"] / 1024.0, theta_q)
         worst_b = max(worst_b, float(np.max(np.abs(got["b_q30"] * 2.0**-30 - b64))) * 2.0**30)
-        s = int(got["s"])
-        bound_b = 4 + 8 * 2.0**s / float(theta_q[0])  # onboard/fixedpoint.py: 2^-30 (4 + 8 S / F) per component
+        cam = fixedpoint.fixed_camera(inp["theta"], tuple(int(v) for v in inp["image_size_px"]))
+        bound_b = min(bound_b, fixedpoint.error_bounds_q30(cam)[1])  # the tightest case's bound, per component
     return {"b_q30": (worst_b, bound_b)}

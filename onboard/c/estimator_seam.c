@@ -11,6 +11,7 @@
 #include <math.h>
 
 #include "fixedpoint.h"
+#include "params.h"
 #include "prior.h"
 #include "recursive.h"
 
@@ -39,9 +40,12 @@ int estimator_seam_start(estimator_seam_state_t *state, const estimator_seam_con
     double sigma[RECURSIVE_N_PARAMS];
     const double width = (double)table[ST_PARAM_IMAGE_WIDTH_PX], height = (double)table[ST_PARAM_IMAGE_HEIGHT_PX];
     int i;
-    if (config->precision > ESTIMATOR_SEAM_FIXED || !(width >= 1.0 && width <= 65535.0) ||
-        !(height >= 1.0 && height <= 65535.0) || width != floor(width) || height != floor(height)) {
-        return 1; /* banks.table_to_params: an image size that is not a whole number cannot start an estimator */
+    /* banks.table_to_params: an image size that is not a whole number cannot start an estimator; any size the checks
+     * accept (1..2^24 px a side, params.h) does, as the reference model's (a 65535 px bound here once left a wider
+     * detector without an estimate in C while the Python model ran one) */
+    if (config->precision > ESTIMATOR_SEAM_FIXED || !(width >= 1.0 && width <= PARAMS_MAX_IMAGE_SIDE_PX) ||
+        !(height >= 1.0 && height <= PARAMS_MAX_IMAGE_SIDE_PX) || width != floor(width) || height != floor(height)) {
+        return 1;
     }
     nominal.focal_length_mm = (double)table[ST_PARAM_FOCAL_LENGTH_MM];
     nominal.pixel_pitch_um = (double)table[ST_PARAM_PIXEL_PITCH_UM];

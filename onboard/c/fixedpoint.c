@@ -126,15 +126,46 @@ static void block_float(double value, int64_t *m, int32_t *e)
     *e = ee;
 }
 
+double fixedpoint_distortion_share(const fixedpoint_camera_t *cam)
+{
+    const int q = FIXEDPOINT_Q;
+    const int s = (int)cam->s;
+    const double scale_px = ldexp(1.0, s);
+    double coef[7], corners_x[2], corners_y[2], rho2 = 0.0, rho, c_rad, c_tan, tan_a, tan_b;
+    int i, j;
+    for (i = 0; i < 7; ++i) {
+        coef[i] = ldexp((double)cam->coef_m[i], -(int)cam->coef_e[i]);
+    }
+    corners_x[0] = -0.5 - ldexp((double)cam->x0_q, s - q);
+    corners_x[1] = (double)cam->width_px - 0.5 - ldexp((double)cam->x0_q, s - q);
+    corners_y[0] = -0.5 - ldexp((double)cam->y0_q, s - q);
+    corners_y[1] = (double)cam->height_px - 0.5 - ldexp((double)cam->y0_q, s - q);
+    for (i = 0; i < 2; ++i) {
+        for (j = 0; j < 2; ++j) {
+            const double r2 = corners_x[i] * corners_x[i] + corners_y[j] * corners_y[j];
+            if (r2 > rho2) {
+                rho2 = r2;
+            }
+        }
+    }
+    rho2 = rho2 / (scale_px * scale_px);
+    rho = sqrt(rho2);
+    c_rad = fabs(coef[0]) * rho2 + fabs(coef[1]) * (rho2 * rho2) + fabs(coef[2]) * (rho2 * rho2 * rho2);
+    tan_a = 3.0 * fabs(coef[3]) + fabs(coef[4]) + fabs(coef[5]);
+    tan_b = 3.0 * fabs(coef[4]) + fabs(coef[3]) + fabs(coef[6]);
+    c_tan = rho * (tan_a > tan_b ? tan_a : tan_b);
+    return c_rad + c_tan;
+}
+
 fixedpoint_status_t fixedpoint_camera(const float theta[CAMERA_N_PARAMS], int32_t width_px, int32_t height_px,
                                       fixedpoint_camera_t *cam)
 {
     static const int powers[7] = {2, 4, 6, 1, 1, 1, 1};
     const int q = FIXEDPOINT_Q;
     double t[CAMERA_N_PARAMS], coef[7];
-    double f_px, x0, y0, scale_px, corners_x[2], corners_y[2], rho2 = 0.0, rho, c_rad, c_tan, tan_a, tan_b, cap;
+    double f_px, x0, y0, scale_px, cap;
     int32_t s, e_k;
-    int i, j, exp2;
+    int i, exp2;
     s = fixedpoint_detector_shift(width_px, height_px);
     if (s > FIXEDPOINT_MAX_DETECTOR_SHIFT) {
         return FIXEDPOINT_ERR_DETECTOR_SIZE;
@@ -155,6 +186,9 @@ fixedpoint_status_t fixedpoint_camera(const float theta[CAMERA_N_PARAMS], int32_
     if (!(f_px >= scale_px / 8.0)) {
         return FIXEDPOINT_ERR_FOCAL;
     }
+    if (!(f_px <= FIXEDPOINT_MAX_FOCAL_PX)) {
+        return FIXEDPOINT_ERR_FOCAL_LONG;
+    }
     cam->s = s;
     cam->width_px = width_px;
     cam->height_px = height_px;
@@ -165,26 +199,7 @@ fixedpoint_status_t fixedpoint_camera(const float theta[CAMERA_N_PARAMS], int32_
         cam->coef_e[i] = e_k;
         coef[i] = ldexp((double)cam->coef_m[i], -(int)e_k);
     }
-    /* the range condition at the farthest corner (onboard/fixedpoint.py's docstring) */
-    corners_x[0] = -0.5 - ldexp((double)cam->x0_q, (int)s - q);
-    corners_x[1] = (double)width_px - 0.5 - ldexp((double)cam->x0_q, (int)s - q);
-    corners_y[0] = -0.5 - ldexp((double)cam->y0_q, (int)s - q);
-    corners_y[1] = (double)height_px - 0.5 - ldexp((double)cam->y0_q, (int)s - q);
-    for (i = 0; i < 2; ++i) {
-        for (j = 0; j < 2; ++j) {
-            const double r2 = corners_x[i] * corners_x[i] + corners_y[j] * corners_y[j];
-            if (r2 > rho2) {
-                rho2 = r2;
-            }
-        }
-    }
-    rho2 = rho2 / (scale_px * scale_px);
-    rho = sqrt(rho2);
-    c_rad = fabs(coef[0]) * rho2 + fabs(coef[1]) * (rho2 * rho2) + fabs(coef[2]) * (rho2 * rho2 * rho2);
-    tan_a = 3.0 * fabs(coef[3]) + fabs(coef[4]) + fabs(coef[5]);
-    tan_b = 3.0 * fabs(coef[4]) + fabs(coef[3]) + fabs(coef[6]);
-    c_tan = rho * (tan_a > tan_b ? tan_a : tan_b);
-    if (!(c_rad + c_tan <= 1.0)) {
+    if (!(fixedpoint_distortion_share(cam) <= 1.0)) {
         return FIXEDPOINT_ERR_DISTORTION;
     }
     cap = f_px / scale_px > 4.0 ? f_px / scale_px : 4.0;

@@ -31,6 +31,10 @@
 #define FIXEDPOINT_E_FRAC_BITS (2 * FIXEDPOINT_Q + 1)
 /* Largest detector shift s (S = 2^s px): the Q10 centroid must fit the Q(30 - s) grid. */
 #define FIXEDPOINT_MAX_DETECTOR_SHIFT (FIXEDPOINT_Q - FIXEDPOINT_CENTROID_FRAC_BITS)
+/* Longest focal length [px], 2^20: a Q30 unit vector's grid (F 2^-30 px on the detector) no coarser than the Q10
+ * centroid's; it also keeps F / S <= 2^19, so every shift of w stays below 64 bits
+ * (onboard.fixedpoint.MAX_FOCAL_PX). */
+#define FIXEDPOINT_MAX_FOCAL_PX 1048576.0
 /* Mantissa bits of a block-floating-point coefficient (float32's 24 bits fit exactly). */
 #define FIXEDPOINT_COEF_BITS 28
 /* Largest coefficient exponent (a right shift of an int64). */
@@ -53,7 +57,8 @@ typedef enum {
     FIXEDPOINT_ERR_PRINCIPAL_POINT = 3, /* principal point off the detector */
     FIXEDPOINT_ERR_FOCAL = 4,         /* focal length below S / 8 */
     FIXEDPOINT_ERR_DISTORTION = 5,    /* distortion correction beyond 100 % of the radius */
-    FIXEDPOINT_ERR_CENTROID = 6       /* a centroid off the detector */
+    FIXEDPOINT_ERR_CENTROID = 6,      /* a centroid off the detector */
+    FIXEDPOINT_ERR_FOCAL_LONG = 7     /* focal length above FIXEDPOINT_MAX_FOCAL_PX */
 } fixedpoint_status_t;
 
 /* A camera model vector in the front end's formats (onboard.fixedpoint.FixedCamera). */
@@ -86,6 +91,9 @@ int32_t fixedpoint_detector_shift(int32_t width_px, int32_t height_px);
 /* Model vector (float32) -> the front end's formats; refuses a set outside the proved range. */
 fixedpoint_status_t fixedpoint_camera(const float theta[CAMERA_N_PARAMS], int32_t width_px, int32_t height_px,
                                       fixedpoint_camera_t *cam);
+/* The range condition's sum at the farthest corner (onboard.fixedpoint.distortion_share): the distortion correction
+ * as a fraction of the radius, from a camera whose s, x0_q, y0_q, size and coefficients are set; <= 1 in range. */
+double fixedpoint_distortion_share(const fixedpoint_camera_t *cam);
 /* Whether a centroid (Q10 px) lies on the detector [-0.5, W - 0.5] x [-0.5, H - 0.5]. */
 int fixedpoint_on_detector(int64_t x_q10, int64_t y_q10, int32_t width_px, int32_t height_px);
 /* Measured centroid (Q10 px) -> ideal offsets (u', v'), Q30 normalised (the Weng correction, seed 000 eq. 7). */

@@ -4,6 +4,8 @@
 
 #include <math.h>
 
+#include "fixedpoint.h"
+
 static const char *const DISTORTION_FIELDS[7] = {"distortion.k1", "distortion.k2", "distortion.k3", "distortion.p1",
                                                  "distortion.p2", "distortion.s1", "distortion.s2"};
 /* onboard.prior.SIGMA_FILE_FIELDS */
@@ -33,6 +35,7 @@ params_limits_t params_default_limits(double design_focal_length_mm)
     l.focal_tolerance = PARAMS_FOCAL_TOLERANCE;
     l.max_distortion_fraction = PARAMS_MAX_DISTORTION_FRACTION;
     l.design_name = "design value";
+    l.fixed_point = 0u;
     return l;
 }
 
@@ -249,8 +252,9 @@ static float min_mapping_determinant(const camera_t *cam, float *x_at, float *y_
     return det_min;
 }
 
-/* onboard.params.validate_params in float32: the scalars, then the distortion's mapping one-to-one over the
- * detector (the radial slope from 0 to the farthest corner, the Jacobian determinant on the grid). */
+/* onboard.params.validate_params in float32: the scalars, the farthest corner's distance, then the distortion's
+ * mapping one-to-one over the detector (the radial slope from 0 to the farthest corner, the Jacobian determinant on
+ * the grid). */
 static int validate_params(const camera_t *cam, pyformat_text_t *why)
 {
     double s_max;
@@ -259,6 +263,13 @@ static int validate_params(const camera_t *cam, pyformat_text_t *why)
         return 1;
     }
     s_max = farthest_corner_radius2_px2(cam);
+    if (!(s_max <= PARAMS_MAX_CORNER_RADIUS_PX * PARAMS_MAX_CORNER_RADIUS_PX)) {
+        refuse(why, "image_size_px", "the farthest corner is ");
+        pyformat_f0(why, sqrt(s_max));
+        pyformat_str(why, " px from the principal point, beyond 262144 px (a float32 sensor's distortion Jacobian "
+                          "r^7 would overflow)");
+        return 1;
+    }
     min_radial_slope(cam->theta, s_max, &p_min, &r_at);
     if (!(p_min > 0.0f)) {
         refuse(why, "distortion", "radial mapping is not one-to-one: d r'/d r = ");
@@ -282,6 +293,54 @@ static int validate_params(const camera_t *cam, pyformat_text_t *why)
         return 1;
     }
     return 0;
+}
+
+/* onboard.params.check_plausible's rule 4: fixedpoint_camera at the float32 model vector, the refusal worded as
+ * onboard.fixedpoint.fixed_camera's FixedRangeError */
+static int refuse_fixed(const camera_t *cam, pyformat_text_t *why)
+{
+    const int32_t w = (int32_t)cam->size[0], h = (int32_t)cam->size[1];
+    fixedpoint_camera_t fc;
+    const fixedpoint_status_t status = fixedpoint_camera(cam->theta, w, h, &fc);
+    if (status == FIXEDPOINT_OK) {
+        return 0;
+    }
+    refuse(why, "fixed point", "outside the sensor's range: ");
+    switch (status) {
+    case FIXEDPOINT_ERR_DETECTOR_SIZE:
+        pyformat_str(why, "detector side ");
+        pyformat_i64(why, w > h ? w : h);
+        pyformat_str(why, " px exceeds the fixed-point range (2^20)");
+        break;
+    case FIXEDPOINT_ERR_PRINCIPAL_POINT:
+        pyformat_str(why, "principal point (");
+        pyformat_repr(why, (double)cam->theta[1]);
+        pyformat_str(why, ", ");
+        pyformat_repr(why, (double)cam->theta[2]);
+        pyformat_str(why, ") px is off the detector");
+        break;
+    case FIXEDPOINT_ERR_FOCAL:
+        pyformat_str(why, "focal length ");
+        pyformat_g(why, (double)cam->theta[0], 6u);
+        pyformat_str(why, " px is below S/8 = ");
+        pyformat_f0(why, ldexp(1.0, (int)fixedpoint_detector_shift(w, h)) / 8.0);
+        pyformat_str(why, " px (field too wide)");
+        break;
+    case FIXEDPOINT_ERR_FOCAL_LONG:
+        pyformat_str(why, "focal length ");
+        pyformat_g(why, (double)cam->theta[0], 6u);
+        pyformat_str(why, " px is above 2^20 = 1048576 px (Q30 unit vectors coarser than the Q10 centroids)");
+        break;
+    case FIXEDPOINT_ERR_DISTORTION:
+        pyformat_str(why, "distortion correction up to ");
+        pyformat_f0(why, 100.0 * fixedpoint_distortion_share(&fc));
+        pyformat_str(why, " % of the radius exceeds the fixed-point range (100 %)");
+        break;
+    default: /* FIXEDPOINT_ERR_NOT_FINITE (a centroid status cannot come from fixedpoint_camera) */
+        pyformat_str(why, "parameters must be finite");
+        break;
+    }
+    return 1;
 }
 
 static int check_plausible(const camera_t *cam, const params_limits_t *limits, pyformat_text_t *why)
@@ -341,7 +400,7 @@ static int check_plausible(const camera_t *cam, const params_limits_t *limits, p
         pyformat_str(why, " mm");
         return 1;
     }
-    return 0;
+    return limits->fixed_point ? refuse_fixed(cam, why) : 0;
 }
 
 static int validate_sigma(const float *sigma, pyformat_text_t *why)
