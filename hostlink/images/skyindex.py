@@ -86,7 +86,7 @@ def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray
 class PairCatalogue:
     """Every pair of catalogue stars closer than ``max_angle_rad``, sorted by angle: the fallback matcher's index.
 
-    a, b: (P,) int64 indices into the :class:`_Sky` arrays; angle_rad: (P,) their separations, ascending;
+    a, b: (P,) int32 indices into the :class:`_Sky` arrays (a < b); angle_rad: (P,) their separations, ascending;
     r: the sky's unit vectors (indexed by a and b); rows: the sky indices of the stars taking part (brighter than
     the limit), and tree: a k-d tree of their unit vectors (``scipy.spatial.cKDTree``)."""
 
@@ -102,6 +102,30 @@ class PairCatalogue:
     rank16: np.ndarray | None
     #: the three columns of ``r`` (x, y, z), each contiguous (:func:`sky_columns`), for :func:`_dot_rows`
     columns: tuple[np.ndarray, np.ndarray, np.ndarray]
+    #: (S,) bool: the stars taking part when ``a``, ``b``, ``angle_rad`` are those of a deeper table, shared instead of
+    #: copied (:meth:`PairCache.pairs`): its pairs are those of both stars taking part (:func:`pair_window`; a deeper
+    #: table's pairs in their order, so these are in (angle, a, b) order too); None when every pair of the arrays is
+    #: in the table
+    stars: np.ndarray | None = None
+
+
+def pair_window(pairs: PairCatalogue, lo_rad: float, hi_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) of the pairs of ``pairs`` whose angle lies in [``lo_rad``, ``hi_rad``) (their order), those of stars
+    not taking part left out (:attr:`PairCatalogue.stars`)."""
+    lo, hi = np.searchsorted(pairs.angle_rad, [lo_rad, hi_rad])
+    a, b = pairs.a[lo:hi], pairs.b[lo:hi]
+    if pairs.stars is not None and a.size:
+        keep = pairs.stars[a] & pairs.stars[b]
+        a, b = a[keep], b[keep]
+    return a, b
+
+
+def pair_arrays(pairs: PairCatalogue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The table's own (a, b, angle_rad), those of stars not taking part left out (a copy when it shares a deeper
+    table's arrays): what :func:`pair_catalogue` gives for its angle and depth."""
+    if pairs.stars is None:
+        return pairs.a, pairs.b, pairs.angle_rad
+    return _pairs_of_stars(pairs.a, pairs.b, pairs.angle_rad, pairs.stars)
 
 
 def sky_columns(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -120,27 +144,148 @@ def _dot_rows(columns: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray,
     return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
 
 
+#: :func:`pair_catalogue` finds the pairs group by group of the stars taking part (in sky order, which follows right
+#: ascension; each group with its own k-d tree: the pairs within a group, then with each later group, once each) ...
+PAIR_BUILD_STAR_GROUPS = 32
+#: ... stages them in blocks of this many pairs (17 bytes a pair: a, b, angle and its bucket), each block its own
+#: anonymous memory map, unmapped as soon as its pairs are in the table (freed numpy arrays of this size may stay with
+#: the allocator instead of going back to the system), writing them a slice of this many at a time ...
+PAIR_BUILD_BLOCK_PAIRS = 1 << 20
+#: ... and sorts them by angle bucket by bucket, the buckets of about equal counts (a pair's angle on a uniform sky
+#: has a density proportional to it for small angles, so the bucket edges lie at max_angle * sqrt(k / N)): the build's
+#: peak memory is the table's arrays plus a block and a bucket, not several times the table (docs/realsky.md, "Speed").
+PAIR_BUILD_ANGLE_BUCKETS = 64
+
+
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
-    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
-    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2)), in the order (angle, a, b): pairs of
-    exactly the same angle (a double star's partners, angles that round alike) in the order of their sky indices,
-    not the tree's traversal, so that a table cut from a larger one (:meth:`PairCache.pairs`) is the same table."""
+    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (k-d trees on the unit vectors,
+    ``scipy.spatial.cKDTree``, within the chord 2 sin(angle / 2): ``query_pairs`` within each of
+    :data:`PAIR_BUILD_STAR_GROUPS` groups of the stars, ``sparse_distance_matrix`` between groups; the same pairs as
+    ``query_pairs`` over all the stars at once), in the order (angle, a, b): pairs of exactly the same angle (a double
+    star's partners, angles that round alike) in the order of their sky indices, not the tree's traversal, so that a
+    table cut from a larger one (:meth:`PairCache.pairs`) is the same table. Staged in blocks (:class:`_PairBlocks`)
+    and sorted bucket by bucket of angle (:func:`_sorted_by_angle`): the peak memory is about the table's own 16
+    bytes a pair."""
     from scipy.spatial import cKDTree
 
     rows = np.flatnonzero(sky.mag <= maglim)
     chord = 2.0 * math.sin(0.5 * max_angle_rad)
-    tree = cKDTree(sky.r[rows])
-    pairs = tree.query_pairs(chord, output_type="ndarray")
-    a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
+    points = sky.r[rows]
+    tree = cKDTree(points)
     columns = sky_columns(sky.r)
-    # without the (P, 3) gathers, the build's costliest step otherwise (docs/realsky.md, "Figures behind the speed
-    # choices")
-    angle = np.arccos(np.clip(_dot_rows(columns, a, b), -1.0, 1.0))
-    # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
-    order = _ties_by_stars(np.argsort(angle), angle, a, b)
-    return PairCatalogue(
-        a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns
-    )
+    edges = max_angle_rad * np.sqrt(np.arange(1, PAIR_BUILD_ANGLE_BUCKETS) / PAIR_BUILD_ANGLE_BUCKETS)
+    staged = _PairBlocks(rows, columns, edges)
+    bounds = np.linspace(0, rows.size, PAIR_BUILD_STAR_GROUPS + 1).astype(np.int64)
+    trees = [cKDTree(points[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+    for g, group in enumerate(trees):
+        within = group.query_pairs(chord, output_type="ndarray")
+        staged.add(bounds[g] + within[:, 0], bounds[g] + within[:, 1])
+        del within
+        for h in range(g + 1, len(trees)):
+            across = group.sparse_distance_matrix(trees[h], chord, output_type="ndarray")
+            staged.add(bounds[g] + across["i"], bounds[h] + across["j"])
+    a, b, angle = _sorted_by_angle(staged.filled(), edges.size + 1)
+    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns)
+
+
+class _PairBlocks:
+    """Pairs staged for :func:`pair_catalogue` in blocks of :data:`PAIR_BUILD_BLOCK_PAIRS`, each an anonymous
+    memory map holding (a, b, angle, bucket): a < b int32 sky indices, the angle arccos of the dot product
+    (:func:`_dot_rows`: the same angle whatever block a pair comes in) and its bucket (uint8) among ``edges`` (the
+    buckets' inner bounds [rad]). ``blocks``: [(a, b, angle, bucket)], views of their maps (filled to their length)."""
+
+    def __init__(self, rows: np.ndarray, columns: tuple[np.ndarray, np.ndarray, np.ndarray], edges: np.ndarray):
+        self.rows, self.columns, self.edges = rows, columns, edges
+        self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._free = 0
+
+    def _new_block(self) -> None:
+        import mmap
+
+        n = PAIR_BUILD_BLOCK_PAIRS
+        buffer = mmap.mmap(-1, 17 * n)
+        self.blocks.append(
+            (
+                np.frombuffer(buffer, np.int32, n, 0),
+                np.frombuffer(buffer, np.int32, n, 4 * n),
+                np.frombuffer(buffer, np.float64, n, 8 * n),
+                np.frombuffer(buffer, np.uint8, n, 16 * n),
+            )
+        )
+        self._free = n
+
+    def add(self, i: np.ndarray, j: np.ndarray) -> None:
+        """The pairs (rows[i], rows[j]) (i < j), a slice at a time into the blocks."""
+        start = 0
+        while start < i.size:
+            if self._free == 0:
+                self._new_block()
+            stop = min(i.size, start + self._free)
+            a = self.rows[i[start:stop]].astype(np.int32)
+            b = self.rows[j[start:stop]].astype(np.int32)
+            angle = np.arccos(np.clip(_dot_rows(self.columns, a, b), -1.0, 1.0))
+            at = PAIR_BUILD_BLOCK_PAIRS - self._free
+            block = self.blocks[-1]
+            at = slice(at, at + a.size)
+            block[0][at], block[1][at], block[2][at] = a, b, angle
+            block[3][at] = np.searchsorted(self.edges, angle, side="right")
+            self._free -= a.size
+            start = stop
+
+    def filled(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """The blocks, the last cut to its pairs (views of the same map: it is unmapped when the last one goes)."""
+        if self.blocks and self._free:
+            self.blocks[-1] = tuple(column[: PAIR_BUILD_BLOCK_PAIRS - self._free] for column in self.blocks[-1])
+            self._free = 0
+        return self.blocks
+
+
+def _small_paged(n: int, dtype) -> np.ndarray:
+    """An uninitialised (n,) array of ``dtype`` in its own anonymous memory map, advised against transparent huge
+    pages where the system has them (``MADV_NOHUGEPAGE``): :func:`_sorted_by_angle` writes each block's pairs into 64
+    parts of the table at once, and numpy's own large arrays ask for 2 MB pages, each of which becomes resident at its
+    first byte written (+135 MB for a 150 MB table after its first block, measured) instead of as it fills."""
+    import mmap
+
+    nbytes = n * np.dtype(dtype).itemsize
+    if nbytes == 0:
+        return np.empty(0, dtype=dtype)
+    buffer = mmap.mmap(-1, nbytes)
+    if hasattr(mmap, "MADV_NOHUGEPAGE"):
+        buffer.madvise(mmap.MADV_NOHUGEPAGE)
+    return np.frombuffer(buffer, dtype, n)
+
+
+def _sorted_by_angle(
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], n_buckets: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs of the staged ``blocks`` (:class:`_PairBlocks`) as one table (a, b, angle) in (angle, a, b) order:
+    each block's pairs put into their bucket's part of the table and the block freed (``blocks`` is emptied), then
+    each bucket sorted (any sort by angle, its runs of equal angles then put in (a, b) order, whatever order the sort
+    left them in: :func:`_ties_by_stars`)."""
+    counts = sum((np.bincount(block[3], minlength=n_buckets) for block in blocks), np.zeros(n_buckets, np.int64))
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    total = int(starts[-1])
+    a, b, angle = (_small_paged(total, dtype) for dtype in (np.int32, np.int32, np.float64))
+    cursor = starts[:-1].copy()
+    while blocks:
+        ak, bk, anglek, bucket = blocks.pop(0)
+        order = np.argsort(bucket, kind="stable")
+        ends = np.searchsorted(bucket[order], np.arange(1, n_buckets + 1), side="left")
+        begin = 0
+        for k, end in enumerate(ends):
+            part = order[begin:end]
+            at = slice(cursor[k], cursor[k] + part.size)
+            a[at], b[at], angle[at] = ak[part], bk[part], anglek[part]
+            cursor[k] += part.size
+            begin = end
+        del ak, bk, anglek, bucket, order  # the block's map goes with its last view
+    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+        if hi > lo:
+            ak, bk, anglek = a[lo:hi], b[lo:hi], angle[lo:hi]
+            order = _ties_by_stars(np.argsort(anglek), anglek, ak, bk)
+            a[lo:hi], b[lo:hi], angle[lo:hi] = ak[order], bk[order], anglek[order]
+    return a, b, angle
 
 
 def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
@@ -256,19 +401,37 @@ def _narrower(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
 
 def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
     """The pairs of ``table`` (built to ``table_maglim``) within ``max_angle_rad`` of stars brighter than ``maglim``:
-    ``table`` is in (angle, a, b) order, and so is every subset of it."""
+    ``table`` is in (angle, a, b) order, and so is every subset of it. Its arrays are the table's own, sliced to the
+    angle, not copied: when stars are left out, :attr:`PairCatalogue.stars` says which take part (the cut costs a
+    k-d tree of its stars, not a second table: 0.2 GB on openstartracker, docs/realsky.md "Speed")."""
     from scipy.spatial import cKDTree
 
     n = int(np.searchsorted(table.angle_rad, max_angle_rad, side="right"))
     a, b, angle = table.a[:n], table.b[:n], table.angle_rad[:n]
-    rows, tree = table.rows, table.tree
+    rows, tree, stars = table.rows, table.tree, None
     if maglim < table_maglim:
         bright = sky.mag <= maglim
-        keep = np.flatnonzero(bright[a] & bright[b])  # the indices once, then three takes (not three masks)
-        a, b, angle = a.take(keep), b.take(keep), angle.take(keep)
-        rows = np.flatnonzero(bright)
-        tree = cKDTree(sky.r[rows])
-    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns)
+        if np.count_nonzero(bright) < rows.size:  # else the same stars (none between the depths): the same table
+            rows, stars = np.flatnonzero(bright), bright
+            tree = cKDTree(sky.r[rows])
+    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns, stars)
+
+
+#: :func:`_pairs_of_stars` tests this many pairs at a time [pairs]: its temporaries stay a few MB whatever the table.
+CUT_BLOCK_PAIRS = 1 << 20
+
+
+def _pairs_of_stars(
+    a: np.ndarray, b: np.ndarray, angle: np.ndarray, bright: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs (a, b, angle) both of whose stars are ``bright`` ((S,) bool), in their order: which to keep found
+    block by block (:data:`CUT_BLOCK_PAIRS`) into one (P,) bool, then each column taken once into its own array, so
+    that the cut costs its own arrays and a byte a pair, not (P,) temporaries of the table's width."""
+    keep = np.empty(a.size, dtype=bool)
+    for start in range(0, a.size, CUT_BLOCK_PAIRS):
+        stop = start + CUT_BLOCK_PAIRS
+        np.logical_and(bright[a[start:stop]], bright[b[start:stop]], out=keep[start:stop])
+    return a[keep], b[keep], angle[keep]
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
