@@ -155,17 +155,31 @@ def _one_piece_table(sky, max_angle_rad, maglim):
 @pytest.mark.parametrize(("groups", "block_pairs"), [(7, 1000), (32, 1 << 20)], ids=["small-blocks", "default"])
 def test_the_staged_build_is_the_one_piece_table(sky, monkeypatch, groups, block_pairs):
     # many blocks, star groups and angle buckets: each pair found once, every pair in its place, bit for bit
-    from hostlink.images import skyindex
+    from hostlink.images import pairtable
 
-    monkeypatch.setattr(skyindex, "PAIR_BUILD_STAR_GROUPS", groups)
-    monkeypatch.setattr(skyindex, "PAIR_BUILD_BLOCK_PAIRS", block_pairs)
+    monkeypatch.setattr(pairtable, "PAIR_BUILD_STAR_GROUPS", groups)
+    monkeypatch.setattr(pairtable, "PAIR_BUILD_BLOCK_PAIRS", block_pairs)
     got = pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG)
     want_a, want_b, want_angle = _one_piece_table(sky, ANGLE_RAD, DEPTH_MAG)
-    assert got.a.dtype == got.b.dtype == np.int32  # 16 bytes a pair with the angle
+    assert got.a.dtype == got.b.dtype == np.int32  # 8 bytes a pair, and the sampled angles
     assert got.a.size > 50 * 1000
     np.testing.assert_array_equal(got.a, want_a)
     np.testing.assert_array_equal(got.b, want_b)
-    np.testing.assert_array_equal(got.angle_rad, want_angle)
+    np.testing.assert_array_equal(got.angle_sample_rad, want_angle[:: pairtable.ANGLE_SAMPLE_PAIRS])
+    np.testing.assert_array_equal(pair_arrays(got)[2], want_angle)
+
+
+def test_a_search_among_the_sampled_angles_is_a_search_among_all_of_them(sky):
+    # every pair's angle as a bound, either side, and values between and beyond them: the index np.searchsorted gives
+    from hostlink.images.pairtable import angle_index
+
+    table = pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG - 1.0)
+    _, _, angle = pair_arrays(table)
+    bounds = np.concatenate([angle, np.nextafter(angle, 0.0), np.nextafter(angle, 1.0), [-1.0, 0.0, ANGLE_RAD, 1.0]])
+    for side in ("left", "right"):
+        want = np.searchsorted(angle, bounds, side=side)
+        got = [angle_index(table.angle_sample_rad, table.columns, table.a, table.b, x, side) for x in bounds]
+        np.testing.assert_array_equal(got, want)
 
 
 def test_the_matchers_windows_of_a_shared_cut_are_those_of_the_fresh_table(sky):
@@ -176,10 +190,10 @@ def test_the_matchers_windows_of_a_shared_cut_are_those_of_the_fresh_table(sky):
     cache.pairs(sky, ANGLE_RAD, DEPTH_MAG)
     cut = cache.pairs(sky, ANGLE_RAD * 0.9, DEPTH_MAG - 0.5)
     assert cut.stars is not None and cut.a.base is not None  # shared, not copied
-    fresh = pair_catalogue(sky, ANGLE_RAD * 0.9, DEPTH_MAG - 0.5)
+    fresh_a, fresh_b, fresh_angle = pair_arrays(pair_catalogue(sky, ANGLE_RAD * 0.9, DEPTH_MAG - 0.5))
     for lo_rad in np.linspace(0.01, 0.8, 9) * ANGLE_RAD:
-        lo, hi = np.searchsorted(fresh.angle_rad, [lo_rad, lo_rad + 0.003])
+        lo, hi = np.searchsorted(fresh_angle, [lo_rad, lo_rad + 0.003])
         got_a, got_b = pair_window(cut, lo_rad, lo_rad + 0.003)
         assert got_a.size == hi - lo > 0
-        np.testing.assert_array_equal(got_a, fresh.a[lo:hi])
-        np.testing.assert_array_equal(got_b, fresh.b[lo:hi])
+        np.testing.assert_array_equal(got_a, fresh_a[lo:hi])
+        np.testing.assert_array_equal(got_b, fresh_b[lo:hi])

@@ -15,6 +15,17 @@ import numpy as np
 
 from hostlink.files.session import Session
 from hostlink.images import solver_adapter
+from hostlink.images.pairtable import (  # noqa: F401 - _dot_rows, _ties_by_stars: imported from here by the matcher
+    ANGLE_SAMPLE_PAIRS,
+    PAIR_BUILD_ANGLE_BUCKETS,
+    _dot_rows,
+    _ties_by_stars,
+    angle_index,
+    find_pairs,
+    pair_angles,
+    sky_columns,
+    sorted_pairs,
+)
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit
 from onboard.params import CameraParams
@@ -86,13 +97,15 @@ def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray
 class PairCatalogue:
     """Every pair of catalogue stars closer than ``max_angle_rad``, sorted by angle: the fallback matcher's index.
 
-    a, b: (P,) int32 indices into the :class:`_Sky` arrays (a < b); angle_rad: (P,) their separations, ascending;
-    r: the sky's unit vectors (indexed by a and b); rows: the sky indices of the stars taking part (brighter than
-    the limit), and tree: a k-d tree of their unit vectors (``scipy.spatial.cKDTree``)."""
+    a, b: (P,) int32 indices into the :class:`_Sky` arrays (a < b), in ascending order of their separation;
+    angle_sample_rad: the separation of every :data:`~hostlink.images.pairtable.ANGLE_SAMPLE_PAIRS`-th pair (the
+    others computed again where a search needs them: :func:`pair_window`); r: the sky's unit vectors (indexed by a
+    and b); rows: the sky indices of the stars taking part (brighter than the limit), and tree: a k-d tree of their
+    unit vectors (``scipy.spatial.cKDTree``)."""
 
     a: np.ndarray
     b: np.ndarray
-    angle_rad: np.ndarray
+    angle_sample_rad: np.ndarray
     max_angle_rad: float
     r: np.ndarray
     rows: np.ndarray
@@ -102,7 +115,7 @@ class PairCatalogue:
     rank16: np.ndarray | None
     #: the three columns of ``r`` (x, y, z), each contiguous (:func:`sky_columns`), for :func:`_dot_rows`
     columns: tuple[np.ndarray, np.ndarray, np.ndarray]
-    #: (S,) bool: the stars taking part when ``a``, ``b``, ``angle_rad`` are those of a deeper table, shared instead of
+    #: (S,) bool: the stars taking part when ``a``, ``b`` and the samples are those of a deeper table, shared instead of
     #: copied (:meth:`PairCache.pairs`): its pairs are those of both stars taking part (:func:`pair_window`; a deeper
     #: table's pairs in their order, so these are in (angle, a, b) order too); None when every pair of the arrays is
     #: in the table
@@ -112,7 +125,7 @@ class PairCatalogue:
 def pair_window(pairs: PairCatalogue, lo_rad: float, hi_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """(a, b) of the pairs of ``pairs`` whose angle lies in [``lo_rad``, ``hi_rad``) (their order), those of stars
     not taking part left out (:attr:`PairCatalogue.stars`)."""
-    lo, hi = np.searchsorted(pairs.angle_rad, [lo_rad, hi_rad])
+    lo, hi = (_index(pairs, angle_rad, "left") for angle_rad in (lo_rad, hi_rad))
     a, b = pairs.a[lo:hi], pairs.b[lo:hi]
     if pairs.stars is not None and a.size:
         keep = pairs.stars[a] & pairs.stars[b]
@@ -120,172 +133,38 @@ def pair_window(pairs: PairCatalogue, lo_rad: float, hi_rad: float) -> tuple[np.
     return a, b
 
 
+def _index(pairs: PairCatalogue, angle_rad: float, side: str) -> int:
+    """``np.searchsorted`` of ``angle_rad`` among the angles of ``pairs``'s arrays (:func:`angle_index`)."""
+    return angle_index(pairs.angle_sample_rad, pairs.columns, pairs.a, pairs.b, angle_rad, side)
+
+
 def pair_arrays(pairs: PairCatalogue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The table's own (a, b, angle_rad), those of stars not taking part left out (a copy when it shares a deeper
-    table's arrays): what :func:`pair_catalogue` gives for its angle and depth."""
+    """The table's own (a, b, angle_rad), the angles computed (:func:`pair_angles`), those of stars not taking part
+    left out: what a table as one array of each would hold (for tests and inspection)."""
+    angle = pair_angles(pairs.columns, pairs.a, pairs.b)
     if pairs.stars is None:
-        return pairs.a, pairs.b, pairs.angle_rad
-    return _pairs_of_stars(pairs.a, pairs.b, pairs.angle_rad, pairs.stars)
-
-
-def sky_columns(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The columns x, y, z of unit vectors ``r`` (S, 3), each contiguous (:func:`_dot_rows`)."""
-    x, y, z = (np.ascontiguousarray(r[:, axis]) for axis in range(3))
-    return x, y, z
-
-
-def _dot_rows(columns: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """r[i] . r[j] row by row from the columns of r (:func:`sky_columns`), x + y + z summed axis by axis (no (M, 3)
-    gathers, which cost many times more: docs/realsky.md, "Figures behind the speed choices"), (x + y) + z as a sum
-    over the 3 components of each row adds them: the same angles for :func:`pair_catalogue`; another summation
-    order would differ in the last bit, which :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its
-    bounds are twice the hit chord from any hit)."""
-    x, y, z = columns
-    return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
-
-
-#: :func:`pair_catalogue` finds the pairs group by group of the stars taking part (in sky order, which follows right
-#: ascension; each group with its own k-d tree: the pairs within a group, then with each later group, once each) ...
-PAIR_BUILD_STAR_GROUPS = 32
-#: ... stages them in blocks of this many pairs (17 bytes a pair: a, b, angle and its bucket), each block its own
-#: anonymous memory map, unmapped as soon as its pairs are in the table (freed numpy arrays of this size may stay with
-#: the allocator instead of going back to the system), writing them a slice of this many at a time ...
-PAIR_BUILD_BLOCK_PAIRS = 1 << 20
-#: ... and sorts them by angle bucket by bucket, the buckets of about equal counts (a pair's angle on a uniform sky
-#: has a density proportional to it for small angles, so the bucket edges lie at max_angle * sqrt(k / N)): the build's
-#: peak memory is the table's arrays plus a block and a bucket, not several times the table (docs/realsky.md, "Speed").
-PAIR_BUILD_ANGLE_BUCKETS = 64
+        return pairs.a, pairs.b, angle
+    keep = pairs.stars[pairs.a] & pairs.stars[pairs.b]
+    return pairs.a[keep], pairs.b[keep], angle[keep]
 
 
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
     """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (k-d trees on the unit vectors,
-    ``scipy.spatial.cKDTree``, within the chord 2 sin(angle / 2): ``query_pairs`` within each of
-    :data:`PAIR_BUILD_STAR_GROUPS` groups of the stars, ``sparse_distance_matrix`` between groups; the same pairs as
-    ``query_pairs`` over all the stars at once), in the order (angle, a, b): pairs of exactly the same angle (a double
-    star's partners, angles that round alike) in the order of their sky indices, not the tree's traversal, so that a
-    table cut from a larger one (:meth:`PairCache.pairs`) is the same table. Staged in blocks (:class:`_PairBlocks`)
-    and sorted bucket by bucket of angle (:func:`_sorted_by_angle`): the peak memory is about the table's own 16
-    bytes a pair."""
+    ``scipy.spatial.cKDTree``, within the chord 2 sin(angle / 2): :func:`hostlink.images.pairtable.find_pairs`), in
+    the order (angle, a, b): pairs of exactly the same angle (a double star's partners, angles that round alike) in
+    the order of their sky indices, not the tree's traversal, so that a table cut from a larger one
+    (:meth:`PairCache.pairs`) is the same table (:func:`hostlink.images.pairtable.sorted_pairs`: 8 bytes a pair and
+    the sampled angles; the build's peak is its 9 bytes a pair of staging)."""
     from scipy.spatial import cKDTree
 
     rows = np.flatnonzero(sky.mag <= maglim)
     chord = 2.0 * math.sin(0.5 * max_angle_rad)
     points = sky.r[rows]
-    tree = cKDTree(points)
     columns = sky_columns(sky.r)
     edges = max_angle_rad * np.sqrt(np.arange(1, PAIR_BUILD_ANGLE_BUCKETS) / PAIR_BUILD_ANGLE_BUCKETS)
-    staged = _PairBlocks(rows, columns, edges)
-    bounds = np.linspace(0, rows.size, PAIR_BUILD_STAR_GROUPS + 1).astype(np.int64)
-    trees = [cKDTree(points[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
-    for g, group in enumerate(trees):
-        within = group.query_pairs(chord, output_type="ndarray")
-        staged.add(bounds[g] + within[:, 0], bounds[g] + within[:, 1])
-        del within
-        for h in range(g + 1, len(trees)):
-            across = group.sparse_distance_matrix(trees[h], chord, output_type="ndarray")
-            staged.add(bounds[g] + across["i"], bounds[h] + across["j"])
-    a, b, angle = _sorted_by_angle(staged.filled(), edges.size + 1)
-    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns)
-
-
-class _PairBlocks:
-    """Pairs staged for :func:`pair_catalogue` in blocks of :data:`PAIR_BUILD_BLOCK_PAIRS`, each an anonymous
-    memory map holding (a, b, angle, bucket): a < b int32 sky indices, the angle arccos of the dot product
-    (:func:`_dot_rows`: the same angle whatever block a pair comes in) and its bucket (uint8) among ``edges`` (the
-    buckets' inner bounds [rad]). ``blocks``: [(a, b, angle, bucket)], views of their maps (filled to their length)."""
-
-    def __init__(self, rows: np.ndarray, columns: tuple[np.ndarray, np.ndarray, np.ndarray], edges: np.ndarray):
-        self.rows, self.columns, self.edges = rows, columns, edges
-        self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._free = 0
-
-    def _new_block(self) -> None:
-        import mmap
-
-        n = PAIR_BUILD_BLOCK_PAIRS
-        buffer = mmap.mmap(-1, 17 * n)
-        self.blocks.append(
-            (
-                np.frombuffer(buffer, np.int32, n, 0),
-                np.frombuffer(buffer, np.int32, n, 4 * n),
-                np.frombuffer(buffer, np.float64, n, 8 * n),
-                np.frombuffer(buffer, np.uint8, n, 16 * n),
-            )
-        )
-        self._free = n
-
-    def add(self, i: np.ndarray, j: np.ndarray) -> None:
-        """The pairs (rows[i], rows[j]) (i < j), a slice at a time into the blocks."""
-        start = 0
-        while start < i.size:
-            if self._free == 0:
-                self._new_block()
-            stop = min(i.size, start + self._free)
-            a = self.rows[i[start:stop]].astype(np.int32)
-            b = self.rows[j[start:stop]].astype(np.int32)
-            angle = np.arccos(np.clip(_dot_rows(self.columns, a, b), -1.0, 1.0))
-            at = PAIR_BUILD_BLOCK_PAIRS - self._free
-            block = self.blocks[-1]
-            at = slice(at, at + a.size)
-            block[0][at], block[1][at], block[2][at] = a, b, angle
-            block[3][at] = np.searchsorted(self.edges, angle, side="right")
-            self._free -= a.size
-            start = stop
-
-    def filled(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """The blocks, the last cut to its pairs (views of the same map: it is unmapped when the last one goes)."""
-        if self.blocks and self._free:
-            self.blocks[-1] = tuple(column[: PAIR_BUILD_BLOCK_PAIRS - self._free] for column in self.blocks[-1])
-            self._free = 0
-        return self.blocks
-
-
-def _small_paged(n: int, dtype) -> np.ndarray:
-    """An uninitialised (n,) array of ``dtype`` in its own anonymous memory map, advised against transparent huge
-    pages where the system has them (``MADV_NOHUGEPAGE``): :func:`_sorted_by_angle` writes each block's pairs into 64
-    parts of the table at once, and numpy's own large arrays ask for 2 MB pages, each of which becomes resident at its
-    first byte written (+135 MB for a 150 MB table after its first block, measured) instead of as it fills."""
-    import mmap
-
-    nbytes = n * np.dtype(dtype).itemsize
-    if nbytes == 0:
-        return np.empty(0, dtype=dtype)
-    buffer = mmap.mmap(-1, nbytes)
-    if hasattr(mmap, "MADV_NOHUGEPAGE"):
-        buffer.madvise(mmap.MADV_NOHUGEPAGE)
-    return np.frombuffer(buffer, dtype, n)
-
-
-def _sorted_by_angle(
-    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], n_buckets: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs of the staged ``blocks`` (:class:`_PairBlocks`) as one table (a, b, angle) in (angle, a, b) order:
-    each block's pairs put into their bucket's part of the table and the block freed (``blocks`` is emptied), then
-    each bucket sorted (any sort by angle, its runs of equal angles then put in (a, b) order, whatever order the sort
-    left them in: :func:`_ties_by_stars`)."""
-    counts = sum((np.bincount(block[3], minlength=n_buckets) for block in blocks), np.zeros(n_buckets, np.int64))
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    total = int(starts[-1])
-    a, b, angle = (_small_paged(total, dtype) for dtype in (np.int32, np.int32, np.float64))
-    cursor = starts[:-1].copy()
-    while blocks:
-        ak, bk, anglek, bucket = blocks.pop(0)
-        order = np.argsort(bucket, kind="stable")
-        ends = np.searchsorted(bucket[order], np.arange(1, n_buckets + 1), side="left")
-        begin = 0
-        for k, end in enumerate(ends):
-            part = order[begin:end]
-            at = slice(cursor[k], cursor[k] + part.size)
-            a[at], b[at], angle[at] = ak[part], bk[part], anglek[part]
-            cursor[k] += part.size
-            begin = end
-        del ak, bk, anglek, bucket, order  # the block's map goes with its last view
-    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
-        if hi > lo:
-            ak, bk, anglek = a[lo:hi], b[lo:hi], angle[lo:hi]
-            order = _ties_by_stars(np.argsort(anglek), anglek, ak, bk)
-            a[lo:hi], b[lo:hi], angle[lo:hi] = ak[order], bk[order], anglek[order]
-    return a, b, angle
+    a, b, samples = sorted_pairs(find_pairs(points, rows, chord, columns, edges), edges.size + 1, columns)
+    tree = cKDTree(points)
+    return PairCatalogue(a, b, samples, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns)
 
 
 def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
@@ -295,24 +174,6 @@ def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
     rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
     rank16[rows] = np.arange(rows.size, dtype=np.uint16)
     return rank16
-
-
-def _ties_by_stars(order: np.ndarray, angle: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``order`` (ascending ``angle``) with every run of equal angles reordered by (a, b) (one in 13 million pairs
-    to Hp 8.7 within 8.8 deg)."""
-    ordered = angle[order]
-    tied = np.flatnonzero(ordered[1:] == ordered[:-1])
-    if tied.size == 0:
-        return order
-    out = order.copy()
-    starts = tied[np.concatenate([[True], np.diff(tied) > 1])]
-    for start in starts:
-        stop = start + 1
-        while stop < order.size and angle[order[stop]] == angle[order[start]]:
-            stop += 1
-        run = order[start:stop]
-        out[start:stop] = run[np.lexsort((b[run], a[run]))]
-    return out
 
 
 #: :class:`PairCache` builds its table this much wider than asked [fraction of the angle]: the next round of
@@ -395,8 +256,14 @@ class PairCache:
 def _narrower(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
     """The pairs of ``pairs`` within ``max_angle_rad`` (no wider than its own): its leading part, as it is in
     (angle, a, b) order, with the same stars taking part (the same table :func:`_cut` gives)."""
-    n = int(np.searchsorted(pairs.angle_rad, max_angle_rad, side="right"))
-    return replace(pairs, a=pairs.a[:n], b=pairs.b[:n], angle_rad=pairs.angle_rad[:n], max_angle_rad=max_angle_rad)
+    return replace(_leading(pairs, max_angle_rad), max_angle_rad=max_angle_rad)
+
+
+def _leading(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
+    """``pairs`` with its arrays and samples sliced to the pairs within ``max_angle_rad`` (views, not copies)."""
+    n = _index(pairs, max_angle_rad, "right")
+    samples = pairs.angle_sample_rad[: -(-n // ANGLE_SAMPLE_PAIRS)]
+    return replace(pairs, a=pairs.a[:n], b=pairs.b[:n], angle_sample_rad=samples)
 
 
 def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
@@ -406,32 +273,13 @@ def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, t
     k-d tree of its stars, not a second table: 0.2 GB on openstartracker, docs/realsky.md "Speed")."""
     from scipy.spatial import cKDTree
 
-    n = int(np.searchsorted(table.angle_rad, max_angle_rad, side="right"))
-    a, b, angle = table.a[:n], table.b[:n], table.angle_rad[:n]
-    rows, tree, stars = table.rows, table.tree, None
+    cut = replace(_leading(table, max_angle_rad), max_angle_rad=max_angle_rad)
     if maglim < table_maglim:
         bright = sky.mag <= maglim
-        if np.count_nonzero(bright) < rows.size:  # else the same stars (none between the depths): the same table
-            rows, stars = np.flatnonzero(bright), bright
-            tree = cKDTree(sky.r[rows])
-    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns, stars)
-
-
-#: :func:`_pairs_of_stars` tests this many pairs at a time [pairs]: its temporaries stay a few MB whatever the table.
-CUT_BLOCK_PAIRS = 1 << 20
-
-
-def _pairs_of_stars(
-    a: np.ndarray, b: np.ndarray, angle: np.ndarray, bright: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs (a, b, angle) both of whose stars are ``bright`` ((S,) bool), in their order: which to keep found
-    block by block (:data:`CUT_BLOCK_PAIRS`) into one (P,) bool, then each column taken once into its own array, so
-    that the cut costs its own arrays and a byte a pair, not (P,) temporaries of the table's width."""
-    keep = np.empty(a.size, dtype=bool)
-    for start in range(0, a.size, CUT_BLOCK_PAIRS):
-        stop = start + CUT_BLOCK_PAIRS
-        np.logical_and(bright[a[start:stop]], bright[b[start:stop]], out=keep[start:stop])
-    return a[keep], b[keep], angle[keep]
+        if np.count_nonzero(bright) < table.rows.size:  # else the same stars (none between the depths): the same
+            rows = np.flatnonzero(bright)
+            cut = replace(cut, rows=rows, tree=cKDTree(sky.r[rows]), rank16=_rank16(sky, rows), stars=bright)
+    return cut
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
