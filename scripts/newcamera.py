@@ -11,11 +11,12 @@ Cases (each against the unperturbed run, "base"):
   (``pp30``); the time given as a date instead of ``--time-unknown`` where the set has one (``dated``);
 - images: 16-bit FITS and 16-bit TIFF (counts x 257: the 8-bit range stretched), RGB PNG (the grey frame in three
   channels), flipped left-right (a mirrored detector: the parity must be reported, the nominal's principal point
-  mirrored), rotated 180 deg (principal point rotated), 2 x 2 binned (the sum of four pixels in a 16-bit FITS with
-  its SATURATE, the nominal at twice the pixel pitch and the principal point at (x0 - 0.5) / 2);
-- bad input (``bad``): a fisheye nominal, a corrupt image, an empty file, an image of zeros, a nominal that
-  identifies nothing, no time at all: each must exit non-zero with one line on stderr and no traceback, and write
-  no output file.
+  mirrored), rotated 180 deg (principal point rotated), turned 90 deg (``rot90``: width and height swapped in the
+  nominal, the principal point turned), 2 x 2 binned (the sum of four pixels in a 16-bit FITS with its SATURATE,
+  the nominal at twice the pixel pitch and the principal point at (x0 - 0.5) / 2);
+- bad input (``bad``): a fisheye nominal, the other set's nominal (another detector size than the session's
+  images), a corrupt image, an empty file, an image of zeros, a nominal that identifies nothing, no time at all:
+  each must exit non-zero with one line on stderr and no traceback, and write no output file.
 
 Per case: frames and stars identified (the detected stars; the faint ones admitted at predicted places beside),
 the stars named in both this run and the base (matched by position, mapped back to the original pixel grid, within
@@ -120,8 +121,9 @@ SCALE_BIN = 64.0
 
 def form_writer(form: str):
     """(suffix, write(path, grey [ADU], the file's own pixel array), to_original(x, y, width, height)) of one image
-    form. Every form is lossless (to the rounding stated at its scale): a flip or rotation moves the file's own pixels,
-    RGB keeps a colour file's channels (a grey file's level in all three)."""
+    form (``width, height``: the form's own image size, its nominal's ``image_size_px``). Every form is lossless (to
+    the rounding stated at its scale): a flip or rotation moves the file's own pixels, RGB keeps a colour file's
+    channels (a grey file's level in all three)."""
     same = lambda x, y, w, h: (x, y)  # noqa: E731
     if form == "fits16":
         return ".fits", lambda p, g, raw: _write_fits(p, np.rint(g * SCALE_16)), same
@@ -133,6 +135,8 @@ def form_writer(form: str):
         return ".png", lambda p, g, raw: _write_png(p, raw[:, ::-1]), lambda x, y, w, h: (w - 1 - x, y)
     if form == "rot180":
         return ".png", lambda p, g, raw: _write_png(p, raw[::-1, ::-1]), lambda x, y, w, h: (w - 1 - x, h - 1 - y)
+    if form == "rot90":  # np.rot90 turns counter-clockwise: the form's pixel (x, y) is the original's (h - 1 - y, x)
+        return ".png", lambda p, g, raw: _write_png(p, np.rot90(raw)), lambda x, y, w, h: (h - 1 - y, x)
     if form == "bin2":
 
         def write(p, g, raw):
@@ -153,6 +157,8 @@ def form_nominal(form: str, nominal: dict) -> dict:
         return dict(nominal, principal_point_px=[w - 1 - x0, y0])
     if form == "rot180":
         return dict(nominal, principal_point_px=[w - 1 - x0, h - 1 - y0])
+    if form == "rot90":
+        return dict(nominal, principal_point_px=[y0, w - 1 - x0], image_size_px=[h, w])
     if form == "bin2":
         return dict(
             nominal,
@@ -313,6 +319,8 @@ def bad_input_cases(images: list[Path], image_set: ImageSet, work: Path) -> list
     wrong = dict(nominal, focal_length_mm=nominal["focal_length_mm"] * 2.5)
     (work / "fisheye.json").write_text(json.dumps(fisheye))
     (work / "wrong.json").write_text(json.dumps(wrong))
+    other = next(s.nominal for s in SETS.values() if s.nominal["image_size_px"] != nominal["image_size_px"])
+    (work / "other.json").write_text(json.dumps(other))
     corrupt = work / "corrupt.jpg"
     corrupt.write_bytes(images[0].read_bytes()[:2000])
     garbage = work / "garbage.png"
@@ -324,6 +332,7 @@ def bad_input_cases(images: list[Path], image_set: ImageSet, work: Path) -> list
     cases = {
         "fisheye nominal": ["identify", str(good), "--nominal", str(work / "fisheye.json")],
         "nominal 2.5 x long": ["identify", str(good), "--nominal", str(work / "wrong.json")],
+        "another camera's nominal": ["identify", str(good), "--nominal", str(work / "other.json")],
         "truncated JPEG": ["centroid", str(corrupt), "--time-unknown"],
         "garbage PNG": ["centroid", str(garbage), "--time-unknown"],
         "empty file": ["centroid", str(empty), "--time-unknown"],
@@ -354,7 +363,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--set", choices=sorted(SETS), default="granasat")
     parser.add_argument("--root", type=Path, default=ROOT)
-    parser.add_argument("--cases", default="base,f0.92,f1.08,pp30,dated,fits16,tiff16,rgb,flip,rot180,bin2,bad")
+    parser.add_argument("--cases", default="base,f0.92,f1.08,pp30,dated,fits16,tiff16,rgb,flip,rot180,rot90,bin2,bad")
     parser.add_argument("--work", type=Path, default=None, help="keep the files here (default: a temporary folder)")
     a = parser.parse_args()
     if a.root is None:

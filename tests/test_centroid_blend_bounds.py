@@ -114,6 +114,6 @@ def test_the_elongation_bound_is_stated_apart_from_the_cramer_rao_part():
     assert 0.5 * single_px <= crb_px <= 2.0 * single_px
     assert all(det.blended[k] and np.isnan(det.blend_px[k]) for k in split)
     assert not np.any(det.blended[singles]) and np.all(np.isnan(det.blend_px[singles]))
-    column = _session([("frame.png", det, "option")]).session.extra["blend_px"]
+    column = _session([("frame.png", det, "option", (360, 330))]).session.extra["blend_px"]
     assert float(column[pair]) == pytest.approx(det.blend_px[pair], rel=1e-3)
     assert column[singles[0]] == ""

@@ -1,11 +1,11 @@
-"""The PSF model's width fit (hostlink.images.centroid.psf, package docstring step 4): its analytic derivative in the
-width agrees with finite differences of the renderer's pixel-integrated Gaussian, and on noiseless stars drawn with
-that model it returns the width they were drawn with."""
+"""The PSF model's width fit (hostlink.images.centroid.windows, package docstring step 4): its analytic derivative in
+the width agrees with finite differences of the renderer's pixel-integrated Gaussian, and on noiseless stars drawn
+with that model it returns the width they were drawn with."""
 
 import numpy as np
 import pytest
 
-from hostlink.images.centroid.psf import _psf_width_fit_px
+from hostlink.images.centroid.windows import _psf_width_fit_px
 from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dwidth
 
 

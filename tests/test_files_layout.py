@@ -32,6 +32,10 @@ def test_no_file_over_500_lines_and_no_function_over_80():
     assert too_long(list(ROOM.rglob("*.py")), ROOM) == ([], [])
 
 
+#: Public names added since the split (the images' size: issue 30).
+NAMES_ADDED = "IMAGE_SIZE_COLUMNS image_size_mismatch image_sizes_px".split()
+
+
 def test_every_name_of_the_session_module_is_still_there():
-    missing = [name for name in NAMES_BEFORE_THE_SPLIT if not hasattr(session, name)]
-    assert missing == [] and sorted(session.__all__) == sorted(NAMES_BEFORE_THE_SPLIT)
+    missing = [name for name in NAMES_BEFORE_THE_SPLIT + NAMES_ADDED if not hasattr(session, name)]
+    assert missing == [] and sorted(session.__all__) == sorted(NAMES_BEFORE_THE_SPLIT + NAMES_ADDED)

@@ -100,3 +100,39 @@ def test_each_pass_of_the_clipped_noise_takes_the_box_percentiles_of_the_pixels_
         np.testing.assert_array_equal(boxes.col_centres, cols)
         assert out.shape == (ny, nx, 2)
     assert np.isnan(out).any() and np.isfinite(out).any()  # the gradient leaves some boxes too few pixels
+
+
+def test_a_pass_that_changes_a_few_boxes_sorts_only_those_and_keeps_numpys_numbers():
+    """The later passes of the clipped noise change the stars' light in a few boxes: background._masked_box_percentiles
+    sorts only the boxes whose pixels left changed since the pass before (its boxes' work rows) and keeps the others;
+    every pass still gives _box_percentiles' numbers bit for bit (a star's light grown in one box, in two, then the
+    pass before repeated, then a box wholly excluded and one left whole again)."""
+    rng = np.random.default_rng(7)
+    shape, box = (250, 300), 32  # boxes the border cuts
+    image = np.round(rng.normal(size=shape) * 6)
+    mask = np.zeros(shape, dtype=bool)
+    mask[:40, :70] = True
+    boxes = _boxes(image, mask, box)
+    stars = rng.uniform(size=shape) < 0.03
+    passes = [stars.copy()]
+    stars[100:110, 100:112] = True  # one box's star grows
+    passes.append(stars.copy())
+    stars[200:230, 5:20] = True  # and a star in another
+    passes.append(stars.copy())
+    passes.append(stars.copy())  # nothing changed
+    stars[64:96, 160:192] = True  # a box with every pixel excluded (too few left: NaN)
+    stars[:32, 256:] = False  # a border box whole again
+    passes.append(stars.copy())
+    for light in passes:
+        excluded = np.ones(boxes.padded_shape, dtype=bool)
+        excluded[: shape[0], : shape[1]] = mask | light
+        out = _masked_box_percentiles(boxes, excluded, (50.0, 97.725))
+        expected, _, _ = _box_percentiles(image, mask | light, box, (50.0, 97.725))
+        np.testing.assert_array_equal(out, expected)
+        ny, nx = boxes.grid_shape
+        gone = excluded.reshape(ny, box, nx, box).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
+        np.testing.assert_array_equal(boxes.work_gone, gone)  # the state kept is this pass's exclusion
+        counted = (~gone).sum(axis=1)
+        kept = np.sort(np.where(gone, np.nan, boxes.values), axis=1)
+        np.testing.assert_array_equal(boxes.work, kept)  # and each box's pixels left, sorted (NaN last)
+        np.testing.assert_array_equal(boxes.work_counted, counted)

@@ -27,7 +27,7 @@ def original(tmp_path_factory):
     return path, x, y
 
 
-@pytest.mark.parametrize("form", ["fits16", "tiff16", "rgb", "flip", "rot180", "bin2"])
+@pytest.mark.parametrize("form", ["fits16", "tiff16", "rgb", "flip", "rot180", "rot90", "bin2"])
 def test_each_form_maps_back_to_the_original(original, form, tmp_path):
     script = load_script("newcamera.py")
     path, true_x, true_y = original
@@ -39,6 +39,7 @@ def test_each_form_maps_back_to_the_original(original, form, tmp_path):
         "rgb": grey,
         "flip": grey[:, ::-1],
         "rot180": grey[::-1, ::-1],
+        "rot90": np.rot90(grey),
         "bin2": grey.reshape(96, 2, 128, 2).sum(axis=(1, 3)) * script.SCALE_BIN,
     }[form]
     np.testing.assert_allclose(out.pixels, expected, rtol=0, atol=0.5)  # the stated rounding to integers
@@ -47,7 +48,7 @@ def test_each_form_maps_back_to_the_original(original, form, tmp_path):
     options = CentroidOptions(candidate_sigma=None)
     base = centroid_pixels(grey, options, None, 255.0)
     det = centroid_pixels(out.pixels, options, None, out.saturation_adu)
-    x, y = script.form_writer(form)[2](det.x_px, det.y_px, *SIZE)
+    x, y = script.form_writer(form)[2](det.x_px, det.y_px, *out.image_size_px)  # the form's own size
     # the original's centroids of the rendered stars: each within 0.1 px of its star (0.052 px at most here, the 8-bit
     # rounding of a nearly noiseless frame); its other detections are not stars (one 5.8 px off the star at
     # (131.8, 65.9), kept flagged as a blend with a sigma_px of 0.67 px, is not in the binned frame, nor should be)

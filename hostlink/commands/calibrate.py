@@ -33,7 +33,10 @@ DESCRIPTION = (
     "passes over a Dask cluster. A session with the optional sigma_px column (each star's 1-sigma centroid noise "
     "per axis, px) is weighted by it (bundle method; the seed methods do not use it), and the report gives the noise "
     "the fit finds relative to it and the noise floor it adds in quadrature (constant, or growing with field radius "
-    "when the data choose it: --noise-model)."
+    "when the data choose it: --noise-model). A nominal whose image_size_px is not the size of the images the "
+    "session records (image_width_px, image_height_px, from hostlink centroid) is refused in one line (exit 2), "
+    "naming a 90-deg turn or a k x k binning when the sizes show one, as is one that a centroid lies off; a session "
+    "without those columns is checked by its centroids alone."
 )
 
 

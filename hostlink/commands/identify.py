@@ -31,7 +31,10 @@ DESCRIPTION = (
     "session with the identified star_id (and ra_deg/dec_deg when the file has "
     "those columns, or when a star is an unresolved pair: then the blend's expected centroid for it and every "
     "identified row's catalogue place, its sigma_px grown by that reference's uncertainty); frames that fail keep "
-    "star_id 0 and are reported. Exit 2 when no frame is identified."
+    "star_id 0 and are reported. Exit 2 when no frame is identified. A nominal whose image_size_px is not the size "
+    "of the images the session records (image_width_px, image_height_px: hostlink centroid writes them, identify "
+    "keeps them) is refused in one line (exit 2), naming a 90-deg turn or a k x k binning when the sizes show one, "
+    "as is one that a centroid lies off."
 )
 
 

@@ -163,7 +163,10 @@ def local_noise_map(
         rms = sep_rms() if callable(sep_rms) else sep_rms
         return np.zeros_like(filtered), _positive(rms), np.zeros(filtered.shape, dtype=bool)
     medians, noise = _filled(stats[..., 0]), noise / kernel_norm
-    noise_map = _positive(_bilinear(noise, noise_rows, noise_cols, h, w))
+    noise_map = _bilinear(noise, noise_rows, noise_cols, h, w)
+    # a pixel's value is a weighted mean of its boxes' (weights >= 0, summing to 1): positive where they all are
+    if not (np.isfinite(noise).all() and np.all(noise > 0)):
+        noise_map = _positive(noise_map)
     smooth = _median(medians, _SMOOTH_BOXES)
     filtered_noise = (
         noise_map[np.rint(row_centres).astype(int)[:, None], np.rint(col_centres).astype(int)] * kernel_norm
@@ -189,8 +192,10 @@ def _clipped_box_noise(
     detection). ``fine_medians``: the medians of the fine boxes of ``fine_px`` (the offset the stars stand above).
 
     The boxes are laid out once (:func:`_boxes`); a pass takes the percentiles of the pixels left in each
-    (:func:`_masked_box_percentiles`: the same numbers as :func:`_box_percentiles`); the passes work on the image
-    padded to whole boxes (the padding masked)."""
+    (:func:`_masked_box_percentiles`: the same numbers as :func:`_box_percentiles`, sorting again only the boxes
+    whose pixels left changed since the pass before); the passes work on the image padded to whole boxes (the
+    padding masked). Each pass labels the whole frame again: its thresholds change in most boxes, and a region's
+    membership depends on the threshold of every box it crosses (docs/realsky.md, "The noise map's passes")."""
     boxes = _boxes(filtered, mask, box_px)
     h, w = filtered.shape
     masked = np.ones(boxes.padded_shape, dtype=bool)
@@ -273,11 +278,15 @@ def _star_light(
 class _Boxes:
     """The pixels of an image in boxes from pixel (0, 0) (:func:`_boxes`): ``values`` (boxes, box^2) float32, NaN
     for masked pixels and beyond the image; ``inside`` each box's number of pixels within the image; the boxes' grid
-    shape, the shape of the image padded to whole boxes, and the boxes' centres [px]; ``work``, an array of
-    ``values``' shape for each pass's pixels left (:func:`_masked_box_percentiles`)."""
+    shape, the shape of the image padded to whole boxes, and the boxes' centres [px]. ``work``: each box's pixels
+    left by the last pass, sorted (NaN last), ``work_gone`` the pixels that pass excluded (boxes, box^2) bool and
+    ``work_counted`` each box's number left, updated in place by :func:`_masked_box_percentiles` (at first every
+    pixel excluded, none left: a state as consistent as any other)."""
 
     values: np.ndarray
     work: np.ndarray
+    work_gone: np.ndarray
+    work_counted: np.ndarray
     inside: np.ndarray
     grid_shape: tuple[int, int]
     padded_shape: tuple[int, int]
@@ -308,28 +317,47 @@ def _boxes(image: np.ndarray, mask: np.ndarray, box_px: int) -> _Boxes:
     blocks, inside, row_centres, col_centres = _box_blocks(image, mask, box_px)
     grid = (row_centres.size, col_centres.size)
     padded = (grid[0] * box_px, grid[1] * box_px)
-    return _Boxes(blocks, np.empty_like(blocks), inside, grid, padded, row_centres, col_centres)
+    work, work_gone = np.full_like(blocks, np.nan), np.ones(blocks.shape, dtype=bool)
+    none_left = np.zeros(blocks.shape[0], dtype=np.int64)
+    return _Boxes(blocks, work, work_gone, none_left, inside, grid, padded, row_centres, col_centres)
 
 
 def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
     """(ny, nx, len(percents)): the ``percents`` of each box's pixels not ``excluded`` ((padded h, padded w) bool,
     holding the masked pixels and those beyond the image), NaN for a box whose pixels left are fewer than
     :data:`_MIN_BOX_FRACTION` of those within the image: :func:`_box_percentiles`' numbers
-    (:func:`row_percentiles` of the pixels left), from the boxes laid out once."""
+    (:func:`sorted_row_percentiles` of the pixels left, sorted). Only the boxes whose pixels left differ from the
+    last pass's (``boxes.work_gone``) are sorted again: in the later passes of :func:`_clipped_box_noise` the stars'
+    light changes in a few boxes (docs/realsky.md, "The noise map's passes"); the others keep their sorted pixels,
+    the same numbers."""
     ny, nx = boxes.grid_shape
     box_px = boxes.padded_shape[0] // ny
     gone = excluded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
-    counted = gone.shape[1] - np.count_nonzero(gone, axis=1)
+    changed = (gone != boxes.work_gone).any(axis=1)
+    if changed.all():  # the first pass: every box, sorted in place in the work array (no new 5 MB arrays)
+        _sort_left(boxes.work, boxes.values, gone)
+        np.copyto(boxes.work_gone, gone)
+        boxes.work_counted[:] = gone.shape[1] - np.count_nonzero(gone, axis=1)
+    elif changed.any():
+        rows = np.flatnonzero(changed)
+        boxes.work[rows] = _sort_left(np.empty((rows.size, gone.shape[1]), np.float32), boxes.values[rows], gone[rows])
+        boxes.work_gone[rows] = gone[rows]
+        boxes.work_counted[rows] = gone.shape[1] - np.count_nonzero(gone[rows], axis=1)
+    counted = boxes.work_counted
     out = np.full((ny * nx, len(percents)), np.nan)
     measurable = _measurable(counted, boxes.inside)
-    if measurable.any():  # sorted in place in the boxes' work array (no new 5 MB arrays each pass)
-        left = boxes.work
-        np.copyto(left, boxes.values)
-        np.copyto(left, np.float32(np.nan), where=gone)
-        left.sort(axis=1)
-        ordered = left if measurable.all() else left[measurable]
+    if measurable.any():
+        ordered = boxes.work if measurable.all() else boxes.work[measurable]
         out[measurable] = sorted_row_percentiles(ordered, percents, counted[measurable])
     return out.reshape(ny, nx, len(percents))
+
+
+def _sort_left(out: np.ndarray, values: np.ndarray, gone: np.ndarray) -> np.ndarray:
+    """``out`` (rows, n) float32: each row of ``values`` with its ``gone`` pixels NaN, sorted (NaN last)."""
+    np.copyto(out, values)
+    np.copyto(out, np.float32(np.nan), where=gone)
+    out.sort(axis=1)
+    return out
 
 
 def _step_offset(residual: np.ndarray, filtered_noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -381,7 +409,10 @@ def _box_percentiles(
     counted = np.isfinite(blocks).sum(axis=1)
     out = np.full((ny * nx, len(percents)), np.nan)
     whole = counted == box_px * box_px
-    if whole.any():  # the common case, in one call
+    if whole.all():  # the common case: sorted in place (blocks is this call's own array)
+        blocks.sort(axis=1)
+        out[:] = sorted_row_percentiles(blocks, percents)
+    elif whole.any():
         out[whole] = row_percentiles(blocks[whole], percents)
     part = ~whole & _measurable(counted, inside)
     if part.any():  # boxes cut by the border, a mask or the stars' light (_clipped_box_noise), in one call

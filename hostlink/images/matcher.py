@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostlink.images import solver_adapter
-from hostlink.images.skyindex import PairCache, PairCatalogue, _dot_rows, _field_sr, check_field, pair_window
+from hostlink.images.skyindex import PairCache, PairCatalogue, _field_sr, check_field, pair_window
 from hostlink.sky.catalogue import Catalogue
 from onboard.params import CameraParams
 
@@ -59,15 +59,20 @@ MIN_HITS = 3
 SCAN_SCALES = tuple(sorted((float(s) for s in np.round(np.arange(0.90, 1.1001, 0.004), 3)), key=lambda s: abs(s - 1)))
 
 
-def _triad_inverse(b1, b2, r1, r2) -> np.ndarray:
-    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r."""
+def _triad_frame(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the TRIAD frames (Black 1964) of the vector pairs: columns t1 = v1, t2 = v1 x v2 / |v1 x v2|,
+    t3 = t1 x t2."""
+    t2 = np.cross(v1, v2)
+    t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
+    return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)
 
-    def frame(v1, v2):
-        t2 = np.cross(v1, v2)
-        t2 /= np.linalg.norm(t2, axis=-1, keepdims=True)
-        return np.stack([v1, t2, np.cross(v1, t2)], axis=-1)  # columns t1, t2, t3
 
-    return frame(r1, r2) @ np.swapaxes(frame(b1, b2), -1, -2)
+def _triad_inverse(b1, b2, r1, r2, r_frame: np.ndarray | None = None) -> np.ndarray:
+    """C^T (M, 3, 3) of the TRIAD attitudes (Black 1964) mapping r1 -> b1 exactly and r2 toward b2: b = C r.
+    ``r_frame``: :func:`_triad_frame` of (r1, r2) when already computed (it serves both parities of b)."""
+    if r_frame is None:
+        r_frame = _triad_frame(r1, r2)
+    return r_frame @ np.swapaxes(_triad_frame(b1, b2), -1, -2)
 
 
 @dataclass(frozen=True)
@@ -94,7 +99,8 @@ def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) ->
     count = np.bincount(star, minlength=pairs.r.shape[0])
     offset = np.concatenate([[0], np.cumsum(count)])
     key = star if pairs.rank16 is None else pairs.rank16[star]  # the same order: rows ascend with the sky index
-    return _PairsOfAngle(angle_rad, slack_rad, offset, other[np.argsort(key, kind="stable")], count > 0)
+    partner = other[np.argsort(key, kind="stable")]
+    return _PairsOfAngle(angle_rad, slack_rad, offset, partner, count > 0)
 
 
 def _pyramid_may_hit(
@@ -106,19 +112,43 @@ def _pyramid_may_hit(
 ) -> np.ndarray:
     """(M,) bool: the anchor hypotheses (``first``, ``second``: sky indices of the anchor stars b_i, b_j;
     ``columns``: the columns of the sky's unit vectors, :func:`hostlink.images.skyindex.sky_columns`) that can put a
-    third star b_m within the hit chord c of a catalogue star s at all: a necessary condition only (the k-d tree
-    decides). A hypothesis (TRIAD) maps b_i onto its first star exactly,
-    b_j onto the great circle toward its second star, off it by the pair's angle mismatch d (at most the anchor
-    window's tolerance), and preserves angles. So s lies at the angle (b_i, b_m) from the first star to within
-    the angle 2 asin(c / 2) < 1.001 c that the chord subtends, and at (b_j, b_m) from the second to within
+    third star b_m within the hit chord c of a catalogue star s at all: a necessary condition only (the k-d tree, or
+    the distances to the stars :func:`_pyramid_candidates` finds, decide). A hypothesis (TRIAD) maps b_i onto its
+    first star exactly, b_j onto the great circle toward its second star, off it by the pair's angle mismatch d (at
+    most the anchor window's tolerance), and preserves angles. So s lies at the angle (b_i, b_m) from the first star
+    to within the angle 2 asin(c / 2) < 1.001 c that the chord subtends, and at (b_j, b_m) from the second to within
     1.001 c + d: s is a partner of the first star in ``with_first`` and of the second in ``with_second``, the pairs
     of those angles with slacks of at least that. A side given as None is not tested."""
+    return _pyramid_candidates(columns, first, second, with_first, with_second)[0]
+
+
+def _columns_of(
+    columns: tuple[np.ndarray, np.ndarray, np.ndarray], stars: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The columns x, y, z of the sky's unit vectors (``columns``) at ``stars``."""
+    x, y, z = columns
+    return x[stars], y[stars], z[stars]
+
+
+def _pyramid_candidates(
+    columns: tuple[np.ndarray, np.ndarray, np.ndarray],
+    first: np.ndarray,
+    second: np.ndarray,
+    with_first: _PairsOfAngle | None,
+    with_second: _PairsOfAngle | None,
+    second_columns: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`_pyramid_may_hit` and the catalogue stars that pass it: (may, hypotheses, stars), every (hypothesis h,
+    star s) that passed both angle tests; (may, None, None) when a side is None. Every catalogue star within the hit
+    chord of h's prediction of b_m is among them (the necessary condition), so their distances alone decide whether
+    h puts b_m on a star (:func:`_best_hypothesis`), without the k-d tree. ``second_columns``: the second stars'
+    unit vectors as columns (:func:`_columns_of`), the same for every third star of an anchor pair."""
     may = np.ones(first.size, dtype=bool)
     for side, stars in ((with_first, first), (with_second, second)):  # each anchor star has such a partner
         if side is not None:
             may &= side.member[stars]
     if with_first is None or with_second is None:
-        return may
+        return may, None, None
     # ... and one and the same s: every partner s of the first star, at the second angle from the second star
     cand = np.flatnonzero(may)
     lo = with_first.offset[first[cand]]
@@ -126,13 +156,18 @@ def _pyramid_may_hit(
     # the partners' positions: lo of its hypothesis plus the rank within it (one repeat of the per-hypothesis shift)
     hyp = np.repeat(cand, count)
     s = with_first.partner[np.arange(hyp.size) + np.repeat(lo - (np.cumsum(count) - count), count)]
-    # |angle - with_second.angle_rad| <= slack as cosines (arccos decreases on [0, pi]; the window starts above 0)
-    dot = _dot_rows(columns, second[hyp], s)
+    # |angle - with_second.angle_rad| <= slack as cosines (arccos decreases on [0, pi]; the window starts above 0);
+    # :func:`hostlink.images.skyindex._dot_rows`'s sum, the second stars' columns gathered once per anchor pair
+    x, y, z = columns
+    second_x, second_y, second_z = second_columns if second_columns is not None else _columns_of(columns, second)
+    dot = second_x[hyp] * x[s] + second_y[hyp] * y[s] + second_z[hyp] * z[s]
     cos_hi = math.cos(with_second.angle_rad - with_second.slack_rad)
     cos_lo = math.cos(min(with_second.angle_rad + with_second.slack_rad, math.pi))
+    ok = (dot >= cos_lo) & (dot <= cos_hi)
+    hyp, s = hyp[ok], s[ok]
     may[:] = False
-    may[hyp[(dot >= cos_lo) & (dot <= cos_hi)]] = True
-    return may
+    may[hyp] = True
+    return may, hyp, s
 
 
 def anchor_candidates(
@@ -154,8 +189,10 @@ def anchor_candidates(
     :data:`HIT_RADIUS_PX` most often, at least :data:`MIN_HITS` times, is proposed. Yields, anchor pair by anchor
     pair (brightest first, pairs among the first ``anchor_stars``), (rows into b, sky indices, mirrored); the
     caller verifies each until one holds. A hypothesis must first put a third anchor star on a catalogue star (the
-    pyramid's pruning); the tree is asked only about the hypotheses a necessary condition on the catalogue pairs
-    leaves (:func:`_pyramid_may_hit`), which changes no answer and skips most of the work on a narrow field.
+    pyramid's pruning); only the hypotheses a necessary condition on the catalogue pairs leaves
+    (:func:`_pyramid_may_hit`) are tried, which changes no answer and skips most of the work on a narrow field, and
+    whether they put the third star on a catalogue star is decided by the distances to the few stars that condition
+    found (:func:`_pyramid_candidates`) rather than by the tree.
     ``anchor_pairs``: only these anchor pairs (rows into b), in this order, instead of every pair among the first
     ``anchor_stars`` (:func:`_anchor_schedule`)."""
     k = b.shape[0]
@@ -196,21 +233,45 @@ def anchor_candidates(
         # pyramid pruning, first a necessary condition (the pair index's stars are the tree's): a hypothesis that
         # cannot put any third anchor star on a catalogue star is dropped before its attitude is computed
         may_hit = np.ones((len(thirds), first.size), dtype=bool)
+        near: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(thirds)  # None: the tree decides
         if tree is pairs.tree:
-            for t, m in enumerate(thirds):
-                may_hit[t] = _pyramid_may_hit(
-                    pairs.columns, first, second, pairs_of(i, m, slack_first_rad), pairs_of(j, m, slack_second_rad)
-                )
-            kept = np.flatnonzero(np.any(may_hit, axis=0))
-            first, second, may_hit = first[kept], second[kept], may_hit[:, kept]
-            if kept.size == 0:
+            windows_of_thirds = [(pairs_of(i, m, slack_first_rad), pairs_of(j, m, slack_second_rad)) for m in thirds]
+            first, second, may_hit, near = _pyramid_prefilter(pairs, first, second, windows_of_thirds)
+            if first.size == 0:
                 continue
+        r_frame = _triad_frame(pairs.r[first], pairs.r[second])  # the catalogue's side, for both parities
         for mirrored in (False, True):
             found = _best_hypothesis(
-                b, (i, j), first, second, thirds, may_hit, tree, tree_rows, hit_chord, pairs.r, mirrored
+                b, (i, j), first, second, thirds, may_hit, tree, tree_rows, hit_chord, pairs.r, mirrored, near, r_frame
             )
             if found is not None:
                 yield found[0], found[1], mirrored
+
+
+def _pyramid_prefilter(
+    pairs: PairCatalogue,
+    first: np.ndarray,
+    second: np.ndarray,
+    windows: list[tuple[_PairsOfAngle | None, _PairsOfAngle | None]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray] | None]]:
+    """:func:`_pyramid_candidates` of one anchor pair's hypotheses (``first``, ``second``) for each third star (its
+    two windows in ``windows``): the hypotheses that may hit for some third (first, second), may_hit (T, M'), and per
+    third its (hypothesis, catalogue star) pairs, the hypotheses numbered among those kept (None: the tree decides)."""
+    may_hit = np.ones((len(windows), first.size), dtype=bool)
+    near: list[tuple[np.ndarray, np.ndarray] | None] = []
+    second_columns = _columns_of(pairs.columns, second)
+    for t, (with_first, with_second) in enumerate(windows):
+        may_hit[t], hyp, stars = _pyramid_candidates(
+            pairs.columns, first, second, with_first, with_second, second_columns
+        )
+        near.append(None if hyp is None else (hyp, stars))
+    kept = np.flatnonzero(np.any(may_hit, axis=0))
+    if kept.size == 0:
+        return first[kept], second[kept], may_hit[:, kept], near
+    position = np.empty(kept[-1] + 1, dtype=np.int64)
+    position[kept] = np.arange(kept.size)  # a candidate's hypothesis may hit: it is kept
+    near = [None if pair is None else (position[pair[0]], pair[1]) for pair in near]
+    return first[kept], second[kept], may_hit[:, kept], near
 
 
 def _best_hypothesis(
@@ -225,24 +286,36 @@ def _best_hypothesis(
     hit_chord: float,
     r: np.ndarray,
     mirrored: bool,
+    near: list[tuple[np.ndarray, np.ndarray] | None] | None = None,
+    r_frame: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """:func:`anchor_candidates` for one anchor pair (rows ``anchors`` of ``b``) against its catalogue pairs
     (``first``, ``second``: sky indices; ``r`` the sky's unit vectors) at one parity: the TRIAD hypotheses that put a
     third anchor star (``thirds``, tried where ``may_hit``) on a catalogue star, and of them the one whose predictions
     of the other stars hit catalogue stars most often, at least :data:`MIN_HITS` times: (rows into b, sky indices),
-    or None."""
+    or None. ``near``: per third star, the (hypothesis, catalogue star) pairs of :func:`_pyramid_candidates`, every
+    star that can be within the hit chord of its prediction: their distances decide, as the tree's query would
+    (within the chord: closer than it, the squared distance summed over x, y, z), instead of the tree (None: the
+    tree decides). ``r_frame``: the catalogue side of the TRIAD attitudes (:func:`_triad_frame` of the pairs), the
+    same at both parities."""
     i, j = anchors
     k = b.shape[0]
     others = np.array([m for m in range(k) if m not in (i, j)])
     bm = b * np.array([-1.0, 1.0, 1.0]) if mirrored else b
-    c_t = _triad_inverse(bm[i][None], bm[j][None], r[first], r[second])
+    r_frame = r_frame if r_frame is not None else _triad_frame(r[first], r[second])
+    c_t = _triad_inverse(bm[i][None], bm[j][None], r[first], r[second], r_frame)
     # pyramid pruning: a hypothesis must first put one more anchor star on a catalogue star
     alive = np.zeros(first.size, dtype=bool)
-    for m, may in zip(thirds, may_hit, strict=True):
+    for m, may, pair in zip(thirds, may_hit, near or [None] * len(thirds), strict=True):
         ask = np.flatnonzero(may & ~alive)
-        if ask.size:
+        if ask.size and pair is None:
             dist, _ = tree.query((c_t @ bm[m])[ask], distance_upper_bound=hit_chord)
             alive[ask[np.isfinite(dist)]] = True
+        elif ask.size:
+            hyp, star = pair
+            offset = c_t[hyp] @ bm[m] - r[star]  # the predictions of the hypotheses that ask alone
+            within = offset[:, 0] ** 2 + offset[:, 1] ** 2 + offset[:, 2] ** 2 < hit_chord**2
+            alive[hyp[within]] = True
     live = np.flatnonzero(alive)
     if live.size == 0:
         return None

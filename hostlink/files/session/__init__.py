@@ -10,10 +10,10 @@ and frame and name the first bad one in a one-line :class:`UserError`. :class:`S
 frame by frame through a partial file renamed at the end (docs/file-formats.md).
 
 Its modules, one job each (every name is imported from here): :mod:`~hostlink.files.session.data` (the
-:class:`Session` and its selection), :mod:`~hostlink.files.session.columns` (the optional columns),
-:mod:`~hostlink.files.session.read` (sources, chunks, several files as one session),
-:mod:`~hostlink.files.session.parse` (one file's rows, CSV or Parquet, parsed and checked) and
-:mod:`~hostlink.files.session.write` (the writer).
+:class:`Session` and its selection, the size of its images and the check against a camera's detector),
+:mod:`~hostlink.files.session.columns` (the optional columns), :mod:`~hostlink.files.session.read` (sources,
+chunks, several files as one session), :mod:`~hostlink.files.session.parse` (one file's rows, CSV or Parquet, parsed
+and checked) and :mod:`~hostlink.files.session.write` (the writer).
 """
 
 from __future__ import annotations
@@ -28,12 +28,15 @@ from hostlink.files.session.columns import (
 )
 from hostlink.files.session.data import (
     DETECTOR_MARGIN_PX,
+    IMAGE_SIZE_COLUMNS,
     MAY_BE_ABSENT,
     OPTIONAL_COLUMNS,
     REQUIRED_COLUMNS,
     Session,
     check_on_detector,
     concatenate_sessions,
+    image_size_mismatch,
+    image_sizes_px,
 )
 from hostlink.files.session.parse import CSV_BLOCK_BYTES  # read there: a caller changes it in session.parse
 from hostlink.files.session.read import (
@@ -49,6 +52,7 @@ __all__ = [
     "CSV_BLOCK_BYTES",
     "DEFAULT_CHUNK_FRAMES",
     "DETECTOR_MARGIN_PX",
+    "IMAGE_SIZE_COLUMNS",
     "MAY_BE_ABSENT",
     "OPTIONAL_COLUMNS",
     "PIXEL_SIGMA_FORMAT",
@@ -59,6 +63,8 @@ __all__ = [
     "cell_numbers",
     "check_on_detector",
     "concatenate_sessions",
+    "image_size_mismatch",
+    "image_sizes_px",
     "pixel_sigma_text",
     "read_session",
     "read_session_chunks",

@@ -14,6 +14,7 @@ import numpy as np
 
 from hostlink.errors import UserError
 from hostlink.files.session.data import (
+    IMAGE_SIZE_COLUMNS,
     MAY_BE_ABSENT,
     OPTIONAL_COLUMNS,
     REQUIRED_COLUMNS,
@@ -104,6 +105,8 @@ def _check_header(path: Path, header: list[str]) -> None:
         raise UserError(f"{path}: missing required column(s) {', '.join(missing)}")
     if ("ra_deg" in header) != ("dec_deg" in header):
         raise UserError(f"{path}: ra_deg and dec_deg must both be present or both absent")
+    if (IMAGE_SIZE_COLUMNS[0] in header) != (IMAGE_SIZE_COLUMNS[1] in header):
+        raise UserError(f"{path}: {' and '.join(IMAGE_SIZE_COLUMNS)} must both be present or both absent")
     twice = sorted({h for h in header if header.count(h) > 1})
     if twice:
         raise UserError(f"{path}: column {twice[0]} appears more than once")
@@ -238,7 +241,33 @@ def _part(source: _SessionFile, columns: dict, row0: int) -> Session:
     if np.any(session.star_id < 0):
         k = int(np.argmax(session.star_id < 0))
         raise UserError(f"{path}: {where(row0 + k)}, column star_id: negative Hipparcos number")
+    if IMAGE_SIZE_COLUMNS[0] in columns:
+        _check_image_sizes(source, columns, row0)
     return session
+
+
+def _check_image_sizes(source: _SessionFile, columns: dict, row0: int) -> None:
+    """The image width and height of each row: both empty (not known) or both a whole number of pixels in
+    1..MAX_IMAGE_SIDE_PX (the sides a parameter file's ``image_size_px`` may have)."""
+    from onboard.params import MAX_IMAGE_SIDE_PX
+
+    path, where = source.path, source.where
+    sides = [_numbers(path, where, row0, name, columns[name], may_be_empty=True) for name in IMAGE_SIZE_COLUMNS]
+    for name, side in zip(IMAGE_SIZE_COLUMNS, sides, strict=True):
+        given = np.isfinite(side)
+        bad = given & ((side != np.round(side)) | (side < 1) | (side > MAX_IMAGE_SIDE_PX))
+        if np.any(bad):
+            k = int(np.argmax(bad))
+            raise UserError(
+                f"{path}: {where(row0 + k)}, column {name}: expected a whole number of pixels in "
+                f"1..{MAX_IMAGE_SIDE_PX}, got {columns[name][k].as_py()!r}"
+            )
+    half = np.isfinite(sides[0]) != np.isfinite(sides[1])
+    if np.any(half):
+        k = int(np.argmax(half))
+        raise UserError(
+            f"{path}: {where(row0 + k)}: {' and '.join(IMAGE_SIZE_COLUMNS)} must both be given or both empty"
+        )
 
 
 def _checked(source: _SessionFile, chunk: Session, row0: int, progress: _Progress) -> Session:

@@ -56,16 +56,18 @@ def _local_maxima(significance: np.ndarray, limit: float, segmap: np.ndarray) ->
     at least :data:`_HOT_BOX_HALF_PX` from the border, and not below any of their 8 neighbours."""
     h, w = significance.shape
     m = _HOT_BOX_HALF_PX
-    inner = significance[m : h - m, m : w - m]
-    rows, cols = np.nonzero((inner >= limit) & (segmap[m : h - m, m : w - m] == 0))
-    rows, cols = rows + m, cols + m
-    value = significance[rows, cols]
-    peak = np.ones(rows.size, dtype=bool)
+    # by flat indices (faster than by rows and columns), the footprints looked up at the pixels at the limit alone
+    rows, cols = np.divmod(np.flatnonzero(significance[m : h - m, m : w - m] >= limit), w - 2 * m)
+    at = (rows + m) * w + (cols + m)
+    at = at[segmap.ravel()[at] == 0]
+    flat = significance.ravel()
+    value = flat[at]
+    peak = np.ones(at.size, dtype=bool)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                peak &= value >= significance[rows + dr, cols + dc]
-    return rows[peak], cols[peak]
+                peak &= value >= flat[at + dr * w + dc]
+    return np.divmod(at[peak], w)
 
 
 def _snr(sub, rms, x: np.ndarray, y: np.ndarray, sigma_px: float, flux: np.ndarray | None = None) -> np.ndarray:

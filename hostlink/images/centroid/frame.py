@@ -32,7 +32,6 @@ from hostlink.images.centroid.windows import (
     _psf_model_sigma_px,
     _windowed_centroids,
 )
-from hostlink.images.order_statistics import row_medians
 
 
 def centroid_pixels(
@@ -62,8 +61,9 @@ def _centroid_pixels(pixels, options: CentroidOptions, background, saturation_ad
     level = options.saturation_adu if options.saturation_adu is not None else saturation_adu
     blank = saturated_regions(raw, level)
     sub, rms, filtered, objects, segmap = _extract(_less_background_frame(raw, background), options, blank, raw, level)
-    # np.median's number, from the pixels sorted once (row_medians)
-    median_rms_adu = float(row_medians(rms.reshape(1, -1), ~blank.reshape(1, -1))[0])
+    # numpy's partition of one array (no axis) is faster than sorting it (row_medians), its copy of the unmasked pixels
+    # too: 4.5 against 9.5 ms for 1.2 Mpx
+    median_rms_adu = float(np.median(rms[~blank] if blank.any() else rms))
     report = FrameReport(path="", detected=int(objects.size), background_rms_adu=median_rms_adu)
     if objects.size == 0:
         return _no_stars(report)

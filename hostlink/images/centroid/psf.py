@@ -10,11 +10,7 @@ import numpy as np
 
 from hostlink.images.centroid.stamps import _in_chunks, _stamps
 from hostlink.images.order_statistics import row_medians
-from hostlink.sky.render import (
-    pixel_integrated_gaussian,
-    pixel_integrated_gaussian_dsource,
-    pixel_integrated_gaussian_dwidth,
-)
+from hostlink.sky.render import pixel_integrated_gaussian, pixel_integrated_gaussian_dsource
 
 #: The PSF flux is fitted over +-this many PSF sigmas (+1 px) around the centroid; the local background is the median
 #: of the ring from there out to 3 px farther.
@@ -197,11 +193,16 @@ def _levenberg_marquardt_batch(
 
 def _solve_each(lhs: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """x with lhs[k] x[k] = rhs[k] for each of the (n, 4, 4) systems, and which are singular (their x 0: a
-    degenerate stamp, no fit). numpy refuses the whole batch for one singular system: the singular ones are found
-    first, an exact zero pivot of the LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which
-    ``np.linalg.solve``'s gesv starts and on which it fails), and the others solved in one call (each system by the
-    same LAPACK call as on its own). Should solve still refuse them, the batch is split in halves until the singular
-    ones stand alone (alone, that took a split per level for every singular system in the batch)."""
+    degenerate stamp, no fit). The whole batch is solved in one call (each system by the same LAPACK call as on its
+    own); numpy refuses it for one singular system, and then the singular ones are found, an exact zero pivot of the
+    LU factorisation (``np.linalg.slogdet``'s sign 0: LAPACK's getrf, with which ``np.linalg.solve``'s gesv starts
+    and on which it fails), and the others solved in one call. Should solve still refuse them, the batch is split in
+    halves until the singular ones stand alone (alone, that took a split per level for every singular system in the
+    batch)."""
+    try:  # the common batch, none singular: no determinants first
+        return np.linalg.solve(lhs, rhs[..., None])[..., 0], np.zeros(lhs.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
     singular = np.linalg.slogdet(lhs)[0] == 0
     if singular.any():
         out = np.zeros_like(rhs)
@@ -282,64 +283,6 @@ def _psf_fit_block(sub, rms, x, y, sigma_px: float, gain_e_per_adu: float | None
     )
     out_x[ok], out_y[ok] = params[ok, 0], params[ok, 1]
     return out_x, out_y, ok
-
-
-#: The PSF width fit (:func:`_psf_width_fit_px`): Gauss-Newton steps, and the largest relative change of the width
-#: per step (a star on a faint neighbour's wing must not run off).
-_WIDTH_FIT_ITERATIONS = 12
-_WIDTH_FIT_MAX_STEP = 0.3
-
-
-def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start_px: float) -> float:
-    """The median over the stars at ``(x, y)`` of the least-squares width of the pixel-integrated Gaussian
-    mu = B + N Py(y; s) Px(x; s) (:func:`psf_model`, every parameter free, s too) over the pixels within
-    3 ``sigma_start_px`` + 1 of each: d P / d s = -[phi(u) u - phi(l) l] / s with u, l = (c +- 1/2 - x) / s (the
-    derivative of Phi((c +- 1/2 - x) / s) in s). NaN when no star's fit converges to a positive width."""
-    half = _psf_fit_half_px(sigma_start_px)
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    cols, rows, data, inside = _stamps(sub, x, y, half)
-    whole = np.flatnonzero(inside.reshape(x.size, -1).all(axis=1))
-    p = np.zeros((whole.size, 5))
-    for i, k in enumerate(whole):
-        d = data[k].ravel()
-        p[i] = [x[k], y[k], 0.0, float(np.median(data[k])), sigma_start_px]
-        p[i, 2] = max(float(d.sum() - p[i, 3] * d.size), 1.0)
-    running = np.ones(whole.size, dtype=bool)  # no step has left the bounds yet
-    for _ in range(_WIDTH_FIT_ITERATIONS):
-        if not running.any():
-            break
-        at = np.flatnonzero(running)
-        jacobians, residuals = _width_fit_rows(cols[whole[at]], rows[whole[at]], data[whole[at]], p[at])
-        for i, jac, residual in zip(at, jacobians, residuals, strict=True):
-            k, width = whole[i], p[i, 4]
-            step = np.linalg.lstsq(jac, residual, rcond=None)[0]
-            step *= min(1.0, _WIDTH_FIT_MAX_STEP * width / max(abs(step[4]), 1e-300))
-            p[i] = p[i] + step
-            if not (p[i, 4] > 0 and p[i, 2] > 0 and abs(p[i, 0] - x[k]) < half and abs(p[i, 1] - y[k]) < half):
-                running[i] = False
-    widths = p[running, 4]
-    return float(np.median(widths)) if widths.size else float("nan")
-
-
-def _width_fit_rows(cols, rows, data, p):
-    """The Jacobian (K, P, 5) of :func:`_psf_width_fit_px`'s model at ``p`` (K, 5) = (x, y, N, B, s) of K stars,
-    d mu / d (x, y, N, B) as :func:`psf_model` makes it (every star with its own width) and d mu / d s, and the
-    residuals its step fits, (K, P): every star's pixels at once (one call per function for all, not per star)."""
-    k = p.shape[0]
-    x, y, n, b, s = (p[:, i : i + 1] for i in range(5))
-    px, py = pixel_integrated_gaussian(cols, x, s), pixel_integrated_gaussian(rows, y, s)
-    dpx, dpy = pixel_integrated_gaussian_dsource(cols, x, s), pixel_integrated_gaussian_dsource(rows, y, s)
-    spx, spy = pixel_integrated_gaussian_dwidth(cols, x, s), pixel_integrated_gaussian_dwidth(rows, y, s)
-    nn = n[:, :, None]
-    shape = py[:, :, None] * px[:, None, :]
-    jac = np.empty((*shape.shape, 5))
-    jac[..., 0] = nn * (py[:, :, None] * dpx[:, None, :])  # psf_model's n * outer(py, dpx)
-    jac[..., 1] = nn * (dpy[:, :, None] * px[:, None, :])
-    jac[..., 2] = shape
-    jac[..., 3] = 1.0
-    jac[..., 4] = nn * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :])
-    jac = jac.reshape(k, -1, 5)
-    return jac, data.reshape(k, -1) - b - n * jac[:, :, 2]
 
 
 def centroid_crb_px(

@@ -50,7 +50,8 @@ _SEP_SUB_OBJECTS = 4096
 
 
 def _less_background_frame(raw: np.ndarray, background: np.ndarray | None) -> np.ndarray:
-    """``raw`` less the dark or median frame ``background`` (a copy; a frame of another size is a UserError)."""
+    """``raw`` less the dark or median frame ``background`` (a copy, which :func:`_extract` then changes in place; a
+    frame of another size is a UserError)."""
     if background is None:
         return raw.copy()
     if background.shape != raw.shape:
@@ -77,15 +78,17 @@ def _extract(
     footprint of 1 filtered pixel, a detection of 1 pixel kept at :data:`_SINGLE_PIXEL_THRESHOLD` x the threshold
     (:func:`_single_pixels_kept`). Returns the background-subtracted image, the noise map [ADU], the detection's
     significance (the filtered image over its noise, what the threshold is compared with), SEP's objects and its
-    segmentation map."""
+    segmentation map. A float64 C-contiguous ``data`` is the frame's own: the background is subtracted from it in
+    place (:func:`_less_background_frame` makes it)."""
     import sep
 
     box = int(min(options.background_box_px, max(8, min(data.shape) // 2)))
     sep.set_sub_object_limit(_SEP_SUB_OBJECTS)
     try:
         blank = np.zeros(data.shape, dtype=bool) if blank is None else blank
-        bkg = sep.Background(data, mask=blank, bw=box, bh=box, fw=3, fh=3)
-        sub = data - bkg.back()
+        sub = np.ascontiguousarray(data, dtype=np.float64)
+        bkg = sep.Background(sub, mask=blank, bw=box, bh=box, fw=3, fh=3)
+        bkg.subfrom(sub)  # in place: the numbers of sub - bkg.back(), in half the time
         offset, rms, filtered, ignored = filtered_noise_correction(
             sub, bkg.rms, _FILTER_KERNEL, box, blank, bkg.globalback
         )
@@ -93,7 +96,10 @@ def _extract(
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
         raise _extraction_failed(exc) from None
-    significance = filtered / (rms * _FILTERED_NOISE_PER_PX)
+    # filtered / (rms x norm), the divisor's array reused for the quotient: a second frame-sized array at once made
+    # the allocator map fresh pages (3.2 against 0.6 ms for 1.2 Mpx)
+    significance = np.multiply(rms, _FILTERED_NOISE_PER_PX)
+    np.divide(filtered, significance, out=significance)
     # the PSF measured outside the guard: a failure of ours there is not SEP's, nor cured by a higher threshold
     sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
     min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
@@ -134,10 +140,18 @@ def _first_pass_psf_sigma_px(sub, objects: np.ndarray, segmap, raw, level: float
 
 def _saturated_objects(raw: np.ndarray, segmap: np.ndarray, level: float, n_objects: int) -> np.ndarray:
     """(N,) bool: SEP's objects with a raw pixel of their footprint at the clip level ``level``."""
-    labelled = segmap > 0
-    peak_raw = np.full(n_objects + 1, -np.inf)
-    np.maximum.at(peak_raw, segmap[labelled], raw[labelled])
-    return peak_raw[1:] >= level
+    _, labels = _clipped_footprint_pixels(raw, segmap, level)
+    return np.bincount(labels, minlength=n_objects + 1)[1:] > 0
+
+
+def _clipped_footprint_pixels(raw: np.ndarray, segmap: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """The flat indices of the pixels of ``raw`` at the clip level ``level`` inside a footprint of SEP's
+    segmentation map, and their objects' labels (from 1): one pass over the frame, the footprints looked up at the few
+    clipped pixels only."""
+    at_level = np.flatnonzero(raw >= level)
+    labels = segmap.ravel()[at_level]
+    inside = labels > 0
+    return at_level[inside], labels[inside]
 
 
 #: Where the footprint is 1 filtered pixel (:func:`_footprint_px`), a detection of 1 pixel above the threshold is
@@ -291,8 +305,9 @@ def _screen(sub, rms, raw, objects, segmap, options: CentroidOptions, level: flo
     for mask in (hot, rejected_saturated, blended):  # a clipped hot pixel is hot, not a saturated star
         mask &= keep
         keep &= ~mask
-    cleared = np.concatenate([[False], small & hot])[segmap]
-    return _Screen(keep, saturated, hot, blended, truncated, blend_px, np.where(cleared, 0, segmap))
+    if np.any(small & hot):
+        segmap = np.where(np.concatenate([[False], small & hot])[segmap], 0, segmap)
+    return _Screen(keep, saturated, hot, blended, truncated, blend_px, segmap)
 
 
 #: Coarse screen for single-pixel spikes, used only to choose the stars the frame's PSF is measured on: the mean of
@@ -356,8 +371,8 @@ def _clipped_spikes(sub, rms, raw, segmap, level: float, n_objects: int) -> np.n
     background) is below r (level - background) - :data:`_CLIPPED_SPIKE_SIGMAS` x noise / 2 (the noise of a mean of
     4). A saturated star's core of several clipped pixels, or one whose wings are there, is kept."""
     out = np.zeros(n_objects, dtype=bool)
-    rows, cols = np.nonzero((raw >= level) & (segmap > 0))
-    labels = segmap[rows, cols]
+    at_level, labels = _clipped_footprint_pixels(raw, segmap, level)
+    rows, cols = np.divmod(at_level, raw.shape[1])
     counts = np.bincount(labels, minlength=n_objects + 1)
     single = counts[labels] == 1
     rows, cols, labels = rows[single], cols[single], labels[single]
@@ -384,14 +399,12 @@ def _hot_bases(offsets: np.ndarray, dr: int, dc: int, widths: np.ndarray) -> np.
     flat = np.ones(offsets.size**2)
     spike = np.zeros((offsets.size, offsets.size))
     spike[dr + offsets.size // 2, dc + offsets.size // 2] = 1.0
-    stars = [
-        np.outer(
-            pixel_integrated_gaussian(offsets, dr + dy, width), pixel_integrated_gaussian(offsets, dc + dx, width)
-        ).ravel()
-        for width in widths
-        for dy in _HOT_POSITIONS_PX
-        for dx in _HOT_POSITIONS_PX
-    ]
+    # every width's factors at every sub-pixel position in one call each: (widths, positions, pixels), elementwise the
+    # numbers of one call per model
+    at = offsets[None, None, :].astype(np.float64)
+    py = pixel_integrated_gaussian(at, dr + _HOT_POSITIONS_PX[None, :, None], widths[:, None, None])
+    px = pixel_integrated_gaussian(at, dc + _HOT_POSITIONS_PX[None, :, None], widths[:, None, None])
+    stars = (py[:, :, None, :, None] * px[:, None, :, None, :]).reshape(-1, offsets.size**2)  # (width, dy, dx) order
     return _orthonormal_bases([np.column_stack([m, flat]) for m in [spike.ravel(), *stars]])
 
 

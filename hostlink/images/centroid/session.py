@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from hostlink.errors import UserError
-from hostlink.files.session import Session, pixel_sigma_text
+from hostlink.files.session import IMAGE_SIZE_COLUMNS, Session, pixel_sigma_text
 from hostlink.files.times import parse_iso_utc_many
 from hostlink.images.centroid.frame import centroid_pixels
 from hostlink.images.centroid.options import Candidates, CentroidOptions, CentroidResult, Detections, TimeOptions
 from hostlink.images.centroid.times import _read_times_file, _time_choices, image_time
 from hostlink.images.order_statistics import sorted_medians
-from hostlink.images.read import read_image
+from hostlink.images.read import RawImage, read_image
 
 #: ``--median-of-inputs`` is refused when the median frame itself holds this many star-like sources (and as many as a
 #: frame keeps): the images then share a pointing.
@@ -32,7 +32,8 @@ def centroid_images(
 ) -> CentroidResult:
     """Centroid every image in ``paths`` into one session: a frame per image (in time order; in the given order when
     the time is unknown), ``star_id`` 0, ``mag`` the instrumental magnitude, extra columns ``flux_adu``, ``image``
-    (file name) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
+    (file name), ``image_width_px`` and ``image_height_px`` (its size, which identify and calibrate check the nominal
+    against) and ``time_source``. Every failure (an unreadable image, no time known for an image, a background
     frame or an image of another size than the first, an image given twice, no star in any image) is a one-line
     :class:`UserError`.
     ``progress(done)`` is called after each image with the number of images done."""
@@ -47,13 +48,13 @@ def centroid_images(
     if sum(s is not None for s in sources) > 1:
         raise UserError("give at most one of --dark, --median, --median-of-inputs")
     listed = _read_times_file(Path(times.times_file)) if times.times_file is not None else None
-    background = _background_frame(paths, options)
+    background, kept = _background_frame(paths, options)
 
-    frames: list[tuple[str, Detections, str]] = []
+    frames: list[tuple[str, Detections, str, tuple[int, int]]] = []
     blank = 0  # images whose every pixel has one value (a lens cap, no exposure, a failed readout)
     first_size_px: tuple[int, int] | None = None
     for done, path in enumerate(paths, start=1):
-        image = read_image(path)
+        image = kept.pop(path, None) or read_image(path)  # read once: for the median, then here
         first_size_px = first_size_px or image.image_size_px
         _check_same_size(path, image.image_size_px, paths[0], first_size_px)
         blank += int(image.pixels.size == 0 or float(np.ptp(image.pixels)) == 0.0)
@@ -61,19 +62,19 @@ def centroid_images(
         det = centroid_pixels(image.pixels, options, background, image.saturation_adu)
         det.report.path = str(path)
         det.report.time_utc, det.report.time_source = time_utc, source
-        frames.append((time_utc, det, source))
+        frames.append((time_utc, det, source, image.image_size_px))
         if progress is not None:
             progress(done)
     if options.median_of_inputs:
-        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, _ in frames])
-    if all(det.report.kept == 0 for _, det, _ in frames):
+        _check_median_holds_no_stars(background, options, [det.report.kept for _, det, *_ in frames])
+    if all(det.report.kept == 0 for _, det, *_ in frames):
         if blank == len(paths):
             raise UserError(f"no star found: every pixel of each of the {len(paths)} image(s) has one value (blank)")
         raise UserError(f"no star found in any of the {len(paths)} image(s); lower --threshold-sigma")
     if times.time_unknown:
         order = list(range(len(frames)))
     else:
-        jd1, jd2 = parse_iso_utc_many([t for t, _, _ in frames])
+        jd1, jd2 = parse_iso_utc_many([t for t, *_ in frames])
         order = sorted(range(len(frames)), key=lambda k: (jd1[k] + jd2[k], k))
     return _session([frames[k] for k in order])
 
@@ -119,10 +120,10 @@ def _check_median_holds_no_stars(median: np.ndarray, options: CentroidOptions, k
         )
 
 
-def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
-    """The session of the frames: per frame its stars (brightest first), then its candidates (most significant first;
-    ``snr`` set only on them)."""
-    parts = [_frame_rows(det) for _, det, _ in frames]
+def _session(frames: list[tuple[str, Detections, str, tuple[int, int]]]) -> CentroidResult:
+    """The session of the frames (time, detections, time source, image (width, height) [px]): per frame its stars
+    (brightest first), then its candidates (most significant first; ``snr`` set only on them)."""
+    parts = [_frame_rows(det) for _, det, *_ in frames]
     counts = [part["x"].size for part in parts]
     n = int(sum(counts))
     frame_no = np.repeat(np.arange(len(frames), dtype=np.int64), counts)
@@ -141,20 +142,22 @@ def _session(frames: list[tuple[str, Detections, str]]) -> CentroidResult:
         "blended": np.array([str(int(v)) for v in cat("blended").tolist()], dtype=object),
         "blend_px": pixel_sigma_text(cat("blend_px")),
     }
-    if any(det.candidates is not None for _, det, _ in frames):
+    if any(det.candidates is not None for _, det, *_ in frames):
         extra["snr"] = _formatted(snr, ".2f")
-    extra["image"] = repeat([Path(det.report.path).name for _, det, _ in frames])
-    extra["time_source"] = repeat([source for _, _, source in frames])
+    extra["image"] = repeat([Path(det.report.path).name for _, det, *_ in frames])
+    for axis, name in enumerate(IMAGE_SIZE_COLUMNS):
+        extra[name] = repeat([str(size_px[axis]) for *_, size_px in frames])
+    extra["time_source"] = repeat([source for _, _, source, _ in frames])
     session = Session(
         frame=frame_no,
-        t_utc=repeat([t for t, _, _ in frames]),
+        t_utc=repeat([t for t, *_ in frames]),
         star_id=np.zeros(n, np.int64),
         x_px=cat("x"),
         y_px=cat("y"),
         mag=cat("mag"),
         extra=extra,
     )
-    return CentroidResult(session, [det.report for _, det, _ in frames])
+    return CentroidResult(session, [det.report for _, det, *_ in frames])
 
 
 def _formatted(values: np.ndarray, spec: str) -> np.ndarray:
@@ -181,17 +184,32 @@ def _frame_rows(det: Detections) -> dict[str, np.ndarray]:
     }
 
 
-def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray | None:
+#: ``--median-of-inputs`` keeps the images it read for the median, to centroid them without decoding them again, while
+#: their pixels take at most this many bytes (ten 1.4 Mpx frames: 116 MB; decoding one of those PNGs took 28 ms, a
+#: ninth of the openstartracker set's time to centroid: docs/realsky.md, "Speed").
+_KEEP_READ_BYTES = 256 * 2**20
+
+
+def _background_frame(paths: list[Path], options: CentroidOptions) -> tuple[np.ndarray | None, dict[Path, RawImage]]:
+    """The frame to subtract from every image (a dark, a median, or the median of the inputs; None) and the input
+    images read for it that are kept to be centroided (within :data:`_KEEP_READ_BYTES`; the others are read
+    again)."""
     given = options.dark if options.dark is not None else options.median
     if given is not None:
-        return read_image(given).pixels
+        return read_image(given).pixels, {}
     if not options.median_of_inputs:
-        return None
+        return None, {}
     if len(paths) < 3:
         raise UserError(f"--median-of-inputs needs at least 3 images taken at different pointings, got {len(paths)}")
     stack = None
+    kept: dict[Path, RawImage] = {}
+    kept_bytes = 0
     for k, path in enumerate(paths):
-        pixels = read_image(path).pixels
+        image = read_image(path)
+        pixels = image.pixels
+        if kept_bytes + pixels.nbytes <= _KEEP_READ_BYTES:
+            kept[path] = image
+            kept_bytes += pixels.nbytes
         if stack is None:
             stack = np.empty((len(paths), *pixels.shape), dtype=np.float32)
         elif pixels.shape != stack.shape[1:]:
@@ -200,7 +218,7 @@ def _background_frame(paths: list[Path], options: CentroidOptions) -> np.ndarray
                 f"{stack.shape[2]} x {stack.shape[1]} px: --median-of-inputs needs one size"
             )
         stack[k] = pixels
-    return _median_frame(stack)
+    return _median_frame(stack), kept
 
 
 def _median_frame(stack: np.ndarray) -> np.ndarray:

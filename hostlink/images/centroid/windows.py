@@ -8,8 +8,13 @@ import math
 
 import numpy as np
 
-from hostlink.images.centroid.psf import _psf_width_fit_px
+from hostlink.images.centroid.psf import _psf_fit_half_px
 from hostlink.images.centroid.stamps import _stamps
+from hostlink.sky.render import (
+    pixel_integrated_gaussian,
+    pixel_integrated_gaussian_dsource,
+    pixel_integrated_gaussian_dwidth,
+)
 
 #: r50 / sigma of a circular Gaussian: sqrt(2 ln 2).
 _R50_PER_SIGMA = math.sqrt(2.0 * math.log(2.0))
@@ -168,7 +173,7 @@ def _psf_stars(good: np.ndarray) -> np.ndarray:
 
 def _psf_model_sigma_px(sub: np.ndarray, good: np.ndarray, window_sigma_px: float) -> float:
     """The width of the PSF fit's own model, the pixel-integrated Gaussian
-    (:func:`hostlink.images.centroid.psf._psf_width_fit_px` on :func:`_psf_stars`, started at the window's sigma); the
+    (:func:`_psf_width_fit_px` on :func:`_psf_stars`, started at the window's sigma); the
     window's sigma when no fit converges. The window's sigma (:func:`_frame_psf_sigma_px`, from r50) is that of the
     star convolved with the pixel and SEP's sub-pixel sampling of it: 0.88-0.91 px for a rendered Gaussian of
     0.77 px, whose pixel-integrated model then gave bright stars a pixel-phase S-curve (docs/realsky.md, "A new
@@ -177,3 +182,79 @@ def _psf_model_sigma_px(sub: np.ndarray, good: np.ndarray, window_sigma_px: floa
     bright = _psf_stars(good)
     fitted = _psf_width_fit_px(sub, bright["x"], bright["y"], window_sigma_px) if bright.size else math.nan
     return float(max(fitted, _MIN_PSF_SIGMA_PX)) if np.isfinite(fitted) else window_sigma_px
+
+
+#: The PSF width fit (:func:`_psf_width_fit_px`): Gauss-Newton steps, and the largest relative change of the width
+#: per step (a star on a faint neighbour's wing must not run off).
+_WIDTH_FIT_ITERATIONS = 12
+_WIDTH_FIT_MAX_STEP = 0.3
+
+
+def _psf_width_fit_px(sub: np.ndarray, x: np.ndarray, y: np.ndarray, sigma_start_px: float) -> float:
+    """The median over the stars at ``(x, y)`` of the least-squares width of the pixel-integrated Gaussian
+    mu = B + N Py(y; s) Px(x; s) (:func:`psf_model`, every parameter free, s too) over the pixels within
+    3 ``sigma_start_px`` + 1 of each: d P / d s = -[phi(u) u - phi(l) l] / s with u, l = (c +- 1/2 - x) / s (the
+    derivative of Phi((c +- 1/2 - x) / s) in s). NaN when no star's fit converges to a positive width."""
+    half = _psf_fit_half_px(sigma_start_px)
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    cols, rows, data, inside = _stamps(sub, x, y, half)
+    # the fit is a function of these alone; a frame asks it twice of the same stars (its first extraction's most
+    # significant ones, then the screened frame's), the second time answered from the first
+    key = (x.tobytes(), y.tobytes(), float(sigma_start_px), data.tobytes(), inside.tobytes())
+    last = _LAST_WIDTH_FIT[-1] if _LAST_WIDTH_FIT else None  # one (key, width) tuple, replaced whole: thread-safe
+    if last is not None and last[0] == key:
+        return last[1]
+    width = _width_fit_median_px(x, y, cols, rows, data, inside, sigma_start_px, half)
+    _LAST_WIDTH_FIT[:] = [(key, width)]
+    return width
+
+
+#: The last :func:`_psf_width_fit_px` as one (inputs, width) tuple: its inputs (positions, start, the stamps' pixels)
+#: decide the width, so a hit is the same answer whichever frame or thread asked.
+_LAST_WIDTH_FIT: list[tuple[tuple, float]] = []
+
+
+def _width_fit_median_px(x, y, cols, rows, data, inside, sigma_start_px: float, half: int) -> float:
+    """:func:`_psf_width_fit_px` on the stamps of half-width ``half`` around the stars."""
+    whole = np.flatnonzero(inside.reshape(x.size, -1).all(axis=1))
+    p = np.zeros((whole.size, 5))
+    for i, k in enumerate(whole):
+        d = data[k].ravel()
+        p[i] = [x[k], y[k], 0.0, float(np.median(data[k])), sigma_start_px]
+        p[i, 2] = max(float(d.sum() - p[i, 3] * d.size), 1.0)
+    running = np.ones(whole.size, dtype=bool)  # no step has left the bounds yet
+    for _ in range(_WIDTH_FIT_ITERATIONS):
+        if not running.any():
+            break
+        at = np.flatnonzero(running)
+        jacobians, residuals = _width_fit_rows(cols[whole[at]], rows[whole[at]], data[whole[at]], p[at])
+        for i, jac, residual in zip(at, jacobians, residuals, strict=True):
+            k, width = whole[i], p[i, 4]
+            step = np.linalg.lstsq(jac, residual, rcond=None)[0]
+            step *= min(1.0, _WIDTH_FIT_MAX_STEP * width / max(abs(step[4]), 1e-300))
+            p[i] = p[i] + step
+            if not (p[i, 4] > 0 and p[i, 2] > 0 and abs(p[i, 0] - x[k]) < half and abs(p[i, 1] - y[k]) < half):
+                running[i] = False
+    widths = p[running, 4]
+    return float(np.median(widths)) if widths.size else float("nan")
+
+
+def _width_fit_rows(cols, rows, data, p):
+    """The Jacobian (K, P, 5) of :func:`_psf_width_fit_px`'s model at ``p`` (K, 5) = (x, y, N, B, s) of K stars,
+    d mu / d (x, y, N, B) as :func:`psf_model` makes it (every star with its own width) and d mu / d s, and the
+    residuals its step fits, (K, P): every star's pixels at once (one call per function for all, not per star)."""
+    k = p.shape[0]
+    x, y, n, b, s = (p[:, i : i + 1] for i in range(5))
+    px, py = pixel_integrated_gaussian(cols, x, s), pixel_integrated_gaussian(rows, y, s)
+    dpx, dpy = pixel_integrated_gaussian_dsource(cols, x, s), pixel_integrated_gaussian_dsource(rows, y, s)
+    spx, spy = pixel_integrated_gaussian_dwidth(cols, x, s), pixel_integrated_gaussian_dwidth(rows, y, s)
+    nn = n[:, :, None]
+    shape = py[:, :, None] * px[:, None, :]
+    jac = np.empty((*shape.shape, 5))
+    jac[..., 0] = nn * (py[:, :, None] * dpx[:, None, :])  # psf_model's n * outer(py, dpx)
+    jac[..., 1] = nn * (dpy[:, :, None] * px[:, None, :])
+    jac[..., 2] = shape
+    jac[..., 3] = 1.0
+    jac[..., 4] = nn * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :])
+    jac = jac.reshape(k, -1, 5)
+    return jac, data.reshape(k, -1) - b - n * jac[:, :, 2]
