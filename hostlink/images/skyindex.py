@@ -115,37 +115,23 @@ class PairCatalogue:
     rank16: np.ndarray | None
     #: the three columns of ``r`` (x, y, z), each contiguous (:func:`sky_columns`), for :func:`_dot_rows`
     columns: tuple[np.ndarray, np.ndarray, np.ndarray]
-    #: (S,) bool: the stars taking part when ``a``, ``b`` and the samples are those of a deeper table, shared instead of
-    #: copied (:meth:`PairCache.pairs`): its pairs are those of both stars taking part (:func:`pair_window`; a deeper
-    #: table's pairs in their order, so these are in (angle, a, b) order too); None when every pair of the arrays is
-    #: in the table
-    stars: np.ndarray | None = None
 
 
 def pair_window(pairs: PairCatalogue, lo_rad: float, hi_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) of the pairs of ``pairs`` whose angle lies in [``lo_rad``, ``hi_rad``) (their order), those of stars
-    not taking part left out (:attr:`PairCatalogue.stars`)."""
+    """(a, b) of the pairs of ``pairs`` whose angle lies in [``lo_rad``, ``hi_rad``), in their order (views)."""
     lo, hi = (_index(pairs, angle_rad, "left") for angle_rad in (lo_rad, hi_rad))
-    a, b = pairs.a[lo:hi], pairs.b[lo:hi]
-    if pairs.stars is not None and a.size:
-        keep = pairs.stars[a] & pairs.stars[b]
-        a, b = a[keep], b[keep]
-    return a, b
+    return pairs.a[lo:hi], pairs.b[lo:hi]
 
 
 def _index(pairs: PairCatalogue, angle_rad: float, side: str) -> int:
-    """``np.searchsorted`` of ``angle_rad`` among the angles of ``pairs``'s arrays (:func:`angle_index`)."""
+    """``np.searchsorted`` of ``angle_rad`` among the angles of ``pairs`` (:func:`angle_index`)."""
     return angle_index(pairs.angle_sample_rad, pairs.columns, pairs.a, pairs.b, angle_rad, side)
 
 
 def pair_arrays(pairs: PairCatalogue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The table's own (a, b, angle_rad), the angles computed (:func:`pair_angles`), those of stars not taking part
-    left out: what a table as one array of each would hold (for tests and inspection)."""
-    angle = pair_angles(pairs.columns, pairs.a, pairs.b)
-    if pairs.stars is None:
-        return pairs.a, pairs.b, angle
-    keep = pairs.stars[pairs.a] & pairs.stars[pairs.b]
-    return pairs.a[keep], pairs.b[keep], angle[keep]
+    """The table's (a, b, angle_rad), every angle computed (:func:`pair_angles`): what a table of all the angles
+    would hold (for tests and inspection)."""
+    return pairs.a, pairs.b, pair_angles(pairs.columns, pairs.a, pairs.b)
 
 
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
@@ -268,9 +254,8 @@ def _leading(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
 
 def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
     """The pairs of ``table`` (built to ``table_maglim``) within ``max_angle_rad`` of stars brighter than ``maglim``:
-    ``table`` is in (angle, a, b) order, and so is every subset of it. Its arrays are the table's own, sliced to the
-    angle, not copied: when stars are left out, :attr:`PairCatalogue.stars` says which take part (the cut costs a
-    k-d tree of its stars, not a second table: 0.2 GB on openstartracker, docs/realsky.md "Speed")."""
+    ``table`` is in (angle, a, b) order, and so is every subset of it. The table's arrays sliced to the angle (views)
+    when no star is left out, else the pairs of both stars bright enough copied (:func:`_pairs_of_stars`)."""
     from scipy.spatial import cKDTree
 
     cut = replace(_leading(table, max_angle_rad), max_angle_rad=max_angle_rad)
@@ -278,8 +263,27 @@ def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, t
         bright = sky.mag <= maglim
         if np.count_nonzero(bright) < table.rows.size:  # else the same stars (none between the depths): the same
             rows = np.flatnonzero(bright)
-            cut = replace(cut, rows=rows, tree=cKDTree(sky.r[rows]), rank16=_rank16(sky, rows), stars=bright)
+            a, b, samples = _pairs_of_stars(cut, bright)
+            cut = replace(cut, a=a, b=b, angle_sample_rad=samples, rows=rows, tree=cKDTree(sky.r[rows]))
+            cut = replace(cut, rank16=_rank16(sky, rows))
     return cut
+
+
+#: :func:`_pairs_of_stars` tests this many pairs at a time [pairs]: its temporaries stay a few MB whatever the table.
+CUT_BLOCK_PAIRS = 1 << 20
+
+
+def _pairs_of_stars(pairs: PairCatalogue, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b, samples) of the pairs of ``pairs`` both of whose stars are ``bright`` ((S,) bool), in their order:
+    which to keep found block by block (:data:`CUT_BLOCK_PAIRS`) into one (P,) bool, then each column taken once
+    (the cut costs its own 8 bytes a pair and a byte a pair while it is made); the samples the angles of every
+    :data:`ANGLE_SAMPLE_PAIRS`-th kept pair (:func:`pair_angles`: the bits a build of the cut gives)."""
+    keep = np.empty(pairs.a.size, dtype=bool)
+    for start in range(0, keep.size, CUT_BLOCK_PAIRS):
+        stop = start + CUT_BLOCK_PAIRS
+        np.logical_and(bright[pairs.a[start:stop]], bright[pairs.b[start:stop]], out=keep[start:stop])
+    a, b = pairs.a[keep], pairs.b[keep]
+    return a, b, pair_angles(pairs.columns, a[::ANGLE_SAMPLE_PAIRS], b[::ANGLE_SAMPLE_PAIRS])
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
