@@ -20,6 +20,7 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``interstar_methods``: seed 000 cosine / sine interstar least squares and its improved two-step iteration.
 - ``seed004``: seed 004's three-step Levenberg-Marquardt.
 - ``robust``: the pre-pass (focal scale, parity), interstar voting, Huber weights.
+- ``prepass_sample``: the frames and stars the pre-pass looks at (its bounds on frames and on star pairs).
 - ``noisefloor``: the stars' noise as a scale of their given sigma_px and a floor common to the session, two
   variance components estimated from the residuals (restricted maximum likelihood).
 - ``noisefield``: a floor that grows with the field radius (floor^2 = b + c q), its estimate and the likelihood-ratio

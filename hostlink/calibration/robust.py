@@ -29,6 +29,7 @@ from hostlink.calibration.data import (
     gram_matrices,
     pair_angles_at_rad,
 )
+from hostlink.calibration.prepass_sample import PREPASS_MAX_FRAMES, PREPASS_MAX_PAIRS, prepass_frames, prepass_rows
 from onboard.camera import pixels_to_unit
 
 #: Voting (:func:`vote_consistent_stars`): a pair agrees when |angle_b - angle_r| <= VOTE_REL_TOL * angle_r +
@@ -268,11 +269,6 @@ PARITY_MIN_VOLUME_FRACTION = 0.05
 PARITY_MIN_VOLUME = 1e-12
 #: Pre-pass: most random triples per frame examined for the parity.
 PARITY_TRIPLES_PER_FRAME = 40
-#: Pre-pass: most frames it looks at (evenly spaced through the session): at 10-30 stars per frame ~5x10^4 long pairs
-#: and 10^4 triples settle the scale to ~1e-5 (1.003393 against 1.003387 from 1000 frames of seed 004's benchmark
-#: session; the voting tolerance is 3 % and the fit refines it) and the parity beyond doubt, and the pre-pass costs
-#: the same for 10^3 or 10^6 frames (a third of what 1000 frames cost).
-PREPASS_MAX_FRAMES = 300
 
 
 @dataclass(frozen=True)
@@ -478,18 +474,14 @@ def estimate_scale_and_parity(data: CalibrationData, theta: np.ndarray, chunk_ob
     return scale_and_parity_of_sample(data, theta, chunk_obs)
 
 
-def prepass_frames(n_frames: int, max_frames: int = PREPASS_MAX_FRAMES) -> np.ndarray:
-    """Indices (sorted, unique) of the at most ``max_frames`` evenly spaced frames (by default those the pre-pass
-    uses, :data:`PREPASS_MAX_FRAMES`)."""
-    if n_frames <= max_frames:
-        return np.arange(n_frames, dtype=np.int64)
-    return np.unique(np.linspace(0, n_frames - 1, max_frames).round().astype(np.int64))
-
-
 def scale_and_parity_of_sample(
     data: CalibrationData, theta: np.ndarray, chunk_obs: int = PAIR_BLOCK_OBS
 ) -> ScaleParity:
-    """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled."""
+    """The pre-pass of :func:`estimate_scale_and_parity` on frames already sampled, on at most
+    :data:`PREPASS_MAX_PAIRS` of their star pairs (:func:`prepass_rows`)."""
+    keep = prepass_rows(data.frame_starts, PREPASS_MAX_PAIRS)  # read at the call: a test may lower it
+    if keep is not None:
+        data = data.select(keep, min_stars=1)[0]
     table = pair_table(data, chunk_obs)  # the catalogue side of every pair once: the scale, the vote, the triples
     scale, n_pairs = estimate_scale_of_table(data, table, theta)
     theta_s = np.array(theta, dtype=np.float64)

@@ -295,15 +295,41 @@ def _admit_frame(x, y, mag, star_id, held, saturated, sigma_px, theta, image_siz
     admitted = int(rows.size)
     # chance: every candidate whose magnitude agrees with star j, spread over the detector, falling within r of it
     # (per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined)
-    row_px = _row_sigma_px(sigma_px[cand, None], own_px[cand, None], sigma_ref[None, :])
-    radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[None, :] ** 2)
-    agree = np.abs(mag[cand, None] - predicted_mag[None, :]) <= window
     width, height = image_size_px
-    expected = float(np.sum(agree * (math.pi * radius**2)) / (width * height))
+    expected = _chance_expected(
+        (mag[cand], sigma_px[cand], own_px[cand]), (predicted_mag, sigma_ref), sigma_pred, window, width * height
+    )
     record = FrameAdmission(0, int(near.size), admitted, expected, sigma_pred, scatter)
     if expected > MAX_FALSE_FRACTION * admitted:
         return star_id, replace(record, admitted=0, status="not admitted: chance too high")
     return names, record
+
+
+#: Candidate-star pairs of :func:`_chance_expected` formed at once (~32 MB per float64 array): a 24 Mpx frame has
+#: ~10^4 candidates and thousands of predicted stars (6610 Hipparcos stars in the 55-deg render's field), ~5 x 10^7
+#: pairs, over a GB in the matrix's float64 arrays (docs/realsky.md "Large frames").
+CHANCE_BLOCK_PAIRS = 4_000_000
+
+
+def _chance_expected(cands, stars, sigma_pred: float, window: float, area_px: float) -> float:
+    """The admissions chance explains in one frame: every candidate whose magnitude agrees with star j (within
+    ``window``), spread uniformly over the detector of ``area_px`` pixels, falls within r of it with probability
+    pi r^2 / area (r per candidate and star: the prediction's, the row's and the blend reference's 1-sigma combined,
+    x :data:`CONTAINMENT_SIGMAS`), summed over all pairs. ``cands`` = (mag, sigma_px, own_px) of the candidates,
+    ``stars`` = (predicted instrumental mag, sigma_ref) of the searched stars. Summed over blocks of candidates of
+    at most :data:`CHANCE_BLOCK_PAIRS` pairs, so memory is bounded whatever the counts (one block: the sum of one
+    matrix, as before the blocks)."""
+    mag, sigma_px, own_px = cands
+    predicted_mag, sigma_ref = stars
+    step = max(1, CHANCE_BLOCK_PAIRS // max(predicted_mag.size, 1))
+    total = 0.0
+    for k in range(0, mag.size, step):
+        part = slice(k, k + step)
+        row_px = _row_sigma_px(sigma_px[part, None], own_px[part, None], sigma_ref[None, :])
+        radius = CONTAINMENT_SIGMAS * np.sqrt(sigma_pred**2 + row_px**2 + sigma_ref[None, :] ** 2)
+        agree = np.abs(mag[part, None] - predicted_mag[None, :]) <= window
+        total += np.sum(agree * (math.pi * radius**2))
+    return float(total / area_px)
 
 
 def _admissions(rows, cand, predictions, sigma_pred: float, window: float) -> tuple[np.ndarray, np.ndarray]:

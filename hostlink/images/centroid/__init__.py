@@ -18,7 +18,9 @@ Per image:
    of 8-16 sigma into bright neighbours 8-18 px away: :data:`_SEP_CLEAN`); on a frame whose PSF, measured on a first
    extraction, is undersampled (sigma below ~0.575 px, a 2 x 2 binned frame's), also a footprint of 1 filtered pixel
    whose peak reaches 1.2 x the threshold and which fits a star better than a hot pixel
-   (:func:`hostlink.images.centroid.screen._footprint_px`);
+   (:func:`hostlink.images.centroid.screen._footprint_px`); on a frame whose PSF sigma is under 0.85 px, detected at
+   3.5 sigma or more, the faint detections decided by a bank of matched filters of the PSF's width at half-pixel
+   phases, its threshold raised to hold the false-alarm rate (:mod:`hostlink.images.centroid.phases`);
 3. reject, each counted: a *hot pixel* (a single bright pixel explains the detection better than a star of the
    frame's measured PSF, by a likelihood-ratio test, :func:`_hot_pixels`: a sharp star passes, however little of its
    flux its neighbours hold; at the border too; and one clipped pixel whose neighbours hold less than the sharpest
@@ -70,9 +72,10 @@ strptime pattern on the file name, a date with the time of day unknown, or no ti
 (:mod:`hostlink.images.read`); an image with no known time is a one-line error naming it.
 
 The package's modules: ``options`` (what is asked and reported), ``frame`` (one image, stage by stage), ``screen``
-(extraction, hot pixels, the screening), ``windows`` (windowed centroids, the PSF's width), ``shapes`` (blends and
-their bias), ``psf`` (the PSF model, its fit, flux and bound), ``candidates`` (the faint candidates), ``stamps``
-(pixels around stars, in blocks), ``session`` (many images -> a session), ``times`` (the time of each image).
+(extraction, hot pixels, the screening), ``phases`` (the half-pixel-phase filter bank of sharp frames), ``windows``
+(windowed centroids, the PSF's width), ``shapes`` (blends and their bias), ``psf`` (the PSF model, its fit, flux and
+bound), ``candidates`` (the faint candidates), ``stamps`` (pixels around stars, in blocks), ``session`` (many images ->
+a session), ``times`` (the time of each image).
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import numpy as np
 from hostlink.errors import UserError, one_line
 from hostlink.images.background import filtered_noise_correction, kernel_norm
 from hostlink.images.centroid.options import CentroidOptions
+from hostlink.images.centroid.phases import bank_detections
 from hostlink.images.centroid.shapes import (
     _BLEND_CLEAR_SIGMAS,
     _BLEND_MAX_BIAS_PX,
@@ -109,6 +110,10 @@ def _extract(
         except Exception as exc:
             raise _extraction_failed(exc) from None
         objects, segmap = _single_pixels_kept(objects, segmap, significance, options)
+    if options.footprint_follows_psf:  # the bank of half-pixel phases, on the frames of a sharp PSF
+        objects, segmap = bank_detections(
+            sub, rms, ignored, objects, segmap, significance, sigma, options.threshold_sigma
+        )
     return sub, rms, significance, objects, segmap
 
 
