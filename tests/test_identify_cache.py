@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from hostlink.images.identify import PairCache, _sky, _ties_by_stars, pair_catalogue
+from hostlink.images.pairtable import ANGLE_SAMPLE_PAIRS
+from hostlink.images.skyindex import pair_arrays
 from hostlink.sky.catalogue import load_catalogue
 
 #: A 10-deg table to Hp 6.5: ~10^5 pairs, built in well under a second.
@@ -25,13 +27,18 @@ def sky():
 def _assert_same_table(got, want):
     # pairs within rounding of the edge angle may fall either side of it (chord test against arccos): no window of
     # the matcher reaches them (hostlink.images.identify._pairs_of_angle stops 1e-9 rad short of the edge)
-    inner = want.angle_rad < want.max_angle_rad - 1e-12
+    got_a, got_b, got_angle = pair_arrays(got)  # every angle, computed from the pairs' stars
+    want_a, want_b, want_angle = pair_arrays(want)
+    inner = want_angle < want.max_angle_rad - 1e-12
     n = int(np.count_nonzero(inner))
     assert got.max_angle_rad == want.max_angle_rad
-    np.testing.assert_array_equal(got.a[:n], want.a[:n])
-    np.testing.assert_array_equal(got.b[:n], want.b[:n])
-    np.testing.assert_array_equal(got.angle_rad[:n], want.angle_rad[:n])
-    assert abs(got.a.size - want.a.size) <= 1
+    np.testing.assert_array_equal(got_a[:n], want_a[:n])
+    np.testing.assert_array_equal(got_b[:n], want_b[:n])
+    np.testing.assert_array_equal(got_angle[:n], want_angle[:n])
+    assert abs(got_a.size - want_a.size) <= 1
+    m = n // ANGLE_SAMPLE_PAIRS  # the table keeps every 64th pair's angle, the searches' brackets
+    np.testing.assert_array_equal(got.angle_sample_rad[:m], want.angle_sample_rad[:m])
+    np.testing.assert_array_equal(want.angle_sample_rad[:m], want_angle[: m * ANGLE_SAMPLE_PAIRS : ANGLE_SAMPLE_PAIRS])
     np.testing.assert_array_equal(got.rows, want.rows)
     np.testing.assert_array_equal(got.tree.data, want.tree.data)
     if want.rank16 is None:
@@ -133,3 +140,63 @@ def test_the_rounds_last_calibration_is_the_one_the_admission_would_run(monkeypa
     monkeypatch.setattr("hostlink.calibration.run.calibrate_session", no_second_calibration)
     got = guided._calibrated(result.session, result.camera, result.calibration)
     np.testing.assert_array_equal(got.model_vector(np.float64), again.params.model_vector(np.float64))
+
+
+def _one_piece_table(sky, max_angle_rad, maglim):
+    """The table as one ``query_pairs`` over all the stars and one sort by (angle, a, b): the build before it was
+    staged in blocks (docs/realsky.md, "Speed"), the angle the same arccos of the same sums."""
+    from scipy.spatial import cKDTree
+
+    rows = np.flatnonzero(sky.mag <= maglim)
+    found = cKDTree(sky.r[rows]).query_pairs(2.0 * math.sin(0.5 * max_angle_rad), output_type="ndarray")
+    a, b = rows[found[:, 0]], rows[found[:, 1]]
+    x, y, z = (np.ascontiguousarray(sky.r[:, axis]) for axis in range(3))
+    angle = np.arccos(np.clip(x[a] * x[b] + y[a] * y[b] + z[a] * z[b], -1.0, 1.0))
+    order = np.lexsort((b, a, angle))
+    return a[order], b[order], angle[order]
+
+
+@pytest.mark.parametrize(("groups", "block_pairs"), [(7, 1000), (32, 1 << 20)], ids=["small-blocks", "default"])
+def test_the_staged_build_is_the_one_piece_table(sky, monkeypatch, groups, block_pairs):
+    # many blocks, star groups and angle buckets: each pair found once, every pair in its place, bit for bit
+    from hostlink.images import pairtable
+
+    monkeypatch.setattr(pairtable, "PAIR_BUILD_STAR_GROUPS", groups)
+    monkeypatch.setattr(pairtable, "PAIR_BUILD_BLOCK_PAIRS", block_pairs)
+    got = pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG)
+    want_a, want_b, want_angle = _one_piece_table(sky, ANGLE_RAD, DEPTH_MAG)
+    assert got.a.dtype == got.b.dtype == np.int32  # 8 bytes a pair, and the sampled angles
+    assert got.a.size > 50 * 1000
+    np.testing.assert_array_equal(got.a, want_a)
+    np.testing.assert_array_equal(got.b, want_b)
+    np.testing.assert_array_equal(got.angle_sample_rad, want_angle[:: pairtable.ANGLE_SAMPLE_PAIRS])
+    np.testing.assert_array_equal(pair_arrays(got)[2], want_angle)
+
+
+def test_a_search_among_the_sampled_angles_is_a_search_among_all_of_them(sky):
+    # every pair's angle as a bound, either side, and values between and beyond them: the index np.searchsorted gives
+    from hostlink.images.pairtable import angle_index
+
+    table = pair_catalogue(sky, ANGLE_RAD, DEPTH_MAG - 1.0)
+    _, _, angle = pair_arrays(table)
+    bounds = np.concatenate([angle, np.nextafter(angle, 0.0), np.nextafter(angle, 1.0), [-1.0, 0.0, ANGLE_RAD, 1.0]])
+    for side in ("left", "right"):
+        want = np.searchsorted(angle, bounds, side=side)
+        got = [angle_index(table.angle_sample_rad, table.columns, table.a, table.b, x, side) for x in bounds]
+        np.testing.assert_array_equal(got, want)
+
+
+def test_the_matchers_windows_of_a_cut_are_those_of_the_fresh_table(sky):
+    # a window's bounds found among the cut's sampled angles, the angles between two samples computed again
+    from hostlink.images.skyindex import pair_window
+
+    cache = PairCache()
+    cache.pairs(sky, ANGLE_RAD, DEPTH_MAG)
+    cut = cache.pairs(sky, ANGLE_RAD * 0.9, DEPTH_MAG - 0.5)
+    fresh_a, fresh_b, fresh_angle = pair_arrays(pair_catalogue(sky, ANGLE_RAD * 0.9, DEPTH_MAG - 0.5))
+    for lo_rad in np.linspace(0.01, 0.8, 9) * ANGLE_RAD:
+        lo, hi = np.searchsorted(fresh_angle, [lo_rad, lo_rad + 0.003])
+        got_a, got_b = pair_window(cut, lo_rad, lo_rad + 0.003)
+        assert got_a.size == hi - lo > 0
+        np.testing.assert_array_equal(got_a, fresh_a[lo:hi])
+        np.testing.assert_array_equal(got_b, fresh_b[lo:hi])

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostlink.images import solver_adapter
-from hostlink.images.skyindex import PairCache, PairCatalogue, _field_sr, check_field
+from hostlink.images.skyindex import PairCache, PairCatalogue, _field_sr, check_field, pair_window
 from hostlink.sky.catalogue import Catalogue
 from onboard.params import CameraParams
 
@@ -93,9 +93,9 @@ def _pairs_of_angle(pairs: PairCatalogue, angle_rad: float, slack_rad: float) ->
     the window is not inside (0, max_angle_rad), where the pair index is not complete."""
     if angle_rad - slack_rad <= 0.0 or angle_rad + slack_rad + 1e-9 >= pairs.max_angle_rad:
         return None
-    lo, hi = np.searchsorted(pairs.angle_rad, [angle_rad - slack_rad, angle_rad + slack_rad])
-    star = np.concatenate([pairs.a[lo:hi], pairs.b[lo:hi]])
-    other = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
+    a, b = pair_window(pairs, angle_rad - slack_rad, angle_rad + slack_rad)
+    star = np.concatenate([a, b])
+    other = np.concatenate([b, a])
     count = np.bincount(star, minlength=pairs.r.shape[0])
     offset = np.concatenate([[0], np.cumsum(count)])
     key = star if pairs.rank16 is None else pairs.rank16[star]  # the same order: rows ascend with the sky index
@@ -222,11 +222,11 @@ def anchor_candidates(
         tol = rel_tol * ang + ANCHOR_ABS_TOL_PX / focal_px
         if ang + tol > pairs.max_angle_rad or ang < 20.0 * tol:
             continue  # short pairs leave the roll about them too loose for the predictions
-        lo, hi = np.searchsorted(pairs.angle_rad, [ang - tol, ang + tol])
-        if hi <= lo:
+        in_window_a, in_window_b = pair_window(pairs, ang - tol, ang + tol)
+        if in_window_a.size == 0:
             continue
-        first = np.concatenate([pairs.a[lo:hi], pairs.b[lo:hi]])
-        second = np.concatenate([pairs.b[lo:hi], pairs.a[lo:hi]])
+        first = np.concatenate([in_window_a, in_window_b])
+        second = np.concatenate([in_window_b, in_window_a])
         thirds = [m for m in range(min(k, anchor_stars)) if m not in (i, j)]
         if not thirds:
             continue

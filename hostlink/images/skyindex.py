@@ -15,6 +15,17 @@ import numpy as np
 
 from hostlink.files.session import Session
 from hostlink.images import solver_adapter
+from hostlink.images.pairtable import (  # noqa: F401 - _dot_rows, _ties_by_stars: imported from here by the matcher
+    ANGLE_SAMPLE_PAIRS,
+    PAIR_BUILD_ANGLE_BUCKETS,
+    _dot_rows,
+    _ties_by_stars,
+    angle_index,
+    find_pairs,
+    pair_angles,
+    sky_columns,
+    sorted_pairs,
+)
 from hostlink.sky.catalogue import Catalogue
 from onboard.camera import radec_to_unit
 from onboard.params import CameraParams
@@ -86,13 +97,15 @@ def _mirror_x(x_px: np.ndarray, theta: np.ndarray, mirrored: bool) -> np.ndarray
 class PairCatalogue:
     """Every pair of catalogue stars closer than ``max_angle_rad``, sorted by angle: the fallback matcher's index.
 
-    a, b: (P,) int64 indices into the :class:`_Sky` arrays; angle_rad: (P,) their separations, ascending;
-    r: the sky's unit vectors (indexed by a and b); rows: the sky indices of the stars taking part (brighter than
-    the limit), and tree: a k-d tree of their unit vectors (``scipy.spatial.cKDTree``)."""
+    a, b: (P,) int32 indices into the :class:`_Sky` arrays (a < b), in ascending order of their separation;
+    angle_sample_rad: the separation of every :data:`~hostlink.images.pairtable.ANGLE_SAMPLE_PAIRS`-th pair (the
+    others computed again where a search needs them: :func:`pair_window`); r: the sky's unit vectors (indexed by a
+    and b); rows: the sky indices of the stars taking part (brighter than the limit), and tree: a k-d tree of their
+    unit vectors (``scipy.spatial.cKDTree``)."""
 
     a: np.ndarray
     b: np.ndarray
-    angle_rad: np.ndarray
+    angle_sample_rad: np.ndarray
     max_angle_rad: float
     r: np.ndarray
     rows: np.ndarray
@@ -104,43 +117,40 @@ class PairCatalogue:
     columns: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def sky_columns(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The columns x, y, z of unit vectors ``r`` (S, 3), each contiguous (:func:`_dot_rows`)."""
-    x, y, z = (np.ascontiguousarray(r[:, axis]) for axis in range(3))
-    return x, y, z
+def pair_window(pairs: PairCatalogue, lo_rad: float, hi_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) of the pairs of ``pairs`` whose angle lies in [``lo_rad``, ``hi_rad``), in their order (views)."""
+    lo, hi = (_index(pairs, angle_rad, "left") for angle_rad in (lo_rad, hi_rad))
+    return pairs.a[lo:hi], pairs.b[lo:hi]
 
 
-def _dot_rows(columns: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """r[i] . r[j] row by row from the columns of r (:func:`sky_columns`), x + y + z summed axis by axis (no (M, 3)
-    gathers, which cost many times more: docs/realsky.md, "Figures behind the speed choices"), (x + y) + z as a sum
-    over the 3 components of each row adds them: the same angles for :func:`pair_catalogue`; another summation
-    order would differ in the last bit, which :func:`hostlink.images.matcher._pyramid_may_hit` could afford (its
-    bounds are twice the hit chord from any hit)."""
-    x, y, z = columns
-    return x[i] * x[j] + y[i] * y[j] + z[i] * z[j]
+def _index(pairs: PairCatalogue, angle_rad: float, side: str) -> int:
+    """``np.searchsorted`` of ``angle_rad`` among the angles of ``pairs`` (:func:`angle_index`)."""
+    return angle_index(pairs.angle_sample_rad, pairs.columns, pairs.a, pairs.b, angle_rad, side)
+
+
+def pair_arrays(pairs: PairCatalogue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The table's (a, b, angle_rad), every angle computed (:func:`pair_angles`): what a table of all the angles
+    would hold (for tests and inspection)."""
+    return pairs.a, pairs.b, pair_angles(pairs.columns, pairs.a, pairs.b)
 
 
 def pair_catalogue(sky: _Sky, max_angle_rad: float, maglim: float) -> PairCatalogue:
-    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (a k-d tree on the unit vectors,
-    ``scipy.spatial.cKDTree.query_pairs`` with the chord 2 sin(angle / 2)), in the order (angle, a, b): pairs of
-    exactly the same angle (a double star's partners, angles that round alike) in the order of their sky indices,
-    not the tree's traversal, so that a table cut from a larger one (:meth:`PairCache.pairs`) is the same table."""
+    """The pairs of stars brighter than ``maglim`` within ``max_angle_rad`` (k-d trees on the unit vectors,
+    ``scipy.spatial.cKDTree``, within the chord 2 sin(angle / 2): :func:`hostlink.images.pairtable.find_pairs`), in
+    the order (angle, a, b): pairs of exactly the same angle (a double star's partners, angles that round alike) in
+    the order of their sky indices, not the tree's traversal, so that a table cut from a larger one
+    (:meth:`PairCache.pairs`) is the same table (:func:`hostlink.images.pairtable.sorted_pairs`: 8 bytes a pair and
+    the sampled angles; the build's peak is its 9 bytes a pair of staging)."""
     from scipy.spatial import cKDTree
 
     rows = np.flatnonzero(sky.mag <= maglim)
     chord = 2.0 * math.sin(0.5 * max_angle_rad)
-    tree = cKDTree(sky.r[rows])
-    pairs = tree.query_pairs(chord, output_type="ndarray")
-    a, b = rows[pairs[:, 0]], rows[pairs[:, 1]]
+    points = sky.r[rows]
     columns = sky_columns(sky.r)
-    # without the (P, 3) gathers, the build's costliest step otherwise (docs/realsky.md, "Figures behind the speed
-    # choices")
-    angle = np.arccos(np.clip(_dot_rows(columns, a, b), -1.0, 1.0))
-    # any sort by angle: runs of equal angles are then put in (a, b) order, whatever order the sort left them in
-    order = _ties_by_stars(np.argsort(angle), angle, a, b)
-    return PairCatalogue(
-        a[order], b[order], angle[order], max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns
-    )
+    edges = max_angle_rad * np.sqrt(np.arange(1, PAIR_BUILD_ANGLE_BUCKETS) / PAIR_BUILD_ANGLE_BUCKETS)
+    a, b, samples = sorted_pairs(find_pairs(points, rows, chord, columns, edges), edges.size + 1, columns)
+    tree = cKDTree(points)
+    return PairCatalogue(a, b, samples, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), columns)
 
 
 def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
@@ -150,24 +160,6 @@ def _rank16(sky: _Sky, rows: np.ndarray) -> np.ndarray | None:
     rank16 = np.zeros(sky.r.shape[0], dtype=np.uint16)
     rank16[rows] = np.arange(rows.size, dtype=np.uint16)
     return rank16
-
-
-def _ties_by_stars(order: np.ndarray, angle: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``order`` (ascending ``angle``) with every run of equal angles reordered by (a, b) (one in 13 million pairs
-    to Hp 8.7 within 8.8 deg)."""
-    ordered = angle[order]
-    tied = np.flatnonzero(ordered[1:] == ordered[:-1])
-    if tied.size == 0:
-        return order
-    out = order.copy()
-    starts = tied[np.concatenate([[True], np.diff(tied) > 1])]
-    for start in starts:
-        stop = start + 1
-        while stop < order.size and angle[order[stop]] == angle[order[start]]:
-            stop += 1
-        run = order[start:stop]
-        out[start:stop] = run[np.lexsort((b[run], a[run]))]
-    return out
 
 
 #: :class:`PairCache` builds its table this much wider than asked [fraction of the angle]: the next round of
@@ -242,6 +234,7 @@ class PairCache:
         same_depth = held is not None and held[0] is table and held[1] is sky.mag and held[2] == maglim
         if same_depth and max_angle_rad <= held[3].max_angle_rad:
             return _narrower(held[3], max_angle_rad)
+        held = self._cut = None  # the cut before is let go before this one is made (two at once: 0.1 GB more)
         cut = _cut(table, sky, max_angle_rad, maglim, self._table_maglim)
         self._cut = (table, sky.mag, maglim, cut)
         return cut
@@ -250,25 +243,58 @@ class PairCache:
 def _narrower(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
     """The pairs of ``pairs`` within ``max_angle_rad`` (no wider than its own): its leading part, as it is in
     (angle, a, b) order, with the same stars taking part (the same table :func:`_cut` gives)."""
-    n = int(np.searchsorted(pairs.angle_rad, max_angle_rad, side="right"))
-    return replace(pairs, a=pairs.a[:n], b=pairs.b[:n], angle_rad=pairs.angle_rad[:n], max_angle_rad=max_angle_rad)
+    return replace(_leading(pairs, max_angle_rad), max_angle_rad=max_angle_rad)
+
+
+def _leading(pairs: PairCatalogue, max_angle_rad: float) -> PairCatalogue:
+    """``pairs`` with its arrays and samples sliced to the pairs within ``max_angle_rad`` (views, not copies)."""
+    n = _index(pairs, max_angle_rad, "right")
+    samples = pairs.angle_sample_rad[: -(-n // ANGLE_SAMPLE_PAIRS)]
+    return replace(pairs, a=pairs.a[:n], b=pairs.b[:n], angle_sample_rad=samples)
 
 
 def _cut(table: PairCatalogue, sky: _Sky, max_angle_rad: float, maglim: float, table_maglim: float) -> PairCatalogue:
     """The pairs of ``table`` (built to ``table_maglim``) within ``max_angle_rad`` of stars brighter than ``maglim``:
-    ``table`` is in (angle, a, b) order, and so is every subset of it."""
+    ``table`` is in (angle, a, b) order, and so is every subset of it. The table's arrays sliced to the angle (views)
+    when no star is left out, else the pairs of both stars bright enough copied (:func:`_pairs_of_stars`)."""
     from scipy.spatial import cKDTree
 
-    n = int(np.searchsorted(table.angle_rad, max_angle_rad, side="right"))
-    a, b, angle = table.a[:n], table.b[:n], table.angle_rad[:n]
-    rows, tree = table.rows, table.tree
+    cut = replace(_leading(table, max_angle_rad), max_angle_rad=max_angle_rad)
     if maglim < table_maglim:
         bright = sky.mag <= maglim
-        keep = np.flatnonzero(bright[a] & bright[b])  # the indices once, then three takes (not three masks)
-        a, b, angle = a.take(keep), b.take(keep), angle.take(keep)
-        rows = np.flatnonzero(bright)
-        tree = cKDTree(sky.r[rows])
-    return PairCatalogue(a, b, angle, max_angle_rad, sky.r, rows, tree, _rank16(sky, rows), table.columns)
+        if np.count_nonzero(bright) < table.rows.size:  # else the same stars (none between the depths): the same
+            rows = np.flatnonzero(bright)
+            a, b, samples = _pairs_of_stars(cut, bright)
+            cut = replace(cut, a=a, b=b, angle_sample_rad=samples, rows=rows, tree=cKDTree(sky.r[rows]))
+            cut = replace(cut, rank16=_rank16(sky, rows))
+    return cut
+
+
+#: :func:`_pairs_of_stars` tests this many pairs at a time [pairs]: its temporaries stay a few MB whatever the table.
+CUT_BLOCK_PAIRS = 1 << 20
+
+
+def _pairs_of_stars(pairs: PairCatalogue, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b, samples) of the pairs of ``pairs`` both of whose stars are ``bright`` ((S,) bool), in their order:
+    counted block by block (:data:`CUT_BLOCK_PAIRS`), then taken block by block into arrays of that size (the cut
+    costs its own 8 bytes a pair, not a (P,) mask of the table); the samples the angles of every
+    :data:`ANGLE_SAMPLE_PAIRS`-th kept pair (:func:`pair_angles`: the bits a build of the cut gives)."""
+    starts = range(0, pairs.a.size, CUT_BLOCK_PAIRS)
+
+    def kept(start: int) -> np.ndarray:
+        stop = start + CUT_BLOCK_PAIRS
+        return bright[pairs.a[start:stop]] & bright[pairs.b[start:stop]]
+
+    counts = [int(np.count_nonzero(kept(start))) for start in starts]
+    a = np.empty(sum(counts), dtype=pairs.a.dtype)
+    b = np.empty(sum(counts), dtype=pairs.b.dtype)
+    at = 0
+    for start, count in zip(starts, counts, strict=True):
+        keep = kept(start)
+        a[at : at + count] = pairs.a[start : start + CUT_BLOCK_PAIRS][keep]
+        b[at : at + count] = pairs.b[start : start + CUT_BLOCK_PAIRS][keep]
+        at += count
+    return a, b, pair_angles(pairs.columns, a[::ANGLE_SAMPLE_PAIRS], b[::ANGLE_SAMPLE_PAIRS])
 
 
 #: The widest diagonal field [deg] the camera model (a pinhole with polynomial distortion, docs/camera-model.md)
