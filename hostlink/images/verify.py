@@ -1,6 +1,8 @@
 """Verification of a proposal (:mod:`hostlink.images.identify`, module docstring steps 2 and 4): the interstar vote,
 the parity from star triples, the frame's own focal length, radial terms and principal point refined on its verified
-stars (:func:`_refine_radial`), and the residual gate that drops the pairs the refined camera does not fit."""
+stars (:func:`_refine_radial`), and the residual gate that drops the pairs the refined camera does not fit. A
+proposal under a strong lens the nominal does not know, which no single scale verifies, gets its radial term k1
+searched with the scale first (:func:`_radial_search`)."""
 
 from __future__ import annotations
 
@@ -235,7 +237,8 @@ def _verify(
     x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False, r_corner_px: float = 0.0
 ) -> _Verified:
     """The project's own checks of candidate pairs (module docstring, steps 2 and 4) at one parity. ``scale``: the
-    focal-length scale when already known (else estimated from the pairs); ``prune``: drop the least consistent
+    focal-length scale when already known (else estimated from the pairs, and k1 with it when the vote at it keeps
+    under :data:`RADIAL_SEARCH_BELOW` of the candidates: :func:`_radial_search`); ``prune``: drop the least consistent
     candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs. ``r_corner_px``: the
     detector's half-diagonal (:data:`REFINE_K2_SPAN`; 0: the farthest candidate's radius)."""
     n = x_px.shape[0]
