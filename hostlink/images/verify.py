@@ -184,8 +184,9 @@ PRUNE_MIN_AGREEMENT = 0.5
 
 
 #: :func:`_radial_search`: the k1 tried, as the radial term's change of the radius at the corner (k1 r_corner^2): from
-#: a 30 % barrel to a 30 % pincushion (beyond, a fisheye, which identification refuses) in steps of 2 %, within
-#: which the simulated 55-deg mustache frame's vote keeps 115-116 of its 120 candidates over a plateau 8 % wide.
+#: a 30 % barrel to a 30 % pincushion (beyond, a fisheye, which identification refuses) in steps of 2 %, finer
+#: than the plateau of k1 over which a strongly distorted frame's vote keeps most of its proposal (docs/realsky.md,
+#: "Verification under a strong unknown lens").
 RADIAL_SEARCH_CORNER = np.arange(-0.30, 0.30 + 1e-9, 0.02)
 
 
