@@ -182,3 +182,47 @@ def test_mustache_distortion_rendered_as_colour_jpeg(tmp_path):
     chain = identify_iteratively(cent, _nominal(camera), maglim=ID_MAGLIM)
     near_star = (truth != 0) & ~_ambiguous(truth, camera.focal_length_px)
     _check(chain, truth, near_star, RENDERED_FRAMES, planet, name_truth)
+
+
+#: A 3:2 detector 55 deg across (64 deg on the diagonal), the same mustache lens at its corner, simulated to Hp 8
+#: (2895 centroids with 5 % false stars): the proposal's long pairs, far out where the lens shrinks them, put the
+#: scale at 0.908 for a true 0.962, where 2 of its 120 stars verified and the frame was lost; the k1 searched with the
+#: scale (hostlink.images.verify._radial_search) verifies 115 (docs/realsky.md, "Large frames").
+DEEP_FOV_DEG = 55.0
+DEEP_SIZE_PX = (1600, 1067)
+DEEP_MAGLIM = 8.0
+
+
+def test_deep_wide_mustache_frame_verifies_with_the_lens_searched():
+    width, height = DEEP_SIZE_PX
+    base = seed004_camera()
+    focal_mm = 0.5 * width * base.pixel_pitch_um * 1e-3 / math.tan(math.radians(0.5 * DEEP_FOV_DEG))
+    r_corner = 0.5 * math.hypot(width, height)
+    camera = replace(
+        base,
+        focal_length_mm=focal_mm,
+        image_size_px=DEEP_SIZE_PX,
+        principal_point_px=(0.5 * (width - 1) + 4.0, 0.5 * (height - 1) - 3.0),
+        distortion=Distortion(k1=K1_CORNER / r_corner**2, k2=K2_CORNER / r_corner**4),
+    )
+    sim = simulate(
+        SimConfig(
+            camera=camera,
+            frames=1,
+            noise_px=0.3,
+            min_stars=8,
+            max_stars=1_000_000,
+            maglim=DEEP_MAGLIM,
+            false_star_fraction=0.05,
+            seed=5,
+        )
+    )
+    session = sim.session
+    truth = session.star_id.copy()
+    blind = replace(session, star_id=np.zeros_like(truth), ra_deg=None, dec_deg=None)
+    result = identify_session(blind, _nominal(camera), maglim=ID_MAGLIM)
+    detectable = (truth != 0) & (session.mag <= ID_MAGLIM) & ~_ambiguous(truth, camera.focal_length_px)
+    _check(result, truth, detectable, 1, np.zeros(len(session), dtype=bool))
+    # the frame's own focal length: the true one within the vote's relative tolerance (0.5 %)
+    scale = result.report()["per_frame"][0]["scale"]
+    assert abs(scale * (1.0 + NOMINAL_FOCAL_ERROR) - 1.0) < 0.005

@@ -41,7 +41,8 @@ length and radial terms on them (:func:`_refine_radial`), and its later candidat
 through that camera, so the match radius (:func:`_match_radius_px`) follows the centroid noise, not the lens; a star
 that two catalogue stars could be is left unidentified (:func:`_ambiguous`); the own matcher's catalogue depth
 follows the field (:func:`fallback_depth_mag`); a nominal wider than :data:`MAX_DIAGONAL_FIELD_DEG` (a fisheye) is
-refused. :func:`identify_iteratively` identifies, calibrates and identifies again until a round adds nothing.
+refused; a proposal no one scale verifies (a strong unknown lens) has k1 searched too (``verify._radial_search``).
+:func:`identify_iteratively` identifies, calibrates and identifies again until a round adds nothing.
 
 The stages, each in its module of :mod:`hostlink.images` (their names importable from here as well): the catalogue's
 index and the pair table (``skyindex``), the own matcher (``matcher``), verification (``verify``), extension and the

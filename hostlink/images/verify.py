@@ -1,6 +1,8 @@
 """Verification of a proposal (:mod:`hostlink.images.identify`, module docstring steps 2 and 4): the interstar vote,
 the parity from star triples, the frame's own focal length, radial terms and principal point refined on its verified
-stars (:func:`_refine_radial`), and the residual gate that drops the pairs the refined camera does not fit."""
+stars (:func:`_refine_radial`), and the residual gate that drops the pairs the refined camera does not fit. A
+proposal under a strong lens the nominal does not know, which no single scale verifies, gets its radial term k1
+searched with the scale first (:func:`_radial_search`)."""
 
 from __future__ import annotations
 
@@ -181,11 +183,63 @@ def _residual_outliers(residual_px: np.ndarray, keep: np.ndarray) -> np.ndarray:
 PRUNE_MIN_AGREEMENT = 0.5
 
 
+#: :func:`_radial_search`: the k1 tried, as the radial term's change of the radius at the corner (k1 r_corner^2): from
+#: a 30 % barrel to a 30 % pincushion (beyond, a fisheye, which identification refuses) in steps of 2 %, finer
+#: than the plateau of k1 over which a strongly distorted frame's vote keeps most of its proposal (docs/realsky.md,
+#: "Verification under a strong unknown lens").
+RADIAL_SEARCH_CORNER = np.arange(-0.30, 0.30 + 1e-9, 0.02)
+
+
+#: :func:`_radial_search` runs when the vote at the nominal's radial terms keeps fewer than this fraction of the
+#: candidates (a proposal of mostly true stars keeps most; an unknown strong lens lets few agree at any one scale) ...
+RADIAL_SEARCH_BELOW = 0.5
+
+
+#: ... and for at most this many candidates (each k1 costs a scale estimate and a vote over their n^2 / 2 pairs: a
+#: proposal's hundred or so, not an extension round's thousands).
+RADIAL_SEARCH_MAX_STARS = 400
+
+
+def _radial_search(data, table, theta: np.ndarray, r_corner_px: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """(camera vector, scale, keep) of the k1 that verifies the most candidates: for each added k1 = c /
+    r_corner_px^2 (c in :data:`RADIAL_SEARCH_CORNER`), the scale from the pairs through that lens
+    (:func:`hostlink.calibration.robust.estimate_scale_of_table`) and the vote at it; of equal counts the smallest
+    |c|. The focal-length scale alone cannot absorb a strong radial term the nominal lacks: measured through
+    x_d = x_u (1 + k1 r_u^2 + k2 r_u^4) (seed 000 eq. 7) a pair's angle shrinks by about the mean of k1 r^2 + k2 r^4
+    over its two ends, 0 to 12 % across the 50-deg mustache lens, so no single scale puts 70 % of a frame's pairs
+    within the vote's 0.5 %; the long pairs the scale is estimated from lie farthest out and pull it short (0.908
+    for a true 0.962 on a 55-deg frame; docs/realsky.md, "Large frames"). k1 fitted jointly with the scale takes
+    out the cube of the radius, the bulk of it; the verified stars then refine f, k1, k2 and the centre
+    (:func:`_refine_radial`)."""
+    n = data.x_px.shape[0]
+    best = None
+    for corner in sorted(RADIAL_SEARCH_CORNER, key=abs):
+        theta_k = np.array(theta, dtype=np.float64)
+        theta_k[_K1] += corner / r_corner_px**2
+        scale, n_pairs = estimate_scale_of_table(data, table, theta_k)
+        if n_pairs == 0:
+            continue
+        theta_k[0] *= scale
+        b = pixels_to_unit(data.x_px, data.y_px, theta_k)
+        keep = vote_of_table(
+            table,
+            b,
+            n,
+            rel_tol=VERIFY_REL_TOL,
+            abs_tol_rad=VERIFY_ABS_TOL_PX / theta_k[0],
+            min_agreement=VERIFY_MIN_AGREEMENT,
+        )
+        if best is None or np.count_nonzero(keep) > np.count_nonzero(best[2]):
+            best = (theta_k, scale, keep)
+    return best if best is not None else (np.array(theta, dtype=np.float64), 1.0, np.zeros(n, dtype=bool))
+
+
 def _verify(
     x_px, y_px, r, theta, mirrored: bool, scale: float | None = None, prune: bool = False, r_corner_px: float = 0.0
 ) -> _Verified:
     """The project's own checks of candidate pairs (module docstring, steps 2 and 4) at one parity. ``scale``: the
-    focal-length scale when already known (else estimated from the pairs); ``prune``: drop the least consistent
+    focal-length scale when already known (else estimated from the pairs, and k1 with it when the vote at it keeps
+    under :data:`RADIAL_SEARCH_BELOW` of the candidates: :func:`_radial_search`); ``prune``: drop the least consistent
     candidates first (:data:`PRUNE_MIN_AGREEMENT`), for proposals with many wrong pairs. ``r_corner_px``: the
     detector's half-diagonal (:data:`REFINE_K2_SPAN`; 0: the farthest candidate's radius)."""
     n = x_px.shape[0]
@@ -194,6 +248,7 @@ def _verify(
         return nothing
     data = build_data(_mirror_x(x_px, theta, mirrored), y_px, r, np.zeros(n, dtype=np.int64))
     table = pair_table(data)  # the catalogue side of the candidates' pairs, for the scale, the vote and the triples
+    estimated = scale is None
     if scale is None:
         scale, n_pairs = estimate_scale_of_table(data, table, theta)
         if n_pairs == 0:
@@ -217,6 +272,12 @@ def _verify(
     sub = np.flatnonzero(alive)
     if sub.size == n:  # every candidate: the table's pairs
         keep = vote_of_table(table, b, n, min_agreement=VERIFY_MIN_AGREEMENT, **tolerances)
+        if estimated and n <= RADIAL_SEARCH_MAX_STARS and np.count_nonzero(keep) < RADIAL_SEARCH_BELOW * n:
+            r_corner = r_corner_px or float(np.max(np.hypot(data.x_px - theta[1], data.y_px - theta[2])))
+            searched = _radial_search(data, table, theta, r_corner)
+            if np.count_nonzero(searched[2]) > np.count_nonzero(keep):
+                theta_s, scale, keep = searched
+                b = pixels_to_unit(data.x_px, data.y_px, theta_s)
     elif sub.size >= 3:
         part, _, _ = data.select(alive, min_stars=1)
         keep[sub] = vote_consistent_stars(part, b[sub], min_agreement=VERIFY_MIN_AGREEMENT, **tolerances)
