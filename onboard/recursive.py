@@ -106,8 +106,21 @@ class RecursiveConfig:
     drift_window_frames: int = 200
     drift_start_frames: int = 400
     drift_threshold: float = 4.5
-    #: focal random walk switched on by the detector, 1-sigma per frame [mm] (0.07 um).
+    #: focal random walk switched on by the detector, 1-sigma per frame [mm] (0.07 um): the built-in 70 mm lens's;
+    #: another lens's is :func:`drift_focal_mm_per_frame_for` its focal length (thermal drift scales with it).
     drift_focal_mm_per_frame: float = 7e-5
+
+
+#: The focal length the default ``drift_focal_mm_per_frame`` was tuned on: the built-in camera's (seed 004, 70 mm).
+DRIFT_WALK_DESIGN_FOCAL_MM = 70.0
+
+
+def drift_focal_mm_per_frame_for(focal_length_mm: float) -> float:
+    """The focal random walk (1-sigma per frame [mm]) for a lens of ``focal_length_mm``: the default's relative rate
+    (7e-5 mm / 70 mm = 1e-6 of f per frame) times f. A lens's thermal focal change is CTE x f x dT, proportional to f
+    at the same temperature swing, so the walk the default allows the 70 mm lens is the same fraction of any other
+    (70 mm gives the default exactly)."""
+    return RecursiveConfig.drift_focal_mm_per_frame * (focal_length_mm / DRIFT_WALK_DESIGN_FOCAL_MM)
 
 
 @dataclass

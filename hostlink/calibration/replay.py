@@ -70,11 +70,17 @@ def check_fixed_range(nominal: CameraParams) -> None:
 
 
 def replay_config(
-    noise_px: float = 0.05, focal_walk_um: float = 0.0, drift_detect: bool = True, max_stars: int = 32
+    noise_px: float = 0.05,
+    focal_walk_um: float = 0.0,
+    drift_detect: bool = True,
+    max_stars: int = 32,
+    focal_length_mm: float | None = None,
 ) -> recursive.RecursiveConfig:
     """The onboard estimator's configuration: centroid noise per axis [px], focal-length random walk per frame
     (1-sigma [um]; 0 = static, with automatic drift detection unless ``drift_detect`` is False) and the most stars
-    used per frame. Out-of-range values are one-line :class:`UserError` s."""
+    used per frame. ``focal_length_mm``: the nominal lens's, to which the walk the drift detector switches on is
+    scaled (``onboard.recursive.drift_focal_mm_per_frame_for``, as the emulated sensor's; None: the default, the
+    built-in 70 mm lens's). Out-of-range values are one-line :class:`UserError` s."""
     if not (math.isfinite(noise_px) and noise_px > 0):
         raise UserError(f"--noise-px: must be a positive number, got {noise_px!r}")
     if not (math.isfinite(focal_walk_um) and focal_walk_um >= 0):
@@ -83,8 +89,15 @@ def replay_config(
         raise UserError(f"--max-stars: must be >= 3, got {max_stars}")
     walk = [0.0] * len(ESTIMATE_NAMES)
     walk[0] = focal_walk_um / 1000.0
+    drift_walk_mm = recursive.RecursiveConfig.drift_focal_mm_per_frame
+    if focal_length_mm is not None:
+        drift_walk_mm = recursive.drift_focal_mm_per_frame_for(focal_length_mm)
     return recursive.RecursiveConfig(
-        max_stars=max_stars, centroid_noise_px=noise_px, process_noise=tuple(walk), drift_detect=drift_detect
+        max_stars=max_stars,
+        centroid_noise_px=noise_px,
+        process_noise=tuple(walk),
+        drift_detect=drift_detect,
+        drift_focal_mm_per_frame=drift_walk_mm,
     )
 
 

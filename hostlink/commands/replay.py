@@ -102,8 +102,11 @@ def run(args: argparse.Namespace) -> int:
         names = parse_estimate_names(args.estimate)
     except ValueError as exc:
         raise UserError(f"--estimate: {exc}") from None
-    config = replay_config(args.noise_px, args.focal_walk_um, not args.no_drift_detect, args.max_stars)
+    replay_config(args.noise_px, args.focal_walk_um, not args.no_drift_detect, args.max_stars)  # checks first
     nominal, file_sigma = load_params_with_sigma(args.nominal)
+    config = replay_config(
+        args.noise_px, args.focal_walk_um, not args.no_drift_detect, args.max_stars, nominal.focal_length_mm
+    )
     prior_sigma = replay_prior(file_sigma, args.prior, args.nominal)
     source = args.session[0] if len(args.session) == 1 else args.session
     name = ", ".join(args.session)

@@ -10,7 +10,7 @@ from hostlink.files.params import load_params
 from onboard import banks
 from onboard.firmware import PRECISIONS, EstimatorBudget, Firmware, RecursiveEstimator
 from onboard.params import ESTIMATE_NAMES, CameraParams, PlausibilityLimits, check_plausible
-from onboard.recursive import RecursiveConfig, parse_estimate_names
+from onboard.recursive import RecursiveConfig, drift_focal_mm_per_frame_for, parse_estimate_names
 
 DEFAULT_NOMINAL = "builtin:seed004_nominal"
 DEFAULT_CAMERA = "builtin:seed004_camera"
@@ -93,7 +93,9 @@ def build_sensor(
     if phase_starts and not replay:
         # the simulated source cycles forever: a restarted stream would skip exposures without end to a far start
         raise UserError("--phase-start goes with --replay (the phases of a replayed session)")
-    config = RecursiveConfig(centroid_noise_px=noise_px)
+    # the focal random walk scaled to this sensor's lens (the default is the built-in 70 mm lens's)
+    walk_mm = drift_focal_mm_per_frame_for(nominal_params.focal_length_mm)
+    config = RecursiveConfig(centroid_noise_px=noise_px, drift_focal_mm_per_frame=walk_mm)
     if firmware == "c":
         sensor_firmware = c_firmware(
             nominal_params, flash, power_cut_after_units, budget, names if estimator else None, noise_px, precision
@@ -179,7 +181,9 @@ def c_firmware(
     """The C firmware core (``hostlink.portkit.firmware_c``) over the same banks as :func:`sensor_banks`: RAM or the
     ``flash`` file, booted, the factory set ``nominal`` written first when the flash holds no set; a new device
     identity. ``estimate_names`` None: no estimator. A build without the estimator's C implementation has none
-    either: READ_ESTIMATE then answers NO_ESTIMATE ("this sensor has no onboard estimator")."""
+    either: READ_ESTIMATE then answers NO_ESTIMATE ("this sensor has no onboard estimator"). The estimator's focal
+    random walk is scaled to ``nominal``'s focal length (``onboard.recursive.drift_focal_mm_per_frame_for``), as
+    :func:`build_sensor` gives the Python firmware."""
     from hostlink.portkit.firmware_c import CFirmware
 
     fixed_point = precision == "fixed" and estimate_names is not None
@@ -203,6 +207,7 @@ def c_firmware(
         estimate_mask=mask,
         precision=precision,
         centroid_noise_px=noise_px,
+        drift_focal_mm_per_frame=drift_focal_mm_per_frame_for(nominal.focal_length_mm),
         with_estimator=estimate_names is not None,
     )
 

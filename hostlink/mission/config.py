@@ -22,6 +22,10 @@ BENCH_TRUE_CAMERA = CameraParams(
 )
 #: The built-in camera's design values (package data): the nominal of :data:`BENCH_TRUE_CAMERA`.
 BENCH_NOMINAL = "builtin:seed004_nominal"
+#: The default thermal drift amplitude: 6 um on the built-in 70 mm lens (8.6e-5 of its focal length), the same
+#: fraction of any other lens's nominal focal length, since a lens's thermal focal change is CTE x f x dT.
+BENCH_DRIFT_UM = 6.0
+BENCH_DRIFT_DESIGN_FOCAL_MM = 70.0
 
 
 @dataclass
@@ -36,7 +40,8 @@ class BenchConfig:
     spare_frames: int | None = None
     noise_px: float = 0.05
     misid_fraction: float = 0.0
-    drift_um: float = 6.0
+    #: drift amplitude [um]; None: :func:`drift_amplitude_um` scales the default to the lens
+    drift_um: float | None = None
     drift_period_frames: float = 3000.0
     seed: int = 1
     camera: CameraParams = field(default_factory=lambda: BENCH_TRUE_CAMERA)
@@ -80,6 +85,15 @@ def bench_nominal(cfg: BenchConfig) -> CameraParams:
     if nominal.image_size_px != camera.image_size_px or nominal.pixel_pitch_um != camera.pixel_pitch_um:
         raise UserError("--nominal and --camera must describe the same detector (image size and pixel pitch)")
     return nominal
+
+
+def drift_amplitude_um(cfg: BenchConfig) -> float:
+    """The drift phase's focal drift amplitude [um]: ``cfg.drift_um`` if given, else :data:`BENCH_DRIFT_UM` x the
+    nominal focal length / :data:`BENCH_DRIFT_DESIGN_FOCAL_MM` (6 um for the built-in 70 mm camera, 1.37 um for a
+    16 mm lens: the same relative drift)."""
+    if cfg.drift_um is not None:
+        return cfg.drift_um
+    return BENCH_DRIFT_UM * (bench_nominal(cfg).focal_length_mm / BENCH_DRIFT_DESIGN_FOCAL_MM)
 
 
 def spare_frames(cfg: BenchConfig) -> int:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.mission.config import drift_first_frame
+from hostlink.mission.config import drift_amplitude_um, drift_first_frame
 from hostlink.mission.summary import BenchRun, estimate_rows, rms, tracking_text, truth_focal_mm
 
 #: Resolution of the saved figures [dots per inch].
@@ -123,7 +123,8 @@ def _drift_figure(plt, run: BenchRun, summary: dict):
             alpha=0.2,
             label="estimate 1-sigma",
         )
-    ax.set_title(f"Thermal focal-length drift: {cfg.drift_um:g} um amplitude; {tracking_text(summary)}", fontsize=10)
+    amplitude_um = drift_amplitude_um(cfg)
+    ax.set_title(f"Thermal focal-length drift: {amplitude_um:g} um amplitude; {tracking_text(summary)}", fontsize=10)
     ax.set_xlabel("frame")
     ax.set_ylabel(f"focal length - {f_ref:g} mm [um]")
     ax.legend(fontsize=8)

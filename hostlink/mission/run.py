@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -26,7 +27,13 @@ from hostlink.emulator.process import EmulatorProcess
 from hostlink.errors import LinkError, UserError
 from hostlink.files.params import save_params
 from hostlink.files.session import Session, write_session
-from hostlink.mission.config import BenchConfig, bench_nominal, drift_first_frame, spare_frames
+from hostlink.mission.config import (
+    BenchConfig,
+    bench_nominal,
+    drift_amplitude_um,
+    drift_first_frame,
+    spare_frames,
+)
 from hostlink.mission.summary import BenchRun, EstimatorWork, Phase, StreamCount
 from hostlink.progress import progress_bar
 from onboard.site import Site, Weather
@@ -60,6 +67,7 @@ def run_bench(cfg: BenchConfig, say: Callable[[str], None] = print, show_progres
         from hostlink.mission.config import bench_nominal
 
         check_fixed_range(bench_nominal(cfg))
+    cfg = replace(cfg, drift_um=drift_amplitude_um(cfg))  # the default scaled to the lens; the report states it
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
@@ -217,7 +225,7 @@ def simulate_phases(cfg: BenchConfig) -> tuple[SimResult, SimResult]:
             frames=cfg.drift_frames + spare_frames(cfg),
             seed=cfg.seed + 1000,
             t0_iso=iso_plus_seconds(cfg.t0_iso, float(drift_first_frame(cfg))),
-            focal_drift_um=cfg.drift_um,
+            focal_drift_um=drift_amplitude_um(cfg),
             focal_drift_period_frames=cfg.drift_period_frames,
             **common,
         )

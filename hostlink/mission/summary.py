@@ -13,7 +13,7 @@ import numpy as np
 
 from hostlink.calibration.bundle import ARCSEC_PER_RAD
 from hostlink.calibration.report import fitted_attitudes
-from hostlink.mission.config import BenchConfig, drift_first_frame
+from hostlink.mission.config import BenchConfig, drift_amplitude_um, drift_first_frame
 from onboard.params import CameraParams
 
 if TYPE_CHECKING:  # annotations only
@@ -323,7 +323,7 @@ def drift_tracking_summary(run: BenchRun) -> dict:
     # detector needs a few hundred frames to switch the focal random walk on)
     settled = drift_index[valid] >= cfg.drift_frames // 3
     return {
-        "amplitude_um": cfg.drift_um,
+        "amplitude_um": drift_amplitude_um(cfg),
         "period_frames": cfg.drift_period_frames,
         "frames_streamed": run.drift_stream.received,
         "first_frame_drift_index": None
@@ -356,7 +356,8 @@ def tracking_gap_reason(cfg: BenchConfig, n_estimates: int, work: EstimatorWork)
 
 def after_upload_summary(cfg: BenchConfig, drift_sim: SimResult, drift_estimates: list[tuple[int, Estimate]]) -> dict:
     """How the onboard estimator restarted from the uploaded set: error and 1-sigma of f [um], x0, y0 [px] at the
-    first estimate read after the upload, and the RMS error of x0, y0 (and the largest |error|) over the drift phase."""
+    first estimate read after the upload and at the last one (the drift phase's end), and the RMS error of x0, y0 (and
+    the largest |error|) over the drift phase."""
     est = estimate_rows(drift_estimates)
     if est["frame"].size == 0:
         return {}
@@ -372,6 +373,9 @@ def after_upload_summary(cfg: BenchConfig, drift_sim: SimResult, drift_estimates
         "first_estimate": {"n_updates": int(est["n_updates"][0])}
         | {f"error_{k}": float(v[0]) for k, v in err.items()}
         | {f"sigma_{k}": float(v[0]) for k, v in sig.items()},
+        "last_estimate": {"n_updates": int(est["n_updates"][-1])}
+        | {f"error_{k}": float(v[-1]) for k, v in err.items()}
+        | {f"sigma_{k}": float(v[-1]) for k, v in sig.items()},
         "x0_error_rms_px": rms(err["x0_px"]),
         "y0_error_rms_px": rms(err["y0_px"]),
         "x0_error_max_px": float(np.max(np.abs(err["x0_px"]))),

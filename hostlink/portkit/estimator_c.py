@@ -134,6 +134,7 @@ class SeamConfig(ctypes.Structure):
         ("estimate_mask", ctypes.c_uint32),
         ("precision", ctypes.c_uint32),
         ("centroid_noise_px", ctypes.c_double),
+        ("drift_focal_mm_per_frame", ctypes.c_double),  # 0: the default (RecursiveConfig's 7e-5 mm)
     ]
 
 

@@ -180,7 +180,7 @@ def load_library(cache: Path | None = None, sanitize: bool = False) -> ctypes.CD
     lib.sil_boot.argtypes = [
         ctypes.c_void_p, _READ, _ERASE, _PROGRAM, _RANDOM, p_u8, ctypes.c_uint32, ctypes.c_double, ctypes.c_double,
         ctypes.c_double, ctypes.c_char_p, ctypes.c_uint32, p_u8, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
-        ctypes.c_double, ctypes.c_double, ctypes.c_double,
+        ctypes.c_double, ctypes.c_double, ctypes.c_double, ctypes.c_double,
     ]  # fmt: skip
     lib.sil_handle.argtypes = [
         ctypes.c_void_p, p_u8, ctypes.c_size_t, p_u8, ctypes.c_size_t, ctypes.POINTER(ctypes.c_size_t)
@@ -246,7 +246,8 @@ class CFirmware:
     """The C firmware core behind the Python firmware's interface (``handle``, ``process_frame``, ``streaming``,
     ``counters``). ``factory``: program this set as generation 1 first (``onboard.banks.factory_store``), else boot
     what ``flash`` holds. Without an estimator implementation in the build, the sensor has none (``estimator`` is
-    then ignored: READ_ESTIMATE answers NO_ESTIMATE)."""
+    then ignored: READ_ESTIMATE answers NO_ESTIMATE). ``drift_focal_mm_per_frame``: the estimator's focal random walk
+    (``estimator_seam_config_t``; 0: the C default, 7e-5 mm)."""
 
     def __init__(
         self,
@@ -258,6 +259,7 @@ class CFirmware:
         estimate_mask: int = 0,
         precision: str = "float32",
         centroid_noise_px: float = 0.05,
+        drift_focal_mm_per_frame: float = 0.0,
         with_estimator: bool = True,
         library: ctypes.CDLL | None = None,
     ) -> None:
@@ -278,7 +280,8 @@ class CFirmware:
             limits.max_distortion_fraction if limits else 0.0, self._design_name,
             int(limits is not None and limits.fixed_point), table,
             _aligned(self._est) if self._est is not None else None, estimate_mask,
-            {"float32": 0, "fixed": 1}[precision], centroid_noise_px, budget.flops_per_s, budget.min_frame_period_s,
+            {"float32": 0, "fixed": 1}[precision], centroid_noise_px, drift_focal_mm_per_frame, budget.flops_per_s,
+            budget.min_frame_period_s,
         )  # fmt: skip
         self._raise_power_cut()
         if result == 2:

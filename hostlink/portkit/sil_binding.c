@@ -22,7 +22,8 @@ int sil_boot(firmware_t *fw, sil_read_fn read, sil_erase_fn erase, sil_program_f
              const uint8_t *uid, uint32_t has_limits, double design_focal_length_mm, double focal_tolerance,
              double max_distortion_fraction, const char *design_name, uint32_t fixed_point,
              const uint8_t *factory_table, estimator_seam_state_t *est, uint32_t estimate_mask, uint32_t precision,
-             double centroid_noise_px, double flops_per_s, double min_frame_period_s)
+             double centroid_noise_px, double drift_focal_mm_per_frame, double flops_per_s,
+             double min_frame_period_s)
 {
     banks_store_t store; /* copied into fw */
     banks_hal_t hal;
@@ -50,6 +51,7 @@ int sil_boot(firmware_t *fw, sil_read_fn read, sil_erase_fn erase, sil_program_f
     config.estimate_mask = estimate_mask;
     config.precision = precision;
     config.centroid_noise_px = centroid_noise_px;
+    config.drift_focal_mm_per_frame = drift_focal_mm_per_frame;
     budget.flops_per_s = flops_per_s;
     budget.min_frame_period_s = min_frame_period_s;
     return firmware_init(fw, &store, est, &config, &budget);

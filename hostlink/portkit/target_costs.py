@@ -414,13 +414,15 @@ def measure_updates(m: Machine, nominal, frames: list, n_stars: int, precision: 
     from onboard import banks
     from onboard.firmware import RecursiveEstimator
     from onboard.params import ESTIMATE_NAMES
-    from onboard.recursive import RecursiveConfig, save_state
+    from onboard.recursive import RecursiveConfig, drift_focal_mm_per_frame_for, save_state
     from protocol.param_table import decode_table
 
     table = banks.params_to_table(nominal, np.full(10, np.nan))
-    py = RecursiveEstimator(ESTIMATE_NAMES, RecursiveConfig(centroid_noise_px=noise_px), precision=precision)
+    walk_mm = drift_focal_mm_per_frame_for(nominal.focal_length_mm)  # as the emulated sensor's (setup.py)
+    config = RecursiveConfig(centroid_noise_px=noise_px, drift_focal_mm_per_frame=walk_mm)
+    py = RecursiveEstimator(ESTIMATE_NAMES, config, precision=precision)
     py_state = py.start(banks.table_to_params(table), banks.table_to_sigma(table))
-    cfg = SeamConfig((1 << len(ESTIMATE_NAMES)) - 1, int(precision == "fixed"), noise_px)
+    cfg = SeamConfig((1 << len(ESTIMATE_NAMES)) - 1, int(precision == "fixed"), noise_px, walk_mm)
     m.reset_scratch()
     n_state, _ = m.call("estimator_seam_state_bytes", returns="u32")
     state = m.alloc(n_state + 16)
@@ -487,6 +489,7 @@ def measure_commands(m: Machine, factory, new_set, precision: str) -> dict[str, 
     ``factory`` as generation 1): STAGE_BEGIN, the table in CHUNK_BYTES chunks, STAGE_VERIFY, COMMIT. Returns
     command -> (Call, flash operations) (the chunk's worst); every reply must be the Ack a Python sensor gives."""
     from onboard import banks
+    from onboard.recursive import drift_focal_mm_per_frame_for
     from protocol import messages as msg
     from protocol.param_table import TABLE_BYTES, table_crc
 
@@ -514,6 +517,7 @@ def measure_commands(m: Machine, factory, new_set, precision: str) -> dict[str, 
         Arg("u32", 0x3FF),
         Arg("u32", int(precision == "fixed")),
         Arg("f64", 0.05),
+        Arg("f64", drift_focal_mm_per_frame_for(factory.focal_length_mm)),  # as the emulated sensor's
         Arg("f64", budget_flops),
         Arg("f64", frame_s),
         returns="i32",

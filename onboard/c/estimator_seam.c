@@ -25,11 +25,15 @@ size_t estimator_seam_state_bytes(void)
     return sizeof(struct estimator_seam_state);
 }
 
-/* RecursiveEstimator's configuration: RecursiveConfig(centroid_noise_px=...), every other field its default. */
+/* RecursiveEstimator's configuration: RecursiveConfig(centroid_noise_px=..., drift_focal_mm_per_frame=...), every
+ * other field its default (a drift walk of 0 keeps the default too). */
 static void seam_config(const estimator_seam_config_t *config, recursive_config_t *out)
 {
     recursive_default_config(out);
     out->centroid_noise_px = config->centroid_noise_px;
+    if (config->drift_focal_mm_per_frame > 0.0) {
+        out->drift_focal_mm_per_frame = config->drift_focal_mm_per_frame;
+    }
 }
 
 int estimator_seam_start(estimator_seam_state_t *state, const estimator_seam_config_t *config,

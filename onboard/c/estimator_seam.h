@@ -56,6 +56,10 @@ typedef struct {
     uint32_t estimate_mask;  /* bit i: ESTIMATE_NAMES[i] is estimated (RecursiveEstimator.estimate_names) */
     uint32_t precision;      /* enum estimator_seam_precision */
     double centroid_noise_px; /* RecursiveConfig.centroid_noise_px (double, as the Python model keeps it) */
+    /* RecursiveConfig.drift_focal_mm_per_frame: the focal random walk the drift detector switches on, 1-sigma per
+     * frame [mm]; 0 (as a shorter initialiser leaves it): the default 7e-5 mm, the built-in 70 mm lens's. For another
+     * lens 1e-6 x its focal length (onboard.recursive.drift_focal_mm_per_frame_for; see onboard/c/README.md). */
+    double drift_focal_mm_per_frame;
 } estimator_seam_config_t;
 
 typedef struct estimator_seam_state estimator_seam_state_t;
