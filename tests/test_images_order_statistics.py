@@ -5,7 +5,7 @@ medians and the median of the input frames (ties as 8-bit and JPEG pixels have t
 import numpy as np
 import pytest
 
-from hostlink.images.background import _box_percentiles, _boxes, _masked_box_percentiles
+from hostlink.images.background import _box_blocks, _box_percentiles, _boxes, _masked_box_percentiles
 from hostlink.images.centroid.session import _median_frame
 from hostlink.images.order_statistics import row_medians, row_percentiles
 
@@ -86,7 +86,7 @@ def test_each_pass_of_the_clipped_noise_takes_the_box_percentiles_of_the_pixels_
     mask = np.zeros(shape, dtype=bool)
     mask[:40, :70] = True  # a blank region: boxes wholly or partly masked
     box = 32
-    boxes = _boxes(image, mask, box)
+    boxes = _boxes(image, box)
     ny, nx = boxes.grid_shape
     gradient = np.linspace(0.0, 1.0, shape[1])  # from every pixel left to none
     for fraction in (0.0, 0.05, 0.5, gradient):
@@ -112,7 +112,7 @@ def test_a_pass_that_changes_a_few_boxes_sorts_only_those_and_keeps_numpys_numbe
     image = np.round(rng.normal(size=shape) * 6)
     mask = np.zeros(shape, dtype=bool)
     mask[:40, :70] = True
-    boxes = _boxes(image, mask, box)
+    boxes = _boxes(image, box)
     stars = rng.uniform(size=shape) < 0.03
     passes = [stars.copy()]
     stars[100:110, 100:112] = True  # one box's star grows
@@ -133,6 +133,7 @@ def test_a_pass_that_changes_a_few_boxes_sorts_only_those_and_keeps_numpys_numbe
         gone = excluded.reshape(ny, box, nx, box).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
         np.testing.assert_array_equal(boxes.work_gone, gone)  # the state kept is this pass's exclusion
         counted = (~gone).sum(axis=1)
-        kept = np.sort(np.where(gone, np.nan, boxes.values), axis=1)
+        values, _, _, _ = _box_blocks(image, np.zeros(shape, dtype=bool), box)  # the frame as float32 boxes
+        kept = np.sort(np.where(gone, np.nan, values), axis=1)
         np.testing.assert_array_equal(boxes.work, kept)  # and each box's pixels left, sorted (NaN last)
         np.testing.assert_array_equal(boxes.work_counted, counted)

@@ -78,6 +78,9 @@ _STAR_PEAK_SIGMAS = 5.0
 _NOISE_CONVERGED_FRACTION = 0.01
 _MAX_NOISE_PASSES = 6
 
+#: :func:`_star_light` looks its regions' labels up this many pixels at a time (their intp copy: 8 MB).
+_TAKE_STRIP_ELEMENTS = 1 << 20
+
 
 def saturated_regions(raw: np.ndarray, saturation_adu: float | None) -> np.ndarray:
     """(h, w) bool: the pixels of ``raw`` at or above ``saturation_adu``, their holes narrower than
@@ -193,15 +196,17 @@ def _clipped_box_noise(
 
     The boxes are laid out once (:func:`_boxes`); a pass takes the percentiles of the pixels left in each
     (:func:`_masked_box_percentiles`: the same numbers as :func:`_box_percentiles`, sorting again only the boxes
-    whose pixels left changed since the pass before); the passes work on the image padded to whole boxes (the
-    padding masked). Each pass labels the whole frame again: its thresholds change in most boxes, and a region's
-    membership depends on the threshold of every box it crosses (docs/realsky.md, "The noise map's passes")."""
-    boxes = _boxes(filtered, mask, box_px)
+    whose pixels left changed since the pass before), read from ``filtered`` itself (no float32 copy of the frame
+    beside the sorted one); the passes' masks are padded to whole boxes (the padding masked), the filtered image less
+    its offset is formed a strip of rows at a time (:func:`_star_light`), not as a frame. Each pass labels the whole
+    frame again: its thresholds change in most boxes, and a region's membership depends on the threshold of every box
+    it crosses (docs/realsky.md, "The noise map's passes")."""
+    boxes = _boxes(filtered, box_px)
     h, w = filtered.shape
     masked = np.ones(boxes.padded_shape, dtype=bool)
     masked[:h, :w] = mask
     excluded = masked
-    previous, above = None, None
+    previous, light = None, None
     for k in range(_MAX_NOISE_PASSES):
         spread = _masked_box_percentiles(boxes, excluded, (50.0, _UPPER_2SIGMA_PERCENT))
         rows, cols = boxes.row_centres, boxes.col_centres
@@ -214,12 +219,15 @@ def _clipped_box_noise(
         ):
             break
         previous = (smooth, rows, cols)
-        if above is None:  # the filtered image over the fine boxes' offset: the same in every pass
-            above = np.zeros(boxes.padded_shape)
-            above[:h, :w] = filtered
-            _subtract_box_constant(above[:h, :w], _filled(fine_medians), fine_px)
-            labels = np.empty(boxes.padded_shape, dtype=np.int32)  # one buffer for every pass's labels
-        excluded = _star_light(above, masked, smooth, box_px, labels)
+        if light is None:  # the buffers of every pass, allocated once (docs/realsky.md, "Large frames")
+            light = _StarLightBuffers(
+                np.zeros(boxes.padded_shape, dtype=bool),
+                np.zeros(boxes.padded_shape, dtype=bool),
+                np.empty(boxes.padded_shape, dtype=np.int32),
+                np.empty(boxes.padded_shape, dtype=bool),
+            )
+            fine_offset = _filled(fine_medians)
+        excluded = _star_light(filtered, fine_offset, fine_px, masked, smooth, box_px, light)
         excluded |= masked
     return smooth, rows, cols
 
@@ -231,59 +239,73 @@ def _box_constant(grid: np.ndarray, box_px: int, shape: tuple[int, int]) -> np.n
     return np.repeat(np.repeat(grid, box_px, axis=0), box_px, axis=1)[:h, :w]
 
 
-def _subtract_box_constant(image: np.ndarray, grid: np.ndarray, box_px: int) -> None:
-    """``image -= _box_constant(grid, box_px, image.shape)`` in place: each box's value subtracted from its pixels
-    through a view of the image as boxes where its size is a whole number of them (the same differences, without
-    the image of box values)."""
-    h, w = image.shape
-    ny, nx = grid.shape
-    if (h, w) == (ny * box_px, nx * box_px):
-        image.reshape(ny, box_px, nx, box_px)[...] -= grid[:, None, :, None]
-    else:
-        image -= _box_constant(grid, box_px, image.shape)
+@dataclass(frozen=True)
+class _StarLightBuffers:
+    """The (padded h, padded w) arrays :func:`_star_light` writes in each pass of :func:`_clipped_box_noise`, allocated
+    once: ``isophote`` and ``peaks`` bool (False beyond the image, never written), ``labels`` int32 (the regions),
+    ``light`` bool (the pass's result)."""
+
+    isophote: np.ndarray
+    peaks: np.ndarray
+    labels: np.ndarray
+    light: np.ndarray
 
 
 def _star_light(
-    above: np.ndarray, mask: np.ndarray, noise: np.ndarray, noise_px: int, labels: np.ndarray | None = None
+    filtered: np.ndarray,
+    offset: np.ndarray,
+    offset_px: int,
+    mask: np.ndarray,
+    noise: np.ndarray,
+    noise_px: int,
+    buffers: _StarLightBuffers,
 ) -> np.ndarray:
-    """(h, w) bool: the pixels of ``above`` (the filtered image less its offset) outside ``mask`` in a connected
-    region (8-connected) above :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` that holds a pixel above
-    :data:`_STAR_PEAK_SIGMAS` x ``noise`` (a star, down to its 1-sigma isophote); ``noise`` per box of ``noise_px``
-    from pixel 0, constant over each box (:func:`_box_constant`). The image is compared box by box (each box's
-    threshold broadcast over its pixels, the same comparisons as against the thresholds spread over the image) when
-    its size is a whole number of boxes, as the padded image of :func:`_clipped_box_noise` is. ``labels``: an int32
-    array of ``above``'s shape to label the regions in (the passes reuse one instead of allocating a new frame-sized
-    array each)."""
+    """(padded h, padded w) bool, ``buffers.light``: the pixels of ``filtered`` less ``offset`` (per box of
+    ``offset_px`` from pixel 0: the filtered image over its offset) outside ``mask`` in a connected region
+    (8-connected) above :data:`_STAR_ISOPHOTE_SIGMAS` x ``noise`` that holds a pixel above :data:`_STAR_PEAK_SIGMAS`
+    x ``noise`` (a star, down to its 1-sigma isophote); ``noise`` per box of ``noise_px`` from pixel 0, constant over
+    each box. ``mask`` is (padded h, padded w), the padding beyond ``filtered`` masked. The difference and the
+    comparisons are formed a strip of rows at a time, each strip within one row of offset boxes and one of noise boxes
+    (the same differences and comparisons as over the whole frame: each strip's offsets and thresholds are one row of
+    values, broadcast over its rows), so no frame-sized float array is made (docs/realsky.md, "Large frames")."""
     from scipy import ndimage
 
-    ny, nx = noise.shape
-    if above.shape == (ny * noise_px, nx * noise_px):
-        boxes = above.reshape(ny, noise_px, nx, noise_px)
-        per_box = noise[:, None, :, None]
-        isophote = (boxes > _STAR_ISOPHOTE_SIGMAS * per_box).reshape(above.shape)
-        peaks = (boxes > _STAR_PEAK_SIGMAS * per_box).reshape(above.shape)
-    else:
-        sigma = _box_constant(noise, noise_px, above.shape)
-        isophote, peaks = above > _STAR_ISOPHOTE_SIGMAS * sigma, above > _STAR_PEAK_SIGMAS * sigma
-    isophote &= ~mask
-    labels = np.empty(above.shape, dtype=np.int32) if labels is None else labels
+    h, w = filtered.shape
+    isophote, peaks, labels = buffers.isophote, buffers.peaks, buffers.labels
+    isophote_thresholds = np.repeat(_STAR_ISOPHOTE_SIGMAS * noise, noise_px, axis=1)[:, :w]
+    peak_thresholds = np.repeat(_STAR_PEAK_SIGMAS * noise, noise_px, axis=1)[:, :w]
+    offsets = np.repeat(offset, offset_px, axis=1)[:, :w]
+    edges = np.union1d(np.arange(0, h, offset_px), np.arange(0, h, noise_px))
+    above = np.empty((min(offset_px, noise_px), w))
+    for start, stop in zip(edges, [*edges[1:], h], strict=True):
+        strip = above[: stop - start]
+        np.subtract(filtered[start:stop], offsets[start // offset_px], out=strip)
+        np.greater(strip, isophote_thresholds[start // noise_px], out=isophote[start:stop, :w])
+        np.greater(strip, peak_thresholds[start // noise_px], out=peaks[start:stop, :w])
+        isophote[start:stop, :w] &= ~mask[start:stop, :w]
     n = ndimage.label(isophote, structure=np.ones((3, 3), dtype=int), output=labels)
     star = np.zeros(n + 1, dtype=bool)
     star[labels[peaks]] = True
     star[0] = False
-    return np.take(star, labels)  # star[labels], faster (docs/realsky.md, "Time")
+    # star[labels] into the pass's buffer, a strip at a time: take converts its indices to intp (a frame of them
+    # would be 8 bytes a pixel); mode "clip" (every label is in range) writes to out directly
+    light, rows = buffers.light, max(1, _TAKE_STRIP_ELEMENTS // labels.shape[1])
+    for start in range(0, labels.shape[0], rows):
+        np.take(star, labels[start : start + rows], out=light[start : start + rows], mode="clip")
+    return light
 
 
 @dataclass(frozen=True)
 class _Boxes:
-    """The pixels of an image in boxes from pixel (0, 0) (:func:`_boxes`): ``values`` (boxes, box^2) float32, NaN
-    for masked pixels and beyond the image; ``inside`` each box's number of pixels within the image; the boxes' grid
-    shape, the shape of the image padded to whole boxes, and the boxes' centres [px]. ``work``: each box's pixels
-    left by the last pass, sorted (NaN last), ``work_gone`` the pixels that pass excluded (boxes, box^2) bool and
-    ``work_counted`` each box's number left, updated in place by :func:`_masked_box_percentiles` (at first every
-    pixel excluded, none left: a state as consistent as any other)."""
+    """The pixels of an image in boxes from pixel (0, 0) (:func:`_boxes`): ``image`` the image itself (float64, not
+    copied: :func:`_box_row_values` reads a row of boxes from it when a pass needs it); ``inside`` each box's number
+    of pixels within the image; the boxes' grid shape, the shape of the image padded to whole boxes, and the boxes'
+    centres [px]. ``work``: each box's pixels left by the last pass (boxes, box^2) float32, sorted (NaN last),
+    ``work_gone`` the pixels that pass excluded (boxes, box^2) bool and ``work_counted`` each box's number left,
+    updated in place by :func:`_masked_box_percentiles` (at first every pixel excluded, none left: a state as
+    consistent as any other)."""
 
-    values: np.ndarray
+    image: np.ndarray
     work: np.ndarray
     work_gone: np.ndarray
     work_counted: np.ndarray
@@ -292,6 +314,16 @@ class _Boxes:
     padded_shape: tuple[int, int]
     row_centres: np.ndarray
     col_centres: np.ndarray
+
+
+def _box_grid(h: int, w: int, box_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each box's number of pixels within an (h, w) image, (boxes,), and the boxes' centres, rows and columns [px],
+    for boxes of ``box_px`` from pixel (0, 0) (the last row and column of boxes cut by the border)."""
+    ny, nx = -(-h // box_px), -(-w // box_px)
+    inside = np.outer(np.minimum(box_px, h - np.arange(ny) * box_px), np.minimum(box_px, w - np.arange(nx) * box_px))
+    row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
+    col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
+    return inside.ravel(), row_centres, col_centres
 
 
 def _box_blocks(image: np.ndarray, mask: np.ndarray, box_px: int):
@@ -305,21 +337,38 @@ def _box_blocks(image: np.ndarray, mask: np.ndarray, box_px: int):
     padded[:h, :w] = image
     padded[:h, :w][mask] = np.nan
     blocks = padded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
-    inside = np.outer(np.minimum(box_px, h - np.arange(ny) * box_px), np.minimum(box_px, w - np.arange(nx) * box_px))
-    row_centres = np.minimum(np.arange(ny) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(ny) * box_px + h - 1))
-    col_centres = np.minimum(np.arange(nx) * box_px + 0.5 * (box_px - 1), 0.5 * (np.arange(nx) * box_px + w - 1))
-    return blocks, inside.ravel(), row_centres, col_centres
+    return (blocks, *_box_grid(h, w, box_px))
 
 
-def _boxes(image: np.ndarray, mask: np.ndarray, box_px: int) -> _Boxes:
-    """The :class:`_Boxes` of the pixels of ``image`` outside ``mask`` in boxes of ``box_px``, laid out once for
-    every pass of :func:`_clipped_box_noise`."""
-    blocks, inside, row_centres, col_centres = _box_blocks(image, mask, box_px)
+def _box_row_values(out: np.ndarray, image: np.ndarray, box_row: int, box_px: int) -> np.ndarray:
+    """``out`` (boxes of the row, box^2) float32: the pixels of ``image`` in each box of row ``box_row`` of boxes of
+    ``box_px`` from pixel (0, 0), NaN beyond the image; the numbers of :func:`_box_blocks`' rows (the same float32
+    rounding), without a padded copy of the frame."""
+    h, w = image.shape
+    nx = out.shape[0]
+    start = box_row * box_px
+    strip = image[start : min(h, start + box_px)]
+    n_rows, whole = strip.shape[0], w // box_px
+    boxes = out.reshape(nx, box_px, box_px).transpose(1, 0, 2)  # (row within the box, box, column within the box)
+    boxes[:n_rows, :whole] = strip[:, : whole * box_px].reshape(n_rows, whole, box_px)
+    if whole < nx:
+        boxes[:n_rows, whole, : w - whole * box_px] = strip[:, whole * box_px :]
+        boxes[:n_rows, whole, w - whole * box_px :] = np.nan
+    boxes[n_rows:] = np.nan
+    return out
+
+
+def _boxes(image: np.ndarray, box_px: int) -> _Boxes:
+    """The :class:`_Boxes` of the pixels of ``image`` in boxes of ``box_px``, laid out once for every pass of
+    :func:`_clipped_box_noise` (which pixels are masked each pass says: :func:`_masked_box_percentiles`)."""
+    h, w = image.shape
+    inside, row_centres, col_centres = _box_grid(h, w, box_px)
     grid = (row_centres.size, col_centres.size)
     padded = (grid[0] * box_px, grid[1] * box_px)
-    work, work_gone = np.full_like(blocks, np.nan), np.ones(blocks.shape, dtype=bool)
-    none_left = np.zeros(blocks.shape[0], dtype=np.int64)
-    return _Boxes(blocks, work, work_gone, none_left, inside, grid, padded, row_centres, col_centres)
+    work = np.full((grid[0] * grid[1], box_px * box_px), np.nan, dtype=np.float32)
+    work_gone = np.ones(work.shape, dtype=bool)
+    none_left = np.zeros(work.shape[0], dtype=np.int64)
+    return _Boxes(image, work, work_gone, none_left, inside, grid, padded, row_centres, col_centres)
 
 
 def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
@@ -334,13 +383,22 @@ def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple
     box_px = boxes.padded_shape[0] // ny
     gone = excluded.reshape(ny, box_px, nx, box_px).transpose(0, 2, 1, 3).reshape(ny * nx, -1)
     changed = (gone != boxes.work_gone).any(axis=1)
-    if changed.all():  # the first pass: every box, sorted in place in the work array (no new 5 MB arrays)
-        _sort_left(boxes.work, boxes.values, gone)
+    if changed.any():
+        # each row of boxes read from the image, its changed boxes sorted (the first pass: every box, in place in
+        # the work array)
+        for box_row in np.flatnonzero(changed.reshape(ny, nx).any(axis=1)):
+            row = slice(box_row * nx, (box_row + 1) * nx)
+            if changed[row].all():
+                _sort_left(_box_row_values(boxes.work[row], boxes.image, box_row, box_px), gone[row])
+            else:
+                picked = row.start + np.flatnonzero(changed[row])
+                values = _box_row_values(np.empty((nx, box_px * box_px), np.float32), boxes.image, box_row, box_px)
+                boxes.work[picked] = _sort_left(values[picked - row.start], gone[picked])
+    if changed.all():
         np.copyto(boxes.work_gone, gone)
         boxes.work_counted[:] = gone.shape[1] - np.count_nonzero(gone, axis=1)
     elif changed.any():
         rows = np.flatnonzero(changed)
-        boxes.work[rows] = _sort_left(np.empty((rows.size, gone.shape[1]), np.float32), boxes.values[rows], gone[rows])
         boxes.work_gone[rows] = gone[rows]
         boxes.work_counted[rows] = gone.shape[1] - np.count_nonzero(gone[rows], axis=1)
     counted = boxes.work_counted
@@ -352,12 +410,11 @@ def _masked_box_percentiles(boxes: _Boxes, excluded: np.ndarray, percents: tuple
     return out.reshape(ny, nx, len(percents))
 
 
-def _sort_left(out: np.ndarray, values: np.ndarray, gone: np.ndarray) -> np.ndarray:
-    """``out`` (rows, n) float32: each row of ``values`` with its ``gone`` pixels NaN, sorted (NaN last)."""
-    np.copyto(out, values)
-    np.copyto(out, np.float32(np.nan), where=gone)
-    out.sort(axis=1)
-    return out
+def _sort_left(values: np.ndarray, gone: np.ndarray) -> np.ndarray:
+    """``values`` (rows, n) float32, in place: each row with its ``gone`` pixels NaN, sorted (NaN last)."""
+    np.copyto(values, np.float32(np.nan), where=gone)
+    values.sort(axis=1)
+    return values
 
 
 def _step_offset(residual: np.ndarray, filtered_noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -516,7 +573,11 @@ def filtered_noise_correction(
     filtered = ndimage.convolve(sub, k / k.sum(), mode="nearest")
     offset, noise, edge = local_noise_map(filtered, sep_rms, kernel_norm(k), box_px, blank)
     # a flat image's "noise" is the rounding of SEP's float32 background: not noise
-    noise = np.maximum(noise, _ROUNDING_NOISE_EPS * float(np.finfo(np.float32).eps) * abs(background_level))
+    rounding = _ROUNDING_NOISE_EPS * float(np.finfo(np.float32).eps) * abs(background_level)
+    if noise is sep_rms:  # the caller's array, kept as it is
+        noise = np.maximum(noise, rounding)
+    else:  # the map is this call's own: floored in place (a second frame-sized float64 array at the peak otherwise)
+        np.maximum(noise, rounding, out=noise)
     filtered -= offset
     ignored = blank | edge
     if ignored.any():

@@ -94,13 +94,15 @@ def _extract(
             sub, bkg.rms, _FILTER_KERNEL, box, blank, bkg.globalback
         )
         sub -= offset
+        del offset  # a frame-sized float64 array no longer needed (the frame's peak memory: docs/realsky.md)
         objects, segmap = _sep_extract(sep, sub, rms, ignored, options, options.min_area_px)
     except Exception as exc:  # SEP reports buffer overflows as plain exceptions
         raise _extraction_failed(exc) from None
-    # filtered / (rms x norm), the divisor's array reused for the quotient: a second frame-sized array at once made
-    # the allocator map fresh pages (3.2 against 0.6 ms for 1.2 Mpx)
-    significance = np.multiply(rms, _FILTERED_NOISE_PER_PX)
-    np.divide(filtered, significance, out=significance)
+    # filtered / (rms x norm) in filtered's own array, a strip of rows at a time: the divisor's strip is the only
+    # temporary (a frame-sized one was the stage's peak on a large frame: docs/realsky.md, "Large frames")
+    significance, rows = filtered, max(1, _SIGNIFICANCE_STRIP_ELEMENTS // max(filtered.shape[1], 1))
+    for start in range(0, significance.shape[0], rows):
+        significance[start : start + rows] /= rms[start : start + rows] * _FILTERED_NOISE_PER_PX
     # the PSF measured outside the guard: a failure of ours there is not SEP's, nor cured by a higher threshold
     sigma = options.psf_sigma_px or _first_pass_psf_sigma_px(sub, objects, segmap, raw, level)
     min_area = _footprint_px(sigma, options.min_area_px) if options.footprint_follows_psf else options.min_area_px
@@ -124,6 +126,8 @@ def _extraction_failed(exc: Exception) -> UserError:
 
 #: The filtered image's noise per unit of the per-pixel noise (the detection kernel normalised: sqrt(sum k^2)).
 _FILTERED_NOISE_PER_PX = kernel_norm(_FILTER_KERNEL)
+#: The significance is divided this many pixels at a time (:func:`_extract`: a float64 strip of 2 MB).
+_SIGNIFICANCE_STRIP_ELEMENTS = 1 << 18
 
 
 def _first_pass_psf_sigma_px(sub, objects: np.ndarray, segmap, raw, level: float | None) -> float:
