@@ -1,17 +1,19 @@
 """The principal point of an off-centre strip camera (docs/calibration.md, "Off-centre strip: the principal point's
 stated 1-sigma"): with decentering and prism free the stated 1-sigma is that of the local minimum and lies below the
 Cramer-Rao bound at the truth (the degeneracy line says so in every session); with the thin prism held it is the
-spread of the fits and the bound, without bias."""
+spread of the fits and the bound, without bias. The onboard filter started from those fits: the same two cases."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from hostlink.calibration.crb import fisher_information
+from hostlink.calibration.crb import fisher_information, interstar_information
 from hostlink.calibration.report import principal_point_prism_note
 from hostlink.calibration.run import calibrate
-from hostlink.calibration.synthetic import synthetic_session
+from hostlink.calibration.synthetic import make_frames, synthetic_session
+from onboard import recursive
 from onboard.params import ESTIMATE_NAMES, params_from_dict
+from onboard.prior import prior_config
 
 #: The bench's strip camera of docs/camera-model.md: 2048 x 512 px, 16 mm, 5.5 um, principal point far off centre.
 STRIP = params_from_dict(
@@ -94,3 +96,55 @@ def test_with_prism_free_the_stated_sigma_is_below_the_bound_and_the_report_says
     # a correct sigma would give 1 (above 1.5 with probability < 1e-6 for 40 Gaussian ratios)
     z = errors[:, 1:3] / stated[:, 1:3]
     assert np.sqrt(np.mean(z[:, 0] ** 2)) > 1.5
+
+
+ONBOARD_FRAMES = 500
+ONBOARD_SESSIONS = 4
+
+
+def _onboard_sigma_over_bound(estimate):
+    """x0, y0 of the onboard filter (float64 reference) started from each host fit with its 1-sigma as uploaded
+    (``onboard.prior.prior_config``), then fed ONBOARD_FRAMES new frames: (stated 1-sigma / bound, error / stated
+    1-sigma) per session. The bound: the interstar Fisher information of those frames at the truth plus the filter's own
+    diagonal prior (its information), inverted."""
+    truth = STRIP.model_vector(np.float64)
+    ratio, z = [], []
+    for seed in range(ONBOARD_SESSIONS):
+        ss = synthetic_session(STRIP, N_FRAMES, noise_px=NOISE_PX, seed=seed)
+        out = calibrate(ss.data, NOMINAL, estimate=estimate, noise_px=NOISE_PX, mirror_fit=False)
+        cols = np.array([ESTIMATE_NAMES.index(n) for n in out.estimate])
+        sigma = np.full(10, np.nan)
+        sigma[cols] = np.sqrt(np.diag(out.covariance))
+        sigma[0] *= STRIP.pixel_pitch_um / 1000.0  # F px -> f mm, the set's units
+        config = prior_config(None, out.params, sigma, out.estimate)
+        state = recursive.create(out.params, out.estimate, config, np.float64)
+        frames = make_frames(STRIP, ONBOARD_FRAMES, NOISE_PX, seed=1000 + seed)
+        for fr in frames:
+            recursive.update(state, fr.x_px, fr.y_px, fr.r, fr.identified)
+        prior_model = np.array(config.prior_sigma, dtype=np.float64)[cols]
+        prior_model[0] *= 1000.0 / STRIP.pixel_pitch_um
+        info = interstar_information(STRIP, frames, NOISE_PX, cols) + np.diag(prior_model**-2.0)
+        bound = np.sqrt(np.diag(np.linalg.inv(info))[1:3])
+        stated = np.sqrt(np.diag(recursive.covariance(state))[1:3])
+        error = recursive.current_params(state).model_vector(np.float64)[1:3] - truth[1:3]
+        ratio.append(stated / bound)
+        z.append(error / stated)
+    return np.array(ratio), np.array(z)
+
+
+def test_onboard_with_the_prism_held_the_stated_sigma_is_the_bound():
+    # Measured 1.00-1.01 in x0 and y0 on the 4 sessions; 0.9-1.2 allows for the filter's stated excess over the bound
+    # with a burn-in (4-12 %, onboard/recursive.py; none here: the prior is refined) and its linearisation.
+    ratio, z = _onboard_sigma_over_bound(WITHOUT_PRISM)
+    assert np.all((ratio > 0.9) & (ratio < 1.2)), ratio
+    # each error within 4 stated sigmas (a Gaussian tail of 6e-5 each)
+    assert np.all(np.abs(z) < 4.0), z
+
+
+def test_onboard_with_prism_free_the_stated_sigma_falls_below_the_bound():
+    # The known limitation (docs/calibration.md, "Off-centre strip: the principal point's stated 1-sigma"): the
+    # filter, linearised in the host's minimum, states a 1-sigma below the bound at the truth: 0.32-0.67 of it on the
+    # 4 sessions (medians 0.46 in x0, 0.62 in y0), against 1.00-1.01 with the prism held. Below 0.8 in the median:
+    # asserted so that a change that fixes it (or hides it) is seen.
+    ratio, _ = _onboard_sigma_over_bound(None)
+    assert np.all(np.median(ratio, axis=0) < 0.8), ratio
