@@ -275,8 +275,8 @@ def principal_point_prism(
             f"each grown by d / (2 F^2) moves no star to first order once the attitudes are re-fitted ({pp} and "
             f"{worst}: rho = {rho[worst]:+.3f}), so the cost along that shift is set by second-order terms and can "
             "have another minimum with the shift reversed: the 1-sigma above is that of this minimum only. Hold "
-            "decentering and prism (--estimate f,x0,y0,k1,k2,k3) or the principal point, or add frames with a "
-            "wider field"
+            "decentering and prism (--estimate f,x0,y0,k1,k2,k3), or the thin prism alone (--estimate "
+            "f,x0,y0,k1,k2,k3,p1,p2), or the principal point, or add frames with a wider field"
         )
         out.append({"parameter": pp, "with": [p, s], "rho": rho, "message": message})
     return out
@@ -290,10 +290,12 @@ def principal_point_prism_note(prism: list[dict]) -> str | None:
     if not prism:
         return None
     names = ", ".join(p["parameter"] for p in prism)
-    held = ",".join(n for n in ESTIMATE_NAMES if n not in {m for p in prism for m in p["with"]})
+    with_names = {m for p in prism for m in p["with"]}
+    without = ",".join(n for n in ESTIMATE_NAMES if n not in with_names)
+    without_prism = ",".join(n for n in ESTIMATE_NAMES if n not in with_names or not n.startswith("s"))
     return (
         f"{names} not determined with decentering and prism free: the 1-sigma is that of this minimum only "
-        f"(hold them if the lens has none: --estimate {held})"
+        f"(if the lens has none, hold them, --estimate {without}, or the thin prism, --estimate {without_prism})"
     )
 
 
