@@ -234,7 +234,7 @@ def degeneracies(normal: np.ndarray, estimate: tuple[str, ...], u_diag: np.ndarr
                     "above (only the perspective across the field tells them apart: more frames or a wider field "
                     "shrink it)"
                 )
-        prism = principal_point_prism(tradeoff, correlated)
+        prism = principal_point_prism(tradeoff, correlated, tuple(estimate))
         messages.extend(p["message"] for p in prism)
     return {
         "condition_number": cond,
@@ -246,17 +246,26 @@ def degeneracies(normal: np.ndarray, estimate: tuple[str, ...], u_diag: np.ndarr
     }
 
 
-def principal_point_prism(tradeoff: list[dict], correlated: list[dict]) -> list[dict]:
+def principal_point_prism(
+    tradeoff: list[dict], correlated: list[dict], estimate: tuple[str, ...] | None = None
+) -> list[dict]:
     """The principal-point coordinates the data leave to terms of second order
     (:func:`hostlink.calibration.mirror.prism_shift_direction`): traded off against attitude (``tradeoff`` of
     :func:`degeneracies`) and correlated beyond :data:`CORRELATION_LIMIT` with their decentering or thin-prism
     coefficient (``correlated``). Their linearised 1-sigma is that of the local minimum only: the cost along the shift
     is set by second-order terms and can have another minimum with the shift reversed (docs/calibration.md, "Principal
-    point with decentering and prism free")."""
+    point with decentering and prism free").
+
+    The shift moves no star to first order only with both coefficients free: with ``estimate`` given, a coordinate
+    whose decentering or prism coefficient is held is not listed (with p1 alone the shift leaves d r^2 / (2 F^2) in x,
+    first order in d, so x0 is determined and its 1-sigma is the spread of fits even at a correlation of 0.977 with p1:
+    docs/calibration.md, "Off-centre strip: the principal point's stated 1-sigma")."""
     traded = {t["parameter"] for t in tradeoff}
     pairs = {frozenset((c["a"], c["b"])): c["rho"] for c in correlated}
     out = []
     for pp, p, s in PRINCIPAL_POINT_PRISM:
+        if estimate is not None and not (p in estimate and s in estimate):
+            continue
         rho = {n: pairs[frozenset((pp, n))] for n in (p, s) if frozenset((pp, n)) in pairs}
         if pp not in traded or not rho:
             continue
@@ -266,11 +275,28 @@ def principal_point_prism(tradeoff: list[dict], correlated: list[dict]) -> list[
             f"each grown by d / (2 F^2) moves no star to first order once the attitudes are re-fitted ({pp} and "
             f"{worst}: rho = {rho[worst]:+.3f}), so the cost along that shift is set by second-order terms and can "
             "have another minimum with the shift reversed: the 1-sigma above is that of this minimum only. Hold "
-            "decentering and prism (--estimate f,x0,y0,k1,k2,k3) or the principal point, or add frames with a "
-            "wider field"
+            "decentering and prism (--estimate f,x0,y0,k1,k2,k3), or the thin prism alone (--estimate "
+            "f,x0,y0,k1,k2,k3,p1,p2), or the principal point, or add frames with a wider field"
         )
         out.append({"parameter": pp, "with": [p, s], "rho": rho, "message": message})
     return out
+
+
+def principal_point_prism_note(prism: list[dict]) -> str | None:
+    """One line for a summary (the bench's calibration phase) when :func:`principal_point_prism` found coordinates
+    the data leave to second-order terms, else None: their stated 1-sigma is that of the fit's own minimum, below the
+    spread of fits and the Cramer-Rao bound at the truth when the truth lies near the prism-free point
+    (docs/calibration.md, "Off-centre strip: the principal point's stated 1-sigma")."""
+    if not prism:
+        return None
+    names = ", ".join(p["parameter"] for p in prism)
+    with_names = {m for p in prism for m in p["with"]}
+    without = ",".join(n for n in ESTIMATE_NAMES if n not in with_names)
+    without_prism = ",".join(n for n in ESTIMATE_NAMES if n not in with_names or not n.startswith("s"))
+    return (
+        f"{names} not determined with decentering and prism free: the 1-sigma is that of this minimum only "
+        f"(if the lens has none, hold them, --estimate {without}, or the thin prism, --estimate {without_prism})"
+    )
 
 
 #: Auto-hold (:func:`undetermined_parameters`): the principal point is held at nominal when its 1-sigma exceeds this

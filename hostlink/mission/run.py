@@ -149,6 +149,7 @@ def calibrate_phase(run: BenchRun, streamed: Session, out: Path, say: Callable[[
     """3. Bundle-adjust the streamed session from the nominal camera; the result goes to ``calibrated.json``.
     A calibration the data cannot support is a one-line UserError (nothing is uploaded)."""
     from hostlink.calibration.data import calibration_data_from_session
+    from hostlink.calibration.report import principal_point_prism_note
     from hostlink.calibration.run import calibrate, result_extras
 
     t = time.perf_counter()
@@ -161,6 +162,9 @@ def calibrate_phase(run: BenchRun, streamed: Session, out: Path, say: Callable[[
     save_params(out / "calibrated.json", run.outcome.params, result_extras(run.outcome))
     run.phases.append(Phase("calibrate", time.perf_counter() - t, f"bundle, {len(run.outcome.history)} iterations"))
     say(f"[3/6] calibrated: residual {run.outcome.before['rms_px']:.3f} -> {run.outcome.after['rms_px']:.4f} px RMS")
+    note = principal_point_prism_note(run.outcome.degeneracies.get("principal_point_prism", []))
+    if note is not None:
+        say(f"      {note}")
 
 
 def upload_phase(run: BenchRun, link: Link, generation_before: int, say: Callable[[str], None]) -> None:
