@@ -18,6 +18,7 @@ from hostlink.images.extend import (
     _completeness,
     _extend,
     _faintest_detectable,
+    _radial_search_by_hits,
     _too_faint,
     _zero_point,
 )
@@ -141,6 +142,7 @@ def _confirm(
     image_size_px: tuple[int, int],
     scale: float | None = None,
     mag: np.ndarray | None = None,
+    scanned: bool = False,
 ) -> tuple[FrameIdentity, np.ndarray]:
     """Verify, extend and verify again a proposal (module docstring, steps 2-4): the frame's identity and the
     (N,) Hipparcos number of each centroid (0 where not identified). ``scale``: F / F_nominal when known (a
@@ -155,6 +157,12 @@ def _confirm(
     )
     if v.attitude is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
+    if scale is not None:  # a matcher's few stars verify through any k1: the lens searched over the frame
+        mag_limit = float(np.max(sky.mag[stars[v.keep]])) + EXTEND_MAG_MARGIN
+        searched = _radial_search_by_hits(x_px, y_px, rows, stars, v, sky, image_size_px, mag_limit, scanned)
+        if searched is not v and scanned:
+            scale = None  # the scan's step was the nominal lens's scale at the anchors, the lens found's is not it
+        v = searched
     extended = _extension_rounds(x_px, y_px, rows, stars, v, theta, sky, image_size_px, mag)
     if extended is None:
         return replace(ident, n_candidates=n_proposed, status="not verified"), hip_out
@@ -324,7 +332,18 @@ def identify_frame(
             )
             for rows, stars, mirrored in proposals:
                 result = _confirm(
-                    ident, x_px, y_px, bright[rows], stars, mirrored, theta, sky, nominal.image_size_px, scale, mag
+                    ident,
+                    x_px,
+                    y_px,
+                    bright[rows],
+                    stars,
+                    mirrored,
+                    theta,
+                    sky,
+                    nominal.image_size_px,
+                    scale,
+                    mag,
+                    scanned=not known,
                 )
                 if result[0].status == "identified":
                     return result

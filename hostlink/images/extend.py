@@ -6,12 +6,20 @@ completeness of a solution (:func:`_completeness`) and the photometric check of 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from hostlink.images import blends
 from hostlink.images.skyindex import _mirror_x, _Sky
-from hostlink.images.verify import _Verified
+from hostlink.images.verify import (
+    _K1,
+    RADIAL_SEARCH_BELOW,
+    RADIAL_SEARCH_CORNER,
+    _scale_through,
+    _Verified,
+)
+from onboard.attitude import DegenerateGeometry, attitude_from_vectors, residuals_rad
 from onboard.camera import pixels_to_unit, unit_to_pixels
 
 #: Extension: a centroid within this many rms residuals of the verified stars (or :data:`EXTEND_RADIUS_PX`,
@@ -277,3 +285,53 @@ def _faintest_detectable(mag: np.ndarray | None, zero_point: float) -> float:
     if mag is None or not math.isfinite(zero_point) or not np.any(np.isfinite(mag)):
         return math.inf
     return float(np.nanmax(mag)) + zero_point + PHOTOMETRIC_TOL_MAG
+
+
+#: :func:`_radial_search_by_hits`: a predicted catalogue star is hit when a centroid lies within this radius [px]
+#: (the verification's absolute tolerance: centroid noise plus the distortion a k1 alone leaves of a wider lens).
+HIT_SEARCH_RADIUS_PX = 3.0
+
+
+def _hit_fraction(x_px, y_px, sky, v, image_size_px, mag_limit) -> float:
+    """The fraction of the catalogue stars to ``mag_limit`` that ``v`` puts on the detector with a centroid within
+    :data:`HIT_SEARCH_RADIUS_PX` (0 when none is predicted)."""
+    _, xp, yp = _predict(sky, v.theta, v, image_size_px, mag_limit)
+    _, p, _ = _near_pairs(x_px, y_px, xp, yp, HIT_SEARCH_RADIUS_PX)
+    return np.unique(p).size / xp.size if xp.size else 0.0
+
+
+def _radial_search_by_hits(x_px, y_px, rows, stars, v, sky, image_size_px, mag_limit, rescale: bool) -> _Verified:
+    """The own matcher's verified proposal (``rows``, ``stars``, ``v``: a few bright stars, which every k1 verifies
+    alike) with k1 searched over the frame instead (:data:`RADIAL_SEARCH_CORNER`), when at its camera fewer than
+    :data:`RADIAL_SEARCH_BELOW` of the catalogue stars to ``mag_limit`` it puts on the detector land on a centroid:
+    for each k1 (and, with ``rescale``, the scale re-estimated through it from the proposal's pairs: a scan's step
+    is the nominal's scale where the anchors lie, not a focal length) the attitude refitted on the proposal and the
+    fraction of predicted stars hit counted; the most win (ties: the smallest |k1|), adopted only when at least
+    :data:`RADIAL_SEARCH_BELOW` of them are hit (a lens that explains the field: a wrong proposal's chance hits stay
+    near the centroids' density, a few %). The given ``v`` otherwise (docs/realsky.md, "Verification under a strong
+    unknown lens")."""
+    keep = v.keep
+    xs, ys, rs = x_px[rows[keep]], y_px[rows[keep]], sky.r[stars[keep]]
+    r_corner = 0.5 * math.hypot(*image_size_px)
+    if _hit_fraction(x_px, y_px, sky, v, image_size_px, mag_limit) >= RADIAL_SEARCH_BELOW:
+        return v
+    best, best_hits = v, RADIAL_SEARCH_BELOW
+    for corner in sorted(RADIAL_SEARCH_CORNER, key=abs):
+        theta_k = np.array(v.theta, dtype=np.float64)
+        theta_k[_K1] += corner / r_corner**2
+        if rescale:
+            scale = _scale_through(xs, ys, rs, theta_k, v.mirrored)
+            if not math.isfinite(scale):
+                continue
+            theta_k[0] *= scale
+        b = pixels_to_unit(_mirror_x(xs, theta_k, v.mirrored), ys, theta_k)
+        try:
+            c = attitude_from_vectors(b, rs)
+        except DegenerateGeometry:
+            continue
+        trial = _Verified(keep, v.mirrored, v.scale, v.parity_agreement, c, None, theta_k)
+        n_hits = _hit_fraction(x_px, y_px, sky, trial, image_size_px, mag_limit)
+        if n_hits > best_hits or (n_hits == best_hits and best is v):
+            b_all = pixels_to_unit(_mirror_x(x_px[rows], theta_k, v.mirrored), y_px[rows], theta_k)
+            best, best_hits = replace(trial, residual_rad=residuals_rad(b_all, sky.r[stars], c)), n_hits
+    return best

@@ -321,3 +321,11 @@ def _verify_best_parity(
     if second.parity_agreement >= PARITY_MIN_AGREEMENT:
         return second
     return first
+
+
+def _scale_through(x_px, y_px, r, theta, mirrored: bool) -> float:
+    """F / F of ``theta`` that the stars' pairs measure through it (:func:`estimate_scale_of_table`; NaN without a
+    pair long enough)."""
+    data = build_data(_mirror_x(x_px, theta, mirrored), y_px, r, np.zeros(x_px.shape[0], dtype=np.int64))
+    scale, n_pairs = estimate_scale_of_table(data, pair_table(data), theta)
+    return float(scale) if n_pairs else math.nan
