@@ -7,16 +7,13 @@ the true one, no name wrong."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
 from test_identify_field_widths import ID_MAGLIM, _ambiguous
-from test_identify_wide_distortion import K1_CORNER, K2_CORNER, NOMINAL_FOCAL_ERROR, _nominal
+from test_identify_wide_distortion import NOMINAL_FOCAL_ERROR, _nominal, mustache_frames
 
 from hostlink.images.identify import identify_session
-from hostlink.sky.simulate import SimConfig, seed004_camera, simulate
-from onboard.params import Distortion
 
 #: A 3:2 detector 55 deg across (64 deg on the diagonal), the mustache lens of test_identify_wide_distortion
 #: (-20 % / +8 % of the radius at the corner), a principal point 4/-3 px off the centre.
@@ -29,30 +26,7 @@ FRAME = 1
 
 
 def test_wide_mustache_frame_through_the_own_matcher_gets_its_lens_searched():
-    width, height = SIZE_PX
-    base = seed004_camera()
-    focal_mm = 0.5 * width * base.pixel_pitch_um * 1e-3 / math.tan(math.radians(0.5 * FOV_DEG))
-    r_corner = 0.5 * math.hypot(width, height)
-    camera = replace(
-        base,
-        focal_length_mm=focal_mm,
-        image_size_px=SIZE_PX,
-        principal_point_px=(0.5 * (width - 1) + 4.0, 0.5 * (height - 1) - 3.0),
-        distortion=Distortion(k1=K1_CORNER / r_corner**2, k2=K2_CORNER / r_corner**4),
-    )
-    sim = simulate(
-        SimConfig(
-            camera=camera,
-            frames=2,
-            noise_px=0.3,
-            min_stars=8,
-            max_stars=1_000_000,
-            maglim=MAGLIM,
-            false_star_fraction=0.05,
-            seed=5,
-        )
-    )
-    session = sim.session
+    camera, session = mustache_frames(SIZE_PX, FOV_DEG, MAGLIM, frames=2)
     truth = session.star_id.copy()
     blind = replace(session, star_id=np.zeros_like(truth), ra_deg=None, dec_deg=None)
     result = identify_session(blind, _nominal(camera), maglim=ID_MAGLIM, use_engine=False)

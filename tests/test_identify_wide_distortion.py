@@ -193,31 +193,36 @@ DEEP_SIZE_PX = (1600, 1067)
 DEEP_MAGLIM = 8.0
 
 
-def test_deep_wide_mustache_frame_verifies_with_the_lens_searched():
-    width, height = DEEP_SIZE_PX
+def mustache_frames(size_px: tuple[int, int], fov_deg: float, maglim: float, frames: int, seed: int = 5):
+    """(camera, simulated session) of a detector of ``size_px`` ``fov_deg`` across through the mustache lens at its
+    corner (:data:`K1_CORNER`, :data:`K2_CORNER`), the principal point 4 / -3 px off the centre, ``frames`` frames to
+    ``maglim`` (0.3 px centroid noise, 5 % false stars)."""
+    width, height = size_px
     base = seed004_camera()
-    focal_mm = 0.5 * width * base.pixel_pitch_um * 1e-3 / math.tan(math.radians(0.5 * DEEP_FOV_DEG))
+    focal_mm = 0.5 * width * base.pixel_pitch_um * 1e-3 / math.tan(math.radians(0.5 * fov_deg))
     r_corner = 0.5 * math.hypot(width, height)
     camera = replace(
         base,
         focal_length_mm=focal_mm,
-        image_size_px=DEEP_SIZE_PX,
+        image_size_px=size_px,
         principal_point_px=(0.5 * (width - 1) + 4.0, 0.5 * (height - 1) - 3.0),
         distortion=Distortion(k1=K1_CORNER / r_corner**2, k2=K2_CORNER / r_corner**4),
     )
-    sim = simulate(
-        SimConfig(
-            camera=camera,
-            frames=1,
-            noise_px=0.3,
-            min_stars=8,
-            max_stars=1_000_000,
-            maglim=DEEP_MAGLIM,
-            false_star_fraction=0.05,
-            seed=5,
-        )
+    config = SimConfig(
+        camera=camera,
+        frames=frames,
+        noise_px=0.3,
+        min_stars=8,
+        max_stars=1_000_000,
+        maglim=maglim,
+        false_star_fraction=0.05,
+        seed=seed,
     )
-    session = sim.session
+    return camera, simulate(config).session
+
+
+def test_deep_wide_mustache_frame_verifies_with_the_lens_searched():
+    camera, session = mustache_frames(DEEP_SIZE_PX, DEEP_FOV_DEG, DEEP_MAGLIM, frames=1)
     truth = session.star_id.copy()
     blind = replace(session, star_id=np.zeros_like(truth), ra_deg=None, dec_deg=None)
     result = identify_session(blind, _nominal(camera), maglim=ID_MAGLIM)
