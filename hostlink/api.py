@@ -112,6 +112,7 @@ if TYPE_CHECKING:
     from hostlink.calibration.holdout import CrossValidation, cross_validate
     from hostlink.calibration.outcome import focal_hint
     from hostlink.calibration.plots import write_calibration_plots
+    from hostlink.calibration.rejected import write_rejected
     from hostlink.calibration.replay import (
         ReplayResult,
         estimate_extras,
@@ -121,7 +122,7 @@ if TYPE_CHECKING:
         replay_prior,
         replay_session,
     )
-    from hostlink.calibration.report import iterations_text, write_rejected
+    from hostlink.calibration.report import iterations_text
     from hostlink.calibration.run import (
         METHODS,
         CalibrationOutcome,

@@ -11,7 +11,7 @@ import pytest
 from synthetic_sessions import synthetic_session
 
 from hostlink.calibration.data import build_data
-from hostlink.calibration.report import REASON_GATING, REASON_UNKNOWN_ID, REASON_VOTING
+from hostlink.calibration.rejected import REASON_GATING, REASON_UNKNOWN_ID, REASON_VOTING
 from hostlink.calibration.robust import estimate_scale, random_triples, triple_handedness
 from hostlink.calibration.run import calibrate, calibrate_session
 from hostlink.cli import main

@@ -136,7 +136,7 @@ def _trace(out: Path) -> list[Path]:
 
 
 def _rejected_report(out: Path) -> list[Path]:
-    from hostlink.calibration.report import RejectedStars, write_rejected
+    from hostlink.calibration.rejected import RejectedStars, write_rejected
 
     one = np.array([1])
     write_rejected(out / "rejected.csv", RejectedStars(one, one, one, np.array(["outlier"]), np.array([2.0])))

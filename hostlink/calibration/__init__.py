@@ -28,6 +28,7 @@ Modules (the bundle adjustment's split along its algorithm: docs/calibration.md)
 - ``floorfit``: the fit with the floor re-estimated between fits, and its record in the result.
 - ``crb``: the Cramer-Rao bound (Fisher information, attitude as nuisance) and the validation residual.
 - ``mirror``: the principal point with decentering and prism free: the mirrored minimum, fitted and reported.
+- ``rejected``: the identified stars a calibration did not use, with their reasons (the ``--rejected`` file).
 - ``report`` / ``plots``: statistics, degeneracies, the terminal table and the figures.
 - ``synthetic``: random star fields through a known camera, exact truth, for judging a method (not the sky simulator).
 - ``status``: the calibration status a result file carries (converged, not converged, failed), which `hostlink upload`

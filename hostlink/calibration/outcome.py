@@ -11,15 +11,15 @@ import numpy as np
 from hostlink.calibration.data import CalibrationData
 from hostlink.calibration.floorfit import radial_allowed
 from hostlink.calibration.model import ARCSEC_PER_RAD
-from hostlink.calibration.report import (
+from hostlink.calibration.rejected import (
     REASON_FEW_IN_FRAME,
     REASON_FRAME_LEFT,
     REASON_GATING,
     REASON_UNKNOWN_ID,
     REASON_VOTING,
     RejectedStars,
-    sigma_dict,
 )
+from hostlink.calibration.report import sigma_dict
 from hostlink.calibration.robust import VOTE_REL_TOL, ScaleParity, estimate_scale_and_parity, max_pair_angle_rad
 from hostlink.errors import UserError
 from hostlink.sky.references import ABERRATION_MAX_RAD, SessionReferences
@@ -267,7 +267,7 @@ class ReferencesSummary:
 
 def rejected_counts(outcome: CalibrationOutcome, references: ReferencesSummary) -> dict[str, int]:
     """The stars of a chunked session the calibration did not use, counted by reason (the ``REASON_*`` texts of
-    :func:`hostlink.calibration.report.rejected_stars`, those with a count): unknown star ids, frames with fewer
+    :func:`hostlink.calibration.rejected.rejected_stars`, those with a count): unknown star ids, frames with fewer
     than three identified stars, voting, gating, and frames left with fewer than three after those."""
     rej = outcome.rejected
     counts = {

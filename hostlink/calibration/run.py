@@ -27,11 +27,11 @@ from hostlink.calibration.outcome import (
     result_extras,
     time_unknown_note,
 )
+from hostlink.calibration.rejected import rejected_stars
 from hostlink.calibration.report import (
     degeneracies,
     fitted_attitudes,
     interstar_rms_rad,
-    rejected_stars,
     residual_stats,
 )
 from hostlink.calibration.robust import max_pair_angle_rad, robust_sigma_2d, vote_consistent_stars
